@@ -1,0 +1,114 @@
+"""The `pbrfit` command: argument parsing, progress and exit codes.
+
+Each subcommand is a thin layer over the Python API. Bad input ends the command with one line
+on stderr, ``pbrfit: error: <what and where>``, and exit status 2; nothing is half written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Optional, Sequence
+
+from .errors import CaptureError
+
+__all__ = ["main"]
+
+EXIT_OK = 0
+EXIT_FAILED = 1  # the command ran but its check failed (e.g. a gradient check)
+EXIT_USAGE = 2  # bad input: a capture, a file, an option
+
+
+# --- check-grads -----------------------------------------------------------------------------
+def _add_check_grads(sub) -> None:
+    p = sub.add_parser("check-grads", help="gradient checks of every BRDF term (autodiff vs finite differences)")
+    p.add_argument("--quiet", action="store_true", help="print only failures and the summary line")
+
+
+def _cmd_check_grads(args) -> int:
+    from .gradcheck import print_report, run_checks
+
+    results = run_checks()
+    ok = print_report(results, quiet=args.quiet)
+    return EXIT_OK if ok else EXIT_FAILED
+
+
+# --- demo ------------------------------------------------------------------------------------
+def _add_demo(sub) -> None:
+    p = sub.add_parser("demo", help="synthesize a capture on the embedded defaults and fit it")
+    p.add_argument("--out", default="pbrfit-demo", help="output folder (default ./pbrfit-demo)")
+    p.add_argument("--quiet", action="store_true")
+
+
+def _cmd_demo(args) -> int:
+    from .demo import run_demo
+
+    return run_demo(out=args.out, quiet=args.quiet)
+
+
+# --- render ----------------------------------------------------------------------------------
+def _add_render(sub) -> None:
+    pass
+
+
+def _cmd_render(args) -> int:
+    raise NotImplementedError
+
+
+# --- synth -----------------------------------------------------------------------------------
+def _add_synth(sub) -> None:
+    pass
+
+
+def _cmd_synth(args) -> int:
+    raise NotImplementedError
+
+
+# --- fit -------------------------------------------------------------------------------------
+def _add_fit(sub) -> None:
+    pass
+
+
+def _cmd_fit(args) -> int:
+    raise NotImplementedError
+
+
+_COMMANDS = {
+    "check-grads": _cmd_check_grads,
+    "demo": _cmd_demo,
+    "render": _cmd_render,
+    "synth": _cmd_synth,
+    "fit": _cmd_fit,
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="pbrfit",
+        description="Differentiable glTF PBR material fitting: recover base color, metallic and roughness maps.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for add in (_add_demo, _add_fit, _add_render, _add_synth, _add_check_grads):
+        add(sub)
+    return parser
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Entry point of the `pbrfit` console script; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return EXIT_USAGE
+    try:
+        return _COMMANDS[args.command](args)
+    except CaptureError as err:
+        print(f"pbrfit: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("pbrfit: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
