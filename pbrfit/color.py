@@ -1,0 +1,155 @@
+"""Color: the sRGB transfer function, exposure, and tone mapping operators.
+
+All functions are elementwise, differentiable ``jnp`` functions of linear RGB (..., 3) arrays
+(the sRGB curve is per channel; tone maps that mix channels say so).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+__all__ = [
+    "TONEMAPS",
+    "COLOR_SPACES",
+    "srgb_to_linear",
+    "linear_to_srgb",
+    "apply_exposure",
+    "tonemap_reinhard",
+    "tonemap_aces_narkowicz",
+    "tonemap_aces_hill",
+    "tonemap_khronos_neutral",
+    "tonemap",
+    "encode",
+    "luminance",
+]
+
+TONEMAPS = ("none", "reinhard", "aces_narkowicz", "aces_hill", "khronos_neutral")
+COLOR_SPACES = ("linear", "srgb")
+
+# IEC 61966-2-1 sRGB constants.
+_SRGB_LINEAR_CUTOFF = 0.0031308
+_SRGB_ENCODED_CUTOFF = 0.04045
+#: Floor inside the sRGB power so neither branch of `jnp.where` has an infinite derivative
+#: (x^(1/2.4) at 0) or a NaN (negative base); values below the cutoff take the linear branch.
+_POW_FLOOR = 1e-8
+
+
+def srgb_to_linear(x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
+    """Decode sRGB to linear (IEC 61966-2-1): x / 12.92 below 0.04045, else ((x + 0.055)/1.055)^2.4."""
+    x = jnp.asarray(x)
+    hi = jnp.power((jnp.maximum(x, _SRGB_ENCODED_CUTOFF) + 0.055) / 1.055, 2.4)
+    return jnp.where(x <= _SRGB_ENCODED_CUTOFF, x / 12.92, hi)
+
+
+def linear_to_srgb(x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
+    """Encode linear to sRGB (IEC 61966-2-1): 12.92 x below 0.0031308, else 1.055 x^(1/2.4) - 0.055."""
+    x = jnp.asarray(x)
+    hi = 1.055 * jnp.power(jnp.maximum(x, _SRGB_LINEAR_CUTOFF), 1.0 / 2.4) - 0.055
+    return jnp.where(x <= _SRGB_LINEAR_CUTOFF, 12.92 * x, hi)
+
+
+def apply_exposure(x: Float[ArrayLike, "..."], ev) -> Float[Array, "..."]:
+    """Scale radiance by 2^ev (exposure value in stops)."""
+    return jnp.asarray(x) * jnp.exp2(jnp.asarray(ev, dtype=jnp.result_type(x, float)))
+
+
+def luminance(x: Float[ArrayLike, "... 3"]) -> Float[Array, "..."]:
+    """Rec. 709 / sRGB relative luminance Y = 0.2126 R + 0.7152 G + 0.0722 B."""
+    x = jnp.asarray(x)
+    return 0.2126 * x[..., 0] + 0.7152 * x[..., 1] + 0.0722 * x[..., 2]
+
+
+def tonemap_reinhard(x):
+    """Reinhard et al. 2002, per channel: x / (1 + x)."""
+    x = jnp.maximum(jnp.asarray(x), 0.0)
+    return x / (1.0 + x)
+
+
+def tonemap_aces_narkowicz(x):
+    """K. Narkowicz 2015, "ACES Filmic Tone Mapping Curve" (fit of the ACES RRT+ODT, per channel):
+    clamp(x (2.51 x + 0.03) / (x (2.43 x + 0.59) + 0.14), 0, 1). The input is used as is (no 0.6
+    pre-scale), matching the glTF Sample Viewer's ``toneMapACES_Narkowicz``.
+    """
+    x = jnp.maximum(jnp.asarray(x), 0.0)
+    return jnp.clip(x * (2.51 * x + 0.03) / (x * (2.43 * x + 0.59) + 0.14), 0.0, 1.0)
+
+
+# S. Hill's ACES fit (BakingLab ACES.hlsl), as in the glTF Sample Viewer: sRGB -> ACES AP1
+# (with the RRT saturation), the RRT+ODT rational fit, then back to linear sRGB. Row-major
+# matrices applied as M @ rgb.
+_ACES_INPUT = jnp.array(
+    [[0.59719, 0.35458, 0.04823], [0.07600, 0.90834, 0.01566], [0.02840, 0.13383, 0.83777]]
+)
+_ACES_OUTPUT = jnp.array(
+    [[1.60475, -0.53108, -0.07367], [-0.10208, 1.10813, -0.00605], [-0.00327, -0.07276, 1.07602]]
+)
+
+
+def tonemap_aces_hill(x):
+    """S. Hill's ACES fit (glTF Sample Viewer ``toneMapACES_Hill``); mixes channels.
+
+    c = M_in rgb; c = (c (c + 0.0245786) - 0.000090537) / (c (0.983729 c + 0.4329510) + 0.238081);
+    out = clamp(M_out c, 0, 1). Without the viewer's optional /0.6 exposure boost.
+    """
+    x = jnp.maximum(jnp.asarray(x), 0.0)
+    c = jnp.einsum("ij,...j->...i", _ACES_INPUT.astype(x.dtype), x)
+    c = (c * (c + 0.0245786) - 0.000090537) / (c * (0.983729 * c + 0.4329510) + 0.238081)
+    return jnp.clip(jnp.einsum("ij,...j->...i", _ACES_OUTPUT.astype(x.dtype), c), 0.0, 1.0)
+
+
+def tonemap_khronos_neutral(x):
+    """Khronos PBR Neutral tone mapper (Khronos 3D Commerce, 2024); mixes channels.
+
+    x -= offset where offset = m - 6.25 m^2 if m = min(x) < 0.08 else 0.04; if max(x) < 0.76
+    return x; else compress the peak p = max(x) to 1 - (1 - 0.76)^2 / (p + 1 - 2 * 0.76) and
+    desaturate towards it by g = 1 - 1 / (0.15 (p - p_new) + 1).
+    """
+    start = 0.8 - 0.04
+    desaturation = 0.15
+    x = jnp.maximum(jnp.asarray(x), 0.0)
+    low = jnp.min(x, axis=-1, keepdims=True)
+    offset = jnp.where(low < 0.08, low - 6.25 * low * low, 0.04)
+    x = x - offset
+    peak = jnp.max(x, axis=-1, keepdims=True)
+    d = 1.0 - start
+    safe_peak = jnp.maximum(peak, start)  # the compressed branch is only taken above `start`
+    new_peak = 1.0 - d * d / (safe_peak + d - start)
+    compressed = x * (new_peak / safe_peak)
+    g = 1.0 - 1.0 / (desaturation * (safe_peak - new_peak) + 1.0)
+    compressed = compressed * (1.0 - g) + new_peak * g
+    return jnp.where(peak < start, x, compressed)
+
+
+_TONEMAPS = {
+    "none": lambda x: jnp.asarray(x),
+    "reinhard": tonemap_reinhard,
+    "aces_narkowicz": tonemap_aces_narkowicz,
+    "aces_hill": tonemap_aces_hill,
+    "khronos_neutral": tonemap_khronos_neutral,
+}
+
+
+def tonemap(x: Float[ArrayLike, "... 3"], name: str) -> Float[Array, "... 3"]:
+    """Apply the named tone mapping operator (one of `TONEMAPS`)."""
+    if name not in _TONEMAPS:
+        raise ValueError(f"unknown tone map {name!r}; expected one of {', '.join(TONEMAPS)}")
+    return _TONEMAPS[name](x)
+
+
+def encode(
+    radiance: Float[ArrayLike, "... 3"], exposure_ev=0.0, tonemap: str = "none", color_space: str = "linear"
+) -> Float[Array, "... 3"]:
+    """Radiance -> the values an image file holds: × 2^ev, tone map, then the sRGB curve if asked.
+
+    With tonemap "none" and color space "linear" this is only the exposure. For sRGB output the
+    result is clipped to [0, 1] before encoding (an LDR file cannot hold more).
+    """
+    if color_space not in COLOR_SPACES:
+        raise ValueError(f"unknown color space {color_space!r}; expected one of {', '.join(COLOR_SPACES)}")
+    if tonemap not in _TONEMAPS:
+        raise ValueError(f"unknown tone map {tonemap!r}; expected one of {', '.join(TONEMAPS)}")
+    x = _TONEMAPS[tonemap](apply_exposure(radiance, exposure_ev))
+    if color_space == "srgb":
+        return linear_to_srgb(jnp.clip(x, 0.0, 1.0))
+    return x
