@@ -1,0 +1,342 @@
+"""Punctual lights with glTF ``KHR_lights_punctual`` semantics and units.
+
+A light is a small pytree (`Light`); `incident` gives, for a batch of surface points, the unit
+direction towards the light and the radiance-like quantity a BRDF·cos multiplies:
+
+* point and spot: ``E = color * intensity * window(d) * spot(cd) / d^2`` with ``intensity`` in
+  candela (lm/sr), so ``E`` is the irradiance on a surface facing the light, in lux;
+* directional: ``E = color * intensity``, ``intensity`` already in lux.
+
+``direction`` is where the light travels (a spot's axis, a sun's rays), as in
+KHR_lights_punctual, where a light shines down its node's -Z axis.
+
+Range window (glTF-Sample-Viewer ``getRangeAttenuation``, after Karis 2013):
+``window(d) = clamp(1 - (d / range)^4, 0, 1)`` when ``range > 0``, else 1; the ``1/d^2`` stays
+outside the window. Spot falloff (glTF-Sample-Viewer ``getSpotAttenuation``):
+``cd = dot(spot_direction, -l)``, ``spot = smoothstep(cos(outer), cos(inner), cd)``.
+
+Every function here is pure ``jnp`` and jittable; ``kind`` is static, so a jitted function
+specialises on the light type.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .errors import CaptureError
+
+__all__ = [
+    "KINDS",
+    "MIN_DISTANCE",
+    "SPOT_MIN_COS_DELTA",
+    "DEFAULT_INNER_CONE_ANGLE",
+    "DEFAULT_OUTER_CONE_ANGLE",
+    "Light",
+    "point_light",
+    "spot_light",
+    "directional_light",
+    "flash_light",
+    "incident",
+    "range_window",
+    "spot_falloff",
+    "light_from_json",
+    "light_to_json",
+]
+
+KINDS = ("point", "spot", "directional")
+
+# The distance below which a point light is treated as this far away: keeps 1/d^2 and the
+# direction l = (p_light - p) / d finite when a surface point sits on the light (a flash at a
+# camera inside the mesh, a test grid through the light). 1e-4 world units: far below any
+# capture's scale, far above float32's underflow of d^2 (~1e-38).
+MIN_DISTANCE = 1e-4
+
+# Floor of cos(inner) - cos(outer) in the spot smoothstep: KHR_lights_punctual's reference
+# implementation uses the same 0.001 so that inner == outer (a hard-edged spot) stays finite.
+SPOT_MIN_COS_DELTA = 1e-3
+
+# KHR_lights_punctual defaults for spot.innerConeAngle and spot.outerConeAngle.
+DEFAULT_INNER_CONE_ANGLE = 0.0
+DEFAULT_OUTER_CONE_ANGLE = math.pi / 4.0
+
+# A direction shorter than this cannot be normalised (json validation only).
+_MIN_DIRECTION_NORM = 1e-12
+
+
+class Light(eqx.Module):
+    """One punctual light. Unused fields hold zeros (a point light's ``direction``).
+
+    Attributes:
+        kind: ``"point"``, ``"spot"`` or ``"directional"`` (static under jit).
+        position: (3,) world position (point, spot).
+        direction: (3,) unit vector, where the light travels (spot, directional).
+        color: (3,) linear RGB.
+        intensity: () candela for point and spot, lux for directional.
+        range: () distance cutoff of the window; 0 means infinite (point, spot).
+        inner_cone_angle, outer_cone_angle: () radians (spot).
+    """
+
+    kind: str = eqx.field(static=True)
+    position: Float[Array, "3"]
+    direction: Float[Array, "3"]
+    color: Float[Array, "3"]
+    intensity: Float[Array, ""]
+    range: Float[Array, ""]
+    inner_cone_angle: Float[Array, ""]
+    outer_cone_angle: Float[Array, ""]
+
+
+def _vec3(x) -> Float[Array, "3"]:
+    return jnp.asarray(x, dtype=jnp.float32).reshape(3)
+
+
+def _scalar(x) -> Float[Array, ""]:
+    return jnp.asarray(x, dtype=jnp.float32).reshape(())
+
+
+def _unit(x) -> Float[Array, "3"]:
+    v = _vec3(x)
+    n2 = jnp.sum(v * v)
+    safe = jnp.where(n2 > 0, n2, 1.0)
+    return jnp.where(n2 > 0, v / jnp.sqrt(safe), v)
+
+
+def point_light(position, color=(1.0, 1.0, 1.0), intensity=1.0, range=0.0) -> Light:
+    """A point light at ``position``; ``intensity`` in candela; ``range`` 0 = infinite."""
+    return Light(
+        kind="point",
+        position=_vec3(position),
+        direction=jnp.zeros(3, jnp.float32),
+        color=_vec3(color),
+        intensity=_scalar(intensity),
+        range=_scalar(range),
+        inner_cone_angle=_scalar(0.0),
+        outer_cone_angle=_scalar(0.0),
+    )
+
+
+def spot_light(
+    position,
+    direction,
+    color=(1.0, 1.0, 1.0),
+    intensity=1.0,
+    range=0.0,
+    inner_cone_angle=DEFAULT_INNER_CONE_ANGLE,
+    outer_cone_angle=DEFAULT_OUTER_CONE_ANGLE,
+) -> Light:
+    """A spot light at ``position`` shining along ``direction`` (normalised here)."""
+    return Light(
+        kind="spot",
+        position=_vec3(position),
+        direction=_unit(direction),
+        color=_vec3(color),
+        intensity=_scalar(intensity),
+        range=_scalar(range),
+        inner_cone_angle=_scalar(inner_cone_angle),
+        outer_cone_angle=_scalar(outer_cone_angle),
+    )
+
+
+def directional_light(direction, color=(1.0, 1.0, 1.0), intensity=1.0) -> Light:
+    """A directional light whose rays travel along ``direction``; ``intensity`` in lux."""
+    return Light(
+        kind="directional",
+        position=jnp.zeros(3, jnp.float32),
+        direction=_unit(direction),
+        color=_vec3(color),
+        intensity=_scalar(intensity),
+        range=_scalar(0.0),
+        inner_cone_angle=_scalar(0.0),
+        outer_cone_angle=_scalar(0.0),
+    )
+
+
+def flash_light(c2w, color=(1.0, 1.0, 1.0), intensity=1.0, offset=(0.0, 0.0, 0.0)) -> Light:
+    """A camera flash: a point light at the camera centre plus ``offset`` in camera space.
+
+    ``position = c2w[:3, 3] + c2w[:3, :3] @ offset`` (OpenGL camera axes: +X right, +Y up,
+    the camera looks down -Z).
+    """
+    m = jnp.asarray(c2w, dtype=jnp.float32).reshape(4, 4)
+    position = m[:3, 3] + m[:3, :3] @ _vec3(offset)
+    return point_light(position, color, intensity, 0.0)
+
+
+def range_window(d: Float[Array, "*batch"], range_: Float[Array, ""]) -> Float[Array, "*batch"]:
+    """``clamp(1 - (d/range)^4, 0, 1)`` for ``range > 0``, else 1 (glTF-Sample-Viewer)."""
+    positive = range_ > 0
+    safe_range = jnp.where(positive, range_, 1.0)
+    w = jnp.clip(1.0 - (d / safe_range) ** 4, 0.0, 1.0)
+    return jnp.where(positive, w, jnp.ones_like(w))
+
+
+def spot_falloff(
+    cd: Float[Array, "*batch"], inner: Float[Array, ""], outer: Float[Array, ""]
+) -> Float[Array, "*batch"]:
+    """``smoothstep(cos(outer), cos(inner), cd)`` with ``cd = dot(spot_direction, -l)``.
+
+    glTF-Sample-Viewer's ``getSpotAttenuation``: 0 outside the outer cone, 1 inside the inner,
+    smoothstep ``t^2 (3 - 2t)`` between. ``cos(inner) - cos(outer)`` is floored at
+    `SPOT_MIN_COS_DELTA` so that a hard-edged cone stays finite.
+    """
+    cos_outer = jnp.cos(outer)
+    cos_inner = jnp.cos(inner)
+    delta = jnp.maximum(cos_inner - cos_outer, SPOT_MIN_COS_DELTA)
+    t = jnp.clip((cd - cos_outer) / delta, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def incident(
+    light: Light, points: Float[Array, "P 3"]
+) -> tuple[Float[Array, "P 3"], Float[Array, "P 3"]]:
+    """Light arriving at ``points``: ``(l, E)``.
+
+    ``l`` (P, 3) is the unit direction from the surface point towards the light; ``E`` (P, 3)
+    is ``color * intensity * window(d) * spot / d^2`` for point and spot lights (lux) and
+    ``color * intensity`` for directional lights. ``d`` is floored at `MIN_DISTANCE`, so both
+    outputs and their gradients are finite everywhere (a point on the light gets l = 0).
+    """
+    points = jnp.asarray(points)
+    dtype = jnp.result_type(points.dtype, jnp.float32)
+    points = points.astype(dtype)
+    color = light.color.astype(dtype)
+    intensity = light.intensity.astype(dtype)
+    if light.kind == "directional":
+        l = jnp.broadcast_to(-light.direction.astype(dtype), points.shape)
+        e = jnp.broadcast_to(color * intensity, points.shape)
+        return l, e
+    if light.kind not in ("point", "spot"):
+        raise ValueError(f"unknown light kind {light.kind!r}")
+    to_light = light.position.astype(dtype) - points
+    d2 = jnp.sum(to_light * to_light, axis=-1)
+    d2_safe = jnp.maximum(d2, MIN_DISTANCE**2)
+    d = jnp.sqrt(d2_safe)
+    l = to_light / d[..., None]
+    scale = range_window(d, light.range.astype(dtype)) / d2_safe
+    if light.kind == "spot":
+        cd = jnp.sum(light.direction.astype(dtype) * (-l), axis=-1)
+        scale = scale * spot_falloff(
+            cd, light.inner_cone_angle.astype(dtype), light.outer_cone_angle.astype(dtype)
+        )
+    e = (color * intensity)[None, :] * scale[..., None]
+    return l, e
+
+
+# --- JSON --------------------------------------------------------------------------------------
+_COMMON_KEYS = ("type", "name", "color", "intensity", "extras")
+_ALLOWED_KEYS = {
+    "point": _COMMON_KEYS + ("position", "range"),
+    "spot": _COMMON_KEYS + ("position", "direction", "range", "inner_cone_angle", "outer_cone_angle"),
+    # `range` is tolerated on a directional light only as 0 (some writers emit it everywhere)
+    "directional": _COMMON_KEYS + ("direction", "range"),
+}
+
+
+def _number(d: Mapping[str, Any], key: str, where: str, default: float | None) -> float:
+    if key not in d:
+        if default is None:
+            raise CaptureError(f"{where}: missing key '{key}'")
+        return float(default)
+    value = d[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise CaptureError(f"{where}.{key}: expected a finite number, got {value!r}")
+    return float(value)
+
+
+def _triple(d: Mapping[str, Any], key: str, where: str, default=None) -> np.ndarray:
+    if key not in d:
+        if default is None:
+            raise CaptureError(f"{where}: missing key '{key}'")
+        return np.asarray(default, dtype=np.float64)
+    value = d[key]
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise CaptureError(f"{where}.{key}: expected 3 numbers, got {value!r}") from None
+    if arr.shape != (3,) or any(isinstance(v, bool) for v in value):
+        raise CaptureError(f"{where}.{key}: expected 3 numbers, got {value!r}")
+    if not np.all(np.isfinite(arr)):
+        raise CaptureError(f"{where}.{key}: values must be finite, got {value!r}")
+    return arr
+
+
+def _direction(d: Mapping[str, Any], where: str) -> np.ndarray:
+    v = _triple(d, "direction", where)
+    if np.linalg.norm(v) < _MIN_DIRECTION_NORM:
+        raise CaptureError(f"{where}.direction: zero vector has no direction")
+    return v
+
+
+def light_from_json(d: Any, where: str) -> Light:
+    """Build a `Light` from its capture.json object, validating every key.
+
+    ``where`` names the object in messages (``"capture.json: lights[2]"``). Raises
+    `CaptureError` for a non-object, an unknown ``type``, an unknown key, a missing position or
+    direction, a negative intensity or range, bad cone angles (KHR_lights_punctual:
+    0 <= inner < outer <= pi/2), a zero direction, or a directional light with ``range > 0``.
+    Defaults: color white, intensity 1, range 0 (infinite), cones 0 and pi/4 (KHR defaults).
+    """
+    if not isinstance(d, Mapping):
+        raise CaptureError(f"{where}: expected a light object, got {type(d).__name__}")
+    if "type" not in d:
+        raise CaptureError(f"{where}: missing key 'type' (one of {', '.join(KINDS)})")
+    kind = d["type"]
+    if kind not in KINDS:
+        raise CaptureError(f"{where}.type: unknown light type {kind!r} (expected one of {', '.join(KINDS)})")
+    allowed = _ALLOWED_KEYS[kind]
+    for key in d:
+        if key not in allowed:
+            raise CaptureError(
+                f"{where}: unknown key {key!r} for a {kind} light (allowed: {', '.join(allowed)})"
+            )
+    color = _triple(d, "color", where, (1.0, 1.0, 1.0))
+    if np.any(color < 0):
+        raise CaptureError(f"{where}.color: negative color {d['color']!r}")
+    intensity = _number(d, "intensity", where, 1.0)
+    if intensity < 0:
+        raise CaptureError(f"{where}.intensity: negative intensity {intensity!r}")
+    range_ = _number(d, "range", where, 0.0)
+    if range_ < 0:
+        raise CaptureError(f"{where}.range: negative range {range_!r} (0 means infinite)")
+    if kind == "directional":
+        if range_ != 0:
+            raise CaptureError(f"{where}.range: range applies only to point and spot lights")
+        return directional_light(_direction(d, where), color, intensity)
+    position = _triple(d, "position", where)
+    if kind == "point":
+        return point_light(position, color, intensity, range_)
+    inner = _number(d, "inner_cone_angle", where, DEFAULT_INNER_CONE_ANGLE)
+    outer = _number(d, "outer_cone_angle", where, DEFAULT_OUTER_CONE_ANGLE)
+    if not (0.0 <= inner < outer <= math.pi / 2 + 1e-9):
+        raise CaptureError(
+            f"{where}: cone angles must satisfy 0 <= inner_cone_angle < outer_cone_angle <= pi/2, "
+            f"got {inner!r} and {outer!r}"
+        )
+    return spot_light(position, _direction(d, where), color, intensity, range_, inner, outer)
+
+
+def light_to_json(light: Light) -> dict:
+    """The capture.json object of ``light`` (inverse of `light_from_json`)."""
+
+    def vec(x) -> list[float]:
+        return [float(v) for v in np.asarray(x, dtype=np.float64).reshape(3)]
+
+    out: dict[str, Any] = {"type": light.kind}
+    if light.kind in ("point", "spot"):
+        out["position"] = vec(light.position)
+    if light.kind in ("spot", "directional"):
+        out["direction"] = vec(light.direction)
+    out["color"] = vec(light.color)
+    out["intensity"] = float(light.intensity)
+    if light.kind in ("point", "spot"):
+        out["range"] = float(light.range)
+    if light.kind == "spot":
+        out["inner_cone_angle"] = float(light.inner_cone_angle)
+        out["outer_cone_angle"] = float(light.outer_cone_angle)
+    return out
