@@ -1,0 +1,522 @@
+"""Per-view geometry, computed once: camera rays, mesh hits, interpolated attributes, shadows.
+
+Nothing here is differentiated. For every pixel of a view, a ray through the pixel centre is
+intersected with the mesh; the hit gives the surface point, its face, its barycentric
+coordinates and from them the interpolated shading normal, uv and tangent frame. One shadow ray
+per light then says whether the light reaches the point. The result is a `GBuffer` of numpy
+arrays, cached on disk by a hash of everything it depends on.
+
+Conventions pinned here (tests in ``tests/test_gbuffer.py``):
+
+- Cameras are OpenGL-style: camera-to-world 4x4, the camera looks down its -Z axis, +Y up,
+  +X right. Pixel (i, j) (row i from the top, column j) has its centre at x = j + 0.5,
+  y = i + 0.5; its camera-space ray is ((x - cx)/fx, -(y - cy)/fy, -1).
+- Facing: surfaces are two-sided. Where the camera sees the back of a face (the face's
+  geometric normal, from its winding, points away from the camera), the geometric normal, the
+  shading normal, the tangent's xyz *and* its handedness w are all negated, as the
+  glTF-Sample-Viewer does for back faces. So ``geometric_normal . view >= 0`` everywhere, and
+  the bitangent ``cross(normal, tangent.xyz) * tangent.w`` is negated too (the whole TBN frame
+  is mirrored). On a closed, consistently wound mesh nothing is ever flipped. The shading normal
+  itself is *not* forced towards the camera (at silhouettes of smooth meshes it may face away
+  by a few degrees; shading clamps n.v).
+- Tangents: ``tangent.xyz`` is along dP/du (projected onto the shading normal's plane, unit) and
+  ``bitangent = cross(normal, tangent.xyz) * tangent.w`` points along -dP/dv in glTF uv, i.e.
+  towards the top row of the texture image: +Y of an OpenGL (+Y up) normal map. This is what
+  MikkTSpace gives in the OpenGL (v-up) uv convention, which is what glTF's TANGENT holds. A
+  plane textured upright has w = +1; mirroring u or v gives w = -1.
+- Shadows: a shadow ray starts at the hit point moved along the camera-facing geometric normal
+  by ``SHADOW_OFFSET_REL * mesh.scale`` (bounding-box diagonal). A point or spot light is
+  occluded by a hit closer than the light; a directional light by any hit. A light on the
+  other side of the face from the camera (geometric n.l <= 0) is occluded by the face itself.
+- Pixels without a hit hold zeros in every array, ``face == -1`` and ``hit == False``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+import tempfile
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import trimesh
+from jaxtyping import Bool, Float, Int
+
+from .errors import CaptureError
+
+__all__ = [
+    "Camera",
+    "GBuffer",
+    "compute_gbuffer",
+    "vertex_tangents",
+    "has_embree",
+    "SHADOW_OFFSET_REL",
+]
+
+# Shadow-ray origin offset, as a fraction of the mesh's bounding-box diagonal. Embree works in
+# float32 on a mesh rescaled to ~100 units, where one ulp is ~1e-5 units, so 1e-4 of the scene
+# (0.01 units there) clears self-intersection by ~1000 ulps while staying far below any
+# geometric detail a material capture resolves.
+SHADOW_OFFSET_REL = 1e-4
+# Ray/triangle determinant floor, relative to |e1||e2||d|: below it the ray runs parallel to
+# the triangle's plane and the hit is treated as a miss (its distance is undefined).
+PARALLEL_EPS = 1e-12
+# Barycentric slack for the numpy intersector, so that rays through a shared edge are not lost
+# between the two triangles by rounding.
+BARYCENTRIC_SLACK = 1e-10
+# A uv triangle with |det| below this fraction of |du1 dv2| + |du2 dv1| has no usable uv
+# derivatives (degenerate or collapsed uv); it contributes no tangent.
+UV_DEGENERATE_REL = 1e-10
+# Vectors shorter than this are treated as zero before normalising (unit-scale quantities).
+NORM_FLOOR = 1e-20
+# Rays-times-triangles per chunk in the numpy intersector (~25 MB per (chunk, 3) float64 array).
+_NUMPY_CHUNK = 1 << 20
+_CACHE_VERSION = "pbrfit-gbuffer/1"
+
+has_embree: bool = bool(getattr(trimesh.ray, "has_embree", False))
+
+
+def _normalize(x: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(x, axis=-1, keepdims=True)
+    return np.where(n > NORM_FLOOR, x / np.maximum(n, NORM_FLOOR), 0.0)
+
+
+def _any_perpendicular(n: Float[np.ndarray, "*b 3"]) -> Float[np.ndarray, "*b 3"]:
+    """A unit vector perpendicular to each unit `n` (crossed with its least-aligned axis)."""
+    axis = np.zeros_like(n)
+    k = np.argmin(np.abs(n), axis=-1)
+    np.put_along_axis(axis, k[..., None], 1.0, axis=-1)
+    return _normalize(np.cross(n, axis))
+
+
+# ------------------------------------------------------------------------------------- camera
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Camera:
+    """A pinhole camera: camera-to-world matrix and intrinsics in pixels.
+
+    OpenGL convention (looks down -Z, +Y up, +X right); pixel centres at (j + 0.5, i + 0.5),
+    row 0 at the top. Equality and hashing compare values.
+    """
+
+    c2w: Float[np.ndarray, "4 4"]
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self):
+        c2w = np.array(self.c2w, dtype=np.float64)
+        if c2w.shape != (4, 4) or not np.all(np.isfinite(c2w)):
+            raise CaptureError(f"camera: transform must be a finite 4x4 matrix, got shape {c2w.shape}")
+        if abs(np.linalg.det(c2w[:3, :3])) < NORM_FLOOR:
+            raise CaptureError("camera: transform rotation part is singular")
+        c2w.setflags(write=False)
+        object.__setattr__(self, "c2w", c2w)
+        for name in ("fx", "fy", "cx", "cy"):
+            value = float(getattr(self, name))
+            if not np.isfinite(value) or (name in ("fx", "fy") and value <= 0):
+                raise CaptureError(f"camera: {name} must be finite{' and > 0' if name in ('fx', 'fy') else ''}, got {value}")
+            object.__setattr__(self, name, value)
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if int(value) != value or int(value) <= 0:
+                raise CaptureError(f"camera: {name} must be a positive integer, got {value}")
+            object.__setattr__(self, name, int(value))
+
+    @classmethod
+    def from_fov(cls, c2w, camera_angle_x: float, width: int, height: int) -> "Camera":
+        """Square pixels, principal point at the image centre: fx = fy = W / (2 tan(angle_x / 2))."""
+        if not 0.0 < float(camera_angle_x) < np.pi:
+            raise CaptureError(f"camera: camera_angle_x must be in (0, pi), got {camera_angle_x}")
+        f = 0.5 * width / np.tan(0.5 * float(camera_angle_x))
+        return cls(c2w, f, f, 0.5 * width, 0.5 * height, width, height)
+
+    def _params(self) -> tuple:
+        return (self.c2w.tobytes(), self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+
+    def __eq__(self, other):
+        return isinstance(other, Camera) and self._params() == other._params()
+
+    def __hash__(self):
+        return hash(self._params())
+
+    @property
+    def center(self) -> Float[np.ndarray, "3"]:
+        """Camera position in world space."""
+        return self.c2w[:3, 3].copy()
+
+    def rays(self) -> tuple[Float[np.ndarray, "H W 3"], Float[np.ndarray, "H W 3"]]:
+        """World-space origins and unit directions of the rays through every pixel centre."""
+        x = np.arange(self.width, dtype=np.float64) + 0.5
+        y = np.arange(self.height, dtype=np.float64) + 0.5
+        xx, yy = np.meshgrid(x, y)  # (H, W), row index = y
+        d_cam = np.stack([(xx - self.cx) / self.fx, -(yy - self.cy) / self.fy, -np.ones_like(xx)], -1)
+        directions = _normalize(d_cam @ self.c2w[:3, :3].T)
+        origins = np.broadcast_to(self.center, directions.shape).copy()
+        return origins, directions
+
+    def to_camera(self, points: Float[np.ndarray, "*b 3"]) -> Float[np.ndarray, "*b 3"]:
+        """World points in camera space (the camera looks down -Z)."""
+        w2c = np.linalg.inv(self.c2w)
+        p = np.asarray(points, dtype=np.float64)
+        return p @ w2c[:3, :3].T + w2c[:3, 3]
+
+    def project(self, points: Float[np.ndarray, "*b 3"]) -> Float[np.ndarray, "*b 2"]:
+        """Continuous pixel coordinates (x = column, y = row; centres at k + 0.5) of world points.
+
+        x = cx + fx X / (-Z), y = cy - fy Y / (-Z) for camera-space (X, Y, Z). Points on or
+        behind the camera plane (Z >= 0) project to NaN.
+        """
+        pc = self.to_camera(points)
+        depth = -pc[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = np.where(depth > 0, 1.0 / depth, np.nan)
+        return np.stack([self.cx + self.fx * pc[..., 0] * inv, self.cy - self.fy * pc[..., 1] * inv], -1)
+
+
+# ------------------------------------------------------------------------------------ gbuffer
+
+
+@dataclasses.dataclass
+class GBuffer:
+    """One view's per-pixel geometry (numpy). See the module docstring for conventions.
+
+    position is float64 (world units); the direction-like arrays and uv are float32.
+    """
+
+    hit: Bool[np.ndarray, "H W"]
+    position: Float[np.ndarray, "H W 3"]
+    normal: Float[np.ndarray, "H W 3"]
+    geometric_normal: Float[np.ndarray, "H W 3"]
+    tangent: Float[np.ndarray, "H W 4"]
+    uv: Float[np.ndarray, "H W 2"]
+    view: Float[np.ndarray, "H W 3"]
+    visibility: Float[np.ndarray, "H W L"]
+    face: Int[np.ndarray, "H W"]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.hit.shape
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+# ------------------------------------------------------------------------------ intersection
+
+
+def _moller_trumbore(o, d, v0, e1, e2):
+    """Ray/triangle distance and barycentrics (Möller & Trumbore 1997), broadcasting, float64.
+
+    Returns (t, b1, b2, ok): the hit is o + t d = (1 - b1 - b2) v0 + b1 v1 + b2 v2, with
+    e1 = v1 - v0, e2 = v2 - v0; ok is False where the ray is parallel to the plane.
+    """
+    pvec = np.cross(d, e2)
+    det = np.sum(e1 * pvec, axis=-1)
+    scale = np.linalg.norm(e1, axis=-1) * np.linalg.norm(e2, axis=-1) * np.linalg.norm(d, axis=-1)
+    ok = np.abs(det) > PARALLEL_EPS * scale
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    tvec = o - v0
+    b1 = np.sum(tvec * pvec, axis=-1) * inv
+    qvec = np.cross(tvec, e1)
+    b2 = np.sum(d * qvec, axis=-1) * inv
+    t = np.sum(e2 * qvec, axis=-1) * inv
+    return t, b1, b2, ok
+
+
+def _numpy_first_hit(v0, e1, e2) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """Brute-force first-hit search over all triangles (O(rays x faces), chunked), float64."""
+
+    def first_hit(origins, directions):
+        n = len(origins)
+        out = np.full(n, -1, dtype=np.int64)
+        step = max(1, _NUMPY_CHUNK // max(1, len(v0)))
+        for s in range(0, n, step):
+            o = origins[s : s + step, None, :]
+            d = directions[s : s + step, None, :]
+            t, b1, b2, ok = _moller_trumbore(o, d, v0[None], e1[None], e2[None])
+            slack = -BARYCENTRIC_SLACK
+            valid = ok & (b1 >= slack) & (b2 >= slack) & (b1 + b2 <= 1 - slack) & (t > 0)
+            t = np.where(valid, t, np.inf)
+            best = np.argmin(t, axis=1)
+            found = np.isfinite(t[np.arange(len(t)), best])
+            out[s : s + step] = np.where(found, best, -1)
+        return out
+
+    return first_hit
+
+
+def _make_first_hit(mesh: trimesh.Trimesh, backend: str):
+    """A function (origins (N,3), unit directions (N,3)) -> first face hit per ray, -1 if none."""
+    if backend == "auto":
+        backend = "embree" if has_embree else "numpy"
+    if backend == "embree":
+        if not has_embree:
+            raise RuntimeError("gbuffer: backend 'embree' requested but embreex is not installed")
+        from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+        intersector = RayMeshIntersector(mesh)
+        return lambda o, d: np.asarray(intersector.intersects_first(o, d), dtype=np.int64)
+    if backend == "numpy":
+        tri = np.asarray(mesh.triangles, dtype=np.float64)
+        return _numpy_first_hit(tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    raise ValueError(f"gbuffer: unknown backend {backend!r} (expected 'auto', 'embree' or 'numpy')")
+
+
+def _cast(first_hit, tri, origins, directions):
+    """First hits refined in float64 on the reported face: (face, t, b1, b2), face -1 for misses."""
+    face = first_hit(origins, directions)
+    t = np.full(len(origins), np.inf)
+    b1 = np.zeros(len(origins))
+    b2 = np.zeros(len(origins))
+    idx = np.nonzero(face >= 0)[0]
+    f = face[idx]
+    v0 = tri[f, 0]
+    th, b1h, b2h, ok = _moller_trumbore(origins[idx], directions[idx], v0, tri[f, 1] - v0, tri[f, 2] - v0)
+    ok &= th > 0
+    face[idx[~ok]] = -1
+    t[idx[ok]], b1[idx[ok]], b2[idx[ok]] = th[ok], b1h[ok], b2h[ok]
+    return face, t, b1, b2
+
+
+# ---------------------------------------------------------------------------------- tangents
+
+
+def vertex_tangents(
+    vertices: Float[np.ndarray, "V 3"],
+    faces: Int[np.ndarray, "F 3"],
+    uv: Float[np.ndarray, "V 2"],
+    normals: Float[np.ndarray, "V 3"],
+) -> tuple[Float[np.ndarray, "2 V 3"], Float[np.ndarray, "F"]]:
+    """Per-vertex tangents from uv derivatives, split by handedness, and per-face handedness.
+
+    Per face (Lengyel 2001): with edges e1, e2 and uv deltas (du1, dv1), (du2, dv2),
+    det = du1 dv2 - du2 dv1, dP/du = (e1 dv2 - e2 dv1) / det. In glTF uv (v down the image)
+    the bitangent -dP/dv equals cross(n, dP/du) * w with w = -sign(det) for n along
+    e1 x e2, so w_f = +1 where det < 0. Face tangents (unit) are accumulated at their corners
+    weighted by the corner angle (as MikkTSpace does), separately for w = +1 and w = -1 (as
+    MikkTSpace splits vertices by handedness), then Gram-Schmidt-orthogonalised against the
+    vertex normal. Returns (tangents (2, V, 3): [0] for w = +1, [1] for w = -1; w (F,)).
+    Faces with degenerate uv contribute nothing and get w = +1.
+    """
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    uv = np.asarray(uv, np.float64)
+    tri, tuv = vertices[faces], uv[faces]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    d1, d2 = tuv[:, 1] - tuv[:, 0], tuv[:, 2] - tuv[:, 0]
+    det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+    good = np.abs(det) > UV_DEGENERATE_REL * (np.abs(d1[:, 0] * d2[:, 1]) + np.abs(d2[:, 0] * d1[:, 1]))
+    dpdu = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) / np.where(good, det, 1.0)[:, None]
+    dpdu = np.where(good[:, None], _normalize(dpdu), 0.0)
+    w = np.where(good & (det > 0), -1.0, 1.0)
+    # corner angles
+    angles = np.empty(faces.shape)
+    for k in range(3):
+        a = _normalize(tri[:, (k + 1) % 3] - tri[:, k])
+        b = _normalize(tri[:, (k + 2) % 3] - tri[:, k])
+        angles[:, k] = np.arccos(np.clip(np.sum(a * b, -1), -1.0, 1.0))
+    acc = np.zeros((2, len(vertices), 3))
+    group = (w < 0).astype(np.int64)
+    for k in range(3):
+        np.add.at(acc, (group, faces[:, k]), dpdu * angles[:, k : k + 1])
+    n = _normalize(np.asarray(normals, np.float64))
+    acc = acc - n[None] * np.sum(acc * n[None], -1, keepdims=True)
+    return _normalize(acc), w
+
+
+# ------------------------------------------------------------------------------------- cache
+
+
+def _cache_key(mesh, uv, normals, tangents, camera: Camera, lights) -> str:
+    h = hashlib.sha256(_CACHE_VERSION.encode())
+    h.update(repr((SHADOW_OFFSET_REL, PARALLEL_EPS, UV_DEGENERATE_REL)).encode())
+    for a in (mesh.vertices, mesh.faces, uv, normals, tangents):
+        if a is None:
+            h.update(b"none")
+        else:
+            a = np.ascontiguousarray(a, dtype=np.float64)
+            h.update(repr(a.shape).encode())
+            h.update(a.tobytes())
+    h.update(repr(camera._params()).encode())
+    for light in lights:
+        kind, pos, direction = _light_geometry(light)
+        h.update(kind.encode() + pos.tobytes() + direction.tobytes())
+    return h.hexdigest()[:32]
+
+
+def _load_cached(path: Path) -> GBuffer | None:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return GBuffer(**{f.name: z[f.name] for f in dataclasses.fields(GBuffer)})
+    except (OSError, KeyError, ValueError, EOFError):  # missing, truncated or foreign: recompute
+        return None
+
+
+def _save_cached(path: Path, gbuffer: GBuffer) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".npz")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **gbuffer._arrays())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+# ----------------------------------------------------------------------------------- compute
+
+
+def _light_geometry(light) -> tuple[str, np.ndarray, np.ndarray]:
+    kind = str(light.kind)
+    if kind not in ("point", "spot", "directional"):
+        raise ValueError(f"gbuffer: unknown light kind {kind!r}")
+    pos = np.asarray(light.position, dtype=np.float64).reshape(3)
+    direction = np.asarray(light.direction, dtype=np.float64).reshape(3)
+    return kind, pos, direction
+
+
+def _mesh_uv(mesh) -> np.ndarray | None:
+    uv = getattr(mesh.visual, "uv", None)
+    if uv is None:
+        return None
+    uv = np.asarray(uv, dtype=np.float64)
+    if uv.shape != (len(mesh.vertices), 2):
+        raise CaptureError(f"mesh: uv has shape {uv.shape}, expected ({len(mesh.vertices)}, 2)")
+    return uv
+
+
+def _mesh_tangents(mesh) -> np.ndarray | None:
+    t = getattr(mesh, "vertex_attributes", {}).get("tangent")
+    if t is None:
+        return None
+    t = np.asarray(t, dtype=np.float64)
+    if t.shape != (len(mesh.vertices), 4):
+        raise CaptureError(f"mesh: tangent attribute has shape {t.shape}, expected ({len(mesh.vertices)}, 4)")
+    return t
+
+
+def compute_gbuffer(
+    mesh: trimesh.Trimesh,
+    camera: Camera,
+    lights: Sequence = (),
+    cache_dir: str | os.PathLike | None = None,
+    *,
+    backend: str = "auto",
+) -> GBuffer:
+    """Ray-cast one view of `mesh` and interpolate its attributes; see the module docstring.
+
+    mesh: triangles with optional ``mesh.visual.uv`` (glTF orientation, v = 0 at the top of
+    the image; without uv, uv is 0 and the tangent an arbitrary unit vector perpendicular to the
+    normal) and optional ``mesh.vertex_attributes["tangent"]`` (V, 4) in glTF TANGENT convention,
+    used instead of computed tangents when present. Shading normals are ``mesh.vertex_normals``.
+    lights: objects with ``kind`` ("point" | "spot" | "directional"), ``position`` and
+    ``direction`` (where the light travels), e.g. `pbrfit.lights.Light`.
+    cache_dir: when given, the result is read from / written to
+    ``cache_dir/gbuffer-<hash>.npz``, the hash covering the mesh (vertices, faces, uv,
+    normals, tangents), the camera and the lights' kinds, positions and directions.
+    backend: "embree" (embreex via trimesh, float32 traversal), "numpy" (brute force, float64)
+    or "auto" (embree when installed). Either way the hit on the reported face is recomputed in
+    float64, so positions lie on the mesh to float64 rounding.
+    """
+    lights = tuple(lights)
+    uv_v = _mesh_uv(mesh)
+    tan_v = _mesh_tangents(mesh)
+    normals_v = np.asarray(mesh.vertex_normals, dtype=np.float64)
+    path = None
+    if cache_dir is not None:
+        path = Path(cache_dir) / f"gbuffer-{_cache_key(mesh, uv_v, normals_v, tan_v, camera, lights)}.npz"
+        cached = _load_cached(path)
+        if cached is not None:
+            return cached
+
+    H, W = camera.height, camera.width
+    faces_v = np.asarray(mesh.faces, dtype=np.int64)
+    tri = np.asarray(mesh.vertices, dtype=np.float64)[faces_v]
+    first_hit = _make_first_hit(mesh, backend)
+
+    origins, directions = camera.rays()
+    origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
+    face, t, b1, b2 = _cast(first_hit, tri, origins, directions)
+    idx = np.nonzero(face >= 0)[0]
+    f = face[idx]
+    bary = np.stack([1.0 - b1[idx] - b2[idx], b1[idx], b2[idx]], -1)[..., None]  # (P, 3, 1)
+    fv = faces_v[f]
+
+    def interp(attr):
+        return np.sum(attr[fv] * bary, axis=1)
+
+    position = origins[idx] + t[idx, None] * directions[idx]
+    view = _normalize(camera.center - position)
+    ng = _normalize(np.cross(tri[f, 1] - tri[f, 0], tri[f, 2] - tri[f, 0]))
+    flip = np.where(np.sum(ng * view, -1) < 0, -1.0, 1.0)[:, None]
+    n = _normalize(interp(normals_v))
+    n = np.where(np.linalg.norm(n, axis=-1, keepdims=True) > 0.5, n, ng)  # opposite normals cancel
+
+    if uv_v is None:
+        uv = np.zeros((len(idx), 2))
+        tan, w = _any_perpendicular(n), np.ones(len(idx))
+    else:
+        uv = interp(uv_v)
+        if tan_v is not None:
+            tan = interp(tan_v[:, :3])
+            w = np.where(interp(tan_v[:, 3:])[:, 0] < 0, -1.0, 1.0)
+        else:
+            vt, wf = vertex_tangents(mesh.vertices, faces_v, uv_v, normals_v)
+            w = wf[f]
+            tan = np.sum(vt[(w < 0).astype(np.int64)[:, None], fv] * bary, axis=1)
+        tan = _normalize(tan - n * np.sum(tan * n, -1, keepdims=True))
+        missing = np.linalg.norm(tan, axis=-1) < 0.5
+        tan[missing] = _any_perpendicular(n[missing])
+
+    # two-sided: mirror the whole frame where the camera sees the back of the face
+    ng, n, tan, w = ng * flip, n * flip, tan * flip, w * flip[:, 0]
+
+    visibility = np.zeros((len(idx), len(lights)), dtype=np.float32)
+    offset = SHADOW_OFFSET_REL * float(mesh.scale)
+    start = position + ng * offset
+    for k, light in enumerate(lights):
+        kind, lpos, ldir = _light_geometry(light)
+        if kind == "directional":
+            to_light = np.broadcast_to(_normalize(-ldir), start.shape)
+            dist = np.full(len(start), np.inf)
+        else:
+            delta = lpos - start
+            dist = np.linalg.norm(delta, axis=-1)
+            to_light = _normalize(delta)
+        facing = np.sum(to_light * ng, -1) > 0
+        cand = np.nonzero(facing)[0]
+        sface, st, _, _ = _cast(first_hit, tri, start[cand], np.ascontiguousarray(to_light[cand]))
+        blocked = (sface >= 0) & (st < dist[cand])
+        visibility[cand[~blocked], k] = 1.0
+
+    def full(values, channels, dtype):
+        tail = () if channels is None else (channels,)
+        out = np.zeros((H * W, *tail), dtype=dtype)
+        out[idx] = values
+        return out.reshape((H, W, *tail))
+
+    face_img = np.full(H * W, -1, dtype=np.int64)
+    face_img[idx] = f
+    gbuffer = GBuffer(
+        hit=full(True, None, bool),
+        position=full(position, 3, np.float64),
+        normal=full(n, 3, np.float32),
+        geometric_normal=full(ng, 3, np.float32),
+        tangent=full(np.concatenate([tan, w[:, None]], -1), 4, np.float32),
+        uv=full(uv, 2, np.float32),
+        view=full(view, 3, np.float32),
+        visibility=full(visibility, len(lights), np.float32),
+        face=face_img.reshape(H, W),
+    )
+    if path is not None:
+        _save_cached(path, gbuffer)
+    return gbuffer
