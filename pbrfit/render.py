@@ -1,0 +1,267 @@
+"""Rendering: shade a view's G-buffer with a material, its lights and the environment.
+
+Geometry is known and fixed, so `prepare_view` turns a G-buffer into flat per-pixel inputs once
+(which pixels see the mesh, their uv, normal, tangent, view direction, and per light the
+incident direction and the radiance that arrives, shadows included). Shading those inputs
+(`shade`) is elementwise and differentiable; `render_view` adds texture sampling, normal
+mapping, exposure, tone mapping and encoding, and scatters the pixels back into an image.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from . import brdf
+from .color import encode
+from .material import Material, apply_normal_map, material_at
+from .model import Model
+
+__all__ = [
+    "ViewInputs",
+    "prepare_view",
+    "light_arrays",
+    "shade_punctual",
+    "shade",
+    "radiance_view",
+    "render_view",
+    "RENDER_CHUNK",
+]
+
+#: Pixels shaded per compiled call in `render_view`: bounds memory for large views (the IBL and
+#: Monte Carlo paths hold per-pixel sample arrays) while keeping one compilation per chunk size.
+RENDER_CHUNK = 65536
+
+
+class ViewInputs(eqx.Module):
+    """Flat per-pixel shading inputs of one view, for the pixels where the mesh is hit.
+
+    Attributes:
+        pixel: (P,) flat index row * W + col of each shaded pixel.
+        shape: (H, W) of the view (static).
+        uv: (P, 2) texture coordinates (glTF orientation).
+        normal: (P, 3) unit shading normal.
+        tangent: (P, 4) unit tangent and handedness.
+        view: (P, 3) unit direction from the surface to the camera.
+        light_l: (P, L, 3) unit direction from the surface to each light.
+        light_radiance: (P, L, 3) radiance arriving from each light (irradiance at normal
+            incidence: color · intensity · window / d² · cone falloff · visibility).
+    """
+
+    pixel: Int[Array, " P"]
+    uv: Float[Array, "P 2"]
+    normal: Float[Array, "P 3"]
+    tangent: Float[Array, "P 4"]
+    view: Float[Array, "P 3"]
+    light_l: Float[Array, "P L 3"]
+    light_radiance: Float[Array, "P L 3"]
+    shape: tuple[int, int] = eqx.field(static=True)
+
+    @property
+    def num_pixels(self) -> int:
+        return int(self.pixel.shape[0])
+
+
+def light_arrays(lights, points: np.ndarray, visibility: Optional[np.ndarray] = None):
+    """Per point and light: unit direction to the light (P, L, 3) and arriving radiance (P, L, 3)."""
+    from .lights import incident
+
+    points = jnp.asarray(points, jnp.float32)
+    if len(lights) == 0:
+        empty = jnp.zeros((points.shape[0], 0, 3), jnp.float32)
+        return empty, empty
+    dirs, rad = zip(*(incident(light, points) for light in lights))
+    light_l = jnp.stack(dirs, axis=1)
+    light_radiance = jnp.stack(rad, axis=1)
+    if visibility is not None:
+        light_radiance = light_radiance * jnp.asarray(visibility, jnp.float32)[..., None]
+    return light_l, light_radiance
+
+
+def prepare_view(gbuffer, lights, mask: Optional[np.ndarray] = None) -> ViewInputs:
+    """Flatten a G-buffer's hit pixels (and `mask`, if given) into `ViewInputs` for `lights`."""
+    keep = np.asarray(gbuffer.hit, bool)
+    if mask is not None:
+        keep = keep & np.asarray(mask, bool)
+    height, width = keep.shape
+    flat = np.flatnonzero(keep.reshape(-1))
+
+    def take(a):
+        a = np.asarray(a)
+        return a.reshape(height * width, *a.shape[2:])[flat]
+
+    vis = take(gbuffer.visibility) if len(lights) else None
+    light_l, light_radiance = light_arrays(lights, take(gbuffer.position), vis)
+    return ViewInputs(
+        pixel=jnp.asarray(flat, jnp.int32),
+        uv=jnp.asarray(take(gbuffer.uv), jnp.float32),
+        normal=jnp.asarray(take(gbuffer.normal), jnp.float32),
+        tangent=jnp.asarray(take(gbuffer.tangent), jnp.float32),
+        view=jnp.asarray(take(gbuffer.view), jnp.float32),
+        light_l=light_l,
+        light_radiance=light_radiance,
+        shape=(height, width),
+    )
+
+
+def shade_punctual(
+    normal: Float[Array, "P 3"],
+    view: Float[Array, "P 3"],
+    light_l: Float[Array, "P L 3"],
+    light_radiance: Float[Array, "P L 3"],
+    base_color: Float[Array, "P 3"],
+    metallic: Float[Array, "P 1"],
+    roughness: Float[Array, "P 1"],
+    model: Model = Model(),
+    dfg: Optional[Float[Array, "P 2"]] = None,
+) -> Float[Array, "P 3"]:
+    """Outgoing radiance from punctual lights: Σ_lights f(v, l) (n·l) E_light."""
+    if light_l.shape[-2] == 0:
+        return jnp.zeros_like(base_color)
+    n_dot_v = jnp.sum(normal * view, axis=-1)[..., None]  # (P, 1) against (P, L)
+    n_dot_l = jnp.einsum("pc,plc->pl", normal, light_l)
+    v_dot_l = jnp.einsum("pc,plc->pl", view, light_l)
+    n_dot_h, v_dot_h = brdf.half_vector_cosines(n_dot_v, n_dot_l, v_dot_l)
+    f = brdf.evaluate_cosines(
+        n_dot_v,
+        n_dot_l,
+        n_dot_h,
+        v_dot_h,
+        base_color[:, None, :],
+        metallic[:, None, :],
+        roughness[:, None, :],
+        model,
+        None if dfg is None else dfg[:, None, :],
+    )
+    return jnp.sum(f * light_radiance, axis=1)
+
+
+def shade(
+    normal: Float[Array, "P 3"],
+    view: Float[Array, "P 3"],
+    light_l: Float[Array, "P L 3"],
+    light_radiance: Float[Array, "P L 3"],
+    base_color: Float[Array, "P 3"],
+    metallic: Float[Array, "P 1"],
+    roughness: Float[Array, "P 1"],
+    model: Model = Model(),
+    ibl=None,
+    occlusion: Optional[Float[Array, "P 1"]] = None,
+    emissive: Optional[Float[Array, "P 3"]] = None,
+) -> Float[Array, "P 3"]:
+    """Linear outgoing radiance at each point: punctual lights + environment (split sum) + emission.
+
+    `ibl` is an `pbrfit.ibl.IBLTables` (needed when ``model.ibl == "split_sum"`` or
+    ``model.multiscatter``). Occlusion scales indirect (environment) light only. The Monte Carlo
+    integrator is not a shading mode here: it is the reference `pbrfit.ibl.monte_carlo_radiance`.
+    """
+    dfg = None
+    if model.multiscatter:
+        if ibl is None:
+            raise ValueError("Model(multiscatter=True) needs IBL tables (for the DFG LUT)")
+        from .ibl import lookup_brdf_lut
+
+        n_dot_v = jnp.clip(jnp.sum(normal * view, axis=-1), 0.0, 1.0)
+        dfg = lookup_brdf_lut(ibl.lut, n_dot_v, roughness[..., 0])
+    out = shade_punctual(normal, view, light_l, light_radiance, base_color, metallic, roughness, model, dfg)
+    if model.ibl == "split_sum":
+        if ibl is None:
+            raise ValueError("Model(ibl='split_sum') needs IBL tables; build them with pbrfit.ibl.build_ibl")
+        from .ibl import shade_ibl
+
+        out = out + shade_ibl(ibl, normal, view, base_color, metallic, roughness, model, occlusion)
+    elif model.ibl == "monte_carlo":
+        raise ValueError("Model(ibl='monte_carlo') is the reference integrator: use pbrfit.ibl.monte_carlo_radiance")
+    if emissive is not None:
+        out = out + emissive
+    return out
+
+
+def _radiance_chunk(view: ViewInputs, material: Material, model: Model, ibl, wrap: str, normal_convention: str):
+    sample = material_at(material, view.uv, wrap)
+    normal = view.normal
+    if sample.normal is not None:
+        normal = apply_normal_map(normal, view.tangent, sample.normal, normal_convention)
+    return shade(
+        normal,
+        view.view,
+        view.light_l,
+        view.light_radiance,
+        jnp.clip(sample.base_color, 0.0, 1.0),
+        jnp.clip(sample.metallic, 0.0, 1.0),
+        jnp.clip(sample.roughness, 0.0, 1.0),
+        model,
+        ibl,
+        sample.occlusion,
+        sample.emissive,
+    )
+
+
+_radiance_chunk_jit = jax.jit(_radiance_chunk, static_argnames=("model", "wrap", "normal_convention"))
+
+
+def _slice(view: ViewInputs, start: int, stop: int) -> ViewInputs:
+    return jax.tree_util.tree_map(lambda a: a[start:stop], view)
+
+
+def _pad(view: ViewInputs, size: int) -> ViewInputs:
+    extra = size - view.num_pixels
+    return jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)]), view)
+
+
+def radiance_view(
+    view: ViewInputs,
+    material: Material,
+    model: Model = Model(),
+    ibl=None,
+    wrap: str = "repeat",
+    normal_convention: str = "opengl",
+    chunk: int = RENDER_CHUNK,
+) -> Float[Array, "P 3"]:
+    """Linear radiance of every shaded pixel of a view, in chunks of at most `chunk` pixels."""
+    count = view.num_pixels
+    if count == 0:
+        return jnp.zeros((0, 3), jnp.float32)
+    pieces = []
+    for start in range(0, count, chunk):
+        part = _slice(view, start, min(start + chunk, count))
+        n = part.num_pixels
+        size = chunk if count > chunk else n  # pad the tail so every chunk reuses one compilation
+        if n < size:
+            part = _pad(part, size)
+        pieces.append(_radiance_chunk_jit(part, material, model, ibl, wrap, normal_convention)[:n])
+    return jnp.concatenate(pieces, axis=0)
+
+
+def render_view(
+    view: ViewInputs,
+    material: Material,
+    model: Model = Model(),
+    ibl=None,
+    exposure: float = 0.0,
+    tonemap: str = "none",
+    color_space: str = "linear",
+    wrap: str = "repeat",
+    normal_convention: str = "opengl",
+    background: Optional[Float[Array, "H W 3"]] = None,
+) -> tuple[Float[Array, "H W 3"], Float[Array, "H W"]]:
+    """Render a view to display values: (image (H, W, 3), alpha (H, W) = 1 where the mesh is hit).
+
+    The image holds what a file of this capture holds: radiance × 2^exposure, tone mapped, and
+    sRGB-encoded when `color_space` is "srgb". Pixels the mesh does not cover are 0 (or
+    `background`, given as display values).
+    """
+    height, width = view.shape
+    radiance = radiance_view(view, material, model, ibl, wrap, normal_convention)
+    values = encode(radiance, exposure, tonemap, color_space)
+    image = jnp.zeros((height * width, 3), jnp.float32) if background is None else jnp.asarray(
+        background, jnp.float32
+    ).reshape(height * width, 3)
+    image = image.at[view.pixel].set(values.astype(jnp.float32))
+    alpha = jnp.zeros((height * width,), jnp.float32).at[view.pixel].set(1.0)
+    return image.reshape(height, width, 3), alpha.reshape(height, width)
