@@ -37,6 +37,7 @@ import dataclasses
 import hashlib
 import os
 import tempfile
+import zipfile
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -74,6 +75,7 @@ NORM_FLOOR = 1e-20
 # Rays-times-triangles per chunk in the numpy intersector (~25 MB per (chunk, 3) float64 array).
 _NUMPY_CHUNK = 1 << 20
 _CACHE_VERSION = "pbrfit-gbuffer/1"
+UV_CONVENTIONS = ("gltf", "trimesh")
 
 has_embree: bool = bool(getattr(trimesh.ray, "has_embree", False))
 
@@ -355,7 +357,7 @@ def _load_cached(path: Path) -> GBuffer | None:
     try:
         with np.load(path, allow_pickle=False) as z:
             return GBuffer(**{f.name: z[f.name] for f in dataclasses.fields(GBuffer)})
-    except (OSError, KeyError, ValueError, EOFError):  # missing, truncated or foreign: recompute
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):  # missing/damaged: recompute
         return None
 
 
@@ -384,13 +386,19 @@ def _light_geometry(light) -> tuple[str, np.ndarray, np.ndarray]:
     return kind, pos, direction
 
 
-def _mesh_uv(mesh) -> np.ndarray | None:
+def _mesh_uv(mesh, uv_convention: str) -> np.ndarray | None:
+    """The mesh's uv in glTF orientation (v = 0 at the top of the image), or None."""
+    if uv_convention not in UV_CONVENTIONS:
+        raise ValueError(f"gbuffer: uv_convention must be one of {UV_CONVENTIONS}, got {uv_convention!r}")
     uv = getattr(mesh.visual, "uv", None)
     if uv is None:
         return None
-    uv = np.asarray(uv, dtype=np.float64)
-    if uv.shape != (len(mesh.vertices), 2):
+    uv = np.array(uv, dtype=np.float64)
+    if uv.ndim != 2 or uv.shape[0] != len(mesh.vertices) or uv.shape[1] < 2:
         raise CaptureError(f"mesh: uv has shape {uv.shape}, expected ({len(mesh.vertices)}, 2)")
+    uv = uv[:, :2]
+    if uv_convention == "trimesh":
+        uv[:, 1] = 1.0 - uv[:, 1]
     return uv
 
 
@@ -411,12 +419,12 @@ def compute_gbuffer(
     cache_dir: str | os.PathLike | None = None,
     *,
     backend: str = "auto",
+    uv_convention: str = "gltf",
 ) -> GBuffer:
     """Ray-cast one view of `mesh` and interpolate its attributes; see the module docstring.
 
-    mesh: triangles with optional ``mesh.visual.uv`` (glTF orientation, v = 0 at the top of
-    the image; without uv, uv is 0 and the tangent an arbitrary unit vector perpendicular to the
-    normal) and optional ``mesh.vertex_attributes["tangent"]`` (V, 4) in glTF TANGENT convention,
+    mesh: triangles with optional ``mesh.visual.uv`` (without uv, uv is 0 and the tangent an
+    arbitrary unit vector perpendicular to the normal) and optional ``mesh.vertex_attributes["tangent"]`` (V, 4) in glTF TANGENT convention,
     used instead of computed tangents when present. Shading normals are ``mesh.vertex_normals``.
     lights: objects with ``kind`` ("point" | "spot" | "directional"), ``position`` and
     ``direction`` (where the light travels), e.g. `pbrfit.lights.Light`.
@@ -426,9 +434,13 @@ def compute_gbuffer(
     backend: "embree" (embreex via trimesh, float32 traversal), "numpy" (brute force, float64)
     or "auto" (embree when installed). Either way the hit on the reported face is recomputed in
     float64, so positions lie on the mesh to float64 rounding.
+    uv_convention: how ``mesh.visual.uv`` is oriented. "gltf": v = 0 at the top row of the
+    image, used as is. "trimesh": v = 0 at the bottom (what trimesh's glTF and OBJ loaders
+    produce: its glTF loader stores 1 - v), turned into glTF's (u, 1 - v). The G-buffer's uv is
+    always glTF-oriented.
     """
     lights = tuple(lights)
-    uv_v = _mesh_uv(mesh)
+    uv_v = _mesh_uv(mesh, uv_convention)
     tan_v = _mesh_tangents(mesh)
     normals_v = np.asarray(mesh.vertex_normals, dtype=np.float64)
     path = None

@@ -177,6 +177,27 @@ def test_tangent_attribute_is_used_when_present():
     np.testing.assert_allclose(g.tangent, np.broadcast_to([0, 1, 0, -1], g.tangent.shape), atol=1e-6)
 
 
+def test_trimesh_uv_convention_matches_gltf_after_flip():
+    v, f, uv = grid_plane(mirror_u=True)
+    ref = compute_gbuffer(textured(v, f, uv), PLANE_CAM, ())
+    flipped = textured(v, f, np.c_[uv[:, 0], 1 - uv[:, 1]])  # as trimesh's loaders store it
+    g = compute_gbuffer(flipped, PLANE_CAM, (), uv_convention="trimesh")
+    np.testing.assert_array_equal(g.uv, ref.uv)
+    np.testing.assert_array_equal(g.tangent, ref.tangent)
+    with pytest.raises(ValueError, match="uv_convention"):
+        compute_gbuffer(flipped, PLANE_CAM, (), uv_convention="obj")
+
+
+def test_gltf_file_round_trip_through_trimesh(tmp_path):
+    """trimesh's glTF loader stores v as 1 - v: uv_convention="trimesh" undoes it."""
+    v, f, uv = grid_plane()
+    mesh = textured(v, f, np.c_[uv[:, 0], 1 - uv[:, 1]])
+    mesh.export(tmp_path / "plane.glb")
+    loaded = trimesh.load(tmp_path / "plane.glb", force="mesh", process=False)
+    g = compute_gbuffer(loaded, PLANE_CAM, (), uv_convention="trimesh")
+    np.testing.assert_allclose(g.uv[..., 1], (1 - g.position[..., 1]) / 2, atol=1e-6)
+
+
 def test_no_uv_gives_zero_uv_and_a_perpendicular_tangent():
     v, f, _ = grid_plane()
     g = compute_gbuffer(trimesh.Trimesh(v, f, process=False), PLANE_CAM, ())
