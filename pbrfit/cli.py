@@ -48,11 +48,45 @@ def _cmd_demo(args) -> int:
 
 # --- render ----------------------------------------------------------------------------------
 def _add_render(sub) -> None:
-    pass
+    p = sub.add_parser(
+        "render",
+        help="render every view of a capture with a material folder (fit-output layout) into a new capture",
+    )
+    p.add_argument("capture", help="capture folder or capture.json")
+    p.add_argument("--material", required=True, help="material folder (base_color.exr, metallic.exr, ...)")
+    p.add_argument("--out", required=True, help="output capture folder (written whole or not at all)")
+    p.add_argument("--environment", help="relight with this equirect HDR instead of the capture's")
+    p.add_argument("--lights", help="relight with these global lights: a JSON list (KHR_lights_punctual units)")
+    p.add_argument("--cache", help="G-buffer cache folder (default $PBRFIT_CACHE or ~/.cache/pbrfit)")
+    p.add_argument("--no-cache", action="store_true", help="do not read or write the G-buffer cache")
+    p.add_argument("--quiet", action="store_true")
+
+
+def _cache_dir(args):
+    from .views import default_cache_dir
+
+    if getattr(args, "no_cache", False):
+        return None
+    return args.cache if getattr(args, "cache", None) else default_cache_dir()
 
 
 def _cmd_render(args) -> int:
-    raise NotImplementedError
+    import time
+
+    from .io import read_material
+    from .scene import load_capture
+    from .views import apply_overrides, load_lights_override, render_capture, write_rendered_capture
+
+    start = time.perf_counter()
+    capture = load_capture(args.capture)
+    material = read_material(args.material)
+    lights_json = load_lights_override(args.lights) if args.lights else None
+    capture = apply_overrides(capture, args.environment, lights_json)
+    renders = render_capture(capture, material, cache_dir=_cache_dir(args))
+    write_rendered_capture(capture, renders, args.out, args.environment, lights_json)
+    if not args.quiet:
+        print(f"rendered {len(renders)} views to {args.out} in {time.perf_counter() - start:.1f} s")
+    return EXIT_OK
 
 
 # --- synth -----------------------------------------------------------------------------------

@@ -1,0 +1,222 @@
+"""A capture's views as shading inputs, and rendering every view of a capture.
+
+This is the glue between the capture (scene.py), the fixed geometry (gbuffer.py), the
+environment (ibl.py) and shading (render.py): G-buffers are computed once per view (and cached
+on disk when a cache folder is given), flattened into `ViewInputs`, and the environment's
+split-sum tables are built once per capture.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Optional, Sequence
+
+import jax.numpy as jnp
+import numpy as np
+
+from .errors import CaptureError
+from .gbuffer import GBuffer, compute_gbuffer
+from .material import Material
+from .model import Model
+from .render import ViewInputs, prepare_view, render_view
+
+__all__ = [
+    "default_cache_dir",
+    "model_for_capture",
+    "capture_environment",
+    "capture_ibl",
+    "capture_gbuffers",
+    "capture_views",
+    "render_capture",
+    "write_rendered_capture",
+    "apply_overrides",
+    "load_lights_override",
+]
+
+
+def default_cache_dir() -> Path:
+    """Where the CLI caches G-buffers: ``$PBRFIT_CACHE`` or ``$XDG_CACHE_HOME/pbrfit`` (~/.cache/pbrfit)."""
+    if os.environ.get("PBRFIT_CACHE"):
+        return Path(os.environ["PBRFIT_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "pbrfit"
+
+
+def model_for_capture(capture, material: Optional[Material] = None, **overrides) -> Model:
+    """The model a capture requires: split-sum IBL only with an environment; the metal lobe only
+    where `material` (when given) has metal somewhere. `overrides` set any other Model field."""
+    fields = {"ibl": "split_sum" if capture.environment is not None else None}
+    if material is not None:
+        fields["metallic"] = bool(np.any(np.asarray(material.metallic) > 0.0))
+    fields.update(overrides)
+    return Model(**fields)
+
+
+def capture_environment(capture):
+    """The capture's environment as a `pbrfit.environment.Environment`, or None."""
+    if capture.environment is None:
+        return None
+    from .environment import load_environment
+
+    spec = capture.environment
+    return load_environment(spec.file, capture.world_up, spec.intensity, spec.rotation_deg)
+
+
+def capture_ibl(capture, settings=None, environment=None):
+    """Split-sum tables for the capture's environment (or `environment`), or None without one."""
+    env = environment if environment is not None else capture_environment(capture)
+    if env is None:
+        return None
+    from .ibl import IBLSettings, build_ibl
+
+    return build_ibl(env, settings if settings is not None else IBLSettings())
+
+
+def capture_gbuffers(capture, cache_dir: Optional[os.PathLike] = None) -> list[GBuffer]:
+    """One G-buffer per frame (shadow rays towards each of the frame's lights)."""
+    return [compute_gbuffer(capture.mesh, f.camera, f.lights, cache_dir) for f in capture.frames]
+
+
+def capture_views(capture, gbuffers: Sequence[GBuffer], use_masks: bool = True) -> list[ViewInputs]:
+    """Shading inputs of every frame: the pixels where the mesh is hit (and, with `use_masks`,
+    which the frame's mask keeps)."""
+    return [
+        prepare_view(g, f.lights, f.mask if use_masks else None) for g, f in zip(gbuffers, capture.frames)
+    ]
+
+
+def render_capture(
+    capture,
+    material: Material,
+    model: Optional[Model] = None,
+    ibl=None,
+    gbuffers: Optional[Sequence[GBuffer]] = None,
+    cache_dir: Optional[os.PathLike] = None,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Render every frame as its file would hold it: [(image (H, W, 3), alpha (H, W))].
+
+    Exposure, tone map and color space follow each frame. Without `model`, the capture's
+    (`model_for_capture`); without `ibl`, built from the capture's environment when the model
+    needs it.
+    """
+    model = model if model is not None else model_for_capture(capture, material)
+    if ibl is None and (model.ibl == "split_sum" or model.multiscatter):
+        ibl = capture_ibl(capture)
+    gbuffers = gbuffers if gbuffers is not None else capture_gbuffers(capture, cache_dir)
+    views = capture_views(capture, gbuffers, use_masks=False)
+    out = []
+    for frame, view in zip(capture.frames, views):
+        image, alpha = render_view(
+            view, material, model, ibl, frame.exposure, capture.tonemap, frame.color_space
+        )
+        out.append((np.asarray(image), np.asarray(alpha)))
+    return out
+
+
+def _image_dtype(frame) -> str:
+    info = frame.info
+    if info is None or not info.is_ldr:
+        return "half" if info is not None and info.format == "half" else "float"
+    return "uint16" if info.bits > 8 else "uint8"
+
+
+def _copy_into(src: Path, root_out: Path, rel: str) -> None:
+    dst = root_out / rel
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src, dst)
+
+
+def write_rendered_capture(
+    capture,
+    renders: Sequence[tuple[np.ndarray, np.ndarray]],
+    out_dir: os.PathLike,
+    environment_file: Optional[os.PathLike] = None,
+    lights_json: Optional[list] = None,
+) -> Path:
+    """Write a capture folder at `out_dir` holding `renders` (capture spec, "The render output").
+
+    capture.json keeps the cameras, lights and environment (with the overrides applied), each
+    image goes to the frame's relative ``file_path`` in the same file type and color space as
+    the input frame, with an alpha channel of 1 where the mesh covers the pixel; the mesh and
+    environment files are copied beside it. The folder is built under a temporary name and
+    renamed into place, so a failure leaves nothing.
+    """
+    from .io import atomic_dir, write_image
+
+    raw = copy.deepcopy(capture.raw)
+    out_dir = Path(out_dir)
+    with atomic_dir(out_dir) as tmp:
+        tmp = Path(tmp)
+        mesh_rel = raw.get("mesh", capture.mesh_path.name)
+        _copy_into(capture.mesh_path, tmp, mesh_rel)
+        if environment_file is not None:
+            env_rel = "environment" + Path(environment_file).suffix
+            _copy_into(Path(environment_file), tmp, env_rel)
+            env = dict(raw.get("environment") or {})
+            env["file"] = env_rel
+            raw["environment"] = env
+        elif capture.environment is not None:
+            _copy_into(capture.environment.file, tmp, raw["environment"]["file"])
+        if lights_json is not None:
+            raw["lights"] = lights_json
+        for frame, entry, (image, alpha) in zip(capture.frames, raw["frames"], renders):
+            rel = os.path.relpath(frame.file_path, capture.root)
+            entry["file_path"] = rel
+            entry.pop("mask_path", None)  # the alpha channel is the mask
+            rgba = np.concatenate([image, alpha[..., None]], axis=-1)
+            dst = tmp / rel
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            write_image(dst, rgba, _image_dtype(frame))
+        (tmp / "capture.json").write_text(json.dumps(raw, indent=2) + "\n")
+    return out_dir
+
+
+def load_lights_override(path: os.PathLike) -> list:
+    """Read a `--lights` file: a JSON list of lights (or an object with a ``lights`` list)."""
+    from .lights import light_from_json
+
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise CaptureError(f"{path}: no such lights file") from None
+    except (OSError, json.JSONDecodeError) as err:
+        raise CaptureError(f"{path}: cannot read lights: {err}") from None
+    if isinstance(data, dict):
+        data = data.get("lights")
+    if not isinstance(data, list):
+        raise CaptureError(f"{path}: expected a JSON list of lights")
+    for i, light in enumerate(data):
+        light_from_json(light, f"{path}: lights[{i}]")
+    return data
+
+
+def apply_overrides(capture, environment_file: Optional[os.PathLike] = None, lights_json: Optional[list] = None):
+    """A copy of `capture` lit differently: another environment file and/or other global lights.
+
+    Per-frame lights and the flash stay; the environment keeps its intensity and rotation.
+    """
+    from .lights import light_from_json
+    from .scene import EnvironmentSpec
+
+    changes = {}
+    if environment_file is not None:
+        path = Path(environment_file)
+        if not path.is_file():
+            raise CaptureError(f"{path}: no such environment file")
+        old = capture.environment
+        changes["environment"] = EnvironmentSpec(
+            path, old.intensity if old else 1.0, old.rotation_deg if old else 0.0
+        )
+    if lights_json is not None:
+        new_global = tuple(light_from_json(d, f"--lights[{i}]") for i, d in enumerate(lights_json))
+        n_old = len(capture.lights)
+        frames = [dataclasses.replace(f, lights=new_global + tuple(f.lights[n_old:])) for f in capture.frames]
+        changes["frames"] = frames
+        changes["lights"] = new_global
+    return dataclasses.replace(capture, **changes) if changes else capture
