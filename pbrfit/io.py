@@ -1,0 +1,461 @@
+"""Files: images through OpenImageIO, atomic writes, material folders and glTF export.
+
+Conventions held here:
+
+* Images in memory are float32 (H, W, C), row 0 at the top, values as stored in the file
+  (an 8/16-bit file maps its codes to [0, 1]; no color transform, no alpha association:
+  OpenImageIO is told ``oiio:UnassociatedAlpha`` both ways, so a PNG's color channels are
+  returned and written exactly as stored, not multiplied or divided by alpha).
+* Every write is atomic: the file is written under a temporary name in the same folder and
+  renamed into place (`atomic_path`); a folder can be built the same way (`atomic_dir`).
+* OpenImageIO's Python ``write_image`` garbles a 2-D numpy array, so single-channel data always
+  goes out as (H, W, 1).
+* Material folders use the fit-output layout of the capture spec (base_color.exr/.png,
+  metallic.exr, roughness.exr, metallic_roughness.png with G = roughness, B = metallic,
+  normal.png); textures are in glTF orientation (row 0 is v = 0).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Optional, Sequence
+
+import numpy as np
+
+from .errors import CaptureError
+
+__all__ = [
+    "ImageInfo",
+    "atomic_path",
+    "atomic_dir",
+    "read_image",
+    "read_image_info",
+    "write_image",
+    "read_material",
+    "write_material",
+    "write_gltf",
+    "MATERIAL_FILES",
+]
+
+# pixel formats OpenImageIO reports for integer (low dynamic range) files, and their code maxima
+_LDR_MAX = {"uint8": 255, "uint16": 65535, "uint32": 4294967295, "int8": 127, "int16": 32767}
+_WRITE_DTYPES = {"float": np.float32, "half": np.float16, "uint8": np.uint8, "uint16": np.uint16}
+
+#: files of a material folder (fit-output layout)
+MATERIAL_FILES = (
+    "base_color.exr",
+    "base_color.png",
+    "metallic.exr",
+    "roughness.exr",
+    "metallic_roughness.png",
+    "normal.png",
+    "occlusion.exr",
+    "emissive.exr",
+)
+
+
+def _oiio():
+    import OpenImageIO as oiio
+
+    return oiio
+
+
+# --- atomic writes -----------------------------------------------------------------------------
+@contextlib.contextmanager
+def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path beside ``final`` (same folder, same suffix); rename on success.
+
+    The temporary name keeps ``final``'s suffix, so tools that pick a format by extension
+    (OpenImageIO, trimesh) write the right one. If the body raises, the temporary file is
+    deleted and ``final`` is left as it was.
+    """
+    final = Path(final)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=f".tmp{final.suffix}", dir=final.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, final)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp_path.unlink()
+        raise
+
+
+@contextlib.contextmanager
+def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True) -> Iterator[Path]:
+    """Yield a temporary folder beside ``final_dir``; rename it to ``final_dir`` on success.
+
+    If the body raises, the temporary folder is removed and nothing appears at ``final_dir``.
+    An existing ``final_dir`` is replaced when ``overwrite`` (moved aside, the new folder
+    renamed in, the old one deleted), else `CaptureError`.
+    """
+    final_dir = Path(final_dir)
+    if final_dir.exists() and not overwrite:
+        raise CaptureError(f"{final_dir}: already exists")
+    final_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".tmp", dir=final_dir.parent))
+    try:
+        yield tmp
+        if final_dir.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".old", dir=final_dir.parent))
+            os.replace(final_dir, old / "d")
+            os.replace(tmp, final_dir)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, final_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+# --- images ------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ImageInfo:
+    """What `read_image` learnt about a file.
+
+    Attributes:
+        path: the file.
+        width, height, channels: the image size.
+        channel_names: as stored (e.g. ``("R", "G", "B", "A")``).
+        format: pixel format as stored: ``"uint8"``, ``"uint16"``, ``"half"``, ``"float"``, ...
+        bits: bits per channel.
+        is_ldr: integer pixels (a code maximum exists, values lie in [0, 1] once read).
+        alpha_channel: index of the alpha channel, or None.
+        file_format: OpenImageIO's format name (``"png"``, ``"openexr"``, ``"hdr"``, ``"tiff"``, ``"jpeg"``).
+    """
+
+    path: Path
+    width: int
+    height: int
+    channels: int
+    channel_names: tuple[str, ...]
+    format: str
+    bits: int
+    is_ldr: bool
+    alpha_channel: Optional[int]
+    file_format: str
+
+
+def _first_line(message: str) -> str:
+    lines = [ln.strip() for ln in str(message).splitlines() if ln.strip()]
+    return lines[0] if lines else "unknown error"
+
+
+def _unassociated_config():
+    oiio = _oiio()
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    return config
+
+
+def _info(path: Path, spec, file_format: str) -> ImageInfo:
+    fmt = str(spec.format)
+    return ImageInfo(
+        path=path,
+        width=int(spec.width),
+        height=int(spec.height),
+        channels=int(spec.nchannels),
+        channel_names=tuple(spec.channelnames),
+        format=fmt,
+        bits=int(spec.format.size()) * 8,
+        is_ldr=fmt in _LDR_MAX,
+        alpha_channel=int(spec.alpha_channel) if spec.alpha_channel >= 0 else None,
+        file_format=str(file_format),
+    )
+
+
+def read_image_info(path: str | os.PathLike, where: str | None = None) -> ImageInfo:
+    """The `ImageInfo` of an image file, reading its header only (raises like `read_image`)."""
+    oiio = _oiio()
+    path = Path(path)
+    prefix = f"{where}: " if where else ""
+    if not path.is_file():
+        raise CaptureError(f"{prefix}image file not found: {path}")
+    inp = oiio.ImageInput.open(str(path), _unassociated_config())
+    if inp is None:
+        raise CaptureError(f"{prefix}cannot read image {path}: {_first_line(oiio.geterror())}")
+    try:
+        return _info(path, inp.spec(), inp.format_name())
+    finally:
+        inp.close()
+
+
+def read_image(path: str | os.PathLike, where: str | None = None) -> tuple[np.ndarray, ImageInfo]:
+    """Read an image file as float32 (H, W, C) pixels and its `ImageInfo`.
+
+    Integer files map codes to [0, 1] (code / max); float files are returned as stored; no
+    color conversion happens here. Raises `CaptureError` (prefixed with ``where`` when given)
+    when the file is missing or OpenImageIO cannot read it.
+    """
+    oiio = _oiio()
+    path = Path(path)
+    prefix = f"{where}: " if where else ""
+    if not path.is_file():
+        raise CaptureError(f"{prefix}image file not found: {path}")
+    inp = oiio.ImageInput.open(str(path), _unassociated_config())
+    if inp is None:
+        raise CaptureError(f"{prefix}cannot read image {path}: {_first_line(oiio.geterror())}")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        error = inp.geterror()
+        file_format = inp.format_name()
+    finally:
+        inp.close()
+    if pixels is None or not isinstance(pixels, np.ndarray) or pixels.size == 0:
+        raise CaptureError(f"{prefix}cannot read image {path}: {_first_line(error or oiio.geterror())}")
+    pixels = np.asarray(pixels, dtype=np.float32)
+    if pixels.ndim == 2:
+        pixels = pixels[:, :, None]
+    elif pixels.ndim == 4:  # volume images: take the first slice
+        pixels = pixels[0]
+    info = _info(path, spec, file_format)
+    return pixels, info
+
+
+def write_image(
+    path: str | os.PathLike,
+    pixels: np.ndarray,
+    dtype: str = "float",
+    channel_names: Sequence[str] | None = None,
+) -> Path:
+    """Write (H, W) or (H, W, C) pixels to ``path`` atomically; the format follows the suffix.
+
+    ``dtype`` is the stored pixel type: ``"float"`` (float32), ``"half"``, ``"uint8"`` or
+    ``"uint16"``; integer types clip to [0, 1] and round ``x * max``. A 2-D array is written as
+    (H, W, 1) (OpenImageIO garbles 2-D arrays). A 4-channel image gets alpha in channel 3,
+    stored unassociated (color values as given).
+    """
+    oiio = _oiio()
+    if dtype not in _WRITE_DTYPES:
+        raise ValueError(f"dtype must be one of {', '.join(_WRITE_DTYPES)}, got {dtype!r}")
+    arr = np.asarray(pixels)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    if arr.ndim != 3:
+        raise ValueError(f"pixels must be (H, W) or (H, W, C), got shape {arr.shape}")
+    height, width, channels = arr.shape
+    if dtype in ("uint8", "uint16"):
+        code_max = _LDR_MAX[dtype]
+        data = np.round(np.clip(np.nan_to_num(arr.astype(np.float64)), 0.0, 1.0) * code_max)
+        data = data.astype(_WRITE_DTYPES[dtype])
+    else:
+        data = arr.astype(_WRITE_DTYPES[dtype])
+    data = np.ascontiguousarray(data)
+    spec = oiio.ImageSpec(width, height, channels, dtype)
+    if channel_names is not None:
+        if len(channel_names) != channels:
+            raise ValueError(f"{len(channel_names)} channel names for {channels} channels")
+        spec.channelnames = tuple(channel_names)
+    if channels == 4:
+        spec.alpha_channel = 3
+    spec.attribute("oiio:UnassociatedAlpha", 1)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise CaptureError(f"cannot write image {path}: {_first_line(oiio.geterror())}")
+        try:
+            if not out.open(str(tmp), spec):
+                raise CaptureError(f"cannot write image {path}: {_first_line(out.geterror())}")
+            if not out.write_image(data):
+                raise CaptureError(f"cannot write image {path}: {_first_line(out.geterror())}")
+        finally:
+            out.close()
+    return path
+
+
+# --- material folders --------------------------------------------------------------------------
+def _srgb_encode(x: np.ndarray) -> np.ndarray:
+    from .color import linear_to_srgb
+
+    return np.asarray(linear_to_srgb(np.clip(np.asarray(x, np.float32), 0.0, 1.0)), dtype=np.float32)
+
+
+def _srgb_decode(x: np.ndarray) -> np.ndarray:
+    from .color import srgb_to_linear
+
+    return np.asarray(srgb_to_linear(np.asarray(x, np.float32)), dtype=np.float32)
+
+
+def _np(x) -> Optional[np.ndarray]:
+    return None if x is None else np.asarray(x, dtype=np.float32)
+
+
+def _pack_orm(material) -> np.ndarray:
+    """glTF packing: R = occlusion (1 when absent), G = roughness, B = metallic (linear)."""
+    metallic = _np(material.metallic)
+    roughness = _np(material.roughness)
+    if metallic.shape[:2] != roughness.shape[:2]:
+        raise ValueError(
+            f"metallic {metallic.shape[:2]} and roughness {roughness.shape[:2]} maps differ in size; "
+            "metallic_roughness.png packs them together"
+        )
+    occlusion = _np(material.occlusion)
+    if occlusion is None or occlusion.shape[:2] != metallic.shape[:2]:
+        r = np.ones_like(metallic[..., :1])
+    else:
+        r = occlusion[..., :1]
+    return np.concatenate([r, roughness[..., :1], metallic[..., :1]], axis=-1)
+
+
+def _encode_normal(normal: np.ndarray) -> np.ndarray:
+    return np.clip(normal * 0.5 + 0.5, 0.0, 1.0)
+
+
+def _decode_normal(encoded: np.ndarray) -> np.ndarray:
+    n = encoded[..., :3] * 2.0 - 1.0
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    up = np.zeros_like(n)
+    up[..., 2] = 1.0
+    return np.where(norm > 0, n / np.where(norm > 0, norm, 1.0), up).astype(np.float32)
+
+
+def write_material(directory: str | os.PathLike, material) -> list[Path]:
+    """Write ``material`` to ``directory`` in the fit-output layout; return the files written.
+
+    Always: ``base_color.exr`` (linear RGB float32), ``base_color.png`` (sRGB 8-bit),
+    ``metallic.exr`` and ``roughness.exr`` (one channel float32), ``metallic_roughness.png``
+    (glTF packing, linear 8-bit: R = occlusion or 1, G = roughness, B = metallic). When present:
+    ``normal.png`` (tangent space, +Y, ``n * 0.5 + 0.5`` in 8 bits), ``occlusion.exr`` and
+    ``emissive.exr`` (linear float32). Each file is written atomically.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    base = _np(material.base_color)
+    written = [
+        write_image(directory / "base_color.exr", base, "float"),
+        write_image(directory / "base_color.png", _srgb_encode(base), "uint8"),
+        write_image(directory / "metallic.exr", _np(material.metallic)[..., :1], "float"),
+        write_image(directory / "roughness.exr", _np(material.roughness)[..., :1], "float"),
+        write_image(directory / "metallic_roughness.png", _pack_orm(material), "uint8"),
+    ]
+    normal = _np(getattr(material, "normal", None))
+    if normal is not None:
+        written.append(write_image(directory / "normal.png", _encode_normal(normal), "uint8"))
+    occlusion = _np(getattr(material, "occlusion", None))
+    if occlusion is not None:
+        written.append(write_image(directory / "occlusion.exr", occlusion[..., :1], "float"))
+    emissive = _np(getattr(material, "emissive", None))
+    if emissive is not None:
+        written.append(write_image(directory / "emissive.exr", emissive, "float"))
+    return written
+
+
+def _channels(pixels: np.ndarray, n: int, path: Path) -> np.ndarray:
+    if pixels.shape[-1] < n:
+        if pixels.shape[-1] == 1:
+            return np.repeat(pixels, n, axis=-1)
+        raise CaptureError(f"{path}: expected {n} channels, found {pixels.shape[-1]}")
+    return pixels[..., :n]
+
+
+def read_material(directory: str | os.PathLike):
+    """Read a material folder (fit-output layout) as a `pbrfit.material.Material`.
+
+    The float EXR files are preferred (exact); without them the 8-bit PNGs are used
+    (``base_color.png`` sRGB-decoded; metallic from B and roughness from G of
+    ``metallic_roughness.png``). ``normal.png``, ``occlusion.exr`` and ``emissive.exr`` are
+    optional. Raises `CaptureError` naming the folder when a required map is missing.
+    """
+    from .material import Material
+
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise CaptureError(f"material folder not found: {directory}")
+
+    def has(name: str) -> bool:
+        return (directory / name).is_file()
+
+    if has("base_color.exr"):
+        base = _channels(read_image(directory / "base_color.exr")[0], 3, directory / "base_color.exr")
+    elif has("base_color.png"):
+        base = _srgb_decode(_channels(read_image(directory / "base_color.png")[0], 3, directory / "base_color.png"))
+    else:
+        raise CaptureError(f"{directory}: material folder has no base_color.exr or base_color.png")
+
+    orm = None
+    if not (has("metallic.exr") and has("roughness.exr")):
+        if not has("metallic_roughness.png"):
+            raise CaptureError(
+                f"{directory}: material folder has neither metallic.exr + roughness.exr nor metallic_roughness.png"
+            )
+        orm = _channels(read_image(directory / "metallic_roughness.png")[0], 3, directory / "metallic_roughness.png")
+    metallic = read_image(directory / "metallic.exr")[0][..., :1] if has("metallic.exr") else orm[..., 2:3]
+    roughness = read_image(directory / "roughness.exr")[0][..., :1] if has("roughness.exr") else orm[..., 1:2]
+    normal = _decode_normal(_channels(read_image(directory / "normal.png")[0], 3, directory / "normal.png")) if has("normal.png") else None
+    occlusion = read_image(directory / "occlusion.exr")[0][..., :1] if has("occlusion.exr") else None
+    emissive = _channels(read_image(directory / "emissive.exr")[0], 3, directory / "emissive.exr") if has("emissive.exr") else None
+    return Material(
+        base_color=base, metallic=metallic, roughness=roughness,
+        normal=normal, occlusion=occlusion, emissive=emissive,
+    )  # fmt: skip
+
+
+# --- glTF export -------------------------------------------------------------------------------
+def _pil_image(pixels: np.ndarray):
+    """8-bit PIL image from [0, 1] floats, row 0 at the top (glTF: row 0 is v = 0)."""
+    from PIL import Image
+
+    codes = np.round(np.clip(np.asarray(pixels, np.float64), 0.0, 1.0) * 255.0).astype(np.uint8)
+    if codes.shape[-1] == 1:
+        return Image.fromarray(codes[..., 0], mode="L")
+    return Image.fromarray(np.ascontiguousarray(codes[..., :3]), mode="RGB")
+
+
+def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
+    """Write ``mesh`` with ``material`` as a binary glTF (GLB) at ``path``, atomically.
+
+    ``mesh`` is a `trimesh.Trimesh` whose ``visual.uv`` is in glTF orientation (v = 0 at the
+    top row of the texture), as `pbrfit.scene.load_capture` gives it. trimesh's exporter
+    expects its own convention (v = 0 at the bottom) and writes TEXCOORD_0 = (u, 1 - v), so the
+    uv is flipped before export and TEXCOORD_0 ends up equal to ``mesh.visual.uv``. Textures are
+    stored with row 0 at the top of the image, so texel row 0 is v = 0 as glTF requires. baseColorTexture is sRGB 8-bit,
+    metallicRoughnessTexture linear (R = occlusion or 1, G = roughness, B = metallic) with
+    factors 1; normalTexture, occlusionTexture (the same image, R) and emissiveTexture
+    (factor 1, clipped to [0, 1]) when the material has them.
+    """
+    import trimesh
+    from trimesh.visual.material import PBRMaterial
+    from trimesh.visual.texture import TextureVisuals
+
+    uv = getattr(getattr(mesh, "visual", None), "uv", None)
+    if uv is None or len(uv) != len(mesh.vertices):
+        raise ValueError("write_gltf needs a mesh with one texture coordinate per vertex (mesh.visual.uv)")
+    base = _np(material.base_color)
+    orm_image = _pil_image(_pack_orm(material))
+    kwargs = dict(
+        baseColorTexture=_pil_image(_srgb_encode(base)),
+        metallicRoughnessTexture=orm_image,
+        metallicFactor=1.0,
+        roughnessFactor=1.0,
+        baseColorFactor=[255, 255, 255, 255],
+        name="pbrfit",
+    )
+    normal = _np(getattr(material, "normal", None))
+    if normal is not None:
+        kwargs["normalTexture"] = _pil_image(_encode_normal(normal))
+    if getattr(material, "occlusion", None) is not None:
+        kwargs["occlusionTexture"] = orm_image
+    emissive = _np(getattr(material, "emissive", None))
+    if emissive is not None:
+        kwargs["emissiveTexture"] = _pil_image(_srgb_encode(emissive))
+        kwargs["emissiveFactor"] = [1.0, 1.0, 1.0]
+    uv = np.asarray(uv, dtype=np.float64)[:, :2]
+    uv_trimesh = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])  # undone by trimesh's exporter
+    visual = TextureVisuals(uv=uv_trimesh, material=PBRMaterial(**kwargs))
+    out_mesh = trimesh.Trimesh(
+        vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces), visual=visual, process=False
+    )
+    data = out_mesh.export(file_type="glb")
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return path

@@ -1,0 +1,234 @@
+import os
+
+import numpy as np
+import pytest
+
+from _capture_fixtures import QUAD_UV_GLTF, glb_accessor, glb_image, read_glb, write_quad_glb
+from pbrfit.color import linear_to_srgb, srgb_to_linear
+from pbrfit.errors import CaptureError
+from pbrfit.io import (
+    atomic_dir,
+    atomic_path,
+    read_image,
+    read_image_info,
+    read_material,
+    write_gltf,
+    write_image,
+    write_material,
+)
+from pbrfit.material import Material
+
+
+def _listing(folder):
+    return sorted(p.name for p in folder.iterdir())
+
+
+# --- atomic writes ------------------------------------------------------------------------------
+def test_atomic_path_renames_on_success(tmp_path):
+    final = tmp_path / "sub" / "a.txt"
+    with atomic_path(final) as tmp:
+        assert tmp.parent == final.parent and tmp.suffix == ".txt" and tmp != final
+        tmp.write_text("new")
+        assert not final.exists()
+    assert final.read_text() == "new"
+    assert _listing(final.parent) == ["a.txt"]
+
+
+def test_atomic_path_failure_keeps_old_and_leaves_no_temp(tmp_path):
+    final = tmp_path / "a.exr"
+    final.write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_path(final) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("boom")
+    assert final.read_text() == "old"
+    assert _listing(tmp_path) == ["a.exr"]
+
+
+def test_atomic_dir_success_failure_and_overwrite(tmp_path):
+    out = tmp_path / "out"
+    with pytest.raises(RuntimeError):
+        with atomic_dir(out) as d:
+            (d / "x").write_text("1")
+            raise RuntimeError("boom")
+    assert _listing(tmp_path) == []
+    with atomic_dir(out) as d:
+        (d / "x").write_text("1")
+        assert not out.exists()
+    assert _listing(out) == ["x"]
+    with atomic_dir(out) as d:
+        (d / "y").write_text("2")
+    assert _listing(out) == ["y"]
+    assert _listing(tmp_path) == ["out"]
+    with pytest.raises(CaptureError, match="already exists"):
+        with atomic_dir(out, overwrite=False):
+            pass
+
+
+# --- images -------------------------------------------------------------------------------------
+def test_single_channel_2d_round_trip_guards_oiio_bug(tmp_path):
+    # OpenImageIO garbles a 2-D array passed to write_image; write_image must pass (H, W, 1).
+    a = np.arange(12, dtype=np.float32).reshape(3, 4) / 7.0
+    write_image(tmp_path / "m.exr", a)
+    back, info = read_image(tmp_path / "m.exr")
+    assert back.shape == (3, 4, 1) and info.channels == 1
+    np.testing.assert_array_equal(back[..., 0], a)
+
+
+@pytest.mark.parametrize("channels", [1, 3, 4])
+def test_exr_float_round_trip_exact(tmp_path, channels):
+    a = np.random.default_rng(channels).normal(size=(5, 7, channels)).astype(np.float32) * 100
+    write_image(tmp_path / "a.exr", a)
+    back, info = read_image(tmp_path / "a.exr")
+    np.testing.assert_array_equal(back, a)
+    assert (info.width, info.height, info.format, info.is_ldr) == (7, 5, "float", False)
+    assert info.alpha_channel == (3 if channels == 4 else None)
+    assert info.file_format == "openexr"
+
+
+@pytest.mark.parametrize("dtype, code_max", [("uint8", 255), ("uint16", 65535)])
+def test_png_integer_round_trip(tmp_path, dtype, code_max):
+    codes = np.random.default_rng(0).integers(0, code_max + 1, size=(4, 6, 3))
+    write_image(tmp_path / "a.png", codes / code_max, dtype)
+    back, info = read_image(tmp_path / "a.png")
+    np.testing.assert_array_equal(np.round(back * code_max), codes)
+    assert info.is_ldr and info.format == dtype and info.bits == (8 if dtype == "uint8" else 16)
+
+
+def test_png_alpha_is_unassociated_both_ways(tmp_path):
+    # OpenImageIO would multiply color by alpha on read (and divide on write) by default.
+    px = np.array([[[200, 100, 50, 128]]], np.float64) / 255
+    write_image(tmp_path / "a.png", px, "uint8")
+    back, info = read_image(tmp_path / "a.png")
+    np.testing.assert_array_equal(np.round(back * 255), [[[200, 100, 50, 128]]])
+    assert info.alpha_channel == 3
+
+
+@pytest.mark.parametrize("name, dtype, atol", [("a.hdr", "float", 0.02), ("a.tif", "uint8", 0.5 / 255),
+                                                ("b.tif", "float", 0.0), ("a.jpg", "uint8", 0.1)])
+def test_other_formats_read(tmp_path, name, dtype, atol):
+    a = np.random.default_rng(1).uniform(0.1, 0.9, (8, 8, 3)).astype(np.float32)
+    a[:] = a.mean((0, 1))  # flat, so JPEG compression stays close
+    write_image(tmp_path / name, a, dtype)
+    back, info = read_image(tmp_path / name)
+    assert back.shape == (8, 8, 3) and back.dtype == np.float32
+    np.testing.assert_allclose(back, a, atol=atol, rtol=0.01)
+    assert info.is_ldr == (dtype == "uint8")
+    assert read_image_info(tmp_path / name) == info
+
+
+def test_read_image_errors_name_the_file(tmp_path):
+    with pytest.raises(CaptureError, match=r"frames\[0\]: image file not found: .*nope.png"):
+        read_image(tmp_path / "nope.png", "frames[0]")
+    (tmp_path / "bad.png").write_bytes(b"not a png at all")
+    with pytest.raises(CaptureError, match=r"cannot read image .*bad.png"):
+        read_image(tmp_path / "bad.png")
+
+
+def test_write_image_integer_clips_and_rounds(tmp_path):
+    write_image(tmp_path / "a.png", np.array([[-1.0, 0.5, 2.0]]), "uint8")
+    back, _ = read_image(tmp_path / "a.png")
+    np.testing.assert_array_equal(np.round(back[..., 0] * 255), [[0, 128, 255]])
+
+
+# --- material folders ---------------------------------------------------------------------------
+def _material(rng, normal=False, occlusion=False, emissive=False, size=(4, 5)):
+    h, w = size
+    n = rng.normal(size=(h, w, 3)) + [0, 0, 3]
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return Material(
+        base_color=rng.uniform(0, 1, (h, w, 3)).astype(np.float32),
+        metallic=rng.uniform(0, 1, (h, w, 1)).astype(np.float32),
+        roughness=rng.uniform(0, 1, (h, w, 1)).astype(np.float32),
+        normal=n.astype(np.float32) if normal else None,
+        occlusion=rng.uniform(0, 1, (h, w, 1)).astype(np.float32) if occlusion else None,
+        emissive=rng.uniform(0, 3, (h, w, 3)).astype(np.float32) if emissive else None,
+    )
+
+
+def test_material_round_trip_and_layout(tmp_path):
+    m = _material(np.random.default_rng(0), normal=True, occlusion=True, emissive=True)
+    write_material(tmp_path / "fit", m)
+    assert _listing(tmp_path / "fit") == sorted([
+        "base_color.exr", "base_color.png", "metallic.exr", "roughness.exr",
+        "metallic_roughness.png", "normal.png", "occlusion.exr", "emissive.exr"])  # fmt: skip
+    back = read_material(tmp_path / "fit")
+    for name in ("base_color", "metallic", "roughness", "occlusion", "emissive"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(m, name))
+    np.testing.assert_allclose(back.normal, m.normal, atol=1.5 / 255 * 2)
+    # glTF packing: G = roughness, B = metallic, linear 8-bit; R = occlusion
+    orm, info = read_image(tmp_path / "fit" / "metallic_roughness.png")
+    assert info.format == "uint8"
+    np.testing.assert_allclose(orm[..., 1:2], m.roughness, atol=0.5 / 255 + 1e-6)
+    np.testing.assert_allclose(orm[..., 2:3], m.metallic, atol=0.5 / 255 + 1e-6)
+    np.testing.assert_allclose(orm[..., 0:1], m.occlusion, atol=0.5 / 255 + 1e-6)
+    # base_color.png is sRGB-encoded
+    png, _ = read_image(tmp_path / "fit" / "base_color.png")
+    np.testing.assert_allclose(png, linear_to_srgb(np.asarray(m.base_color)), atol=0.5 / 255 + 1e-6)
+    mono, info = read_image(tmp_path / "fit" / "roughness.exr")
+    assert info.channels == 1 and info.format == "float"
+
+
+def test_material_png_fallback(tmp_path):
+    m = _material(np.random.default_rng(1))
+    write_material(tmp_path, m)
+    for name in ("base_color.exr", "metallic.exr", "roughness.exr"):
+        os.remove(tmp_path / name)
+    back = read_material(tmp_path)
+    assert back.normal is None and back.occlusion is None
+    png = np.round(np.asarray(linear_to_srgb(np.asarray(m.base_color))) * 255) / 255
+    np.testing.assert_allclose(back.base_color, srgb_to_linear(png), atol=1e-6)
+    np.testing.assert_allclose(back.roughness, m.roughness, atol=0.5 / 255 + 1e-6)
+    np.testing.assert_allclose(back.metallic, m.metallic, atol=0.5 / 255 + 1e-6)
+
+
+def test_material_uniform_1x1(tmp_path):
+    m = Material.uniform([0.2, 0.4, 0.6], 0.0, 0.5)
+    write_material(tmp_path, m)
+    back = read_material(tmp_path)
+    assert back.base_color.shape == (1, 1, 3)
+    np.testing.assert_array_equal(back.roughness, [[[0.5]]])
+
+
+def test_read_material_errors(tmp_path):
+    with pytest.raises(CaptureError, match="material folder not found"):
+        read_material(tmp_path / "missing")
+    with pytest.raises(CaptureError, match="no base_color.exr or base_color.png"):
+        read_material(tmp_path)
+    write_image(tmp_path / "base_color.exr", np.zeros((2, 2, 3)))
+    with pytest.raises(CaptureError, match="neither metallic.exr"):
+        read_material(tmp_path)
+
+
+# --- glTF export --------------------------------------------------------------------------------
+def test_write_gltf_uv_and_texture_orientation(tmp_path):
+    from pbrfit.scene import load_mesh
+
+    mesh = load_mesh(write_quad_glb(tmp_path / "quad.glb"))
+    rng = np.random.default_rng(2)
+    m = _material(rng, normal=True, size=(4, 6))
+    base = np.asarray(m.base_color).copy()
+    base[0] = [1.0, 0.0, 0.0]  # row 0 (v = 0) red
+    m = Material(base_color=base, metallic=m.metallic, roughness=m.roughness, normal=m.normal)
+    out = write_gltf(tmp_path / "out" / "material.glb", mesh, m)
+    assert _listing(out.parent) == ["material.glb"]
+
+    tree, blob = read_glb(out)
+    prim = tree["meshes"][0]["primitives"][0]
+    np.testing.assert_allclose(glb_accessor(tree, blob, prim["attributes"]["TEXCOORD_0"]), QUAD_UV_GLTF)
+    mat = tree["materials"][prim["material"]]
+    pbr = mat["pbrMetallicRoughness"]
+    assert pbr["metallicFactor"] == 1.0 and pbr["roughnessFactor"] == 1.0
+    color = glb_image(tree, blob, pbr["baseColorTexture"]["index"])
+    assert color.shape == (4, 6, 3)
+    np.testing.assert_array_equal(color[0], np.broadcast_to([255, 0, 0], (6, 3)))  # row 0 is v = 0
+    np.testing.assert_allclose(color / 255.0, linear_to_srgb(base), atol=0.5 / 255 + 1e-6)
+    mr = glb_image(tree, blob, pbr["metallicRoughnessTexture"]["index"])
+    np.testing.assert_allclose(mr[..., 1:2] / 255.0, m.roughness, atol=0.5 / 255 + 1e-6)
+    np.testing.assert_allclose(mr[..., 2:3] / 255.0, m.metallic, atol=0.5 / 255 + 1e-6)
+    assert "normalTexture" in mat
+
+    # and it loads back through trimesh (via load_mesh) with the same uv
+    again = load_mesh(out)
+    np.testing.assert_allclose(again.visual.uv, QUAD_UV_GLTF)
+    np.testing.assert_allclose(again.vertices, mesh.vertices)
