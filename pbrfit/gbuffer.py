@@ -249,8 +249,8 @@ def _numpy_first_hit(tri: Float[np.ndarray, "F 3 3"]) -> Callable[[np.ndarray, n
     """First-hit search in numpy, float64: a one-level bounding-box hierarchy, then Möller-Trumbore.
 
     Faces are sorted along a Morton curve and grouped in blocks of `_NUMPY_BLOCK`; a ray is
-    tested against the faces of every block whose (slightly padded) box it crosses. Slower
-    than embree by ~100x, but exact and dependency-free.
+    tested against the faces of every block whose (slightly padded) box it crosses. Tens of
+    times slower than embree, but float64 throughout and dependency-free.
     """
     order = _morton_order(tri.mean(1))
     n_blocks = -(-len(tri) // _NUMPY_BLOCK)
@@ -447,6 +447,25 @@ def _mesh_tangents(mesh) -> np.ndarray | None:
     return t
 
 
+def _visibility(first_hit, tri, start, ng, lights) -> Float[np.ndarray, "P L"]:
+    """1 where the shadow ray from `start` (already offset along `ng`) reaches each light."""
+    visibility = np.zeros((len(start), len(lights)), dtype=np.float32)
+    for k, light in enumerate(lights):
+        kind, lpos, ldir = _light_geometry(light)
+        if kind == "directional":
+            to_light = np.broadcast_to(_normalize(-ldir), start.shape)
+            dist = np.full(len(start), np.inf)
+        else:
+            delta = lpos - start
+            dist = np.linalg.norm(delta, axis=-1)
+            to_light = _normalize(delta)
+        cand = np.nonzero(np.sum(to_light * ng, -1) > 0)[0]  # else the face itself is in the way
+        face, t, _, _ = _cast(first_hit, tri, start[cand], np.ascontiguousarray(to_light[cand]))
+        blocked = (face >= 0) & (t < dist[cand])
+        visibility[cand[~blocked], k] = 1.0
+    return visibility
+
+
 def compute_gbuffer(
     mesh: trimesh.Trimesh,
     camera: Camera,
@@ -459,15 +478,17 @@ def compute_gbuffer(
     """Ray-cast one view of `mesh` and interpolate its attributes; see the module docstring.
 
     mesh: triangles with optional ``mesh.visual.uv`` (without uv, uv is 0 and the tangent an
-    arbitrary unit vector perpendicular to the normal) and optional ``mesh.vertex_attributes["tangent"]`` (V, 4) in glTF TANGENT convention,
-    used instead of computed tangents when present. Shading normals are ``mesh.vertex_normals``.
+    arbitrary unit vector perpendicular to the normal) and optional
+    ``mesh.vertex_attributes["tangent"]`` (V, 4) in glTF TANGENT convention, used instead of
+    computed tangents when present (trimesh's loaders do not read TANGENT; a loader that does
+    can put it there). Shading normals are ``mesh.vertex_normals``.
     lights: objects with ``kind`` ("point" | "spot" | "directional"), ``position`` and
     ``direction`` (where the light travels), e.g. `pbrfit.lights.Light`.
     cache_dir: when given, the result is read from / written to
     ``cache_dir/gbuffer-<hash>.npz``, the hash covering the mesh (vertices, faces, uv,
     normals, tangents), the camera and the lights' kinds, positions and directions.
-    backend: "embree" (embreex via trimesh, float32 traversal), "numpy" (brute force, float64)
-    or "auto" (embree when installed). Either way the hit on the reported face is recomputed in
+    backend: "embree" (embreex via trimesh, float32 traversal), "numpy" (box-culled exact
+    tests, float64, slower) or "auto" (embree when installed). Either way the hit on the reported face is recomputed in
     float64, so positions lie on the mesh to float64 rounding.
     uv_convention: how ``mesh.visual.uv`` is oriented. "gltf": v = 0 at the top row of the
     image, used as is. "trimesh": v = 0 at the bottom (what trimesh's glTF and OBJ loaders
@@ -527,23 +548,8 @@ def compute_gbuffer(
     # two-sided: mirror the whole frame where the camera sees the back of the face
     ng, n, tan, w = ng * flip, n * flip, tan * flip, w * flip[:, 0]
 
-    visibility = np.zeros((len(idx), len(lights)), dtype=np.float32)
-    offset = SHADOW_OFFSET_REL * float(mesh.scale)
-    start = position + ng * offset
-    for k, light in enumerate(lights):
-        kind, lpos, ldir = _light_geometry(light)
-        if kind == "directional":
-            to_light = np.broadcast_to(_normalize(-ldir), start.shape)
-            dist = np.full(len(start), np.inf)
-        else:
-            delta = lpos - start
-            dist = np.linalg.norm(delta, axis=-1)
-            to_light = _normalize(delta)
-        facing = np.sum(to_light * ng, -1) > 0
-        cand = np.nonzero(facing)[0]
-        sface, st, _, _ = _cast(first_hit, tri, start[cand], np.ascontiguousarray(to_light[cand]))
-        blocked = (sface >= 0) & (st < dist[cand])
-        visibility[cand[~blocked], k] = 1.0
+    start = position + ng * (SHADOW_OFFSET_REL * float(mesh.scale))
+    visibility = _visibility(first_hit, tri, start, ng, lights)
 
     def full(values, channels, dtype):
         tail = () if channels is None else (channels,)
