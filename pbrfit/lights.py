@@ -238,6 +238,12 @@ _ALLOWED_KEYS = {
 }
 
 
+def _loc(where: str, key: str) -> str:
+    """``where`` + ``key`` for messages: ``capture.json: flash`` + ``intensity`` gives
+    ``capture.json: flash.intensity``; a bare json file name gives ``capture.json: intensity``."""
+    return f"{where}: {key}" if where.endswith(".json") else f"{where}.{key}"
+
+
 def _number(d: Mapping[str, Any], key: str, where: str, default: float | None) -> float:
     if key not in d:
         if default is None:
@@ -245,7 +251,7 @@ def _number(d: Mapping[str, Any], key: str, where: str, default: float | None) -
         return float(default)
     value = d[key]
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise CaptureError(f"{where}.{key}: expected a finite number, got {value!r}")
+        raise CaptureError(f"{_loc(where, key)}: expected a finite number, got {value!r}")
     return float(value)
 
 
@@ -258,18 +264,18 @@ def _triple(d: Mapping[str, Any], key: str, where: str, default=None) -> np.ndar
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
-        raise CaptureError(f"{where}.{key}: expected 3 numbers, got {value!r}") from None
+        raise CaptureError(f"{_loc(where, key)}: expected 3 numbers, got {value!r}") from None
     if arr.shape != (3,) or any(isinstance(v, bool) for v in value):
-        raise CaptureError(f"{where}.{key}: expected 3 numbers, got {value!r}")
+        raise CaptureError(f"{_loc(where, key)}: expected 3 numbers, got {value!r}")
     if not np.all(np.isfinite(arr)):
-        raise CaptureError(f"{where}.{key}: values must be finite, got {value!r}")
+        raise CaptureError(f"{_loc(where, key)}: values must be finite, got {value!r}")
     return arr
 
 
 def _direction(d: Mapping[str, Any], where: str) -> np.ndarray:
     v = _triple(d, "direction", where)
     if np.linalg.norm(v) < _MIN_DIRECTION_NORM:
-        raise CaptureError(f"{where}.direction: zero vector has no direction")
+        raise CaptureError(f"{_loc(where, 'direction')}: zero vector has no direction")
     return v
 
 
@@ -288,7 +294,7 @@ def light_from_json(d: Any, where: str) -> Light:
         raise CaptureError(f"{where}: missing key 'type' (one of {', '.join(KINDS)})")
     kind = d["type"]
     if kind not in KINDS:
-        raise CaptureError(f"{where}.type: unknown light type {kind!r} (expected one of {', '.join(KINDS)})")
+        raise CaptureError(f"{_loc(where, 'type')}: unknown light type {kind!r} (expected one of {', '.join(KINDS)})")
     allowed = _ALLOWED_KEYS[kind]
     for key in d:
         if key not in allowed:
@@ -297,16 +303,16 @@ def light_from_json(d: Any, where: str) -> Light:
             )
     color = _triple(d, "color", where, (1.0, 1.0, 1.0))
     if np.any(color < 0):
-        raise CaptureError(f"{where}.color: negative color {d['color']!r}")
+        raise CaptureError(f"{_loc(where, 'color')}: negative color {d['color']!r}")
     intensity = _number(d, "intensity", where, 1.0)
     if intensity < 0:
-        raise CaptureError(f"{where}.intensity: negative intensity {intensity!r}")
+        raise CaptureError(f"{_loc(where, 'intensity')}: negative intensity {intensity!r}")
     range_ = _number(d, "range", where, 0.0)
     if range_ < 0:
-        raise CaptureError(f"{where}.range: negative range {range_!r} (0 means infinite)")
+        raise CaptureError(f"{_loc(where, 'range')}: negative range {range_!r} (0 means infinite)")
     if kind == "directional":
         if range_ != 0:
-            raise CaptureError(f"{where}.range: range applies only to point and spot lights")
+            raise CaptureError(f"{_loc(where, 'range')}: range applies only to point and spot lights")
         return directional_light(_direction(d, where), color, intensity)
     position = _triple(d, "position", where)
     if kind == "point":

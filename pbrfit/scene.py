@@ -1,0 +1,635 @@
+"""Captures: loading and validating ``capture.json`` (spec: ``pbrfit-capture/1``).
+
+`load_capture` turns a capture folder into a `Capture`: the mesh, one `Frame` per image (pixels
+in linear float32, mask, camera, lights, exposure), the environment and the image encoding.
+Every problem with the input raises `pbrfit.errors.CaptureError` with one line naming the file or
+key and what is wrong.
+
+Rules pinned here (tests in ``tests/test_scene.py``):
+
+* Input path: a folder (its ``capture.json``, else its ``transforms.json``) or a ``.json`` file.
+  ``format`` must be ``"pbrfit-capture/1"``; it may be absent only in a NeRF-style file whose
+  name starts with ``transforms`` (``transforms.json``, ``transforms_train.json``), which then
+  needs a ``mesh`` key like any capture.
+* Keys: objects pbrfit owns (``lights[]``, ``flash``, ``environment``, ``images``) reject any
+  key they do not define. The top level and ``frames[]`` accept pbrfit's keys plus the NeRF /
+  instant-ngp / nerfstudio keys listed in `NERF_TOP_LEVEL_KEYS` and `NERF_FRAME_KEYS` and reject
+  anything else. ``extras`` (glTF's name for application data) is accepted and ignored at the
+  top level and in every object. Lens distortion (nonzero ``k1`` ... ``p2``), ``is_fisheye``
+  and non-pinhole ``camera_model`` are refused: pbrfit's cameras are pinholes.
+* Intrinsics, per frame: ``fl_x`` (frame, else top level) selects the pinhole form: ``fl_y``
+  defaults to ``fl_x``; otherwise ``camera_angle_x`` gives ``fx = W / (2 tan(angle_x / 2))`` and
+  ``fy`` from ``camera_angle_y`` when present, else ``fy = fx``. ``cx``, ``cy`` (frame, else top
+  level, else ``W/2``, ``H/2``) apply to either form. ``w``, ``h``, when given, must equal the
+  image size, and the principal point must lie inside the image.
+* Paths are relative to the folder of the json file. A path whose suffix is not a known image
+  extension (NeRF's ``./train/r_0``) is tried with ``.png`` appended, then ``.exr``, then as
+  written; a path with an image suffix is used as written. Same rule for ``mask_path``.
+* Color space: ``images.color_space`` when given, else by file: EXR and HDR linear, PNG and
+  JPEG sRGB, other files sRGB when 8-bit integer, linear otherwise (16-bit TIFF). Frames whose
+  defaults differ need ``images.color_space``. sRGB files are decoded to linear with
+  `pbrfit.color.srgb_to_linear`.
+* Exposure: a frame's effective EV is ``images.exposure + frames[].exposure`` (both default 0).
+* Masks: ``mask_path`` (nonzero in its first channel = use), else the image's alpha channel
+  (nonzero = use), else every pixel. Pixels with a NaN or inf channel are set to 0 and masked
+  out, with one `CaptureWarning` per frame that counts them. ``saturated`` marks pixels of
+  integer (LDR) files with any color channel at the maximum code.
+* Lights of a frame: the global ``lights``, then the frame's ``lights``, then the ``flash`` as a
+  point light at the camera centre plus ``offset`` (camera space).
+* Mesh: loaded with trimesh without processing (vertex order kept); a scene's meshes are
+  concatenated with their node transforms applied. ``mesh.visual.uv`` holds texture
+  coordinates in glTF orientation (v = 0 at the top row of the texture image) for every mesh
+  format: trimesh's loaders return v = 0 at the bottom for both OBJ (as stored) and glTF
+  (TEXCOORD_0 flipped on load), so `load_mesh` flips v back. A glTF primitive without a
+  material still keeps its TEXCOORD_0 (trimesh would drop it).
+"""
+
+from __future__ import annotations
+
+import io as _io
+import json
+import math
+import struct
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional
+
+import numpy as np
+
+from .errors import CaptureError
+from .gbuffer import Camera
+from .io import ImageInfo, read_image, read_image_info
+from .lights import Light, _loc, _number, _triple, flash_light, light_from_json
+
+__all__ = [
+    "CAPTURE_FORMAT",
+    "WORLD_UPS",
+    "PBRFIT_TOP_LEVEL_KEYS",
+    "NERF_TOP_LEVEL_KEYS",
+    "PBRFIT_FRAME_KEYS",
+    "NERF_FRAME_KEYS",
+    "IMAGE_SUFFIXES",
+    "CaptureWarning",
+    "EnvironmentSpec",
+    "Frame",
+    "Capture",
+    "load_capture",
+    "load_mesh",
+    "resolve_image_path",
+]
+
+CAPTURE_FORMAT = "pbrfit-capture/1"
+WORLD_UPS = ("+y", "+z")
+
+PBRFIT_TOP_LEVEL_KEYS = (
+    "format", "mesh", "world_up", "camera_angle_x", "fl_x", "fl_y", "cx", "cy",
+    "frames", "lights", "flash", "environment", "images", "extras",
+)  # fmt: skip
+#: NeRF (Blender), instant-ngp and nerfstudio keys tolerated at the top level. ``camera_angle_y``,
+#: ``w``, ``h`` are read; the distortion keys must be 0; the rest is ignored.
+NERF_TOP_LEVEL_KEYS = (
+    "camera_angle_y", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2", "is_fisheye", "camera_model",
+    "aabb_scale", "scale", "offset", "applied_transform", "applied_scale", "ply_file_path",
+    "integer_depth_scale", "enable_depth_loading", "sharpen",
+)  # fmt: skip
+PBRFIT_FRAME_KEYS = ("file_path", "transform_matrix", "mask_path", "lights", "exposure",
+                     "fl_x", "fl_y", "cx", "cy", "extras")  # fmt: skip
+NERF_FRAME_KEYS = ("w", "h", "k1", "k2", "k3", "k4", "p1", "p2", "rotation", "colmap_im_id",
+                   "sharpness", "depth_path", "depth_file_path", "time")  # fmt: skip
+_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+_PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
+_IMAGES_KEYS = ("color_space", "tonemap", "exposure", "extras")
+_FLASH_KEYS = ("color", "intensity", "offset", "extras")
+_ENVIRONMENT_KEYS = ("file", "intensity", "rotation_deg", "extras")
+
+#: suffixes taken as "has an extension"; any other path is tried with .png, then .exr appended
+IMAGE_SUFFIXES = (".exr", ".hdr", ".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".tga")
+_TRY_SUFFIXES = (".png", ".exr")
+_LINEAR_FORMATS = ("openexr", "hdr")
+_SRGB_FORMATS = ("png", "jpeg")
+# The last row of a camera-to-world matrix must be (0, 0, 0, 1) to this tolerance.
+_AFFINE_ROW_TOL = 1e-6
+
+
+class CaptureWarning(UserWarning):
+    """Something in a capture was repaired (non-finite pixels masked out)."""
+
+
+@dataclass(frozen=True)
+class EnvironmentSpec:
+    """The ``environment`` object: an equirect file (resolved), its scale and rotation about up."""
+
+    file: Path
+    intensity: float = 1.0
+    rotation_deg: float = 0.0
+
+
+@dataclass
+class Frame:
+    """One view.
+
+    Attributes:
+        file_path: the image file (resolved).
+        image: (H, W, 3) float32 linear RGB (sRGB-decoded when the frame is sRGB); 0 where the
+            file held NaN or inf.
+        mask: (H, W) bool, pixels to use (mask file, alpha, or all; non-finite pixels removed).
+        saturated: (H, W) bool, LDR pixels with a color channel at the maximum code.
+        camera: `pbrfit.gbuffer.Camera`.
+        lights: global lights + the frame's lights + the flash (as a point light).
+        exposure: effective EV (``images.exposure + frames[i].exposure``).
+        color_space: how the file was encoded (``"linear"`` or ``"srgb"``).
+        info: the file's `pbrfit.io.ImageInfo` (type, bit depth, alpha channel).
+        index: position in ``frames``.
+    """
+
+    file_path: Path
+    image: np.ndarray
+    mask: np.ndarray
+    saturated: np.ndarray
+    camera: Camera
+    lights: tuple[Light, ...]
+    exposure: float
+    color_space: str = "linear"
+    info: Optional[ImageInfo] = None
+    index: int = 0
+
+
+@dataclass
+class Capture:
+    """A loaded capture; see the module docstring for the rules.
+
+    ``mesh.visual.uv`` is in glTF orientation (or absent when loaded with ``require_uv=False``
+    from a mesh without texture coordinates).
+    """
+
+    root: Path
+    mesh: Any  # trimesh.Trimesh
+    mesh_path: Path
+    world_up: str
+    frames: list[Frame]
+    environment: Optional[EnvironmentSpec]
+    color_space: str
+    tonemap: str
+    truth_dir: Optional[Path]
+    raw: dict
+    json_path: Optional[Path] = None
+    lights: tuple[Light, ...] = ()
+    exposure: float = 0.0
+
+    @property
+    def uv(self) -> Optional[np.ndarray]:
+        """(V, 2) texture coordinates in glTF orientation, or None."""
+        return getattr(self.mesh.visual, "uv", None)
+
+
+# --- small validators ----------------------------------------------------------------------------
+def _check_keys(obj: Mapping, allowed, where: str, what: str) -> None:
+    for key in obj:
+        if key not in allowed:
+            raise CaptureError(f"{where}: unknown key {key!r} in {what} (allowed: {', '.join(allowed)})")
+
+
+def _object(value: Any, where: str) -> Mapping:
+    if not isinstance(value, Mapping):
+        raise CaptureError(f"{where}: expected an object, got {type(value).__name__}")
+    return value
+
+
+def _positive(d: Mapping, key: str, where: str) -> Optional[float]:
+    if key not in d:
+        return None
+    value = _number(d, key, where, None)
+    if value <= 0:
+        raise CaptureError(f"{_loc(where, key)}: must be > 0, got {value!r}")
+    return value
+
+
+def _string(d: Mapping, key: str, where: str) -> str:
+    value = d[key]
+    if not isinstance(value, str) or not value:
+        raise CaptureError(f"{_loc(where, key)}: expected a non-empty string, got {value!r}")
+    return value
+
+
+# --- paths ---------------------------------------------------------------------------------------
+def resolve_image_path(root: Path, rel: str, where: str) -> Path:
+    """Resolve an image path from capture.json (see the extension-less rule in the module doc)."""
+    path = root / rel
+    if path.suffix.lower() in IMAGE_SUFFIXES:
+        candidates = [path]
+    else:
+        candidates = [path.with_name(path.name + s) for s in _TRY_SUFFIXES] + [path]
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    tried = " or ".join(str(c) for c in candidates)
+    raise CaptureError(f"{where}: image file not found: {tried}")
+
+
+def _json_path(path: Path) -> Path:
+    if path.is_dir():
+        for name in ("capture.json", "transforms.json"):
+            if (path / name).is_file():
+                return path / name
+        raise CaptureError(f"{path}: no capture.json (or transforms.json) in this folder")
+    if not path.exists():
+        raise CaptureError(f"{path}: capture not found")
+    return path
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise CaptureError(f"{path}: cannot read ({type(err).__name__}: {err})".splitlines()[0]) from None
+    try:
+        raw = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise CaptureError(f"{path}: invalid JSON at line {err.lineno} column {err.colno}: {err.msg}") from None
+    if not isinstance(raw, dict):
+        raise CaptureError(f"{path}: expected a JSON object at the top level, got {type(raw).__name__}")
+    return raw
+
+
+# --- mesh ----------------------------------------------------------------------------------------
+_GLB_MAGIC = 0x46546C67
+_CHUNK_JSON = 0x4E4F534A
+
+
+def _gltf_default_material(tree: dict) -> bool:
+    """Give every primitive with TEXCOORD_0 but no material a default one; True if changed.
+
+    trimesh's glTF loader keeps TEXCOORD_0 only for primitives that name a material.
+    """
+    missing = [
+        prim
+        for mesh in tree.get("meshes", [])
+        for prim in mesh.get("primitives", [])
+        if "material" not in prim and "TEXCOORD_0" in prim.get("attributes", {})
+    ]
+    if not missing:
+        return False
+    materials = tree.setdefault("materials", [])
+    materials.append({"name": "pbrfit-default"})
+    for prim in missing:
+        prim["material"] = len(materials) - 1
+    return True
+
+
+def _load_gltf_keeping_uv(path: Path):
+    import trimesh
+
+    data = path.read_bytes()
+    if path.suffix.lower() == ".glb":
+        magic, version, _ = struct.unpack_from("<III", data, 0)
+        if magic != _GLB_MAGIC:
+            raise ValueError("not a GLB file (bad magic)")
+        json_len, chunk_type = struct.unpack_from("<II", data, 12)
+        if chunk_type != _CHUNK_JSON:
+            raise ValueError("first GLB chunk is not JSON")
+        tree = json.loads(data[20 : 20 + json_len])
+        if _gltf_default_material(tree):
+            js = json.dumps(tree).encode()
+            js += b" " * (-len(js) % 4)
+            rest = data[20 + json_len :]
+            header = struct.pack("<III", magic, version, 12 + 8 + len(js) + len(rest))
+            data = header + struct.pack("<II", len(js), _CHUNK_JSON) + js + rest
+        return trimesh.load_scene(_io.BytesIO(data), file_type="glb", process=False)
+    tree = json.loads(data)
+    _gltf_default_material(tree)
+    resolver = trimesh.resolvers.FilePathResolver(str(path.parent))
+    return trimesh.load_scene(
+        _io.BytesIO(json.dumps(tree).encode()), file_type="gltf", resolver=resolver, process=False
+    )
+
+
+def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
+    """Load a triangle mesh as one `trimesh.Trimesh` with uv in glTF orientation.
+
+    Scenes are flattened (node transforms applied, meshes concatenated in the order trimesh
+    lists the scene's geometry nodes, fixed for a given file). Raises
+    `CaptureError` when the file is missing or unreadable, has no triangles, or (with
+    ``require_uv``) lacks texture coordinates on any of its meshes.
+    """
+    import trimesh
+    from trimesh.visual.texture import TextureVisuals
+
+    path = Path(path)
+    if not path.is_file():
+        raise CaptureError(f"{where}: mesh file not found: {path}")
+    try:
+        if path.suffix.lower() in (".glb", ".gltf"):
+            scene = _load_gltf_keeping_uv(path)
+        else:
+            scene = trimesh.load_scene(str(path), process=False)
+    except Exception as err:  # trimesh raises many types for bad files
+        msg = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise CaptureError(f"{where}: cannot load mesh {path}: {msg}") from None
+    parts = [g for g in scene.dump() if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+    if not parts:
+        raise CaptureError(f"{where}: mesh file {path} holds no triangles")
+    uvs = []
+    for part in parts:
+        uv = getattr(part.visual, "uv", None)
+        if uv is None or len(uv) != len(part.vertices):
+            if require_uv:
+                name = part.metadata.get("name", "")
+                label = f" (mesh {name!r})" if name and len(parts) > 1 else ""
+                raise CaptureError(
+                    f"{where}: mesh {path}{label} has no texture coordinates "
+                    "(glTF TEXCOORD_0 / OBJ vt); map fitting needs them"
+                )
+            uvs = None
+            break
+        uvs.append(np.asarray(uv, dtype=np.float64)[:, :2])
+    offsets = np.cumsum([0] + [len(p.vertices) for p in parts])
+    vertices = np.concatenate([np.asarray(p.vertices, np.float64) for p in parts])
+    faces = np.concatenate([np.asarray(p.faces, np.int64) + off for p, off in zip(parts, offsets)])
+    normals = np.concatenate([np.asarray(p.vertex_normals, np.float64) for p in parts])
+    visual = None
+    if uvs is not None:
+        uv = np.concatenate(uvs)
+        # trimesh's convention (v = 0 at the image bottom) -> glTF's (v = 0 at the top row)
+        uv_gltf = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])
+        visual = TextureVisuals(uv=uv_gltf)
+    mesh = trimesh.Trimesh(
+        vertices=vertices, faces=faces, vertex_normals=normals, visual=visual, process=False
+    )
+    mesh.metadata["uv_orientation"] = "gltf"
+    mesh.metadata["file"] = str(path)
+    return mesh
+
+
+# --- frames --------------------------------------------------------------------------------------
+def _matrix(frame: Mapping, where: str) -> np.ndarray:
+    if "transform_matrix" not in frame:
+        raise CaptureError(f"{where}: missing key 'transform_matrix'")
+    value = frame["transform_matrix"]
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise CaptureError(f"{_loc(where, 'transform_matrix')}: expected a 4x4 array of numbers") from None
+    if m.shape != (4, 4):
+        raise CaptureError(f"{_loc(where, 'transform_matrix')}: expected shape 4x4, got {'x'.join(map(str, m.shape)) or 'a scalar'}")
+    if not np.all(np.isfinite(m)):
+        raise CaptureError(f"{_loc(where, 'transform_matrix')}: non-finite values")
+    if np.max(np.abs(m[3] - [0.0, 0.0, 0.0, 1.0])) > _AFFINE_ROW_TOL:
+        raise CaptureError(f"{_loc(where, 'transform_matrix')}: last row must be [0, 0, 0, 1], got {m[3].tolist()}")
+    return m
+
+
+def _camera(top: Mapping, frame: Mapping, c2w: np.ndarray, width: int, height: int, where: str, name: str, image: Path) -> Camera:
+    for key in ("w", "h"):
+        for obj, owner in ((frame, where), (top, name)):
+            if key in obj:
+                value = _number(obj, key, owner, None)
+                expected = width if key == "w" else height
+                if value != expected:
+                    raise CaptureError(
+                        f"{_loc(owner, key)}: says {value:g} but image {image} is {width}x{height} (w x h)"
+                    )
+                break
+    fl_x = _positive(frame, "fl_x", where)
+    fl_x_owner = where
+    if fl_x is None:
+        fl_x, fl_x_owner = _positive(top, "fl_x", name), name
+    if fl_x is not None:
+        fl_y = _positive(frame, "fl_y", where) or _positive(top, "fl_y", name) or fl_x
+        fx, fy = fl_x, fl_y
+    elif "camera_angle_x" in top:
+        angle = _number(top, "camera_angle_x", name, None)
+        if not 0.0 < angle < math.pi:
+            raise CaptureError(f"{name}: camera_angle_x: must be in (0, pi) radians, got {angle!r}")
+        fx = 0.5 * width / math.tan(0.5 * angle)
+        fy = fx
+        if "camera_angle_y" in top:
+            angle_y = _number(top, "camera_angle_y", name, None)
+            if not 0.0 < angle_y < math.pi:
+                raise CaptureError(f"{name}: camera_angle_y: must be in (0, pi) radians, got {angle_y!r}")
+            fy = 0.5 * height / math.tan(0.5 * angle_y)
+    else:
+        raise CaptureError(f"{where}: no intrinsics: give camera_angle_x, or fl_x (top level or per frame)")
+    cx = _number(frame, "cx", where, None) if "cx" in frame else _number(top, "cx", name, 0.5 * width)
+    cy = _number(frame, "cy", where, None) if "cy" in frame else _number(top, "cy", name, 0.5 * height)
+    if not (0.0 <= cx <= width and 0.0 <= cy <= height):
+        raise CaptureError(
+            f"{where}: principal point (cx, cy) = ({cx:g}, {cy:g}) lies outside the {width}x{height} image {image}"
+        )
+    try:
+        return Camera(c2w, fx, fy, cx, cy, width, height)
+    except CaptureError as err:
+        raise CaptureError(f"{where}: {err}") from None
+
+
+def _default_color_space(info: ImageInfo) -> str:
+    if info.file_format in _LINEAR_FORMATS:
+        return "linear"
+    if info.file_format in _SRGB_FORMATS:
+        return "srgb"
+    return "srgb" if (info.is_ldr and info.bits == 8) else "linear"
+
+
+def _rgb(pixels: np.ndarray, info: ImageInfo, where: str) -> np.ndarray:
+    color = [c for c in range(pixels.shape[-1]) if c != info.alpha_channel]
+    if len(color) >= 3:
+        return pixels[..., color[:3]]
+    if len(color) == 1:
+        return np.repeat(pixels[..., color], 3, axis=-1)
+    raise CaptureError(f"{where}: image {info.path} has {info.channels} channels; expected gray, RGB or RGBA")
+
+
+def _srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    from .color import srgb_to_linear
+
+    return np.asarray(srgb_to_linear(x), dtype=np.float32)
+
+
+def _check_distortion(obj: Mapping, where: str) -> None:
+    for key in _DISTORTION_KEYS:
+        if key in obj and _number(obj, key, where, None) != 0.0:
+            raise CaptureError(f"{_loc(where, key)}: lens distortion is not supported; undistort the images first")
+
+
+def _parse_flash(raw: Mapping, name: str) -> Optional[tuple[np.ndarray, float, np.ndarray]]:
+    """``flash`` -> (color, intensity, offset), or None."""
+    if raw.get("flash") is None:
+        return None
+    where = f"{name}: flash"
+    flash = _object(raw["flash"], where)
+    _check_keys(flash, _FLASH_KEYS, where, "flash")
+    color = _triple(flash, "color", where, (1.0, 1.0, 1.0))
+    if np.any(color < 0):
+        raise CaptureError(f"{where}.color: negative color {flash['color']!r}")
+    intensity = _number(flash, "intensity", where, 1.0)
+    if intensity < 0:
+        raise CaptureError(f"{where}.intensity: negative intensity {intensity!r}")
+    return color, intensity, _triple(flash, "offset", where, (0.0, 0.0, 0.0))
+
+
+def _parse_environment(raw: Mapping, name: str, root: Path) -> Optional[EnvironmentSpec]:
+    if raw.get("environment") is None:
+        return None
+    where = f"{name}: environment"
+    env = _object(raw["environment"], where)
+    _check_keys(env, _ENVIRONMENT_KEYS, where, "environment")
+    if "file" not in env:
+        raise CaptureError(f"{where}: missing key 'file'")
+    env_file = root / _string(env, "file", where)
+    read_image_info(env_file, f"{where}.file")  # exists and is an image (header only)
+    intensity = _number(env, "intensity", where, 1.0)
+    if intensity < 0:
+        raise CaptureError(f"{where}.intensity: negative intensity {intensity!r}")
+    return EnvironmentSpec(env_file, intensity, _number(env, "rotation_deg", where, 0.0))
+
+
+def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposure, global_lights, flash) -> Frame:
+    """Validate and load ``frames[i]`` (see the module docstring for the rules)."""
+    where = f"{name}: frames[{i}]"
+    frame_raw = _object(frame_raw, where)
+    _check_keys(frame_raw, PBRFIT_FRAME_KEYS + NERF_FRAME_KEYS, where, "a frame")
+    _check_distortion(frame_raw, where)
+    if "file_path" not in frame_raw:
+        raise CaptureError(f"{where}: missing key 'file_path'")
+    c2w = _matrix(frame_raw, where)
+    file_path = resolve_image_path(root, _string(frame_raw, "file_path", where), f"{where}.file_path")
+    pixels, info = read_image(file_path, f"{where}.file_path")
+    height, width = pixels.shape[:2]
+    camera = _camera(raw, frame_raw, c2w, width, height, where, name, file_path)
+
+    rgb = _rgb(pixels, info, f"{where}.file_path")
+    color_space = color_space_override or _default_color_space(info)
+    saturated = np.zeros((height, width), bool)
+    if info.is_ldr:
+        code_max = float(2 ** info.bits - 1)
+        saturated = np.any(rgb >= (code_max - 0.5) / code_max, axis=-1)
+
+    if "mask_path" in frame_raw:
+        mask_file = resolve_image_path(root, _string(frame_raw, "mask_path", where), f"{where}.mask_path")
+        mask_pixels, _ = read_image(mask_file, f"{where}.mask_path")
+        if mask_pixels.shape[:2] != (height, width):
+            raise CaptureError(
+                f"{_loc(where, 'mask_path')}: mask {mask_file} is {mask_pixels.shape[1]}x{mask_pixels.shape[0]}, "
+                f"image is {width}x{height}"
+            )
+        mask = mask_pixels[..., 0] > 0
+    elif info.alpha_channel is not None:
+        mask = pixels[..., info.alpha_channel] > 0
+    else:
+        mask = np.ones((height, width), bool)
+
+    bad = ~np.all(np.isfinite(rgb), axis=-1)
+    n_bad = int(bad.sum())
+    if n_bad:
+        rgb = np.where(bad[..., None], 0.0, rgb).astype(np.float32)
+        mask = mask & ~bad
+        warnings.warn(
+            f"{where}: {n_bad} pixel{'s' if n_bad != 1 else ''} with NaN or inf values in {file_path} masked out",
+            CaptureWarning,
+            stacklevel=3,
+        )
+    image = _srgb_to_linear(rgb) if color_space == "srgb" else np.ascontiguousarray(rgb, dtype=np.float32)
+
+    frame_lights_raw = frame_raw.get("lights", [])
+    if not isinstance(frame_lights_raw, list):
+        raise CaptureError(f"{_loc(where, 'lights')}: expected a list of lights")
+    lights = global_lights + tuple(
+        light_from_json(d, f"{where}.lights[{k}]") for k, d in enumerate(frame_lights_raw)
+    )
+    if flash is not None:
+        lights = lights + (flash_light(c2w, *flash),)
+    exposure = base_exposure + _number(frame_raw, "exposure", where, 0.0)
+    return Frame(
+        file_path=file_path, image=image, mask=mask, saturated=saturated, camera=camera,
+        lights=lights, exposure=exposure, color_space=color_space, info=info, index=i,
+    )  # fmt: skip
+
+
+# --- the loader ----------------------------------------------------------------------------------
+def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
+    """Load and validate a capture folder, ``capture.json``, or NeRF-style ``transforms*.json``.
+
+    Returns a `Capture`; raises `CaptureError` (one line naming the file or key) for any bad
+    input. ``require_uv=False`` accepts a mesh without texture coordinates (uniform fits).
+    See the module docstring for every rule.
+    """
+    from .color import COLOR_SPACES, TONEMAPS
+
+    json_path = _json_path(Path(path))
+    root = json_path.parent
+    name = str(json_path)
+    raw = _read_json(json_path)
+
+    # format and keys
+    if "format" in raw:
+        if raw["format"] != CAPTURE_FORMAT:
+            raise CaptureError(f"{name}: format: expected {CAPTURE_FORMAT!r}, got {raw['format']!r}")
+    elif not json_path.name.startswith("transforms"):
+        raise CaptureError(f"{name}: missing key 'format' (expected {CAPTURE_FORMAT!r})")
+    allowed_top = PBRFIT_TOP_LEVEL_KEYS + NERF_TOP_LEVEL_KEYS
+    _check_keys(raw, allowed_top, name, "the top level")
+    _check_distortion(raw, name)
+    if raw.get("is_fisheye", False):
+        raise CaptureError(f"{name}: is_fisheye: fisheye cameras are not supported")
+    if "camera_model" in raw and raw["camera_model"] not in _PINHOLE_MODELS:
+        raise CaptureError(
+            f"{name}: camera_model: {raw['camera_model']!r} is not supported (expected one of {', '.join(_PINHOLE_MODELS)})"
+        )
+
+    world_up = raw.get("world_up", "+y")
+    if world_up not in WORLD_UPS:
+        raise CaptureError(f"{name}: world_up: unknown value {world_up!r} (expected '+y' or '+z')")
+
+    # images
+    images = _object(raw.get("images", {}), f"{name}: images")
+    _check_keys(images, _IMAGES_KEYS, f"{name}: images", "images")
+    color_space_override = images.get("color_space")
+    if color_space_override is not None and color_space_override not in COLOR_SPACES:
+        raise CaptureError(
+            f"{name}: images.color_space: unknown color space {color_space_override!r} (expected {' or '.join(COLOR_SPACES)})"
+        )
+    tonemap = images.get("tonemap", "none")
+    if tonemap not in TONEMAPS:
+        raise CaptureError(f"{name}: images.tonemap: unknown tone map {tonemap!r} (expected one of {', '.join(TONEMAPS)})")
+    base_exposure = _number(images, "exposure", f"{name}: images", 0.0)
+
+    # lights, flash, environment
+    lights_raw = raw.get("lights", [])
+    if not isinstance(lights_raw, list):
+        raise CaptureError(f"{name}: lights: expected a list of lights")
+    global_lights = tuple(light_from_json(d, f"{name}: lights[{i}]") for i, d in enumerate(lights_raw))
+    flash = _parse_flash(raw, name)
+    environment = _parse_environment(raw, name, root)
+
+    # mesh
+    if "mesh" not in raw:
+        raise CaptureError(f"{name}: missing key 'mesh' (the object's triangle mesh file)")
+    mesh_path = root / _string(raw, "mesh", name)
+    mesh = load_mesh(mesh_path, f"{name}: mesh", require_uv=require_uv)
+
+    # frames
+    if "frames" not in raw:
+        raise CaptureError(f"{name}: missing key 'frames'")
+    frames_raw = raw["frames"]
+    if not isinstance(frames_raw, list):
+        raise CaptureError(f"{name}: frames: expected a list of frames")
+    if not frames_raw:
+        raise CaptureError(f"{name}: frames: no frames")
+    frames = []
+    for i, frame_raw in enumerate(frames_raw):
+        frames.append(
+            _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposure, global_lights, flash)
+        )
+
+    spaces = {f.color_space for f in frames}
+    if len(spaces) > 1:
+        first = {s: next(f for f in frames if f.color_space == s) for s in sorted(spaces)}
+        detail = " and ".join(f"{s} ({first[s].file_path.name})" for s in sorted(spaces))
+        raise CaptureError(f"{name}: images.color_space: frames mix {detail} files; set images.color_space")
+    truth = root / "truth"
+    return Capture(
+        root=root, mesh=mesh, mesh_path=mesh_path, world_up=world_up, frames=frames,
+        environment=environment, color_space=frames[0].color_space, tonemap=tonemap,
+        truth_dir=truth if truth.is_dir() else None, raw=raw, json_path=json_path,
+        lights=global_lights, exposure=base_exposure,
+    )  # fmt: skip

@@ -1,0 +1,316 @@
+import json
+import math
+import shutil
+import warnings
+
+import numpy as np
+import pytest
+
+from _capture_fixtures import (
+    ANGLE_X,
+    H,
+    QUAD_POSITIONS,
+    QUAD_UV_GLTF,
+    W,
+    base_capture_dict,
+    base_images,
+    c2w_looking_at_quad,
+    fov_focal,
+    write_capture,
+    write_quad_glb,
+    write_quad_obj,
+)
+from pbrfit.color import srgb_to_linear
+from pbrfit.errors import CaptureError
+from pbrfit.io import write_image
+from pbrfit.scene import CaptureWarning, load_capture, load_mesh
+
+
+# --- a well-formed capture ----------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def capture_dir(tmp_path_factory):
+    return write_capture(tmp_path_factory.mktemp("cap") / "capture")
+
+
+@pytest.fixture(scope="module")
+def capture(capture_dir):
+    return load_capture(capture_dir)
+
+
+def test_cameras_from_both_intrinsics_forms(capture):
+    c0, c1 = capture.frames[0].camera, capture.frames[1].camera
+    f = fov_focal(W, ANGLE_X)
+    assert (c0.fx, c0.fy, c0.cx, c0.cy, c0.width, c0.height) == pytest.approx((f, f, W / 2, H / 2, W, H))
+    # frame 1 carries its own fl_x and cx; fl_y defaults to fl_x, cy to H/2
+    assert (c1.fx, c1.fy, c1.cx, c1.cy) == pytest.approx((10.0, 10.0, 4.5, H / 2))
+    np.testing.assert_array_equal(c0.c2w, c2w_looking_at_quad(3.0))
+
+
+def test_images_masks_exposure(capture):
+    imgs = base_images()
+    f0, f1 = capture.frames
+    np.testing.assert_array_equal(f0.image, imgs["images/000.exr"])
+    np.testing.assert_array_equal(f1.image, imgs["images/001.exr"][..., :3])
+    assert f1.file_path.name == "001.exr"  # extension-less path resolved
+    assert f0.mask.dtype == bool and f0.mask.shape == (H, W)
+    assert not f0.mask[:, 0].any() and f0.mask[:, 1:].all()  # from mask_path
+    assert not f1.mask[0].any() and f1.mask[1:].all()  # from the alpha channel
+    assert not f0.saturated.any()  # float files never saturate
+    assert f0.exposure == 1.5 and f1.exposure == 0.5  # images.exposure + frames[].exposure
+    assert capture.color_space == "linear" and f0.color_space == "linear"
+    assert capture.tonemap == "none" and capture.world_up == "+z"
+
+
+def test_lights_global_frame_and_flash(capture):
+    f0, f1 = capture.frames
+    assert [l.kind for l in f0.lights] == ["point", "directional", "spot", "point"]
+    assert [l.kind for l in f1.lights] == ["point", "directional", "spot", "point", "point"]
+    assert len(capture.lights) == 3
+    np.testing.assert_allclose(f1.lights[3].position, [0, 0, 2])
+    # flash: camera centre + c2w[:3,:3] @ offset
+    np.testing.assert_allclose(f0.lights[-1].position, [0.6, 0.5, 3.0], atol=1e-6)
+    np.testing.assert_allclose(f1.lights[-1].position, [0.6, 0.5, 2.0], atol=1e-6)
+    np.testing.assert_allclose(f0.lights[-1].color, [1, 0.9, 0.8], atol=1e-7)
+    assert float(f0.lights[-1].intensity) == 5.0
+
+
+def test_environment_mesh_and_bookkeeping(capture, capture_dir):
+    env = capture.environment
+    assert env.file == capture_dir / "env.exr" and env.intensity == 0.5 and env.rotation_deg == 30.0
+    assert capture.mesh_path == capture_dir / "mesh.obj" and capture.root == capture_dir
+    np.testing.assert_allclose(capture.uv, QUAD_UV_GLTF)
+    np.testing.assert_allclose(capture.mesh.vertices, QUAD_POSITIONS)
+    assert capture.truth_dir is None and capture.raw["format"] == "pbrfit-capture/1"
+    # the same capture through its capture.json path
+    again = load_capture(capture_dir / "capture.json")
+    assert again.frames[1].camera == capture.frames[1].camera
+
+
+def test_truth_dir_and_glb_mesh(tmp_path):
+    data = base_capture_dict()
+    data["mesh"] = "mesh.glb"
+    root = write_capture(tmp_path / "c", data, mesh="glb")
+    (root / "truth").mkdir()
+    cap = load_capture(root)
+    assert cap.truth_dir == root / "truth"
+    np.testing.assert_allclose(cap.uv, QUAD_UV_GLTF)
+
+
+# --- uv orientation: OBJ and glTF agree, in glTF orientation --------------------------------------
+def test_obj_and_glb_give_the_same_gltf_uv(tmp_path):
+    # trimesh returns v = 0 at the image bottom for both loaders (OBJ vt as stored, glTF
+    # TEXCOORD_0 flipped on load); load_mesh returns glTF's orientation for both.
+    obj = load_mesh(write_quad_obj(tmp_path / "q.obj"))
+    glb = load_mesh(write_quad_glb(tmp_path / "q.glb"))
+    glb_nomat = load_mesh(write_quad_glb(tmp_path / "n.glb", material=False))
+    for mesh in (obj, glb, glb_nomat):
+        np.testing.assert_allclose(mesh.vertices, QUAD_POSITIONS)
+        np.testing.assert_allclose(mesh.visual.uv, QUAD_UV_GLTF)  # TEXCOORD_0 as stored in the GLB
+        np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [0, 2, 3]])
+        assert mesh.metadata["uv_orientation"] == "gltf"
+    # vertex 3, top-left corner in 3-D (y = 1), sits at the top of the texture: smallest v
+    assert np.argmin(obj.visual.uv[:, 1]) in (2, 3)
+
+
+def test_scene_nodes_are_concatenated_with_transforms(tmp_path):
+    mesh = load_mesh(write_quad_glb(tmp_path / "two.glb", nodes=[[0, 0, 0], [2, 0, 0]]))
+    assert len(mesh.vertices) == 8 and len(mesh.faces) == 4
+    blocks = sorted([mesh.vertices[:4], mesh.vertices[4:]], key=lambda b: b[0, 0])  # node order is trimesh's
+    np.testing.assert_allclose(blocks[0], QUAD_POSITIONS)
+    np.testing.assert_allclose(blocks[1], QUAD_POSITIONS + [2, 0, 0])
+    np.testing.assert_allclose(mesh.visual.uv, np.concatenate([QUAD_UV_GLTF] * 2))
+    np.testing.assert_array_equal(mesh.faces[2:], [[4, 5, 6], [4, 6, 7]])
+
+
+def test_mesh_without_uv_allowed_for_uniform_fits(tmp_path):
+    mesh = load_mesh(write_quad_obj(tmp_path / "q.obj", uv=False), require_uv=False)
+    assert getattr(mesh.visual, "uv", None) is None
+
+
+# --- LDR images, color spaces, NaN ---------------------------------------------------------------
+def _single_frame(tmp_path, file_path, pixels, dtype, images=None, **frame):
+    data = base_capture_dict()
+    data.pop("environment")
+    data["images"] = images or {}
+    data["frames"] = [{"file_path": file_path, "transform_matrix": c2w_looking_at_quad(), **frame}]
+    root = write_capture(tmp_path / "c", data, images={})
+    rel = file_path if "." in file_path.rsplit("/", 1)[-1] else file_path + ".png"
+    (root / rel).parent.mkdir(parents=True, exist_ok=True)
+    write_image(root / rel, pixels, dtype)
+    return root
+
+
+@pytest.mark.parametrize("dtype, code_max", [("uint8", 255), ("uint16", 65535)])
+def test_png_is_srgb_decoded_and_saturation_marked(tmp_path, dtype, code_max):
+    codes = np.random.default_rng(0).integers(0, code_max, size=(H, W, 3))
+    codes[2, 3, 1] = code_max
+    root = _single_frame(tmp_path, "img.png", codes / code_max, dtype)
+    frame = load_capture(root).frames[0]
+    assert frame.color_space == "srgb"
+    np.testing.assert_allclose(frame.image, srgb_to_linear(codes / code_max), rtol=1e-5, atol=1e-7)
+    assert frame.saturated.sum() == 1 and frame.saturated[2, 3]
+    assert frame.mask.all()
+
+
+def test_color_space_override_and_gray_images(tmp_path):
+    gray = np.random.default_rng(1).uniform(0, 1, (H, W))
+    root = _single_frame(tmp_path, "img.png", gray, "uint8", images={"color_space": "linear"})
+    cap = load_capture(root)
+    frame = cap.frames[0]
+    assert cap.color_space == "linear" and frame.image.shape == (H, W, 3)
+    np.testing.assert_allclose(frame.image[..., 2], np.round(gray * 255) / 255, atol=1e-7)
+
+
+def test_nerf_transforms_json_with_mesh(tmp_path):
+    # NeRF-synthetic style: no "format", extension-less RGBA PNG paths, camera_angle_x, extra keys
+    root = tmp_path / "nerf"
+    (root / "train").mkdir(parents=True)
+    write_quad_obj(root / "mesh.obj")
+    rgba = np.random.default_rng(2).uniform(0, 1, (H, W, 4))
+    rgba[..., 3] = 1.0
+    rgba[:2, :, 3] = 0.0
+    write_image(root / "train" / "r_0.png", rgba, "uint8")
+    data = {"camera_angle_x": ANGLE_X, "mesh": "mesh.obj", "aabb_scale": 4,
+            "frames": [{"file_path": "./train/r_0", "rotation": 0.012,
+                        "transform_matrix": c2w_looking_at_quad()}]}  # fmt: skip
+    (root / "transforms_train.json").write_text(json.dumps(data))
+    cap = load_capture(root / "transforms_train.json")
+    frame = cap.frames[0]
+    assert frame.file_path == root / "train" / "r_0.png"
+    assert cap.color_space == "srgb" and cap.world_up == "+y"
+    assert not frame.mask[:2].any() and frame.mask[2:].all()
+    assert frame.camera.fx == pytest.approx(fov_focal(W, ANGLE_X))
+    # a folder holding only transforms.json loads too
+    shutil.copy(root / "transforms_train.json", root / "transforms.json")
+    assert load_capture(root).frames[0].file_path == frame.file_path
+
+
+def test_global_fl_and_camera_angle_y(tmp_path):
+    data = base_capture_dict()
+    data.pop("camera_angle_x")
+    data.update({"fl_x": 7.0, "fl_y": 8.0, "cx": 3.0, "cy": 2.5, "w": W, "h": H})
+    root = write_capture(tmp_path / "a", data)
+    c0, c1 = (f.camera for f in load_capture(root).frames)
+    assert (c0.fx, c0.fy, c0.cx, c0.cy) == (7.0, 8.0, 3.0, 2.5)
+    assert (c1.fx, c1.fy, c1.cx, c1.cy) == (10.0, 8.0, 4.5, 2.5)  # frame overrides per key
+    data = base_capture_dict()
+    data["camera_angle_y"] = 0.6
+    c0 = load_capture(write_capture(tmp_path / "b", data)).frames[0].camera
+    assert c0.fy == pytest.approx(0.5 * H / math.tan(0.3))
+
+
+def test_nan_pixels_masked_with_one_counting_warning(tmp_path):
+    pixels = np.ones((H, W, 3), np.float32)
+    pixels[1, 1, 0] = np.nan
+    pixels[2, 5, 2] = np.inf
+    pixels[3, 3] = -np.inf
+    root = _single_frame(tmp_path, "img.exr", pixels, "float")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        frame = load_capture(root).frames[0]
+    messages = [str(w.message) for w in caught if issubclass(w.category, CaptureWarning)]
+    assert len(messages) == 1 and "3 pixels with NaN or inf values" in messages[0]
+    assert "\n" not in messages[0]
+    assert np.all(np.isfinite(frame.image))
+    assert frame.mask.sum() == H * W - 3 and not frame.mask[1, 1] and not frame.mask[3, 3]
+
+
+# --- malformed captures: every one a CaptureError with one line naming the key or file ---------------
+def _frame0(d):
+    return d["frames"][0]
+
+
+def _write_text(root, rel, text):
+    (root / rel).write_text(text)
+
+
+MALFORMED = {
+    "missing capture.json": (lambda d, r: (r / "capture.json").unlink(), "no capture.json (or transforms.json) in this folder"),
+    "bad JSON": (lambda d, r: _write_text(r, "capture.json", '{"format": "pbrfit-capture/1",\n "mesh": }'), "invalid JSON at line 2 column"),
+    "top level not an object": (lambda d, r: _write_text(r, "capture.json", "[1, 2]"), "expected a JSON object at the top level"),
+    "wrong format": (lambda d, r: d.update(format="pbrfit-capture/2"), "capture.json: format: expected 'pbrfit-capture/1', got 'pbrfit-capture/2'"),
+    "missing format": (lambda d, r: d.pop("format"), "capture.json: missing key 'format'"),
+    "missing mesh key": (lambda d, r: d.pop("mesh"), "capture.json: missing key 'mesh'"),
+    "missing mesh file": (lambda d, r: (r / "mesh.obj").unlink(), "capture.json: mesh: mesh file not found:"),
+    "mesh without uv": (lambda d, r: write_quad_obj(r / "mesh.obj", uv=False), "has no texture coordinates (glTF TEXCOORD_0 / OBJ vt)"),
+    "unreadable mesh": (lambda d, r: (d.update(mesh="mesh.glb"), _write_text(r, "mesh.glb", "garbage")), "capture.json: mesh: cannot load mesh"),
+    "no frames": (lambda d, r: d.update(frames=[]), "capture.json: frames: no frames"),
+    "missing frames": (lambda d, r: d.pop("frames"), "capture.json: missing key 'frames'"),
+    "missing image": (lambda d, r: (r / "images" / "000.exr").unlink(), "capture.json: frames[0].file_path: image file not found:"),
+    "missing extension-less image": (lambda d, r: (r / "images" / "001.exr").unlink(), "capture.json: frames[1].file_path: image file not found: "),
+    "unreadable image": (lambda d, r: _write_text(r, "images/000.exr", "not an exr"), "capture.json: frames[0].file_path: cannot read image"),
+    "matrix 3x4": (lambda d, r: _frame0(d).update(transform_matrix=c2w_looking_at_quad()[:3]), "capture.json: frames[0].transform_matrix: expected shape 4x4, got 3x4"),
+    "matrix ragged": (lambda d, r: _frame0(d).update(transform_matrix=[[1, 0], [0, 1, 0, 0]]), "capture.json: frames[0].transform_matrix: expected a 4x4 array of numbers"),
+    "matrix NaN": (lambda d, r: _frame0(d)["transform_matrix"][0].__setitem__(1, float("nan")), "capture.json: frames[0].transform_matrix: non-finite values"),
+    "matrix last row": (lambda d, r: _frame0(d)["transform_matrix"].__setitem__(3, [0, 0, 1, 1]), "capture.json: frames[0].transform_matrix: last row must be [0, 0, 0, 1]"),
+    "missing transform": (lambda d, r: _frame0(d).pop("transform_matrix"), "capture.json: frames[0]: missing key 'transform_matrix'"),
+    "missing file_path": (lambda d, r: _frame0(d).pop("file_path"), "capture.json: frames[0]: missing key 'file_path'"),
+    "no intrinsics": (lambda d, r: d.pop("camera_angle_x"), "capture.json: frames[0]: no intrinsics: give camera_angle_x, or fl_x"),
+    "bad fov": (lambda d, r: d.update(camera_angle_x=3.5), "capture.json: camera_angle_x: must be in (0, pi) radians"),
+    "principal point outside": (lambda d, r: _frame0(d).update(cx=20.0), "capture.json: frames[0]: principal point (cx, cy) = (20, 3) lies outside the 8x6 image"),
+    "w disagrees with image": (lambda d, r: d.update(w=16), "capture.json: w: says 16 but image"),
+    "negative focal": (lambda d, r: _frame0(d).update(fl_x=-3), "capture.json: frames[0].fl_x: must be > 0"),
+    "unknown light type": (lambda d, r: d["lights"][1].update(type="area"), "capture.json: lights[1].type: unknown light type 'area'"),
+    "negative intensity": (lambda d, r: d["lights"][0].update(intensity=-1.0), "capture.json: lights[0].intensity: negative intensity"),
+    "frame light unknown key": (lambda d, r: d["frames"][1]["lights"][0].update(watts=3), "capture.json: frames[1].lights[0]: unknown key 'watts'"),
+    "negative flash intensity": (lambda d, r: d["flash"].update(intensity=-5), "capture.json: flash.intensity: negative intensity"),
+    "unknown tonemap": (lambda d, r: d["images"].update(tonemap="filmic"), "capture.json: images.tonemap: unknown tone map 'filmic'"),
+    "unknown color space": (lambda d, r: d["images"].update(color_space="rec2020"), "capture.json: images.color_space: unknown color space 'rec2020'"),
+    "unknown world_up": (lambda d, r: d.update(world_up="-y"), "capture.json: world_up: unknown value '-y'"),
+    "mask size mismatch": (lambda d, r: write_image(r / "masks" / "000.png", np.ones((3, 3)), "uint8"), "capture.json: frames[0].mask_path: mask"),
+    "missing mask": (lambda d, r: _frame0(d).update(mask_path="masks/none.png"), "capture.json: frames[0].mask_path: image file not found"),
+    "unknown top-level key": (lambda d, r: d.update(meshes="mesh.obj"), "capture.json: unknown key 'meshes' in the top level"),
+    "unknown images key": (lambda d, r: d["images"].update(gamma=2.2), "capture.json: images: unknown key 'gamma' in images"),
+    "unknown flash key": (lambda d, r: d["flash"].update(power=1), "capture.json: flash: unknown key 'power' in flash"),
+    "unknown environment key": (lambda d, r: d["environment"].update(exposure=1), "capture.json: environment: unknown key 'exposure' in environment"),
+    "unknown frame key": (lambda d, r: _frame0(d).update(filepath="x"), "capture.json: frames[0]: unknown key 'filepath' in a frame"),
+    "missing environment file": (lambda d, r: d["environment"].update(file="sky.hdr"), "capture.json: environment.file: image file not found"),
+    "lens distortion": (lambda d, r: d.update(k1=0.1), "capture.json: k1: lens distortion is not supported"),
+    "fisheye": (lambda d, r: d.update(is_fisheye=True), "capture.json: is_fisheye: fisheye cameras are not supported"),
+    "lights not a list": (lambda d, r: d.update(lights={"type": "point"}), "capture.json: lights: expected a list of lights"),
+    "mixed color spaces": (lambda d, r: (d["images"].pop("color_space"), write_image(r / "images" / "001.png", np.zeros((H, W, 3)), "uint8"), (r / "images" / "001.exr").unlink()),
+                           "capture.json: images.color_space: frames mix linear (000.exr) and srgb (001.png) files"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(MALFORMED))
+def test_malformed_capture(tmp_path, case):
+    mutate, fragment = MALFORMED[case]
+    data = base_capture_dict()
+    root = write_capture(tmp_path / "cap", data)
+    before = (root / "capture.json").read_text()
+    mutate(data, root)
+    if (root / "capture.json").exists() and (root / "capture.json").read_text() == before:
+        (root / "capture.json").write_text(json.dumps(data))
+    with pytest.raises(CaptureError) as info:
+        load_capture(root)
+    message = str(info.value)
+    assert fragment in message, message
+    assert "\n" not in message
+
+
+def test_capture_path_not_found(tmp_path):
+    with pytest.raises(CaptureError, match="capture not found"):
+        load_capture(tmp_path / "nope" / "capture.json")
+
+
+def test_malformed_cases_are_many_and_distinct():
+    assert len(MALFORMED) >= 14
+    assert len({fragment for _, fragment in MALFORMED.values()}) == len(MALFORMED)
+
+
+@pytest.mark.parametrize("case", ["missing format", "matrix 3x4", "unknown light type", "mask size mismatch", "no frames"])
+def test_cli_exits_2_with_one_line_and_writes_nothing(tmp_path, capsys, case):
+    from pbrfit.cli import main
+
+    mutate, fragment = MALFORMED[case]
+    data = base_capture_dict()
+    root = write_capture(tmp_path / "cap", data)
+    mutate(data, root)
+    (root / "capture.json").write_text(json.dumps(data))
+    out = tmp_path / "out"
+    status = main(["render", str(root), "--material", str(tmp_path / "material"), "--out", str(out), "--no-cache"])
+    err = capsys.readouterr().err
+    assert status == 2
+    assert err.startswith("pbrfit: error: ") and err.count("\n") == 1 and fragment in err
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["cap"]
