@@ -54,6 +54,7 @@ __all__ = [
     "vertex_tangents",
     "has_embree",
     "SHADOW_OFFSET_REL",
+    "UV_CONVENTIONS",
 ]
 
 # Shadow-ray origin offset, as a fraction of the mesh's bounding-box diagonal. Embree works in
