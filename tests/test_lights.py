@@ -23,6 +23,14 @@ from pbrfit.lights import (
 incident_jit = jax.jit(incident)
 
 
+def _point_sum(points, position):
+    l, e = incident(point_light(position, [1, 1, 1], 5.0, 2.0), points)
+    return jnp.sum(e) + jnp.sum(l)
+
+
+_grad_point = jax.jit(jax.grad(_point_sum, argnums=(0, 1)))
+
+
 def _smoothstep(e0, e1, x):
     t = min(max((x - e0) / (e1 - e0), 0.0), 1.0)
     return t * t * (3 - 2 * t)
@@ -81,12 +89,7 @@ def test_incident_finite_at_light_position_values_and_gradients():
     assert np.all(np.isfinite(l)) and np.all(np.isfinite(e))
     assert float(e[0, 0]) == pytest.approx(5.0 / MIN_DISTANCE**2, rel=1e-4)
 
-    def f(p, pos):
-        lt = point_light(pos, [1, 1, 1], 5.0, 2.0)
-        ll, ee = incident(lt, p)
-        return jnp.sum(ee) + jnp.sum(ll)
-
-    gp, gpos = jax.grad(f, argnums=(0, 1))(pts, jnp.array([1.0, 2.0, 3.0]))
+    gp, gpos = _grad_point(pts, jnp.array([1.0, 2.0, 3.0]))
     assert np.all(np.isfinite(gp)) and np.all(np.isfinite(gpos))
     sl = spot_light([0.0, 0.0, 0.0], [0, 0, -1], [1, 1, 1], 1.0)
     l, e = incident_jit(sl, jnp.zeros((1, 3)))
