@@ -112,6 +112,21 @@ def test_obj_and_glb_give_the_same_gltf_uv(tmp_path):
     assert np.argmin(obj.visual.uv[:, 1]) in (2, 3)
 
 
+@pytest.mark.parametrize("kind", ["obj", "glb"])
+def test_gbuffer_sees_texture_top_at_image_top(tmp_path, kind):
+    # End to end through gbuffer: the quad's top edge (y = 1, v = 0.25) is at the top of the
+    # view, its bottom edge (y = 0, v = 1) at the bottom, for both mesh formats.
+    from pbrfit.gbuffer import compute_gbuffer
+
+    data = base_capture_dict()
+    data["mesh"] = f"mesh.{kind}"
+    cap = load_capture(write_capture(tmp_path / "c", data, mesh=kind))
+    g = compute_gbuffer(cap.mesh, cap.frames[0].camera, (), backend="numpy")
+    column = g.uv[:, W // 2, 1][g.hit[:, W // 2]]
+    assert len(column) >= 3 and np.all(np.diff(column) > 0)  # v grows down the image
+    assert 0.25 <= column.min() < 0.4 and 0.85 < column.max() <= 1.0
+
+
 def test_scene_nodes_are_concatenated_with_transforms(tmp_path):
     mesh = load_mesh(write_quad_glb(tmp_path / "two.glb", nodes=[[0, 0, 0], [2, 0, 0]]))
     assert len(mesh.vertices) == 8 and len(mesh.faces) == 4
