@@ -1,0 +1,296 @@
+"""Render a `presets.Scene` and write it as a capture folder (``pbrfit-capture/1``) with ground truth.
+
+The folder (built under a temporary name and renamed into place, so a failure leaves nothing):
+
+    capture.json        cameras (camera_angle_x + transform_matrix), lights, flash, environment, images
+    mesh.glb            the mesh with TEXCOORD_0 (glTF orientation) and normals
+    env.exr             the environment (linear float32 equirect), when the scene has one
+    images/NNN.exr|png  one image per camera (EXR linear float32, or 8/16-bit sRGB PNG)
+    masks/NNN.png       8-bit, 255 where every supersample of the pixel hits the mesh
+    truth/              the maps that rendered the images, in the fit-output layout
+                        (base_color.exr/.png, metallic.exr, roughness.exr, metallic_roughness.png),
+                        material.glb, and synth.json (preset, seed, parameters, model, sensor)
+    contact_sheet.png   every view side by side (sRGB 8-bit)
+
+Rendering uses the project's own path, so a fit sees exactly the geometry that made the images:
+the mesh is read back from ``mesh.glb`` with `pbrfit.scene.load_mesh`, the environment from
+``env.exr`` with `pbrfit.environment.load_environment`, the split-sum tables come from
+`pbrfit.ibl.build_ibl` with default `IBLSettings`, G-buffers from `pbrfit.gbuffer.compute_gbuffer`
+(with each frame's lights in capture order: global lights, then the flash), and shading from
+`pbrfit.render.radiance_view`. Each view is rendered at ``supersample`` times the size; where the
+mesh is not hit the environment (or black) shows. The radiance is box-filtered down, exposed,
+tone mapped and encoded (`pbrfit.color.encode`); noise is added to those display values and
+only then are they quantised to the file's bit depth.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+import time
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from . import noise as sensor
+from .environments import write_environment
+from .meshes import write_glb
+from .presets import IMAGE_FORMATS, Scene
+
+__all__ = ["SynthResult", "synthesize", "render_scene", "contact_sheet", "capture_json"]
+
+#: Pixels per compiled shading call: every view's pixels are shaded together in chunks of this
+#: size (the tail padded), so one compilation serves the whole capture.
+SHADE_CHUNK = 16384
+
+
+@dataclasses.dataclass
+class SynthResult:
+    """What `synthesize` wrote and rendered.
+
+    Attributes:
+        path: the capture folder.
+        scene: the scene.
+        images: per view, the display values as written (noise and quantisation included), float32.
+        clean: per view, the display values before noise and quantisation.
+        masks: per view, (H, W) bool.
+        seconds: wall time.
+    """
+
+    path: Path
+    scene: Scene
+    images: list
+    clean: list
+    masks: list
+    seconds: float
+
+
+def _frame_lights(scene: Scene, c2w: np.ndarray) -> tuple:
+    from pbrfit.lights import flash_light
+
+    lights = tuple(scene.lights)
+    if scene.flash is not None:
+        f = scene.flash
+        lights = lights + (flash_light(c2w, f.color, f.intensity, f.offset),)
+    return lights
+
+
+def _view_inputs(gbuffer, lights):
+    """`pbrfit.render.prepare_view` of every hit pixel, with the light arrays computed over the
+    whole (H, W) image first: the same shape for every view, so the eager jnp ops of
+    `pbrfit.render.light_arrays` compile once per capture instead of once per view."""
+    import jax.numpy as jnp
+
+    from pbrfit.render import ViewInputs, light_arrays
+
+    h, w = gbuffer.hit.shape
+    flat = np.flatnonzero(np.asarray(gbuffer.hit, bool).reshape(-1))
+    vis = np.asarray(gbuffer.visibility).reshape(h * w, -1) if len(lights) else None
+    light_l, light_radiance = (np.asarray(a) for a in light_arrays(lights, np.asarray(gbuffer.position).reshape(h * w, 3), vis))
+
+    def take(a):
+        a = np.asarray(a)
+        return a.reshape(h * w, *a.shape[2:])[flat]
+
+    return ViewInputs(
+        pixel=jnp.asarray(flat, jnp.int32),
+        uv=jnp.asarray(take(gbuffer.uv), jnp.float32),
+        normal=jnp.asarray(take(gbuffer.normal), jnp.float32),
+        tangent=jnp.asarray(take(gbuffer.tangent), jnp.float32),
+        view=jnp.asarray(take(gbuffer.view), jnp.float32),
+        light_l=jnp.asarray(light_l[flat]),
+        light_radiance=jnp.asarray(light_radiance[flat]),
+        shape=(h, w),
+    )
+
+
+def render_scene(scene: Scene, mesh, environment=None, ibl=None, progress: Optional[Callable[[str], None]] = None):
+    """Clean display values and masks of every view: ([(H, W, 3) float32], [(H, W) bool]).
+
+    `mesh`: a `trimesh.Trimesh` with glTF-oriented uv (as `pbrfit.scene.load_mesh` returns);
+    `environment`: a `pbrfit.environment.Environment` or None; `ibl`: its split-sum tables when
+    ``scene.model.ibl == "split_sum"``.
+    """
+    import jax.numpy as jnp
+
+    from pbrfit.color import encode
+    from pbrfit.environment import environment_lookup
+    from pbrfit.gbuffer import Camera, compute_gbuffer
+    from pbrfit.render import ViewInputs, radiance_view
+
+    k = int(scene.supersample)
+    hk, wk = scene.height * k, scene.width * k
+    material = scene.truth.to_material()
+    views, hits, backgrounds = [], [], []
+    for i, c2w in enumerate(scene.cameras):
+        camera = Camera.from_fov(c2w, scene.camera_angle_x, wk, hk)
+        lights = _frame_lights(scene, c2w)
+        gbuffer = compute_gbuffer(mesh, camera, lights)
+        views.append(_view_inputs(gbuffer, lights))
+        hits.append(np.asarray(gbuffer.hit, bool))
+        if environment is not None:
+            _, dirs = camera.rays()
+            backgrounds.append(np.asarray(environment_lookup(environment, jnp.asarray(dirs, jnp.float32))))
+        else:
+            backgrounds.append(None)
+        if progress:
+            progress(f"geometry {i + 1}/{scene.num_views}")
+    # every view's pixels in one flat batch: one compilation for the whole capture
+    fields = ("pixel", "uv", "normal", "tangent", "view", "light_l", "light_radiance")
+    batch = ViewInputs(
+        **{f: jnp.concatenate([getattr(v, f) for v in views], axis=0) for f in fields},
+        shape=(1, sum(v.num_pixels for v in views)),
+    )
+    radiance = np.asarray(radiance_view(batch, material, scene.model, ibl, chunk=SHADE_CHUNK), np.float32)
+    if progress:
+        progress("shaded")
+    out_images, out_masks = [], []
+    start = 0
+    for i, (view, hit, bg) in enumerate(zip(views, hits, backgrounds)):
+        n = view.num_pixels
+        img = np.zeros((hk * wk, 3), np.float32) if bg is None else bg.reshape(-1, 3).astype(np.float32)
+        img[np.asarray(view.pixel)] = radiance[start : start + n]
+        start += n
+        img = sensor.box_downsample(img.reshape(hk, wk, 3), k)
+        coverage = sensor.box_downsample(hit.astype(np.float32)[..., None], k)[..., 0]
+        display = np.asarray(encode(img, float(scene.exposures[i]), scene.tonemap, scene.color_space), np.float32)
+        out_images.append(display)
+        out_masks.append(coverage >= 1.0)
+    return out_images, out_masks
+
+
+def capture_json(scene: Scene, image_paths, mask_paths, has_env: bool) -> dict:
+    """The capture.json object of a scene (capture spec ``pbrfit-capture/1``)."""
+    from pbrfit.lights import light_to_json
+
+    raw = {
+        "format": "pbrfit-capture/1",
+        "mesh": "mesh.glb",
+        "world_up": scene.world_up,
+        "camera_angle_x": float(scene.camera_angle_x),
+        "frames": [
+            {
+                "file_path": img,
+                "transform_matrix": [[float(x) for x in row] for row in c2w],
+                "mask_path": mask,
+                "exposure": float(ev),
+            }
+            for img, mask, c2w, ev in zip(image_paths, mask_paths, scene.cameras, scene.exposures)
+        ],
+        "lights": [light_to_json(light) for light in scene.lights],
+        "images": {"color_space": scene.color_space, "tonemap": scene.tonemap},
+    }
+    if scene.flash is not None:
+        raw["flash"] = {
+            "color": [float(c) for c in scene.flash.color],
+            "intensity": float(scene.flash.intensity),
+            "offset": [float(c) for c in scene.flash.offset],
+        }
+    if has_env:
+        raw["environment"] = {"file": "env.exr", "intensity": float(scene.environment_intensity), "rotation_deg": 0.0}
+    return raw
+
+
+def _dumps(obj) -> str:
+    """JSON with two-space indents, but lists of numbers (matrix rows, colours) on one line."""
+    text = json.dumps(obj, indent=2)
+    return re.sub(r"\[\s+([-+0-9.eE,\s]+?)\s+\]", lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)
+
+
+def contact_sheet(images, color_space: str, columns: Optional[int] = None, gap: int = 2) -> np.ndarray:
+    """(H', W', 3) sRGB-encoded [0, 1] mosaic of the views, row-major, `gap` black pixels apart."""
+    from pbrfit.color import linear_to_srgb
+
+    n = len(images)
+    columns = columns or int(math.ceil(math.sqrt(n)))
+    rows = int(math.ceil(n / columns))
+    h, w = images[0].shape[:2]
+    sheet = np.zeros((rows * (h + gap) - gap, columns * (w + gap) - gap, 3), np.float32)
+    for i, img in enumerate(images):
+        tile = np.clip(img, 0.0, 1.0)
+        if color_space == "linear":
+            tile = np.asarray(linear_to_srgb(tile))
+        r, c = divmod(i, columns)
+        sheet[r * (h + gap) : r * (h + gap) + h, c * (w + gap) : c * (w + gap) + w] = tile
+    return sheet
+
+
+def _synth_json(scene: Scene, seconds: float) -> dict:
+    def plain(x):
+        if isinstance(x, (np.floating, np.integer)):
+            return x.item()
+        if isinstance(x, (tuple, list, np.ndarray)):
+            return [plain(v) for v in np.asarray(x, dtype=object).tolist()] if isinstance(x, np.ndarray) else [plain(v) for v in x]
+        return x
+
+    return {
+        "preset": scene.name,
+        "seed": scene.seed,
+        "params": {k: plain(v) for k, v in scene.params.items()},
+        "model": scene.model.describe(),
+        "ibl_settings": "pbrfit.ibl.IBLSettings() defaults" if scene.model.ibl == "split_sum" else None,
+        "image_format": scene.image_format,
+        "color_space": scene.color_space,
+        "tonemap": scene.tonemap,
+        "supersample": int(scene.supersample),
+        "noise": {"sigma": float(scene.noise), "model": scene.noise_model,
+                  "applied_to": "display values, after supersampling, before quantisation"},
+        "texture_size": list(scene.truth.shape),
+        "views": scene.num_views,
+        "image_size": [scene.width, scene.height],
+        "seconds": round(seconds, 3),
+    }
+
+
+def synthesize(
+    scene: Scene,
+    out,
+    *,
+    overwrite: bool = True,
+    write_contact_sheet: bool = True,
+    progress: Optional[Callable[[str], None]] = None,
+) -> SynthResult:
+    """Render `scene` and write its capture folder at `out` (see the module docstring)."""
+    from pbrfit.environment import load_environment
+    from pbrfit.io import atomic_dir, write_gltf, write_image, write_material
+    from pbrfit.scene import load_mesh
+
+    t0 = time.perf_counter()
+    suffix, dtype, color_space, bits = IMAGE_FORMATS[scene.image_format]
+    out = Path(out)
+    with atomic_dir(out, overwrite=overwrite) as tmp:
+        tmp = Path(tmp)
+        write_glb(tmp / "mesh.glb", scene.mesh)
+        mesh = load_mesh(tmp / "mesh.glb")  # what a fit will see
+        environment = ibl = None
+        if scene.environment is not None:
+            write_environment(tmp / "env.exr", scene.environment)
+            environment = load_environment(tmp / "env.exr", scene.world_up, scene.environment_intensity, 0.0)
+            if scene.model.ibl == "split_sum" or scene.model.multiscatter:
+                from pbrfit.ibl import IBLSettings, build_ibl
+
+                ibl = build_ibl(environment, IBLSettings())
+        clean, masks = render_scene(scene, mesh, environment, ibl, progress)
+
+        rng = np.random.default_rng([scene.seed, 0x5E5])  # the sensor's own stream
+        images = [sensor.quantize(sensor.add_noise(c, scene.noise, rng, scene.noise_model), bits) for c in clean]
+        image_paths = [f"images/{i:03d}{suffix}" for i in range(scene.num_views)]
+        mask_paths = [f"masks/{i:03d}.png" for i in range(scene.num_views)]
+        for img, mask, ip, mp in zip(images, masks, image_paths, mask_paths):
+            write_image(tmp / ip, img, dtype)
+            write_image(tmp / mp, mask.astype(np.float32)[..., None], "uint8")
+        raw = capture_json(scene, image_paths, mask_paths, environment is not None)
+        (tmp / "capture.json").write_text(_dumps(raw) + "\n")
+
+        truth = tmp / "truth"
+        material = scene.truth.to_material()
+        write_material(truth, material)
+        write_gltf(truth / "material.glb", scene.mesh.to_trimesh(), material)
+        if write_contact_sheet:
+            write_image(tmp / "contact_sheet.png", contact_sheet(images, color_space), "uint8")
+        seconds = time.perf_counter() - t0
+        (truth / "synth.json").write_text(json.dumps(_synth_json(scene, seconds), indent=2) + "\n")
+    return SynthResult(out, scene, images, clean, masks, time.perf_counter() - t0)
