@@ -420,7 +420,8 @@ def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
     stored with row 0 at the top of the image, so texel row 0 is v = 0 as glTF requires. baseColorTexture is sRGB 8-bit,
     metallicRoughnessTexture linear (R = occlusion or 1, G = roughness, B = metallic) with
     factors 1; normalTexture, occlusionTexture (the same image, R) and emissiveTexture
-    (factor 1, clipped to [0, 1]) when the material has them.
+    (factor 1, clipped to [0, 1]) when the material has them. Vertex normals are written
+    (NORMAL), so shading matches the mesh the material was fitted on.
     """
     import trimesh
     from trimesh.visual.material import PBRMaterial
@@ -452,9 +453,13 @@ def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
     uv_trimesh = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])  # undone by trimesh's exporter
     visual = TextureVisuals(uv=uv_trimesh, material=PBRMaterial(**kwargs))
     out_mesh = trimesh.Trimesh(
-        vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces), visual=visual, process=False
+        vertices=np.asarray(mesh.vertices),
+        faces=np.asarray(mesh.faces),
+        vertex_normals=np.asarray(mesh.vertex_normals),
+        visual=visual,
+        process=False,
     )
-    data = out_mesh.export(file_type="glb")
+    data = out_mesh.export(file_type="glb", include_normals=True)
     path = Path(path)
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)

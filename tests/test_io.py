@@ -216,6 +216,7 @@ def test_write_gltf_uv_and_texture_orientation(tmp_path):
     tree, blob = read_glb(out)
     prim = tree["meshes"][0]["primitives"][0]
     np.testing.assert_allclose(glb_accessor(tree, blob, prim["attributes"]["TEXCOORD_0"]), QUAD_UV_GLTF)
+    np.testing.assert_allclose(glb_accessor(tree, blob, prim["attributes"]["NORMAL"]), mesh.vertex_normals, atol=1e-7)
     mat = tree["materials"][prim["material"]]
     pbr = mat["pbrMetallicRoughness"]
     assert pbr["metallicFactor"] == 1.0 and pbr["roughnessFactor"] == 1.0
