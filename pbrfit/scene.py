@@ -59,7 +59,7 @@ import numpy as np
 
 from .errors import CaptureError
 from .gbuffer import Camera
-from .io import ImageInfo, read_image, read_image_info
+from .io import _LDR_MAX, ImageInfo, read_image, read_image_info
 from .lights import Light, _loc, _number, _triple, flash_light, light_from_json
 
 __all__ = [
@@ -501,7 +501,7 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
     color_space = color_space_override or _default_color_space(info)
     saturated = np.zeros((height, width), bool)
     if info.is_ldr:
-        code_max = float(2 ** info.bits - 1)
+        code_max = float(_LDR_MAX[info.format])
         saturated = np.any(rgb >= (code_max - 0.5) / code_max, axis=-1)
 
     if "mask_path" in frame_raw:
