@@ -1,0 +1,12 @@
+"""Shared test settings: a small, deterministic hypothesis profile (the machine is shared)."""
+
+from hypothesis import HealthCheck, settings
+
+settings.register_profile(
+    "pbrfit",
+    max_examples=25,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+settings.load_profile("pbrfit")
