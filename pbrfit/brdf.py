@@ -141,13 +141,16 @@ def d_beckmann(n_dot_h, alpha):
 
     D(h) = exp(-tan^2(theta_h) / alpha^2) / (pi alpha^2 cos^4(theta_h))   (Walter et al. 2007, eq. 25)
 
-    n·h is floored at `COS_MIN` (tan^2 -> inf; D -> 0 there, as the formula's limit).
+    n·h is floored at `COS_MIN` (tan^2 -> inf; D -> 0 there, as the formula's limit). The
+    1 / cos^4 factor is folded into the exponent: at grazing n·h and small alpha, alpha^2 cos^4
+    underflows float32 (~1e-22, squared ~1e-44 in the reverse pass) and the quotient's gradient
+    would be 0 · inf = NaN; exp(-tan^2/alpha^2 - 2 log cos^2) / (pi alpha^2) has none.
     """
     a2 = jnp.square(_alpha(alpha))
     nh = _cos(n_dot_h)
     nh2 = nh * nh
     tan2 = (1.0 - nh) * (1.0 + nh) / nh2
-    return jnp.exp(-tan2 / a2) * _INV_PI / (a2 * nh2 * nh2)
+    return jnp.exp(-tan2 / a2 - 2.0 * jnp.log(nh2)) * _INV_PI / a2
 
 
 # --- Smith masking-shadowing for GGX -----------------------------------------------------------
@@ -365,6 +368,13 @@ def evaluate_cosines(
     ``model.multiscatter``. Zero where n·l <= 0 or n·v <= 0.
 
     metallic and roughness have a trailing axis of 1 so they broadcast against RGB.
+
+    Energy: each lobe alone conserves energy (white Lambert integrates to 1, the single-
+    scattering specular lobe to at most 1), but glTF's (1 - F(v·h)) diffuse weighting does not
+    remove what the specular lobe's masking loses, so a white dielectric reflects more than
+    it receives at grazing views (∫ f cos dω ≈ 1.03 at n·v = 0.5 and 1.33 at n·v = 0.05,
+    roughness 0.3). That is the glTF model as viewers render it, kept as the default so that
+    fitted maps look in a glTF viewer as they did in the fit; tests pin the excess.
     """
     n_dot_v = jnp.asarray(n_dot_v)
     n_dot_l = jnp.asarray(n_dot_l)
