@@ -40,7 +40,7 @@ from .environments import write_environment
 from .meshes import write_glb
 from .presets import IMAGE_FORMATS, Scene
 
-__all__ = ["SynthResult", "synthesize", "render_scene", "contact_sheet", "capture_json"]
+__all__ = ["SynthResult", "synthesize", "render_scene", "frame_camera", "contact_sheet", "capture_json"]
 
 #: Pixels per compiled shading call: every view's pixels are shaded together in chunks of this
 #: size (the tail padded), so one compilation serves the whole capture.
@@ -66,6 +66,15 @@ class SynthResult:
     clean: list
     masks: list
     seconds: float
+
+
+def frame_camera(scene: Scene, c2w: np.ndarray, supersample: int = 1):
+    """The `pbrfit.gbuffer.Camera` of a frame (as `pbrfit.scene.load_capture` builds it from
+    ``camera_angle_x``), at `supersample` times the image size."""
+    from pbrfit.gbuffer import Camera
+
+    k = int(supersample)
+    return Camera.from_fov(c2w, scene.camera_angle_x, scene.width * k, scene.height * k)
 
 
 def _frame_lights(scene: Scene, c2w: np.ndarray) -> tuple:
@@ -114,11 +123,12 @@ def render_scene(scene: Scene, mesh, environment=None, ibl=None, progress: Optio
     `environment`: a `pbrfit.environment.Environment` or None; `ibl`: its split-sum tables when
     ``scene.model.ibl == "split_sum"``.
     """
+    import jax
     import jax.numpy as jnp
 
     from pbrfit.color import encode
     from pbrfit.environment import environment_lookup
-    from pbrfit.gbuffer import Camera, compute_gbuffer
+    from pbrfit.gbuffer import compute_gbuffer
     from pbrfit.render import ViewInputs, radiance_view
 
     k = int(scene.supersample)
@@ -126,7 +136,7 @@ def render_scene(scene: Scene, mesh, environment=None, ibl=None, progress: Optio
     material = scene.truth.to_material()
     views, hits, backgrounds = [], [], []
     for i, c2w in enumerate(scene.cameras):
-        camera = Camera.from_fov(c2w, scene.camera_angle_x, wk, hk)
+        camera = frame_camera(scene, c2w, k)
         lights = _frame_lights(scene, c2w)
         gbuffer = compute_gbuffer(mesh, camera, lights)
         views.append(_view_inputs(gbuffer, lights))
@@ -144,7 +154,11 @@ def render_scene(scene: Scene, mesh, environment=None, ibl=None, progress: Optio
         **{f: jnp.concatenate([getattr(v, f) for v in views], axis=0) for f in fields},
         shape=(1, sum(v.num_pixels for v in views)),
     )
-    radiance = np.asarray(radiance_view(batch, material, scene.model, ibl, chunk=SHADE_CHUNK), np.float32)
+    total = batch.num_pixels
+    if 0 < total < SHADE_CHUNK:  # pad to a power of two: small captures share compilations
+        size = 1 << (total - 1).bit_length()
+        batch = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], size - total, axis=0)]), batch)
+    radiance = np.asarray(radiance_view(batch, material, scene.model, ibl, chunk=SHADE_CHUNK), np.float32)[:total]
     if progress:
         progress("shaded")
     out_images, out_masks = [], []
@@ -288,7 +302,7 @@ def synthesize(
         truth = tmp / "truth"
         material = scene.truth.to_material()
         write_material(truth, material)
-        write_gltf(truth / "material.glb", scene.mesh.to_trimesh(), material)
+        write_gltf(truth / "material.glb", mesh, material)  # mesh: glTF-oriented uv, as loaded
         if write_contact_sheet:
             write_image(tmp / "contact_sheet.png", contact_sheet(images, color_space), "uint8")
         seconds = time.perf_counter() - t0

@@ -204,3 +204,197 @@ def test_noise_statistics():
     expected = np.sqrt(0.25 * 0.02**2 + (0.02 / 4) ** 2)
     assert abs(pg.std() / expected - 1) < 0.05
     np.testing.assert_array_equal(g, noise.add_noise(x, 0.01, np.random.default_rng(0)))
+
+
+# --- presets -----------------------------------------------------------------------------------
+from data_synth import presets, writer  # noqa: E402
+
+
+def test_peer_plane_matches_the_fitting_issue_layout():
+    s = presets.make_scene("peer-plane", seed=1)
+    assert s.world_up == "+z" and s.num_views == 6 and (s.width, s.height) == (128, 128)
+    assert s.camera_angle_x == pytest.approx(np.deg2rad(45.0))
+    np.testing.assert_allclose(np.linalg.norm(s.cameras[:, :3, 3], axis=-1), 2.9)
+    assert len(s.lights) == 4
+    for light in s.lights:
+        assert light.kind == "point" and float(light.intensity) == pytest.approx(6.0)
+        assert np.linalg.norm(np.asarray(light.position)) == pytest.approx(2.6, rel=1e-6)
+        assert float(np.asarray(light.position)[2]) > 0  # above the Z-up plane
+    assert s.truth.shape == (64, 64) and s.truth.metallic.max() == 0.0
+    np.testing.assert_allclose(s.mesh.normals, np.broadcast_to([0, 0, 1], s.mesh.normals.shape))
+    np.testing.assert_allclose(np.ptp(s.mesh.vertices, axis=0), [2, 2, 0])
+    assert s.environment is None and s.noise == 0 and s.image_format == "exr"
+
+
+def test_plane_flash_matches_the_flash_capture():
+    s = presets.make_scene("plane-flash", seed=0)
+    assert s.num_views == 12 and s.flash is not None and len(s.lights) == 2
+    assert s.image_format == "png16" and s.color_space == "srgb"
+    assert s.supersample == 2 and s.noise == pytest.approx(0.01)
+    metal = s.truth.metallic[..., 0]
+    assert set(np.unique(metal)) == {0.0, 1.0}
+    np.testing.assert_allclose(s.truth.base_color[metal == 1][0], textures.GOLD, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", presets.preset_names())
+def test_presets_are_seeded(name):
+    a = presets.make_scene(name, seed=3, views=3, size=8)
+    b = presets.make_scene(name, seed=3, views=3, size=8)
+    np.testing.assert_array_equal(a.cameras, b.cameras)
+    np.testing.assert_array_equal(a.truth.base_color, b.truth.base_color)
+    assert a.num_views == 3 and a.width == 8
+    if name != "spheres-grid":  # the chart is the same for every seed
+        c = presets.make_scene(name, seed=4, views=3, size=8)
+        assert not np.array_equal(a.truth.base_color, c.truth.base_color)
+
+
+def test_unknown_preset_or_parameter_is_a_capture_error():
+    from pbrfit.errors import CaptureError
+
+    with pytest.raises(CaptureError, match="unknown preset"):
+        presets.make_scene("nope")
+    with pytest.raises(CaptureError, match="shape"):
+        presets.make_scene("demo", shape="torus")
+
+
+# --- writing captures --------------------------------------------------------------------------
+def _tiny(name, **kw):
+    base = dict(size=16, views=2, texture_size=8)
+    base.update(kw)
+    return presets.make_scene(name, seed=0, **base)
+
+
+@pytest.fixture(scope="module")
+def peer_capture(tmp_path_factory):
+    out = tmp_path_factory.mktemp("synth") / "peer"
+    return writer.synthesize(_tiny("peer-plane"), out)
+
+
+@pytest.fixture(scope="module")
+def flash_capture(tmp_path_factory):
+    out = tmp_path_factory.mktemp("synth") / "flash"
+    return writer.synthesize(_tiny("plane-flash"), out)
+
+
+def _same_light(a, b):
+    from pbrfit.lights import light_to_json
+
+    assert light_to_json(a) == light_to_json(b)
+
+
+def test_capture_round_trip_linear(peer_capture):
+    from pbrfit.io import read_material
+    from pbrfit.scene import load_capture
+
+    cap = load_capture(peer_capture.path)
+    scene = peer_capture.scene
+    assert cap.world_up == "+z" and cap.color_space == "linear" and cap.environment is None
+    assert len(cap.frames) == scene.num_views
+    for frame, c2w, img, mask in zip(cap.frames, scene.cameras, peer_capture.images, peer_capture.masks):
+        assert frame.camera == writer.frame_camera(scene, c2w)
+        np.testing.assert_array_equal(frame.image, img)
+        np.testing.assert_array_equal(frame.mask, mask)
+        assert len(frame.lights) == len(scene.lights)
+        for a, b in zip(frame.lights, scene.lights):
+            _same_light(a, b)
+    truth = read_material(cap.truth_dir)
+    np.testing.assert_array_equal(np.asarray(truth.base_color), scene.truth.base_color)
+    np.testing.assert_array_equal(np.asarray(truth.roughness), scene.truth.roughness)
+    np.testing.assert_array_equal(np.asarray(truth.metallic), scene.truth.metallic)
+    np.testing.assert_allclose(cap.mesh.visual.uv, scene.mesh.uv, atol=1e-7)
+    np.testing.assert_allclose(cap.mesh.vertices, scene.mesh.vertices)
+    assert (peer_capture.path / "contact_sheet.png").is_file()
+    synth = json.loads((peer_capture.path / "truth" / "synth.json").read_text())
+    assert synth["preset"] == "peer-plane" and synth["seed"] == 0
+    # the truth GLB carries the mesh's uv as TEXCOORD_0 (glTF orientation)
+    np.testing.assert_array_equal(_glb_texcoords((peer_capture.path / "truth" / "material.glb").read_bytes()),
+                                  scene.mesh.uv)
+
+
+def test_capture_round_trip_srgb_png_flash(flash_capture):
+    from pbrfit.color import srgb_to_linear
+    from pbrfit.lights import flash_light
+    from pbrfit.scene import load_capture
+
+    cap = load_capture(flash_capture.path)
+    scene = flash_capture.scene
+    assert cap.color_space == "srgb" and cap.frames[0].info.bits == 16
+    for frame, c2w, img in zip(cap.frames, scene.cameras, flash_capture.images):
+        np.testing.assert_allclose(frame.image, np.asarray(srgb_to_linear(img)), atol=1e-6)
+        assert len(frame.lights) == 3
+        f = scene.flash
+        _same_light(frame.lights[-1], flash_light(c2w, f.color, f.intensity, f.offset))
+        assert frame.camera == writer.frame_camera(scene, c2w)
+    # noise then 16-bit quantisation: within a few sigma of the clean render, on the code grid
+    img, clean = flash_capture.images[0], flash_capture.clean[0]
+    np.testing.assert_array_equal(np.round(img * 65535) / 65535, img)
+    ok = (clean > 0.05) & (clean < 0.95)
+    assert 0.005 < np.std((img - clean)[ok]) < 0.015
+
+
+def test_rerender_with_truth_reproduces_images(peer_capture):
+    from pbrfit.material import Material
+    from pbrfit.io import read_material
+    from pbrfit.scene import load_capture
+    from pbrfit.views import render_capture
+
+    cap = load_capture(peer_capture.path)
+    renders = render_capture(cap, read_material(cap.truth_dir))
+    for (image, alpha), clean, mask in zip(renders, peer_capture.clean, peer_capture.masks):
+        assert mask.any()
+        np.testing.assert_allclose(image[mask], clean[mask], rtol=1e-5, atol=1e-6)
+        np.testing.assert_array_equal(alpha > 0, mask)
+
+
+def test_texture_top_row_is_the_far_edge_seen_from_above(tmp_path):
+    """End to end: texel row 0 (v = 0) lies at z = -1 of the +y plane, at the top of a camera
+    looking straight down with -Z up in its image."""
+    from pbrfit.lights import directional_light
+
+    maps = textures.uniform_maps(8, (0.1, 0.1, 0.8), 0.0, 0.8)
+    bc = maps.base_color.copy()
+    bc[:4] = (0.8, 0.1, 0.1)  # top half of the texture image red
+    maps = textures.TruthMaps(bc, maps.metallic, maps.roughness)
+    cam = rigs.look_at([0, 3, 0], [0, 0, 0], [0, 1, 0])[None]
+    scene = presets.Scene(
+        name="orientation", seed=0, mesh=meshes.plane(2.0), truth=maps, cameras=cam,
+        camera_angle_x=np.deg2rad(30.0), width=16, height=16,
+        lights=(directional_light((0, -1, 0), (1, 1, 1), 3.0),),
+    )  # fmt: skip
+    res = writer.synthesize(scene, tmp_path / "o")
+    img = res.images[0]
+    assert res.masks[0].all()
+    assert img[:6, :, 0].min() > img[:6, :, 2].max()  # top: red
+    assert img[-6:, :, 2].min() > img[-6:, :, 0].max()  # bottom: blue
+
+
+def test_cli_synth_writes_and_refuses_bad_input(tmp_path, capsys):
+    from pbrfit.cli import main
+
+    out = tmp_path / "c"
+    args = ["synth", "peer-plane", "--out", str(out), "--size", "16", "--views", "2", "--texture-size", "8"]
+    assert main(args + ["--quiet"]) == 0
+    assert (out / "capture.json").is_file() and capsys.readouterr().out == ""
+    assert main(args + ["--noise", "-1"]) == 2
+    assert "--noise" in capsys.readouterr().err
+    other = tmp_path / "mine"
+    other.mkdir()
+    (other / "precious.txt").write_text("keep")
+    assert main(["synth", "demo", "--out", str(other)]) == 2
+    assert (other / "precious.txt").read_text() == "keep" and len(list(other.iterdir())) == 1
+    assert main(["synth", "mesh-env", "--out", str(tmp_path / "m"), "--mesh", str(tmp_path / "none.obj")]) == 2
+    assert not (tmp_path / "m").exists()
+
+
+def test_rerender_under_an_environment_reproduces_images(tmp_path):
+    from pbrfit.io import read_material
+    from pbrfit.scene import load_capture
+    from pbrfit.views import render_capture
+
+    res = writer.synthesize(_tiny("sphere-env", views=1, env_width=32), tmp_path / "env")
+    cap = load_capture(res.path)
+    assert cap.environment is not None and cap.environment.file.name == "env.exr"
+    (image, _), = render_capture(cap, read_material(cap.truth_dir))
+    mask = res.masks[0]
+    np.testing.assert_allclose(image[mask], res.clean[0][mask], rtol=1e-5, atol=1e-6)
+    assert (res.clean[0][~mask] > 0).all()  # the sky shows behind the sphere
