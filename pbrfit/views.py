@@ -100,19 +100,29 @@ def render_capture(
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Render every frame as its file would hold it: [(image (H, W, 3), alpha (H, W))].
 
-    Exposure, tone map and color space follow each frame. Without `model`, the capture's
+    Exposure, tone map and color space follow each frame; past the mesh, the camera sees the
+    environment (or black without one). Without `model`, the capture's
     (`model_for_capture`); without `ibl`, built from the capture's environment when the model
     needs it.
     """
     model = model if model is not None else model_for_capture(capture, material)
+    environment = capture_environment(capture)
     if ibl is None and (model.ibl == "split_sum" or model.multiscatter):
-        ibl = capture_ibl(capture)
+        ibl = capture_ibl(capture, environment=environment)
     gbuffers = gbuffers if gbuffers is not None else capture_gbuffers(capture, cache_dir)
     views = capture_views(capture, gbuffers, use_masks=False)
     out = []
     for frame, view in zip(capture.frames, views):
+        background = None
+        if environment is not None:  # what the camera sees past the mesh
+            from .color import encode
+            from .environment import environment_lookup
+
+            _, dirs = frame.camera.rays()
+            sky = environment_lookup(environment, jnp.asarray(dirs, jnp.float32))
+            background = encode(sky, frame.exposure, capture.tonemap, frame.color_space)
         image, alpha = render_view(
-            view, material, model, ibl, frame.exposure, capture.tonemap, frame.color_space
+            view, material, model, ibl, frame.exposure, capture.tonemap, frame.color_space, background=background
         )
         out.append((np.asarray(image), np.asarray(alpha)))
     return out
