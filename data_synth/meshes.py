@@ -3,8 +3,9 @@
 A `MeshData` holds float32 vertices, int32 triangles (counter-clockwise seen from outside),
 analytic unit vertex normals, and uv in **glTF orientation** (v = 0 at the top row of the
 texture image). trimesh keeps uv the OpenGL way (v = 0 at the bottom) and flips v when it
-reads or writes glTF; `MeshData.to_trimesh` and `from_trimesh` do that flip, so a GLB written
-from a `MeshData` carries exactly its uv as ``TEXCOORD_0``.
+reads or writes glTF; `MeshData.to_trimesh` does that flip, so a GLB written from a `MeshData`
+carries exactly its uv as ``TEXCOORD_0``. `load_mesh` reads through `pbrfit.scene.load_mesh`,
+which hands back glTF-oriented uv.
 
 Every generator builds in the y-up frame and takes `world_up`: for ``"+z"`` the mesh is
 turned by the Blender <-> glTF axis change (x, y, z)_y-up -> (x, -z, y)_z-up, so "up" in the
@@ -83,18 +84,6 @@ class MeshData:
             process=False,
         )
         return mesh
-
-    @staticmethod
-    def from_trimesh(mesh, where: str = "mesh") -> "MeshData":
-        """From a `trimesh.Trimesh` with uv (trimesh's convention); raises CaptureError without uv."""
-        from pbrfit.errors import CaptureError
-
-        uv = getattr(mesh.visual, "uv", None)
-        if uv is None or len(uv) != len(mesh.vertices):
-            raise CaptureError(f"{where}: the mesh has no texture coordinates (glTF TEXCOORD_0 / OBJ vt)")
-        uv = np.asarray(uv, np.float64)[:, :2].copy()
-        uv[:, 1] = 1.0 - uv[:, 1]
-        return MeshData(mesh.vertices, mesh.faces, mesh.vertex_normals, uv)
 
 
 def to_world_up(mesh: MeshData, world_up: str) -> MeshData:
@@ -284,36 +273,18 @@ def combine(meshes: Sequence[MeshData], tiles: Sequence[tuple[float, float, floa
     return MeshData(np.concatenate(verts), np.concatenate(faces), np.concatenate(normals), np.concatenate(uvs))
 
 
-def load_mesh(path, normalize: bool = False, world_up: str = "+y") -> MeshData:
-    """A user's mesh (anything trimesh loads: glTF/GLB, OBJ, PLY) with its texture coordinates.
+def load_mesh(path, normalize: bool = False) -> MeshData:
+    """A user's mesh (anything `pbrfit.scene.load_mesh` reads: glTF/GLB, OBJ, PLY) with its uv.
 
-    With `normalize`, it is centred on its bounding box and scaled to fit a unit-radius sphere.
-    Raises `CaptureError` when the file cannot be read or has no uv. `world_up` is recorded by the
-    caller; the mesh is used as it is in the file (no axis change).
+    Read exactly as a capture's mesh is read (scenes flattened, uv turned to glTF orientation,
+    the file's normals kept), so a synthetic capture of it shows what a fit will see. With
+    `normalize`, it is centred on its bounding box and scaled to fit a unit-radius sphere.
+    Raises `CaptureError` when the file cannot be read or has no texture coordinates.
     """
-    import trimesh
+    from pbrfit.scene import load_mesh as load_capture_mesh
 
-    from pbrfit.errors import CaptureError
-
-    path = Path(path)
-    if not path.is_file():
-        raise CaptureError(f"{path}: mesh file not found")
-    try:
-        loaded = trimesh.load(str(path), process=False)
-        if isinstance(loaded, trimesh.Scene):
-            # a single untransformed geometry is used as is: concatenating a scene
-            # (force="mesh") drops the file's vertex normals
-            nodes = [n for n in loaded.graph.nodes_geometry]
-            if len(nodes) == 1 and np.allclose(loaded.graph[nodes[0]][0], np.eye(4)):
-                loaded = loaded.geometry[loaded.graph[nodes[0]][1]]
-            else:
-                loaded = loaded.to_mesh()
-        mesh = loaded
-    except Exception as err:  # trimesh raises many types
-        raise CaptureError(f"{path}: cannot read the mesh ({type(err).__name__}: {err})".splitlines()[0]) from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise CaptureError(f"{path}: no triangles in the mesh file")
-    data = MeshData.from_trimesh(mesh, where=str(path))
+    mesh = load_capture_mesh(Path(path), where=f"mesh {path}")
+    data = MeshData(mesh.vertices, mesh.faces, mesh.vertex_normals, np.asarray(mesh.visual.uv)[:, :2])
     if normalize:
         lo, hi = data.vertices.min(0), data.vertices.max(0)
         c = (lo + hi) / 2

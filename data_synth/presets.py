@@ -178,7 +178,7 @@ def _peer_plane(seed: int, **kw) -> Scene:
 
 def _plane_flash(seed: int, **kw) -> Scene:
     p = _common(kw, dict(size=128, views=12, noise=0.01, noise_model="gaussian", supersample=2, texture_size=64,
-                         image_format="png16", fov_deg=50.0, flash_intensity=2.5, lamp_intensity=4.0,
+                         image_format="png16", fov_deg=50.0, flash_intensity=3.5, lamp_intensity=5.0,
                          metal_color=textures.GOLD))
     from pbrfit.lights import point_light
 
