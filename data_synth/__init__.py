@@ -39,7 +39,8 @@ __all__ = [
 
 def __getattr__(name):  # the writer pulls in the renderer (jax): load it on first use
     if name in ("writer", "synthesize"):
-        from . import writer
+        import importlib
 
+        writer = importlib.import_module(f"{__name__}.writer")
         return writer if name == "writer" else writer.synthesize
     raise AttributeError(f"module 'data_synth' has no attribute {name!r}")
