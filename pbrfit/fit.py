@@ -1,0 +1,395 @@
+"""Fitting: recover glTF base colour, metallic and roughness maps from a capture.
+
+`fit(capture, ...)` ray-casts the views once (`pbrfit.observations`), then minimises the squared
+difference between the images and the renders of the maps, in the images' own space, with the
+solver chosen by ``solver=``:
+
+- ``"structured"`` (default): projected Levenberg-Marquardt on the exact image-space objective
+  with per-pixel forward-mode Jacobians, block-sparse normal equations and block-Jacobi CG
+  (`pbrfit.solvers`), run coarse to fine: a uniform material first, then maps of growing
+  resolution, each started from the previous one. `experiments/solvers.md` has the numbers that
+  chose it.
+- ``"lm"``, ``"gn"``, ``"dogleg"``, ``"bfgs"``, ``"lbfgs"``, ``"ncg"``, ``"adam"``: optimistix
+  solvers on the same objective (`pbrfit.optx_solvers`), run through the same schedule.
+
+The result carries the maps, per-texel standard errors (`pbrfit.uncertainty`), per-texel
+coverage, the fitted renders of every view and a report.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Callable, Mapping, Optional, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .initialisation import grid_initialise
+from .material import Material
+from .model import Model
+from .observations import (Observations, TexelLayout, coverage_counts, neighbour_pairs, observations_from_capture,
+                           texel_layout, uniform_layout)
+from .optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
+from .parameters import CHANNELS, FIT_GROUPS, PRIOR, channel_mask
+from .solvers import LOSSES, Problem, linearize, normal_blocks, pixel_residuals, structured_lm
+from .textures import sample_bilinear
+from .uncertainty import block_standard_errors, residual_variance
+
+__all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "model_for_capture",
+           "SOLVERS", "DEFAULT_SOLVER", "schedule"]
+
+DEFAULT_SOLVER = "structured"
+SOLVERS = (DEFAULT_SOLVER,) + OPTX_SOLVERS
+#: Default step limits: per coarse level, and for the final level.
+COARSE_STEPS = 20
+MAX_STEPS = 40
+#: Default scale of the robust losses, in image units (a few times a typical noise level).
+LOSS_SCALE = 0.05
+#: Each coarse-to-fine level is this factor finer than the one before (see experiments/solvers.md).
+LEVEL_FACTOR = 4
+#: `default_resolution` picks the finest power of two whose texels are at least this many
+#: pixels wide in the median view (below one pixel per texel, neighbours become inseparable).
+PIXELS_PER_TEXEL = 1.0
+MAX_RESOLUTION = 2048
+
+
+@dataclasses.dataclass
+class FitResult:
+    """What `fit` returns.
+
+    Attributes:
+        material: the fitted maps (`pbrfit.material.Material`; 1 × 1 for a uniform fit).
+        uncertainty: (H, W, 5) one-sigma errors (base R, G, B, metallic, roughness); 0 for fixed
+            channels, +inf for texels no view sees.
+        coverage: (H, W) pixel observations per texel (0 = never seen; such texels keep `PRIOR`).
+        report: model, solver, steps, times (setup / compile / solve), final loss, per-view PSNR,
+            devices and the levels run.
+        images: per view, the fitted render in the images' own space (H, W, 3); targets: the
+            images; masks: (H, W) bool, the pixels that entered the objective.
+    """
+
+    material: Material
+    uncertainty: np.ndarray
+    coverage: np.ndarray
+    report: dict
+    images: list
+    targets: list
+    masks: list
+
+
+def model_for_capture(capture, fit: Sequence[str] = ("base_color", "metallic", "roughness"), fixed=None) -> Model:
+    """The model the images need: split-sum IBL when there is an environment; the metal lobe
+    only when metallic is fitted or fixed to something nonzero."""
+    fixed = fixed or {}
+    metal = "metallic" in fit or bool(np.any(np.asarray(fixed.get("metallic", 0.0)) != 0))
+    env = getattr(capture, "environment", None)
+    return Model(ibl="split_sum" if env is not None else None, metallic=metal)
+
+
+def _ibl_for_capture(capture, model: Model):
+    if model.ibl is None:
+        return None
+    from .environment import load_environment
+    from .ibl import IBLSettings, build_ibl
+
+    spec = capture.environment
+    env = load_environment(spec.file, world_up=capture.world_up, intensity=spec.intensity,
+                           rotation_deg=spec.rotation_deg)
+    return build_ibl(env, IBLSettings())
+
+
+def _median_footprint(obs: Observations) -> float:
+    """Median side (in uv units) of one pixel's footprint on the texture, over all views."""
+    uv = np.asarray(obs.uv)
+    vidx = np.asarray(obs.view_index)
+    pix = np.asarray(obs.pixel)
+    sides = []
+    for k, (h, w) in enumerate(obs.shapes):
+        sel = vidx == k
+        img = np.full((h * w, 2), np.nan)
+        img[pix[sel]] = uv[sel]
+        img = img.reshape(h, w, 2)
+        du = img[:-1, 1:] - img[:-1, :-1]
+        dv = img[1:, :-1] - img[:-1, :-1]
+        area = np.abs(du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0])
+        sides.append(np.sqrt(area[np.isfinite(area)]))
+    sides = np.concatenate(sides) if sides else np.zeros(0)
+    sides = sides[sides < 0.25]  # seams of the uv layout are not footprints
+    return float(np.median(sides)) if sides.size else 1.0
+
+
+def default_resolution(capture_or_obs) -> int:
+    """The finest power-of-two map size whose texels are at least `PIXELS_PER_TEXEL` pixels
+    wide, judged by the median pixel footprint in uv over all views."""
+    obs = capture_or_obs if isinstance(capture_or_obs, Observations) else observations_from_capture(capture_or_obs)
+    side = _median_footprint(obs) * PIXELS_PER_TEXEL
+    n = 2 ** int(math.floor(math.log2(max(1.0 / max(side, 1e-9), 1.0))))
+    return int(min(max(n, 1), MAX_RESOLUTION))
+
+
+def schedule(resolution: tuple[int, int], factor: int = LEVEL_FACTOR) -> list[tuple[int, int]]:
+    """Coarse-to-fine levels: a uniform material (1, 1), then sizes growing by `factor` up to
+    `resolution` (each level divides the final size exactly)."""
+    h, w = resolution
+    levels = [(h, w)]
+    while levels[-1][0] % factor == 0 and levels[-1][1] % factor == 0 and min(levels[-1]) // factor >= 4:
+        levels.append((levels[-1][0] // factor, levels[-1][1] // factor))
+    levels.append((1, 1))
+    return list(dict.fromkeys(reversed(levels)))
+
+
+def _fixed_values(fixed: Mapping, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W, 5) values of the channels held fixed (PRIOR where nothing is given)."""
+    out = np.broadcast_to(PRIOR, shape + (5,)).copy()
+    for name, value in (fixed or {}).items():
+        if name not in FIT_GROUPS:
+            raise ValueError(f"unknown fixed map {name!r}; expected some of {', '.join(FIT_GROUPS)}")
+        chans = list(FIT_GROUPS[name])
+        v = np.asarray(value, np.float32)
+        if v.ndim == 3:
+            v = np.asarray(jax.image.resize(v, shape + (v.shape[-1],), "linear"))
+        out[..., chans] = np.broadcast_to(v.reshape(v.shape[:-1] + (-1,)) if v.ndim == 3 else v, shape + (len(chans),))
+    return out
+
+
+def _upsample(x: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    h, w = shape
+    u = (np.arange(w) + 0.5) / w
+    v = (np.arange(h) + 0.5) / h
+    uv = np.stack(np.meshgrid(u, v, indexing="xy"), -1)
+    return np.asarray(sample_bilinear(jnp.asarray(x), jnp.asarray(uv), "clamp"))
+
+
+def _layout(obs: Observations, shape, wrap: str) -> TexelLayout:
+    return uniform_layout(obs) if tuple(shape) == (1, 1) else texel_layout(obs, shape, wrap)
+
+
+def fit_observations(
+    obs: Observations,
+    *,
+    model: Model = Model(),
+    ibl=None,
+    resolution=None,
+    fit: Sequence[str] = ("base_color", "metallic", "roughness"),
+    fixed: Optional[Mapping] = None,
+    maps: str = "texture",
+    solver: str = DEFAULT_SOLVER,
+    max_steps: Optional[int] = None,
+    coarse_steps: int = COARSE_STEPS,
+    rtol: float = 1e-6,
+    atol: float = 1e-5,
+    loss: str = "l2",
+    loss_scale: float = LOSS_SCALE,
+    smooth: float = 0.0,
+    coarse_to_fine: bool = False,
+    init: str = "grid",
+    level_factor: int = LEVEL_FACTOR,
+    wrap: str = "repeat",
+    progress: Optional[Callable] = None,
+    setup_time: float = 0.0,
+) -> FitResult:
+    """Fit maps to prepared `Observations` (see `fit` for the arguments)."""
+    t_start = time.perf_counter()
+    if solver not in SOLVERS:
+        raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
+    if loss not in LOSSES:
+        raise ValueError(f"unknown loss {loss!r}; expected one of {', '.join(LOSSES)}")
+    if init not in ("grid", "prior"):
+        raise ValueError(f"init must be 'grid' or 'prior', got {init!r}")
+    if maps not in ("texture", "none"):
+        raise ValueError(f"maps must be 'texture' or 'none', got {maps!r}")
+    fixed = dict(fixed or {})
+    channels = channel_mask(fit)
+    if not model.metallic:
+        channels[3] = 0.0
+        fixed.setdefault("metallic", 0.0)
+    if maps == "none":
+        final = (1, 1)
+    else:
+        res = default_resolution(obs) if resolution is None else resolution
+        final = (int(res), int(res)) if np.isscalar(res) else tuple(int(r) for r in res)
+    levels = schedule(final, level_factor) if coarse_to_fine else [final]
+    t_final = final[0] * final[1]
+    max_steps = MAX_STEPS if max_steps is None else int(max_steps)
+    pairs_final = neighbour_pairs(final)
+    e_final = pairs_final.shape[0]
+
+    x = None
+    history = []
+    clock = dict(compile=0.0, solve=0.0)
+    where = dict(level=0, resolution=levels[0])
+    cb = None if progress is None else (
+        lambda step, value: progress(dict(where, step=int(step), loss=float(value))))
+    runner = _Runner(solver, rtol, atol, cb, clock)
+    for level, shape in enumerate(levels):
+        where.update(level=level, resolution=tuple(shape))
+        layout = _layout(obs, shape, wrap)
+        cov = coverage_counts(layout).reshape(-1)
+        t = shape[0] * shape[1]
+        seen = np.zeros(t_final, bool)
+        seen[:t] = cov > 0
+        free = (seen[:, None] * channels[None, :]).astype(np.float32)
+        fixed_x = np.broadcast_to(PRIOR, (t_final, 5)).copy()
+        fixed_x[:t] = _fixed_values(fixed, shape).reshape(t, 5)
+        x0 = fixed_x.copy()
+        if x is not None:
+            up = _upsample(x, shape).reshape(t, 5)
+            x0[:t] = np.where(channels[None, :] > 0, up, x0[:t])
+        x0[:t] = np.where(seen[:t, None], x0[:t], fixed_x[:t])
+        pairs = np.zeros((e_final, 2), np.int32)
+        pw = np.zeros(e_final, np.float32)
+        if shape != (1, 1) and smooth > 0:
+            p = neighbour_pairs(shape)
+            pairs[: len(p)] = p
+            pw[: len(p)] = (seen[p[:, 0]] & seen[p[:, 1]]).astype(np.float32)
+        problem = Problem(obs, layout.index, layout.weight, jnp.asarray(free), jnp.asarray(pairs), jnp.asarray(pw),
+                          jnp.asarray(smooth, jnp.float32), jnp.asarray(loss_scale, jnp.float32), ibl, model, loss)
+        if level == 0 and init == "grid":
+            t0 = time.perf_counter()
+            x0 = np.asarray(grid_initialise(jnp.asarray(x0), problem))
+            clock["init"] = time.perf_counter() - t0
+        steps = max_steps if level == len(levels) - 1 else min(coarse_steps, max_steps)
+        out, info = runner(jnp.asarray(x0), problem, steps, int(np.sum(free)))
+        xs = out
+        history.append(dict(resolution=list(shape), **info))
+        x = xs[:t].reshape(shape + (5,))
+
+    t_post = time.perf_counter()
+    return _finish(obs, problem, x, final, channels, seen[:t_final], model, solver, history, loss, smooth,
+                   dict(setup=setup_time, **clock), t_post, t_start)
+
+
+class _Runner:
+    """Compiles a solver once per shape (ahead of time, so compile and solve are timed apart)."""
+
+    def __init__(self, solver, rtol, atol, progress, clock):
+        self.solver, self.rtol, self.atol, self.progress, self.clock = solver, rtol, atol, progress, clock
+        self.compiled = {}
+
+    def __call__(self, x0, problem, steps, num_free):
+        structured = self.solver == DEFAULT_SOLVER
+        if structured:
+            key, args = "structured", (x0, problem, jnp.asarray(steps, jnp.int32), self.rtol, self.atol)
+            kwargs = dict(progress=self.progress)
+            fn = structured_lm
+        else:
+            opt, is_ls = make_solver(self.solver, self.rtol, self.atol, num_free)
+            key, args, kwargs, fn = (type(opt).__name__, steps), (x0, problem, opt, is_ls, steps), {}, optx_solve
+        if key not in self.compiled:
+            t0 = time.perf_counter()
+            self.compiled[key] = fn.lower(*args, **kwargs).compile()
+            self.clock["compile"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        out = self.compiled[key](*args, **kwargs)
+        x = np.asarray(jax.block_until_ready(out[0]))
+        self.clock["solve"] += time.perf_counter() - t0
+        if structured:
+            s = out[1]
+            info = dict(steps=int(s.steps), accepted=int(s.accepted), cg_iterations=int(s.cg_iterations))
+        else:
+            info = dict(steps=int(out[1]), result=int(out[2]), method=type(opt).__name__)
+        return x, info
+
+
+def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss, smooth, times, t_post, t_start):
+    xj = jnp.asarray(x.reshape(-1, 5))
+    r, jac, energy = jax.jit(linearize)(xj, problem)
+    blocks = np.asarray(jax.jit(normal_blocks)(jac, problem))
+    n_res = 3 * obs.num_pixels
+    n_par = int(np.sum(seen)) * int(np.sum(channels))
+    sigma2 = residual_variance(float(energy), n_res, n_par)
+    sigma = block_standard_errors(blocks, channels > 0, seen, sigma2).reshape(final + (5,))
+    coverage = coverage_counts(_layout(obs, final, "repeat" if final != (1, 1) else "repeat"))
+    # Per-view renders in image space and PSNR (peak 1: display values).
+    plain = problem if loss == "l2" else Problem(obs, problem.index, problem.weight, problem.free, problem.pairs,
+                                                  problem.pair_weight, problem.smooth, problem.loss_scale,
+                                                  problem.ibl, model, "l2")
+    resid = np.asarray(jax.jit(pixel_residuals)(xj, plain))
+    values = resid + np.asarray(obs.target)
+    vidx = np.asarray(obs.view_index)
+    pix = np.asarray(obs.pixel)
+    images, targets, masks, psnr = [], [], [], []
+    for k, (h, w) in enumerate(obs.shapes):
+        sel = vidx == k
+        img = np.zeros((h * w, 3), np.float32)
+        tgt = np.zeros((h * w, 3), np.float32)
+        msk = np.zeros(h * w, bool)
+        img[pix[sel]] = values[sel]
+        tgt[pix[sel]] = np.asarray(obs.target)[sel]
+        msk[pix[sel]] = True
+        images.append(img.reshape(h, w, 3))
+        targets.append(tgt.reshape(h, w, 3))
+        masks.append(msk.reshape(h, w))
+        mse = float(np.mean(resid[sel] ** 2)) if sel.any() else float("nan")
+        psnr.append(10.0 * math.log10(1.0 / mse) if mse > 0 else float("inf"))
+    material = Material(base_color=jnp.asarray(x[..., 0:3]), metallic=jnp.asarray(x[..., 3:4]),
+                        roughness=jnp.asarray(x[..., 4:5]))
+    times = dict(times, post=time.perf_counter() - t_post)
+    report = dict(
+        model=model.describe(),
+        solver=solver,
+        loss=loss,
+        smooth=smooth,
+        resolution=list(final),
+        fitted=[c for c, m in zip(CHANNELS, channels) if m > 0],
+        levels=history,
+        steps=int(sum(h["steps"] for h in history)),
+        final_loss=float(energy),
+        residual_sigma=math.sqrt(sigma2),
+        pixels=int(obs.num_pixels),
+        observed_texels=int(np.sum(coverage > 0)),
+        psnr=psnr,
+        times={k: float(v) for k, v in times.items()},
+        wall_time=float(times["setup"] + time.perf_counter() - t_start),
+        devices=[str(d) for d in jax.devices()],
+    )
+    return FitResult(material, sigma, coverage, report, images, targets, masks)
+
+
+def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, **kwargs) -> FitResult:
+    """Fit material maps to a `pbrfit.scene.Capture`.
+
+    Keyword arguments (all optional):
+        resolution: map size N (or (H, W)); default `default_resolution(capture)`.
+        fit: which maps are free, some of "base_color", "metallic", "roughness".
+        fixed: values of maps held fixed: {"roughness": 0.4, "base_color": (H, W, 3) array, ...};
+            maps neither fitted nor given stay at `pbrfit.parameters.PRIOR`.
+        maps: "texture" (maps) or "none" (one uniform material, 1 × 1 maps).
+        solver: one of `SOLVERS`; max_steps (final level), coarse_steps, rtol, atol.
+        loss: "l2", "huber" or "cauchy" (scale `loss_scale`, image units); smooth: weight of the
+            neighbour-difference prior (0 = off).
+        coarse_to_fine: run the levels of `schedule` (default) or the final resolution only.
+        model: override the `Model` (default `model_for_capture`: the one that rendered the images).
+        progress: called with {level, resolution, step, loss} after each step (a host callback;
+            leave None for a solve with no host round-trips).
+    """
+    t0 = time.perf_counter()
+    model = model_for_capture(capture, kwargs.get("fit", ("base_color", "metallic", "roughness")),
+                              kwargs.get("fixed")) if model is None else model
+    ibl = _ibl_for_capture(capture, model)
+    obs = observations_from_capture(capture, cache_dir=cache_dir, views=views)
+    return fit_observations(obs, model=model, ibl=ibl, setup_time=time.perf_counter() - t0, **kwargs)
+
+
+def map_rmse(truth: Material, result, coverage: Optional[np.ndarray] = None) -> dict:
+    """Per-map RMSE of a fitted material (or `FitResult`) against the truth, over observed texels.
+
+    The truth is resampled (area average) to the fitted resolution when sizes differ.
+    """
+    material = result.material if isinstance(result, FitResult) else result
+    if coverage is None and isinstance(result, FitResult):
+        coverage = result.coverage
+    shape = material.resolution
+    out = {}
+    for name in ("base_color", "metallic", "roughness"):
+        t = np.asarray(getattr(truth, name), np.float32)
+        f = np.asarray(getattr(material, name), np.float32)
+        if t.shape[:2] != shape:
+            t = np.asarray(jax.image.resize(t, shape + t.shape[2:], "linear"))
+        seen = np.ones(shape, bool) if coverage is None else np.asarray(coverage) > 0
+        err = (f - t)[seen]
+        out[name] = float(np.sqrt(np.mean(err ** 2))) if err.size else float("nan")
+    return out

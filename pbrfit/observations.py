@@ -1,0 +1,217 @@
+"""Observations: every usable pixel of every view as flat shading inputs, its target and the
+texels it reads.
+
+Geometry is fixed, so what a pixel sees (normal, view direction, incident light, uv) is computed
+once and never differentiated. A pixel is *usable* when the mesh covers it, its mask is on and,
+for LDR images, no channel sits at the file's maximum code (a clipped highlight says only
+"at least this bright"). The fitted objective is the sum over usable pixels of the squared
+difference between the image value and the rendered value *in the image's own space*: radiance
+× 2^exposure, tone mapped, and sRGB-encoded for sRGB files (`pbrfit.color.encode`).
+
+A `TexelLayout` says which texels each pixel reads at one map resolution: the four bilinear
+texels and weights of `pbrfit.textures.bilinear_weights` (the exact sparsity of the problem),
+or a single texel of weight 1 for a uniform material.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from .render import ViewInputs
+from .textures import bilinear_weights
+
+__all__ = ["Observations", "TexelLayout", "observations_from_views", "observations_from_capture",
+           "texel_layout", "uniform_layout", "coverage_counts", "neighbour_pairs"]
+
+
+class Observations(eqx.Module):
+    """Usable pixels of all views, concatenated (P pixels, L lights; views with fewer lights are
+    padded with lights of zero radiance).
+
+    Attributes:
+        normal, view: (P, 3) unit shading normal and surface-to-camera direction.
+        light_l, light_radiance: (P, L, 3) per light: direction to it and arriving radiance.
+        uv: (P, 2) texture coordinates (glTF orientation).
+        exposure: (P,) exposure in EV of the pixel's frame.
+        target: (P, 3) the image's values (linear, or sRGB-encoded display values when
+            ``color_space == "srgb"``, i.e. the space residuals are taken in).
+        view_index: (P,) which view each pixel belongs to.
+        pixel: (P,) flat pixel index in its view.
+        shapes: (H, W) of each view (static).
+        tonemap, color_space: how radiance becomes image values (static).
+    """
+
+    normal: Float[Array, "P 3"]
+    view: Float[Array, "P 3"]
+    light_l: Float[Array, "P L 3"]
+    light_radiance: Float[Array, "P L 3"]
+    uv: Float[Array, "P 2"]
+    exposure: Float[Array, " P"]
+    target: Float[Array, "P 3"]
+    view_index: Int[Array, " P"]
+    pixel: Int[Array, " P"]
+    shapes: tuple = eqx.field(static=True)
+    tonemap: str = eqx.field(static=True, default="none")
+    color_space: str = eqx.field(static=True, default="linear")
+
+    @property
+    def num_pixels(self) -> int:
+        return int(self.target.shape[0])
+
+    @property
+    def num_views(self) -> int:
+        return len(self.shapes)
+
+    def select_views(self, keep: Sequence[int]) -> "Observations":
+        """The observations of some views only (numbering of `view_index` kept)."""
+        sel = np.isin(np.asarray(self.view_index), np.asarray(list(keep)))
+        return _take(self, np.flatnonzero(sel))
+
+
+def _take(obs: Observations, rows: np.ndarray) -> Observations:
+    rows = jnp.asarray(rows, jnp.int32)
+    return eqx.tree_at(
+        lambda o: (o.normal, o.view, o.light_l, o.light_radiance, o.uv, o.exposure, o.target, o.view_index, o.pixel),
+        obs,
+        tuple(getattr(obs, n)[rows] for n in ("normal", "view", "light_l", "light_radiance", "uv", "exposure",
+                                               "target", "view_index", "pixel")),
+    )
+
+
+class TexelLayout(eqx.Module):
+    """Which texels each pixel reads: (P, 4) flat texel indices and weights; `shape` (H, W) of
+    the maps (``(1, 1)`` for a uniform material)."""
+
+    index: Int[Array, "P 4"]
+    weight: Float[Array, "P 4"]
+    shape: tuple = eqx.field(static=True)
+
+    @property
+    def num_texels(self) -> int:
+        return int(self.shape[0] * self.shape[1])
+
+
+def _pad_lights(a: np.ndarray, lights: int, fill: np.ndarray) -> np.ndarray:
+    extra = lights - a.shape[1]
+    if extra == 0:
+        return a
+    pad = np.broadcast_to(fill, (a.shape[0], extra, 3))
+    return np.concatenate([a, pad], axis=1)
+
+
+def observations_from_views(
+    views: Sequence[ViewInputs],
+    images: Sequence[np.ndarray],
+    exposures: Optional[Sequence[float]] = None,
+    usable: Optional[Sequence[Optional[np.ndarray]]] = None,
+    tonemap: str = "none",
+    color_space: str = "linear",
+) -> Observations:
+    """Observations from per-view `ViewInputs` and the (H, W, 3) images they were taken with.
+
+    `images` hold the file's values (display values for sRGB: what `encode` produces).
+    `usable` are optional (H, W) bool masks of pixels to keep (e.g. not saturated).
+    """
+    exposures = [0.0] * len(views) if exposures is None else list(exposures)
+    usable = [None] * len(views) if usable is None else list(usable)
+    lights = max((int(v.light_l.shape[1]) for v in views), default=0)
+    parts = {k: [] for k in ("normal", "view", "light_l", "light_radiance", "uv", "exposure", "target",
+                             "view_index", "pixel")}
+    for k, (vi, img, ev, use) in enumerate(zip(views, images, exposures, usable)):
+        pix = np.asarray(vi.pixel)
+        keep = np.ones(pix.shape[0], bool)
+        if use is not None:
+            keep = np.asarray(use, bool).reshape(-1)[pix]
+        img = np.asarray(img, np.float32).reshape(-1, np.asarray(img).shape[-1])[:, :3]
+        keep &= np.all(np.isfinite(img[pix]), axis=-1)
+        rows = np.flatnonzero(keep)
+        normal = np.asarray(vi.normal)[rows]
+        parts["normal"].append(normal)
+        parts["view"].append(np.asarray(vi.view)[rows])
+        parts["light_l"].append(_pad_lights(np.asarray(vi.light_l)[rows], lights, np.array([0.0, 0.0, 1.0])))
+        parts["light_radiance"].append(_pad_lights(np.asarray(vi.light_radiance)[rows], lights, np.zeros(3)))
+        parts["uv"].append(np.asarray(vi.uv)[rows])
+        parts["exposure"].append(np.full(rows.shape[0], ev, np.float32))
+        parts["target"].append(img[pix[rows]])
+        parts["view_index"].append(np.full(rows.shape[0], k, np.int32))
+        parts["pixel"].append(pix[rows].astype(np.int32))
+    cat = {k: jnp.asarray(np.concatenate(v, axis=0)) for k, v in parts.items()}
+    if lights == 0:
+        cat["light_l"] = jnp.zeros((cat["normal"].shape[0], 0, 3), jnp.float32)
+        cat["light_radiance"] = jnp.zeros((cat["normal"].shape[0], 0, 3), jnp.float32)
+    return Observations(
+        **{k: (v.astype(jnp.float32) if v.dtype.kind == "f" else v) for k, v in cat.items()},
+        shapes=tuple(tuple(int(s) for s in v.shape) for v in views),
+        tonemap=tonemap,
+        color_space=color_space,
+    )
+
+
+def observations_from_capture(capture, cache_dir=None, views=None) -> Observations:
+    """Ray-cast every frame of a `pbrfit.scene.Capture` once and gather its usable pixels.
+
+    Masked pixels, pixels the mesh misses and saturated LDR pixels (`Frame.saturated`) are left
+    out. `views` may pass precomputed `ViewInputs` (one per frame) to skip the ray casting.
+    """
+    from .color import encode  # noqa: F401  (documents the target space)
+    from .gbuffer import compute_gbuffer
+    from .render import prepare_view
+
+    color_space = getattr(capture, "color_space", "linear")
+    if views is None:
+        views = []
+        for frame in capture.frames:
+            gb = compute_gbuffer(capture.mesh, frame.camera, list(frame.lights), cache_dir=cache_dir)
+            views.append(prepare_view(gb, list(frame.lights), mask=frame.mask))
+    images, usable, exposures = [], [], []
+    for frame in capture.frames:
+        img = np.asarray(frame.image, np.float32)
+        if color_space == "srgb":
+            img = _linear_to_srgb_np(img)  # frames hold decoded linear values; residuals live in file space
+        images.append(img)
+        sat = getattr(frame, "saturated", None)
+        usable.append(None if sat is None else ~np.asarray(sat, bool))
+        exposures.append(float(getattr(frame, "exposure", 0.0)))
+    return observations_from_views(views, images, exposures, usable, getattr(capture, "tonemap", "none"), color_space)
+
+
+def _linear_to_srgb_np(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x.astype(np.float64), 0.0, None)
+    out = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0031308), 1 / 2.4) - 0.055)
+    return out.astype(np.float32)
+
+
+def texel_layout(obs: Observations, shape: tuple[int, int], wrap: str = "repeat") -> TexelLayout:
+    """The four bilinear texels (and weights) each pixel reads from (H, W) maps."""
+    index, weight = bilinear_weights(obs.uv, tuple(shape), wrap)
+    return TexelLayout(index.astype(jnp.int32), weight.astype(jnp.float32), tuple(int(s) for s in shape))
+
+
+def uniform_layout(obs: Observations) -> TexelLayout:
+    """Every pixel reads the one texel of a uniform material."""
+    p = obs.num_pixels
+    index = jnp.zeros((p, 4), jnp.int32)
+    weight = jnp.zeros((p, 4), jnp.float32).at[:, 0].set(1.0)
+    return TexelLayout(index, weight, (1, 1))
+
+
+def coverage_counts(layout: TexelLayout) -> np.ndarray:
+    """(H, W) int32: how many pixel observations read each texel with nonzero weight."""
+    idx = np.asarray(layout.index).reshape(-1)
+    w = np.asarray(layout.weight).reshape(-1)
+    counts = np.bincount(idx[w > 0], minlength=layout.num_texels)
+    return counts.astype(np.int32).reshape(layout.shape)
+
+
+def neighbour_pairs(shape: tuple[int, int]) -> np.ndarray:
+    """(E, 2) flat indices of 4-connected texel neighbours (no wrap), for the smoothness prior."""
+    h, w = shape
+    ids = np.arange(h * w).reshape(h, w)
+    right = np.stack([ids[:, :-1].ravel(), ids[:, 1:].ravel()], -1)
+    down = np.stack([ids[:-1, :].ravel(), ids[1:, :].ravel()], -1)
+    return np.concatenate([right, down], 0).astype(np.int32)

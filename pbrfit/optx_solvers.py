@@ -1,0 +1,86 @@
+"""The fit's objective under the general-purpose optimistix solvers.
+
+These solvers know nothing of bounds or of the problem's block structure, so they work on the
+sine storage of `pbrfit.parameters` (``value = lo + (hi - lo)(1 + sin z)/2``, bounds reached at
+finite z) with the fixed and unobserved channels masked back to their values, and see the
+residuals of `pbrfit.solvers.residuals` as a black box:
+
+- ``lm``: `optx.LevenbergMarquardt` with a matrix-free normal-equations CG (`lx.Normal(lx.CG)`);
+  its default QR would materialise the (pixels × parameters) Jacobian.
+- ``gn``: `optx.GaussNewton` with the same matrix-free linear solver.
+- ``dogleg``: `optx.Dogleg` (trust region), same linear solver.
+- ``bfgs``: `optx.BFGS` (dense inverse Hessian) up to `BFGS_MAX_PARAMETERS` unknowns, else
+  `optx.LBFGS` (a dense N × N matrix at 20,000 unknowns is 1.6 GB); ``lbfgs`` asks for it directly.
+- ``ncg``: `optx.NonlinearCG`;  ``adam``: `optx.OptaxMinimiser(optax.adam)`.
+
+lineax's CG declares breakdown when a curvature falls below a threshold that scales with the
+problem size times float32's epsilon, which the normal equations of a large float32 problem
+hit; these solvers therefore run in float64 when ``jax_enable_x64`` is on, and are otherwise
+told not to throw (a breakdown ends the solve, reported in its result).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import optax
+import optimistix as optx
+
+from .parameters import from_sine, to_sine
+from .solvers import Problem, residuals
+
+__all__ = ["OPTX_SOLVERS", "BFGS_MAX_PARAMETERS", "ADAM_LEARNING_RATE", "make_solver", "optx_solve"]
+
+OPTX_SOLVERS = ("lm", "gn", "dogleg", "bfgs", "lbfgs", "ncg", "adam")
+#: Above this many unknowns "bfgs" uses L-BFGS: the dense inverse Hessian grows as N².
+BFGS_MAX_PARAMETERS = 4096
+#: Adam's step in the sine storage (radians): 0.02 moves a mid-range value by about 1% per step.
+ADAM_LEARNING_RATE = 0.02
+#: CG steps per linear solve inside the optimistix least-squares solvers.
+CG_MAX_STEPS = 100
+
+
+def make_solver(name: str, rtol: float, atol: float, num_parameters: int):
+    """The optimistix solver for `name` (see the module docstring) and whether it is least squares."""
+    cg = lx.Normal(lx.CG(rtol=1e-3, atol=1e-8, max_steps=CG_MAX_STEPS))
+    if name == "lm":
+        return optx.LevenbergMarquardt(rtol, atol, linear_solver=cg), True
+    if name == "gn":
+        return optx.GaussNewton(rtol, atol, linear_solver=cg), True
+    if name == "dogleg":
+        return optx.Dogleg(rtol, atol, linear_solver=cg), True
+    if name == "bfgs" and num_parameters <= BFGS_MAX_PARAMETERS:
+        return optx.BFGS(rtol, atol), False
+    if name in ("bfgs", "lbfgs"):
+        return optx.LBFGS(rtol, atol), False
+    if name == "ncg":
+        return optx.NonlinearCG(rtol, atol), False
+    if name == "adam":
+        return optx.OptaxMinimiser(optax.adam(ADAM_LEARNING_RATE), rtol, atol), False
+    raise ValueError(f"unknown solver {name!r}; expected one of {', '.join(OPTX_SOLVERS)}")
+
+
+def _values(z, x_fixed, problem: Problem):
+    return jnp.where(problem.free > 0, from_sine(z), x_fixed)
+
+
+@eqx.filter_jit
+def optx_solve(x0, problem: Problem, solver, least_squares: bool, max_steps: int):
+    """Run an optimistix solver from texel values x0; returns (x, steps, result code)."""
+    z0 = to_sine(x0)
+
+    def res(z, args):
+        return residuals(_values(z, x0, problem), problem)
+
+    def loss(z, args):
+        r, s = res(z, args)
+        return 0.5 * (jnp.sum(r * r) + jnp.sum(s * s))
+
+    if least_squares:
+        sol = optx.least_squares(res, solver, z0, max_steps=max_steps, throw=False)
+    else:
+        sol = optx.minimise(loss, solver, z0, max_steps=max_steps, throw=False)
+    x = _values(sol.value, x0, problem)
+    return x, sol.stats["num_steps"], sol.result._value

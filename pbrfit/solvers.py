@@ -1,0 +1,336 @@
+"""The fit's objective and its structured Levenberg-Marquardt solver.
+
+Objective (images' own space, see `pbrfit.observations`), for texel values x (T, 5):
+
+    E(x) = 1/2 Σ_p ||ρ̃(encode(shade(m_p(x))) - target_p)||² + smooth/2 Σ_(a,b) ||x_a - x_b||²
+
+where m_p(x) = Σ_k w_pk x_(t_pk) is the bilinear sample of pixel p (four texels t_pk, weights
+w_pk) and ρ̃ the residual transform of the robust loss (identity for "l2").
+
+Structure. A pixel's residual (3 numbers) depends on its 5 sampled values only, so its Jacobian
+is J_p = ∂r_p/∂m_p (3 × 5), computed exactly by forward mode (5 tangents, `jax.jacfwd`, vmapped
+over pixels). The full Jacobian is J_p w_pk in the columns of texel t_pk: the Gauss-Newton matrix
+JᵀJ = Σ_p Σ_kl w_pk w_pl [t_pk, t_pl] ⊗ J_pᵀJ_p is block-sparse (5 × 5 blocks between texels that
+share a pixel), its diagonal blocks D_t = Σ w_pk² J_pᵀJ_p and the gradient g_t = Σ w_pk J_pᵀ r_p
+are segment sums, and a product JᵀJ v costs one gather, a 5 × 5 product per pixel and one
+scatter-add. The damped normal equations
+
+    (JᵀJ + λ diag(D) + smooth L) δ = -g
+
+are solved by conjugate gradients preconditioned with the inverted diagonal blocks (block
+Jacobi), in the span of the *active* channels: free, observed, and not on a bound that the
+gradient pushes against. The step is clipped into the box (`pbrfit.parameters`), accepted if it
+lowers E, and λ follows Nielsen's rule (H. B. Nielsen, "Damping parameter in Marquardt's method",
+IMM-REP-1999-05). This is a projected Levenberg-Marquardt method (as in e.g. C. Kanzow et al.,
+"Levenberg-Marquardt methods with strong local convergence properties for solving nonlinear
+equations with convex constraints", 2004).
+
+Why not an optimistix solver: optimistix's LM and Gauss-Newton take a lineax solver for the
+step, but they do not support bounds (the active set and the projection live between the linear
+solve and the acceptance test), and lineax's CG has no preconditioner hook for the block
+diagonal we assemble from the same per-pixel Jacobians. So this loop is a jitted
+`lax.while_loop` in plain JAX: no host round-trips, every array has a fixed shape, and pixels
+and texels can be sharded. The generic optimistix solvers run the same objective through
+`pbrfit.optx_solvers`.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jaxtyping import Array, Float, Int
+
+from .color import encode
+from .model import Model
+from .observations import Observations
+from .parameters import LOWER, UPPER
+from .render import shade
+
+__all__ = ["Problem", "LOSSES", "pixel_residuals", "residuals", "linearize", "objective", "structured_lm",
+           "normal_blocks", "LMStats"]
+
+#: Robust losses, as residual transforms r -> r sqrt(ρ(r²)/r²) (so the objective stays a sum of squares).
+LOSSES = ("l2", "huber", "cauchy")
+#: Relative floor on the damping diagonal, times the mean diagonal of the free channels: keeps the
+#: damped blocks invertible for channels the images barely constrain (roughness without highlights).
+DAMPING_FLOOR = 1e-6
+#: Initial Levenberg-Marquardt damping (relative to the diagonal, Marquardt scaling).
+LAMBDA_INIT = 1e-3
+#: Damping above this means the model cannot be decreased further from here: stop.
+LAMBDA_MAX = 1e10
+#: Below this ratio s = r²/c² the robust weights use their series (ρ(s)/s -> 1) to stay finite.
+_ROBUST_SERIES = 1e-6
+
+
+class Problem(eqx.Module):
+    """One fitting problem: observations, the texels each pixel reads, which channels move.
+
+    Attributes:
+        obs: the usable pixels (`pbrfit.observations.Observations`).
+        index, weight: (P, 4) texels read by each pixel and their bilinear weights.
+        free: (T, 5) 1 where a channel of a texel is fitted (free and observed), else 0.
+        pairs: (E, 2) neighbouring texels for the smoothness prior; pair_weight (E,) 0 or 1.
+        smooth: weight of the smoothness prior (0 = off).
+        loss_scale: the robust loss's scale c, in image units.
+        ibl: split-sum tables when the model has an environment, else None.
+        model, loss: static configuration.
+    """
+
+    obs: Observations
+    index: Int[Array, "P 4"]
+    weight: Float[Array, "P 4"]
+    free: Float[Array, "T 5"]
+    pairs: Int[Array, "E 2"]
+    pair_weight: Float[Array, " E"]
+    smooth: Float[Array, ""]
+    loss_scale: Float[Array, ""]
+    ibl: object = None
+    model: Model = eqx.field(static=True, default=Model())
+    loss: str = eqx.field(static=True, default="l2")
+
+    @property
+    def num_texels(self) -> int:
+        return int(self.free.shape[0])
+
+
+def robust_residual(r, loss: str, scale):
+    """r sqrt(ρ(r²)/r²): the residual whose square is the robust loss ρ(r²) (elementwise)."""
+    if loss == "l2":
+        return r
+    c2 = scale * scale
+    q = r * r / c2
+    big = q > _ROBUST_SERIES
+    q_safe = jnp.where(big, q, 1.0)
+    if loss == "huber":
+        # ρ(s) = s for s <= c², else 2 c sqrt(s) - c²  ->  ρ/s = 2/sqrt(q) - 1/q for q > 1.
+        ratio = jnp.where(q_safe > 1.0, 2.0 / jnp.sqrt(q_safe) - 1.0 / q_safe, 1.0)
+        ratio = jnp.where(big, ratio, 1.0)
+    elif loss == "cauchy":
+        # ρ(s) = c² log(1 + s/c²)  ->  ρ/s = log1p(q)/q.
+        ratio = jnp.where(big, jnp.log1p(q_safe) / q_safe, 1.0 - 0.5 * q)
+    else:
+        raise ValueError(f"unknown loss {loss!r}; expected one of {', '.join(LOSSES)}")
+    return r * jnp.sqrt(ratio)
+
+
+def _pixel_residual(m, normal, view, light_l, light_radiance, exposure, target, *, problem: Problem):
+    """Residual (3,) of one pixel from its sampled (5,) material values."""
+    obs = problem.obs
+    rad = shade(
+        normal[None], view[None], light_l[None], light_radiance[None],
+        m[None, 0:3], m[None, 3:4], m[None, 4:5], problem.model, problem.ibl,
+    )[0]
+    value = encode(rad, exposure, obs.tonemap, obs.color_space)
+    return robust_residual(value - target, problem.loss, problem.loss_scale)
+
+
+def _pixel_args(obs: Observations):
+    return (obs.normal, obs.view, obs.light_l, obs.light_radiance, obs.exposure, obs.target)
+
+
+def sample_texels(x: Float[Array, "T 5"], problem: Problem) -> Float[Array, "P 5"]:
+    """Bilinear samples m_p = Σ_k w_pk x_(t_pk)."""
+    return jnp.einsum("pk,pkc->pc", problem.weight, x[problem.index])
+
+
+def pixel_residuals(x: Float[Array, "T 5"], problem: Problem) -> Float[Array, "P 3"]:
+    """Every pixel's (transformed) residual at texel values x."""
+    m = sample_texels(x, problem)
+    f = jax.vmap(lambda mm, *a: _pixel_residual(mm, *a, problem=problem))
+    return f(m, *_pixel_args(problem.obs))
+
+
+def _smooth_residuals(x, problem: Problem):
+    a, b = problem.pairs[:, 0], problem.pairs[:, 1]
+    chan = jnp.max(problem.free, axis=0)  # channels the fit frees
+    return jnp.sqrt(problem.smooth) * problem.pair_weight[:, None] * chan * (x[a] - x[b])
+
+
+def residuals(x: Float[Array, "T 5"], problem: Problem):
+    """All residuals as a pytree (pixels, smoothness prior): E = 1/2 Σ leaves²."""
+    return pixel_residuals(x, problem), _smooth_residuals(x, problem)
+
+
+def objective(x: Float[Array, "T 5"], problem: Problem) -> Float[Array, ""]:
+    """E(x) = 1/2 Σ residuals²."""
+    r, s = residuals(x, problem)
+    return 0.5 * (jnp.sum(r * r) + jnp.sum(s * s))
+
+
+def linearize(x: Float[Array, "T 5"], problem: Problem):
+    """Residuals (P, 3), per-pixel Jacobians J_p = ∂r_p/∂m_p (P, 3, 5) and E(x)."""
+    m = sample_texels(x, problem)
+
+    def one(mm, *a):
+        f = lambda v: _pixel_residual(v, *a, problem=problem)  # noqa: E731
+        jac, val = jax.jacfwd(lambda v: (f(v), f(v)), has_aux=True)(mm)
+        return val, jac
+
+    r, jac = jax.vmap(one)(m, *_pixel_args(problem.obs))
+    s = _smooth_residuals(x, problem)
+    loss = 0.5 * (jnp.sum(r * r) + jnp.sum(s * s))
+    return r, jac, loss
+
+
+def _scatter(values, problem: Problem):
+    """Σ over (p, k) with t_pk = t of values[p, k] -> (T, ...)."""
+    flat = values.reshape((-1,) + values.shape[2:])
+    return jax.ops.segment_sum(flat, problem.index.reshape(-1), num_segments=problem.num_texels)
+
+
+def _laplacian(v, problem: Problem):
+    a, b = problem.pairs[:, 0], problem.pairs[:, 1]
+    chan = jnp.max(problem.free, axis=0)
+    d = problem.pair_weight[:, None] * chan * (v[a] - v[b])
+    t = problem.num_texels
+    return jax.ops.segment_sum(d, a, num_segments=t) - jax.ops.segment_sum(d, b, num_segments=t)
+
+
+def _degree(problem: Problem):
+    t = problem.num_texels
+    w = problem.pair_weight
+    return jax.ops.segment_sum(w, problem.pairs[:, 0], num_segments=t) + jax.ops.segment_sum(
+        w, problem.pairs[:, 1], num_segments=t)
+
+
+def normal_blocks(jac: Float[Array, "P 3 5"], problem: Problem) -> Float[Array, "T 5 5"]:
+    """Diagonal 5 × 5 blocks of JᵀJ: D_t = Σ w_pk² J_pᵀ J_p (pixels only, no prior)."""
+    gp = jnp.einsum("pci,pcj->pij", jac, jac)
+    w2 = problem.weight * problem.weight
+    return _scatter(w2[:, :, None, None] * gp[:, None], problem)
+
+
+def gradient(r, jac, x, problem: Problem) -> Float[Array, "T 5"]:
+    """g = Jᵀ r (+ smooth L x)."""
+    jr = jnp.einsum("pci,pc->pi", jac, r)
+    return _scatter(problem.weight[:, :, None] * jr[:, None, :], problem) + problem.smooth * _laplacian(x, problem)
+
+
+def gn_product(gp, v, problem: Problem):
+    """(JᵀJ + smooth L) v from the per-pixel J_pᵀJ_p (matrix-free)."""
+    mv = sample_texels(v, problem)
+    y = jnp.einsum("pij,pj->pi", gp, mv)
+    return _scatter(problem.weight[:, :, None] * y[:, None, :], problem) + problem.smooth * _laplacian(v, problem)
+
+
+def _vdot(a, b):
+    return jnp.sum(a * b)
+
+
+def pcg(matvec: Callable, b, precond: Callable, rtol, max_steps: int):
+    """Preconditioned conjugate gradients from 0; returns (solution, iterations)."""
+    x = jnp.zeros_like(b)
+    z = precond(b)
+    bnorm = jnp.sqrt(_vdot(b, b))
+    init = (x, b, z, z, _vdot(b, z), 0)
+
+    def cond(c):
+        _, r, _, _, _, k = c
+        return (k < max_steps) & (jnp.sqrt(_vdot(r, r)) > rtol * bnorm)
+
+    def body(c):
+        x, r, z, p, rz, k = c
+        ap = matvec(p)
+        pap = _vdot(p, ap)
+        alpha = jnp.where(pap > 0, rz / jnp.where(pap > 0, pap, 1.0), 0.0)
+        x = x + alpha * p
+        r = r - alpha * ap
+        z = precond(r)
+        rz_new = _vdot(r, z)
+        beta = jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0)
+        return x, r, z, z + beta * p, rz_new, k + 1
+
+    x, *_, k = lax.while_loop(cond, body, init)
+    return x, k
+
+
+class LMStats(eqx.Module):
+    steps: Array
+    accepted: Array
+    cg_iterations: Array
+    loss: Array
+    damping: Array
+
+
+def _active(x, g, free):
+    lo = jnp.asarray(LOWER, x.dtype)
+    hi = jnp.asarray(UPPER, x.dtype)
+    blocked = ((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0))
+    return free * (~blocked).astype(x.dtype)
+
+
+@eqx.filter_jit
+def structured_lm(
+    x0: Float[Array, "T 5"],
+    problem: Problem,
+    max_steps: int = 50,
+    rtol: float = 1e-6,
+    atol: float = 1e-5,
+    cg_rtol: float = 1e-3,
+    cg_max_steps: int = 100,
+    progress: Optional[Callable] = None,
+):
+    """Projected Levenberg-Marquardt on the structured objective (module docstring).
+
+    Stops after `max_steps` steps, or at an accepted step that lowers E by less than
+    ``rtol · E`` or moves no value by more than `atol`. Returns (x, LMStats).
+    """
+    x0 = jnp.clip(x0, jnp.asarray(LOWER), jnp.asarray(UPPER))
+    r0, j0, loss0 = linearize(x0, problem)
+    eye = jnp.eye(5, dtype=x0.dtype)
+    degree = _degree(problem)
+
+    def cond(c):
+        return (c["k"] < max_steps) & ~c["done"]
+
+    def body(c):
+        x, r, jac, loss, lam, nu = c["x"], c["r"], c["jac"], c["loss"], c["lam"], c["nu"]
+        gp = jnp.einsum("pci,pcj->pij", jac, jac)
+        g = gradient(r, jac, x, problem)
+        blocks = normal_blocks(jac, problem) + problem.smooth * degree[:, None, None] * eye
+        a = _active(x, g, problem.free)
+        diag = jnp.diagonal(blocks, axis1=1, axis2=2)
+        mean_diag = jnp.sum(diag * problem.free) / jnp.maximum(jnp.sum(problem.free), 1.0)
+        damp = diag + DAMPING_FLOOR * mean_diag
+        outer = a[:, :, None] * a[:, None, :]
+        m_blocks = outer * (blocks + lam * damp[:, :, None] * eye) + (1.0 - a)[:, :, None] * eye
+        m_inv = jnp.linalg.inv(m_blocks)
+
+        def matvec(v):
+            av = a * v
+            return a * (gn_product(gp, av, problem) + lam * damp * av) + (1.0 - a) * v
+
+        def precond(v):
+            return jnp.einsum("tij,tj->ti", m_inv, v)
+
+        delta, iters = pcg(matvec, -a * g, precond, cg_rtol, cg_max_steps)
+        x_new = jnp.clip(x + a * delta, jnp.asarray(LOWER), jnp.asarray(UPPER))
+        step = x_new - x
+        predicted = -(_vdot(g, step) + 0.5 * _vdot(step, gn_product(gp, step, problem)))
+        r_new, jac_new, loss_new = linearize(x_new, problem)
+        actual = loss - loss_new
+        accept = jnp.isfinite(loss_new) & (loss_new < loss)
+        rho = actual / jnp.maximum(predicted, jnp.finfo(x.dtype).tiny)
+        lam_new = jnp.where(accept, lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), lam * nu)
+        nu_new = jnp.where(accept, 2.0, 2.0 * nu)
+        small = (actual <= rtol * loss) | (jnp.max(jnp.abs(step)) <= atol)
+        done = (accept & small) | (lam_new > LAMBDA_MAX) | (jnp.max(jnp.abs(step)) == 0)
+        if progress is not None:
+            jax.debug.callback(progress, c["k"] + 1, jnp.where(accept, loss_new, loss))
+        pick = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
+        return dict(
+            x=pick(x_new, x), r=pick(r_new, r), jac=pick(jac_new, jac), loss=pick(loss_new, loss),
+            lam=lam_new, nu=nu_new, k=c["k"] + 1, done=done, accepted=c["accepted"] + accept.astype(jnp.int32),
+            cg=c["cg"] + iters,
+        )
+
+    init = dict(x=x0, r=r0, jac=j0, loss=loss0, lam=jnp.asarray(LAMBDA_INIT, x0.dtype),
+                nu=jnp.asarray(2.0, x0.dtype), k=jnp.asarray(0), done=jnp.asarray(False),
+                accepted=jnp.asarray(0), cg=jnp.asarray(0))
+    out = lax.while_loop(cond, body, init)
+    return out["x"], LMStats(out["k"], out["accepted"], out["cg"], out["loss"], out["lam"])
