@@ -304,6 +304,37 @@ def _load_gltf_keeping_uv(path: Path):
     )
 
 
+def _flatten(scene) -> list:
+    """The scene's triangle meshes in world space, keeping the file's vertex normals.
+
+    Each geometry node's transform is applied to positions, and its inverse transpose to the
+    normals the file holds (trimesh's ``Scene.dump`` would recompute them from the faces, which
+    smooths across hard edges and seams). A mirroring transform also reverses the winding.
+    """
+    import trimesh
+
+    parts = []
+    for node in scene.graph.nodes_geometry:
+        transform, name = scene.graph[node]
+        geom = scene.geometry.get(name)
+        if not isinstance(geom, trimesh.Trimesh) or not len(geom.faces):
+            continue
+        t = np.asarray(transform, np.float64)
+        normals = np.asarray(geom.vertex_normals, np.float64) @ np.linalg.inv(t[:3, :3])  # (M^-T n) as rows
+        normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
+        faces = np.asarray(geom.faces, np.int64)
+        if np.linalg.det(t[:3, :3]) < 0:
+            faces = faces[:, ::-1]
+        part = trimesh.Trimesh(
+            vertices=trimesh.transform_points(np.asarray(geom.vertices, np.float64), t),
+            faces=faces, visual=geom.visual, process=False,
+        )
+        part.metadata.update(geom.metadata)
+        part.metadata["pbrfit_normals"] = normals
+        parts.append(part)
+    return parts
+
+
 def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     """Load a triangle mesh as one `trimesh.Trimesh` with uv in glTF orientation.
 
@@ -326,7 +357,7 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     except Exception as err:  # trimesh raises many types for bad files
         msg = str(err).splitlines()[0] if str(err) else type(err).__name__
         raise CaptureError(f"{where}: cannot load mesh {path}: {msg}") from None
-    parts = [g for g in scene.dump() if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+    parts = _flatten(scene)
     if not parts:
         raise CaptureError(f"{where}: mesh file {path} holds no triangles")
     uvs = []
@@ -346,7 +377,7 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     offsets = np.cumsum([0] + [len(p.vertices) for p in parts])
     vertices = np.concatenate([np.asarray(p.vertices, np.float64) for p in parts])
     faces = np.concatenate([np.asarray(p.faces, np.int64) + off for p, off in zip(parts, offsets)])
-    normals = np.concatenate([np.asarray(p.vertex_normals, np.float64) for p in parts])
+    normals = np.concatenate([p.metadata["pbrfit_normals"] for p in parts])
     visual = None
     if uvs is not None:
         uv = np.concatenate(uvs)

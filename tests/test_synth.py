@@ -150,8 +150,6 @@ def test_glb_carries_gltf_uv_and_reads_back(tmp_path):
     np.testing.assert_array_equal(back.vertices, m.vertices)
 
 
-@pytest.mark.xfail(reason="pbrfit.scene.load_mesh flattens with Scene.dump(), which recomputes vertex "
-                   "normals instead of keeping the file's NORMAL (seams of split vertices shade wrong)", strict=False)
 def test_file_normals_survive_loading(tmp_path):
     m = meshes.uv_sphere(segments=16, rings=8)
     meshes.write_glb(tmp_path / "s.glb", m)
