@@ -148,12 +148,163 @@ def _cmd_synth(args) -> int:
 
 
 # --- fit -------------------------------------------------------------------------------------
+_MAP_NAMES = ("base_color", "metallic", "roughness")
+
+
 def _add_fit(sub) -> None:
-    pass
+    from .fit import DEFAULT_SOLVER, SOLVERS
+    from .solvers import LOSSES
+
+    p = sub.add_parser("fit", help="fit base color, metallic and roughness maps to a capture")
+    p.add_argument("capture", help="capture folder, capture.json or NeRF-style transforms.json")
+    p.add_argument("--out", required=True, help="output folder (written whole or not at all)")
+    p.add_argument("--resolution", type=int, help="map size N (N x N); default from the views' texel coverage")
+    p.add_argument("--maps", choices=("texture", "none"), default="texture",
+                   help="'none' fits one uniform material (five numbers)")
+    p.add_argument("--fit", default="base_color,metallic,roughness",
+                   help="comma-separated maps to fit, some of base_color, metallic, roughness")
+    p.add_argument("--base-color", help="hold base color fixed at R,G,B (linear)")
+    p.add_argument("--metallic", type=float, help="hold metallic fixed at this value")
+    p.add_argument("--roughness", type=float, help="hold roughness fixed at this value (perceptual)")
+    for name in _MAP_NAMES:
+        flag = name.replace("_", "-")
+        p.add_argument(f"--{flag}-from", metavar="DIR", help=f"hold {name} fixed at the map in a material folder")
+    p.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER, help=f"default {DEFAULT_SOLVER}")
+    p.add_argument("--max-steps", type=int, help="solver steps at the final resolution")
+    p.add_argument("--rtol", type=float, default=1e-6)
+    p.add_argument("--atol", type=float, default=1e-5)
+    p.add_argument("--loss", choices=LOSSES, default="l2", help="robust loss (default l2: off)")
+    p.add_argument("--smooth", type=float, default=0.0, help="weight of the smoothness prior (default 0: off)")
+    p.add_argument("--coarse-to-fine", action="store_true", help="solve a uniform material and coarser maps first")
+    p.add_argument("--cache", help="G-buffer cache folder (default $PBRFIT_CACHE or ~/.cache/pbrfit)")
+    p.add_argument("--no-cache", action="store_true", help="do not read or write the G-buffer cache")
+    p.add_argument("--quiet", action="store_true", help="no progress bar; only errors")
+
+
+def _fit_options(args) -> dict:
+    """Keyword arguments of `pbrfit.fit.fit` from the command line (errors name the option)."""
+    from .io import read_material
+
+    free = [m.strip() for m in args.fit.split(",") if m.strip()]
+    for name in free:
+        if name == "normal":
+            raise CaptureError("--fit normal: normal-map fitting is not available; fit base_color, metallic, roughness")
+        if name not in _MAP_NAMES:
+            raise CaptureError(f"--fit: unknown map {name!r} (expected some of {', '.join(_MAP_NAMES)})")
+    fixed = {}
+    if args.base_color is not None:
+        try:
+            rgb = [float(c) for c in args.base_color.split(",")]
+        except ValueError:
+            rgb = []
+        if len(rgb) != 3 or not all(0.0 <= c <= 1.0 for c in rgb):
+            raise CaptureError(f"--base-color: expected R,G,B in [0, 1], got {args.base_color!r}")
+        fixed["base_color"] = rgb
+    for name in ("metallic", "roughness"):
+        value = getattr(args, name)
+        if value is not None:
+            if not 0.0 <= value <= 1.0:
+                raise CaptureError(f"--{name}: expected a value in [0, 1], got {value}")
+            fixed[name] = value
+    for name in _MAP_NAMES:
+        folder = getattr(args, f"{name}_from")
+        if folder is not None:
+            fixed[name] = getattr(read_material(folder), name)
+    for name in fixed:
+        if name in free:
+            free.remove(name)  # a value given on the command line is held, not fitted
+    if not free:
+        raise CaptureError("--fit: nothing left to fit (every map is held fixed)")
+    if args.resolution is not None and args.resolution < 1:
+        raise CaptureError(f"--resolution: must be at least 1, got {args.resolution}")
+    if args.max_steps is not None and args.max_steps < 1:
+        raise CaptureError(f"--max-steps: must be at least 1, got {args.max_steps}")
+    if args.smooth < 0:
+        raise CaptureError(f"--smooth: must be >= 0, got {args.smooth}")
+    return dict(
+        fit=tuple(free), fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
+        max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, loss=args.loss, smooth=args.smooth,
+        coarse_to_fine=args.coarse_to_fine,
+    )
+
+
+class _Progress:
+    """A live line (rich) with level, step, loss and elapsed time; also keeps the loss history."""
+
+    def __init__(self, enabled: bool):
+        import time
+
+        self.history = []
+        self._start = time.perf_counter()
+        self._clock = time.perf_counter
+        self._live = None
+        if enabled and sys.stderr.isatty():
+            from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+            self._live = Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
+                                  transient=True)
+            self._task = self._live.add_task("fitting")
+            self._live.start()
+
+    def __call__(self, info: dict) -> None:
+        self.history.append(dict(info, time=self._clock() - self._start))
+        if self._live is not None:
+            h, w = info["resolution"]
+            self._live.update(self._task, description=(
+                f"level {info['level']} ({h}x{w}) step {info['step']:3d}  loss {info['loss']:.4e}"))
+
+    def close(self) -> None:
+        if self._live is not None:
+            self._live.stop()
+
+
+def run_fit(capture, out, options: dict, cache_dir=None, quiet: bool = False):
+    """Fit `capture`, add truth errors to the report when `truth/` exists, write `out`; return
+    (result, per-map RMSE or None)."""
+    from .fit import fit, map_rmse
+    from .io import read_material
+    from .outputs import write_fit_output
+
+    progress = _Progress(not quiet)
+    try:
+        result = fit(capture, cache_dir=cache_dir, progress=progress, **options)
+    finally:
+        progress.close()
+    errors = None
+    if capture.truth_dir is not None:
+        errors = map_rmse(read_material(capture.truth_dir), result)
+        result.report["truth_rmse"] = errors
+    history = [dict(step=i, loss=h["loss"]) for i, h in enumerate(progress.history)]
+    write_fit_output(
+        out, capture, result.material, result.uncertainty, result.coverage, result.report,
+        targets=list(zip(result.targets, result.masks)), renders=result.images, history=history,
+    )
+    return result, errors
+
+
+def _summary(result, errors) -> str:
+    r = result.report
+    h, w = r["resolution"]
+    parts = [f"fit {h}x{w} maps with {r['solver']}: {r['steps']} steps, loss {r['final_loss']:.3e}",
+             f"{r['wall_time']:.1f} s (compile {r['times'].get('compile', 0.0):.1f} s)"]
+    if errors:
+        parts.append("RMSE " + ", ".join(f"{k} {v:.4f}" for k, v in errors.items()))
+    return "; ".join(parts)
 
 
 def _cmd_fit(args) -> int:
-    raise NotImplementedError
+    from pathlib import Path
+
+    from .scene import load_capture
+
+    options = _fit_options(args)
+    capture = load_capture(args.capture, require_uv=options["maps"] == "texture")
+    out = Path(args.out)
+    result, errors = run_fit(capture, out, options, _cache_dir(args), args.quiet)
+    if not args.quiet:
+        print(_summary(result, errors))
+        print(f"wrote {out}")
+    return EXIT_OK
 
 
 _COMMANDS = {
@@ -163,6 +314,25 @@ _COMMANDS = {
     "synth": _cmd_synth,
     "fit": _cmd_fit,
 }
+
+
+def _enable_compilation_cache(args) -> None:
+    """Keep XLA compilations on disk beside the G-buffer cache, so a second run of a command
+    skips most of its compile time (off with --no-cache or PBRFIT_NO_COMPILE_CACHE=1)."""
+    import os
+
+    if getattr(args, "no_cache", False) or os.environ.get("PBRFIT_NO_COMPILE_CACHE"):
+        return
+    import jax
+
+    from .views import default_cache_dir
+
+    folder = (args.cache if getattr(args, "cache", None) else default_cache_dir())
+    try:
+        jax.config.update("jax_compilation_cache_dir", str(os.path.join(folder, "xla")))
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    except Exception:  # an older or newer JAX without these options: run uncached
+        pass
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -183,6 +353,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.command is None:
         parser.print_help()
         return EXIT_USAGE
+    _enable_compilation_cache(args)
     try:
         return _COMMANDS[args.command](args)
     except CaptureError as err:

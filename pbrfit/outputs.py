@@ -15,38 +15,12 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-__all__ = ["UNCERTAINTY_CHANNELS", "contact_sheet", "write_fit_output", "psnr", "map_errors"]
+__all__ = ["UNCERTAINTY_CHANNELS", "contact_sheet", "write_fit_output"]
 
-#: Channel names of uncertainty.exr, in the spec's order.
-UNCERTAINTY_CHANNELS = ("base_color.R", "base_color.G", "base_color.B", "metallic", "roughness")
-
-
-def psnr(a: np.ndarray, b: np.ndarray, mask: Optional[np.ndarray] = None, peak: Optional[float] = None) -> float:
-    """Peak signal-to-noise ratio in dB over `mask` (peak: 1, or the target's maximum for HDR)."""
-    a = np.asarray(a, np.float64)
-    b = np.asarray(b, np.float64)
-    if mask is not None:
-        a, b = a[mask], b[mask]
-    if a.size == 0:
-        return float("nan")
-    mse = float(np.mean((a - b) ** 2))
-    peak = float(peak) if peak is not None else max(1.0, float(np.max(b)))
-    return float("inf") if mse == 0 else 10.0 * math.log10(peak * peak / mse)
-
-
-def map_errors(fitted, truth, observed: Optional[np.ndarray] = None) -> dict:
-    """RMSE per map (base_color, metallic, roughness) between two Materials of one resolution,
-    over `observed` texels (H, W) when given."""
-    out = {}
-    for name in ("base_color", "metallic", "roughness"):
-        f = np.asarray(getattr(fitted, name), np.float64)
-        t = np.asarray(getattr(truth, name), np.float64)
-        if f.shape != t.shape:
-            raise ValueError(f"{name}: fitted shape {f.shape} differs from truth {t.shape}")
-        if observed is not None:
-            f, t = f[observed], t[observed]
-        out[name] = float(np.sqrt(np.mean((f - t) ** 2))) if f.size else float("nan")
-    return out
+#: Channel names of uncertainty.exr, in the spec's order (base R, G, B, metallic, roughness).
+#: OpenEXR stores channels sorted by name and OpenImageIO reads R, G, B first and then the rest
+#: by name, so these names come back in this order; layered names ("base_color.R") would not.
+UNCERTAINTY_CHANNELS = ("R", "G", "B", "metallic", "roughness")
 
 
 def _heat(err: np.ndarray, scale: float) -> np.ndarray:

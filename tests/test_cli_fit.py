@@ -1,0 +1,83 @@
+"""`pbrfit fit`: the output folder of the capture spec, and options that end with status 2."""
+
+import json
+
+import numpy as np
+import pytest
+
+from pbrfit.cli import main
+from pbrfit.io import read_image
+
+SPEC_FILES = (
+    "base_color.exr", "base_color.png", "metallic.exr", "roughness.exr", "metallic_roughness.png",
+    "uncertainty.exr", "coverage.exr", "material.glb", "report.json",
+)
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    root = tmp_path_factory.mktemp("fitcli")
+    cap = root / "cap"
+    assert main(["synth", "peer-plane", "--out", str(cap), "--size", "32", "--views", "3", "--texture-size", "8",
+                 "--quiet"]) == 0
+    return cap
+
+
+def test_fit_writes_the_spec_output(capture, tmp_path, monkeypatch):
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "out"
+    assert main(["fit", str(capture), "--out", str(out), "--resolution", "8", "--max-steps", "8", "--quiet"]) == 0
+    for name in SPEC_FILES:
+        assert (out / name).is_file(), name
+    assert not (out / "normal.png").exists()  # normals were not fitted
+    unc, info = read_image(out / "uncertainty.exr")
+    assert unc.shape == (8, 8, 5) and info.channel_names == ("R", "G", "B", "metallic", "roughness")
+    cov, _ = read_image(out / "coverage.exr")
+    assert cov.shape == (8, 8, 1) and cov.max() > 0
+    # unseen texels have infinite uncertainty, seen ones finite
+    seen = cov[..., 0] > 0
+    assert np.all(np.isfinite(unc[seen])) and np.all(np.isinf(unc[~seen]))
+    report = json.loads((out / "report.json").read_text())
+    for key in ("model", "solver", "steps", "times", "final_loss", "psnr", "devices", "truth_rmse", "wall_time"):
+        assert key in report, key
+    assert len(report["psnr"]) == 3
+    assert set(report["truth_rmse"]) == {"base_color", "metallic", "roughness"}
+    assert len(list((out / "views").glob("*.png"))) == 3
+
+
+def test_uniform_fit_writes_one_texel_maps(capture, tmp_path, monkeypatch):
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "out"
+    assert main(["fit", str(capture), "--out", str(out), "--maps", "none", "--roughness", "0.5", "--quiet"]) == 0
+    base, _ = read_image(out / "base_color.exr")
+    rough, _ = read_image(out / "roughness.exr")
+    assert base.shape[:2] == (1, 1) and float(rough[0, 0, 0]) == pytest.approx(0.5)
+    unc, _ = read_image(out / "uncertainty.exr")
+    assert float(unc[0, 0, 4]) == 0.0  # held fixed
+
+
+@pytest.mark.parametrize(
+    "extra,message",
+    [
+        (["--fit", "normal"], "--fit normal"),
+        (["--fit", "albedo"], "unknown map 'albedo'"),
+        (["--roughness", "1.5"], "--roughness"),
+        (["--base-color", "1,2"], "--base-color"),
+        (["--fit", "roughness", "--roughness", "0.3"], "nothing left to fit"),
+        (["--resolution", "0"], "--resolution"),
+        (["--roughness-from", "/no/such/folder"], "/no/such/folder"),
+    ],
+)
+def test_bad_fit_options_exit_2_and_write_nothing(capture, tmp_path, capsys, extra, message):
+    out = tmp_path / "out"
+    assert main(["fit", str(capture), "--out", str(out), "--quiet", *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pbrfit: error: ") and message in err[0]
+    assert not out.exists()
+
+
+def test_fit_missing_capture_exits_2(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["fit", str(tmp_path / "nope"), "--out", str(out)]) == 2
+    assert "pbrfit: error:" in capsys.readouterr().err
+    assert not out.exists()
