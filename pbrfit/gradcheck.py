@@ -1,0 +1,491 @@
+"""Gradient checks: autodiff against central finite differences, in float64 (``pbrfit check-grads``).
+
+Every public BRDF term, `brdf.evaluate_cosines` under each `Model` variant, `brdf.evaluate`, and the
+sRGB curves, exposure and tone maps of `color` are checked at 1st order (gradient) and 2nd order
+(Hessian) over a grid of cosines, alpha / roughness and colors.
+
+Finite differences (our own, not ``jax.test_util``): central differences with one step of
+Richardson extrapolation, so the truncation error is O(h^4):
+
+    D1(h)  = (f(x + h e_i) - f(x - h e_i)) / 2h                                  (d/dx_i)
+    D2(h)  = (f(x + h e_i) - 2 f(x) + f(x - h e_i)) / h^2                         (d^2/dx_i^2)
+    D11(h) = (f(x+h e_i+h e_j) - f(x+h e_i-h e_j) - f(x-h e_i+h e_j) + f(x-h e_i-h e_j)) / 4h^2
+    estimate = (4 D(h/2) - D(h)) / 3
+
+with h = `STEP_1` for the gradient and `STEP_2` for the Hessian. Clamps and branch switches are
+kinks where no derivative exists: a point closer than `KINK_MARGIN` to one, in any input, is skipped
+(counted in `CheckResult.skipped`). The relative error at a point and derivative component is
+|autodiff - fd| / max(|autodiff|, |fd|, SCALE_FLOOR[order] (1 + |f(x)|)); a check passes when its worst
+point is within its tolerance.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+import time
+from typing import Callable, Optional, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import brdf, color
+from .model import Model
+
+__all__ = ["CheckResult", "run_checks", "print_report", "STEP_1", "STEP_2", "KINK_MARGIN", "TOLERANCE"]
+
+#: Finite-difference step for the gradient (float64: roundoff ~ eps |f| / h ~ 1e-12 |f|).
+STEP_1 = 1e-4
+#: Finite-difference step for the Hessian (roundoff ~ eps |f| / h^2 ~ 1e-10 |f|).
+STEP_2 = 1e-3
+#: Points closer than this to a clamp or branch switch (in any input) are skipped: the stencils
+#: reach STEP_2 along one input and STEP_2 along another, and must not straddle the kink.
+KINK_MARGIN = 2.0 * STEP_2
+#: Relative errors are measured against max(|autodiff|, |fd|, SCALE_FLOOR[order] (1 + |f(x)|)), so a
+#: derivative that is exactly zero (or negligible next to the function) is compared with the
+#: function's own scale. The floors sit well above the finite differences' roundoff in float64,
+#: ~1e-12 |f| (1st order) and ~1e-9 |f| (2nd order, Richardson-amplified).
+SCALE_FLOOR = {1: 1e-6, 2: 1e-3}
+#: Pass thresholds on the maximum relative error, by order.
+TOLERANCE = {1: 1e-5, 2: 1e-4}
+
+#: Fixed weights that turn an RGB (or other vector) output into the scalar that is differentiated;
+#: unequal so that a wrong channel cannot cancel.
+_RGB_WEIGHTS = (0.6, 0.3, 0.1)
+#: A grey base color is a scalar input times this tint (three distinct channels).
+_TINT = (1.0, 0.7, 0.4)
+
+
+@dataclasses.dataclass(frozen=True)
+class CheckResult:
+    """Outcome of one gradient check.
+
+    term: what was differentiated (a function name, with the Model variant for evaluate_cosines).
+    order: 1 (gradient) or 2 (Hessian). max_rel_error: worst relative error over the grid.
+    worst_point: the inputs at the worst point, the derivative component (``wrt``), and the
+    autodiff and finite-difference values there. passed: max_rel_error <= tolerance.
+    checked / skipped: grid points compared / skipped for lying within `KINK_MARGIN` of a kink.
+    """
+
+    term: str
+    order: int
+    max_rel_error: float
+    worst_point: dict
+    passed: bool
+    tolerance: float
+    checked: int = 0
+    skipped: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class _Spec:
+    term: str
+    fn: Callable  # (k,) float64 -> scalar
+    names: tuple
+    grid: np.ndarray  # (N, k)
+    kinks: tuple  # per input: the input values where the function has a kink
+    skip: Optional[Callable] = None  # (N, k) -> (N,) bool: extra, output-dependent kinks
+
+
+# --- Grids -------------------------------------------------------------------------------------
+COSINES = (0.05, 0.2, 0.5, 0.8, 0.95)
+ALPHAS = (0.01, 0.1, 0.3, 0.7)
+ROUGHNESS = (0.1, 0.3, 0.6, 0.9)
+_COS_KINKS = (0.0, brdf.COS_MIN, 1.0)
+_ALPHA_KINKS = (brdf.MIN_ALPHA,)
+_ROUGH_KINKS = (0.0, brdf.MIN_ROUGHNESS, 1.0)
+
+
+def _grid(*axes) -> np.ndarray:
+    return np.array(list(itertools.product(*axes)), dtype=np.float64)
+
+
+def _weighted(y):
+    y = jnp.asarray(y)
+    if y.ndim == 0:
+        return y
+    return jnp.sum(y * jnp.asarray(_RGB_WEIGHTS[: y.shape[-1]], dtype=y.dtype))
+
+
+def _scalar_terms() -> list:
+    """The public terms of `brdf`, each as a function of a vector of its scalar inputs."""
+    c, a, r = COSINES, ALPHAS, ROUGHNESS
+    ck, ak, rk = _COS_KINKS, _ALPHA_KINKS, _ROUGH_KINKS
+    cos3 = (0.2, 0.5, 0.9)
+    specs = [
+        _Spec("alpha_from_roughness", lambda x: brdf.alpha_from_roughness(x[0]), ("roughness",), _grid(r), (rk,)),
+        _Spec("d_ggx", lambda x: brdf.d_ggx(x[0], x[1]), ("n·h", "alpha"), _grid(c, a), (ck, ak)),
+        _Spec("d_beckmann", lambda x: brdf.d_beckmann(x[0], x[1]), ("n·h", "alpha"), _grid(c, a), (ck, ak)),
+        _Spec("lambda_ggx", lambda x: brdf.lambda_ggx(x[0], x[1]), ("n·x", "alpha"), _grid(c, a), (ck, ak)),
+        _Spec("g1_smith_ggx", lambda x: brdf.g1_smith_ggx(x[0], x[1]), ("n·x", "alpha"), _grid(c, a), (ck, ak)),
+    ]
+    for name in ("g2_smith_ggx_correlated", "g2_smith_ggx_separable", "v_smith_ggx_correlated", "v_smith_ggx_separable"):
+        fn = getattr(brdf, name)
+        specs.append(_Spec(name, lambda x, fn=fn: fn(x[0], x[1], x[2]), ("n·v", "n·l", "alpha"), _grid(c, c, a), (ck, ck, ak)))
+    k_grid = (0.01, 0.1, 0.3, 0.6)
+    k_kinks = (brdf.K_MIN,)
+    specs += [
+        _Spec("k_direct", lambda x: brdf.k_direct(x[0]), ("roughness",), _grid(r), ((),)),
+        _Spec("k_ibl", lambda x: brdf.k_ibl(x[0]), ("alpha",), _grid(a), ((),)),
+        _Spec("g_schlick_ggx", lambda x: brdf.g_schlick_ggx(x[0], x[1]), ("n·x", "k"), _grid(c, k_grid), (ck, k_kinks)),
+        _Spec("g2_schlick_ggx", lambda x: brdf.g2_schlick_ggx(x[0], x[1], x[2]), ("n·v", "n·l", "k"),
+              _grid(c, c, k_grid), (ck, ck, k_kinks)),
+        _Spec("v_schlick_ggx", lambda x: brdf.v_schlick_ggx(x[0], x[1], x[2]), ("n·v", "n·l", "k"),
+              _grid(c, c, k_grid), (ck, ck, k_kinks)),
+        _Spec("f_schlick", lambda x: brdf.f_schlick(x[0], x[1], x[2]), ("v·h", "f0", "f90"),
+              _grid(c, (0.04, 0.5, 0.9), (0.5, 1.0)), (ck, (), ())),
+        _Spec("f_dielectric", lambda x: brdf.f_dielectric(x[0], x[1]), ("cos_theta", "ior"),
+              _grid(c, (1.2, 1.5, 2.4)), (ck, ())),
+        _Spec("f0_from_ior", lambda x: brdf.f0_from_ior(x[0]), ("ior",), _grid((1.1, 1.5, 2.0, 3.0)), ((),)),
+        _Spec("diffuse_lambert", lambda x: brdf.diffuse_lambert(x[0], x[1], x[2], x[3]), ("n·v", "n·l", "l·h", "roughness"),
+              _grid(cos3, cos3, cos3, r), (ck, ck, ck, ())),
+        _Spec("diffuse_burley", lambda x: brdf.diffuse_burley(x[0], x[1], x[2], x[3]), ("n·v", "n·l", "l·h", "roughness"),
+              _grid(cos3, cos3, cos3, r), (ck, ck, ck, ())),
+        _Spec("half_vector_cosines", lambda x: _weighted(jnp.stack(brdf.half_vector_cosines(x[0], x[1], x[2]))),
+              ("n·v", "n·l", "v·l"), _grid((0.3, 0.6, 0.9), (0.3, 0.6, 0.9), (-0.5, 0.0, 0.5, 0.9)), ((), (), (-1.0,)),
+              skip=_half_vector_skip),
+        _Spec("safe_normalize", lambda x: _weighted(brdf.safe_normalize(x)), ("x", "y", "z"),
+              _grid((-0.7, 0.2, 1.5), (-0.3, 0.4), (0.1, 0.9)), ((), (), ())),
+        _Spec("specular_f0", lambda x: _weighted(brdf.specular_f0(x[0] * jnp.asarray(_TINT), x[1])),
+              ("base_color", "metallic"), _grid((0.2, 0.8), (0.0, 0.4, 1.0)), ((), ())),
+        _Spec("diffuse_color", lambda x: _weighted(brdf.diffuse_color(x[0] * jnp.asarray(_TINT), x[1])),
+              ("base_color", "metallic"), _grid((0.2, 0.8), (0.0, 0.4, 1.0)), ((), ())),
+        _Spec("energy_compensation",
+              lambda x: _weighted(brdf.energy_compensation(x[0] * jnp.asarray(_TINT), jnp.stack([x[1], x[2]]))),
+              ("f0", "dfg_scale", "dfg_bias"), _grid((0.04, 0.5, 1.0), (0.3, 0.7, 0.95), (0.0, 0.02, 0.05)), ((), (), ())),
+    ]
+    return specs
+
+
+def _half_vector_skip(p):
+    # n·h and v·h are clipped to [0, 1]: skip where either (unclipped) reaches within a margin of 1.
+    nv, nl, vl = p[:, 0], p[:, 1], p[:, 2]
+    length = np.sqrt(2.0 + 2.0 * vl)
+    nh, vh = (nv + nl) / length, (1.0 + vl) / length
+    return (np.abs(nh - 1.0) < 10 * KINK_MARGIN) | (np.abs(vh - 1.0) < 10 * KINK_MARGIN)
+
+
+#: One Model per variant value (each field's non-default values appear at least once).
+MODEL_VARIANTS = (
+    Model(),
+    Model(distribution="beckmann"),
+    Model(geometry="smith_ggx_separable"),
+    Model(geometry="schlick_ggx_direct"),
+    Model(geometry="schlick_ggx_ibl"),
+    Model(fresnel="dielectric"),
+    Model(fresnel="dielectric", metallic=False),
+    Model(metallic=False),
+    Model(diffuse="burley"),
+    Model(diffuse="none"),
+    Model(specular=False),
+    Model(multiscatter=True),
+)
+
+#: (scale, bias) used as the split-sum DFG input of the multiscatter model (any plausible value).
+_DFG = (0.7, 0.05)
+
+
+def model_label(model: Model) -> str:
+    """The fields of `model` that differ from the default, as ``k=v,...`` (``default`` if none)."""
+    d = Model().describe()
+    changed = [f"{k}={v}" for k, v in model.describe().items() if d[k] != v]
+    return ",".join(changed) or "default"
+
+
+def _evaluate_cosines_spec(model: Model) -> _Spec:
+    def fn(x):
+        base = x[4] * jnp.asarray(_TINT, dtype=x.dtype)
+        dfg = jnp.asarray(_DFG, dtype=x.dtype) if model.multiscatter else None
+        out = brdf.evaluate_cosines(x[0], x[1], x[2], x[3], base, x[5][None], x[6][None], model, dfg)
+        return _weighted(out)
+
+    # 216 points: the composition is what is checked here (each term has its own denser grid).
+    grid = _grid((0.2, 0.7), (0.2, 0.7), (0.5, 0.9, 0.98), (0.3, 0.9), (0.7,), (0.0, 0.5, 1.0), (0.1, 0.4, 0.9))
+    kinks = (_COS_KINKS, _COS_KINKS, _COS_KINKS, _COS_KINKS, (), (), _ROUGH_KINKS)
+    return _Spec(f"evaluate_cosines[{model_label(model)}]", fn,
+                 ("n·v", "n·l", "n·h", "v·h", "base_color", "metallic", "roughness"), grid, kinks)
+
+
+def _evaluate_spec() -> _Spec:
+    """`evaluate` from directions: v and l at polar angles θv, θl, azimuth φ between them, n = +z."""
+
+    def fn(x):
+        tv, tl, phi = x[0], x[1], x[2]
+        n = jnp.array([0.0, 0.0, 1.0], dtype=x.dtype)
+        v = jnp.stack([jnp.sin(tv), jnp.zeros_like(tv), jnp.cos(tv)])
+        l = jnp.stack([jnp.sin(tl) * jnp.cos(phi), jnp.sin(tl) * jnp.sin(phi), jnp.cos(tl)])
+        base = x[3] * jnp.asarray(_TINT, dtype=x.dtype)
+        return _weighted(brdf.evaluate(n, v, l, base, x[4], x[5]))
+
+    th = (0.2, 0.7, 1.2)
+    grid = _grid(th, th, (0.5, 1.5, 2.8), (0.3, 0.9), (0.0, 0.6), (0.2, 0.6))
+    return _Spec("evaluate", fn, ("θv", "θl", "φ", "base_color", "metallic", "roughness"), grid,
+                 ((), (), (0.0, math.pi), (), (), _ROUGH_KINKS))
+
+
+# --- color -------------------------------------------------------------------------------------
+_CHANNEL_RATIOS = (1.0, 0.55, 0.2)
+
+
+def _rgb_grid(scales) -> np.ndarray:
+    """Colors s · (1, 0.55, 0.2) and the same channels permuted: distinct channels, so min/max are smooth."""
+    rows = []
+    for s in scales:
+        for perm in ((0, 1, 2), (2, 0, 1)):
+            rows.append([s * _CHANNEL_RATIOS[i] for i in perm])
+    return np.array(rows, dtype=np.float64)
+
+
+def _khronos_skip(p):
+    # Branches switch at min(x) = 0.08 and at max(x - offset) = 0.76.
+    low = p.min(axis=1)
+    offset = np.where(low < 0.08, low - 6.25 * low * low, 0.04)
+    peak = p.max(axis=1) - offset
+    return (np.abs(low - 0.08) < KINK_MARGIN * 5) | (np.abs(peak - 0.76) < KINK_MARGIN * 5)
+
+
+def _aces_hill_skip(p):
+    # The output is clipped to [0, 1]; skip points whose unclipped output is near either bound.
+    m_in, m_out = np.asarray(color._ACES_INPUT, np.float64), np.asarray(color._ACES_OUTPUT, np.float64)
+    c = p @ m_in.T
+    c = (c * (c + 0.0245786) - 0.000090537) / (c * (0.983729 * c + 0.4329510) + 0.238081)
+    out = c @ m_out.T
+    return np.any((np.abs(out) < 0.01) | (np.abs(out - 1.0) < 0.01), axis=1)
+
+
+def _color_specs() -> list:
+    # sRGB curves: kinks at the IEC breakpoints (the piecewise definitions meet with a slope jump
+    # of ~1e-4 relative, and the linear-branch floor); values straddle both branches.
+    lin = (0.001, 0.002, 0.01, 0.05, 0.2, 0.5, 0.9)
+    enc = (0.01, 0.03, 0.06, 0.2, 0.5, 0.9)
+    scales = (0.05, 0.3, 0.6, 1.5, 4.0)
+    specs = [
+        _Spec("srgb_to_linear", lambda x: color.srgb_to_linear(x[0]), ("x",), _grid(enc), ((0.04045,),)),
+        _Spec("linear_to_srgb", lambda x: color.linear_to_srgb(x[0]), ("x",), _grid(lin), ((0.0031308,),)),
+        _Spec("apply_exposure", lambda x: color.apply_exposure(x[0], x[1]), ("x", "ev"),
+              _grid((0.1, 0.5, 2.0), (-2.0, 0.0, 1.5)), ((), ())),
+        _Spec("tonemap_reinhard", lambda x: _weighted(color.tonemap_reinhard(x)), ("r", "g", "b"),
+              _rgb_grid(scales), ((0.0,),) * 3),
+        # Narkowicz's curve reaches 1 (and is clipped) at x ≈ 7.24.
+        _Spec("tonemap_aces_narkowicz", lambda x: _weighted(color.tonemap_aces_narkowicz(x)), ("r", "g", "b"),
+              _rgb_grid(scales + (9.0,)), ((0.0, 7.2376),) * 3),
+        _Spec("tonemap_aces_hill", lambda x: _weighted(color.tonemap_aces_hill(x)), ("r", "g", "b"),
+              _rgb_grid(scales), ((0.0,),) * 3, skip=_aces_hill_skip),
+        _Spec("tonemap_khronos_neutral", lambda x: _weighted(color.tonemap_khronos_neutral(x)), ("r", "g", "b"),
+              _rgb_grid((0.02, 0.05, 0.3, 0.6, 1.0, 2.0, 4.0)), ((0.0,),) * 3, skip=_khronos_skip),
+    ]
+    return specs
+
+
+def all_specs() -> list:
+    """Every check `run_checks` performs (one `_Spec` per differentiated function)."""
+    return (
+        _scalar_terms()
+        + [_evaluate_cosines_spec(m) for m in MODEL_VARIANTS]
+        + [_evaluate_spec()]
+        + _color_specs()
+    )
+
+
+# --- Finite differences --------------------------------------------------------------------------
+def _offsets(k: int):
+    """Unit stencil offsets: first-order (2k), second-order diagonal (2k) and mixed (4 per pair)."""
+    eye = np.eye(k)
+    first = np.concatenate([eye, -eye])  # +e_i for i, then -e_i
+    pairs = list(itertools.combinations(range(k), 2))
+    mixed = []
+    for i, j in pairs:
+        for si, sj in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+            mixed.append(si * eye[i] + sj * eye[j])
+    mixed = np.array(mixed).reshape(-1, k) if mixed else np.zeros((0, k))
+    return first, mixed, pairs
+
+
+def _fd_estimates(values, x_count, k, pairs, h1, h2):
+    """Richardson-extrapolated gradient (N, k) and Hessian (N, k, k) from stencil values."""
+
+    def unpack(v):
+        v = v.reshape(x_count, -1)
+        f0 = v[:, 0]
+        v = v[:, 1:]
+        # layout per point: [f(x)] + for step in (h1, h1/2): first (2k) + for step in (h2, h2/2): first (2k) + mixed
+        return f0, v
+
+    f0, rest = unpack(values)
+    n_first = 2 * k
+    n_mixed = 4 * len(pairs)
+    blocks = []
+    pos = 0
+    for size in (n_first, n_first, n_first + n_mixed, n_first + n_mixed):
+        blocks.append(rest[:, pos : pos + size])
+        pos += size
+
+    def grad_est(block, h):
+        return (block[:, :k] - block[:, k : 2 * k]) / (2.0 * h)
+
+    def hess_est(block, h):
+        hess = np.zeros((x_count, k, k))
+        diag = (block[:, :k] - 2.0 * f0[:, None] + block[:, k : 2 * k]) / (h * h)
+        hess[:, np.arange(k), np.arange(k)] = diag
+        mixed = block[:, 2 * k :].reshape(x_count, len(pairs), 4)
+        for p, (i, j) in enumerate(pairs):
+            m = mixed[:, p]
+            val = (m[:, 0] - m[:, 1] - m[:, 2] + m[:, 3]) / (4.0 * h * h)
+            hess[:, i, j] = hess[:, j, i] = val
+        return hess
+
+    g = (4.0 * grad_est(blocks[1], h1 / 2) - grad_est(blocks[0], h1)) / 3.0
+    hm = (4.0 * hess_est(blocks[3], h2 / 2) - hess_est(blocks[2], h2)) / 3.0
+    return f0, g, hm
+
+
+def _stencil_points(x: np.ndarray, h1: float, h2: float):
+    n, k = x.shape
+    first, mixed, pairs = _offsets(k)
+    offs = [np.zeros((1, k))]
+    for h in (h1, h1 / 2):
+        offs.append(first * h)
+    for h in (h2, h2 / 2):
+        offs.append(np.concatenate([first, mixed]) * h)
+    offs = np.concatenate(offs)  # (P, k)
+    return (x[:, None, :] + offs[None]).reshape(-1, k), pairs
+
+
+def _rel_error(ad, fd, fval, order):
+    floor = SCALE_FLOOR[order] * (1.0 + np.abs(fval))
+    floor = floor.reshape(floor.shape + (1,) * (ad.ndim - 1))
+    den = np.maximum(np.maximum(np.abs(ad), np.abs(fd)), floor)
+    err = np.abs(ad - fd) / den
+    return np.where(np.isfinite(ad) & np.isfinite(fd), err, np.inf)
+
+
+def _prepare(spec: _Spec, h1: float, h2: float):
+    """The grid minus points near kinks, the stencil points, and the autodiff+stencil function."""
+    grid = np.asarray(spec.grid, dtype=np.float64)
+    keep = np.ones(len(grid), dtype=bool)
+    for i, kinks in enumerate(spec.kinks):
+        for kink in kinks:
+            keep &= np.abs(grid[:, i] - kink) >= KINK_MARGIN
+    if spec.skip is not None:
+        keep &= ~spec.skip(grid)
+    x = grid[keep]
+    pts, pairs = _stencil_points(x, h1, h2)
+    fn = spec.fn
+
+    def one(xi):
+        def grad_aux(xi):
+            g = jax.grad(fn)(xi)
+            return g, g
+
+        return jax.jacfwd(grad_aux, has_aux=True)(xi)  # (Hessian, gradient), forward over reverse
+
+    def run(xs, ps):
+        hess, grad = jax.vmap(one)(xs)
+        return jax.vmap(fn)(ps), grad, hess
+
+    return run, (jnp.asarray(x), jnp.asarray(pts)), x, pairs, int((~keep).sum())
+
+
+def _compare(spec: _Spec, x, pairs, skipped, outputs, h1: float, h2: float) -> list:
+    values, g_ad, h_ad = (np.asarray(a, dtype=np.float64) for a in outputs)
+    fval, g_fd, h_fd = _fd_estimates(values, len(x), x.shape[1], pairs, h1, h2)
+    results = []
+    for order, ad, fd in ((1, g_ad, g_fd), (2, h_ad, h_fd)):
+        err = _rel_error(ad, fd, fval, order)
+        idx = np.unravel_index(int(np.argmax(err)), err.shape)
+        worst = float(err[idx])
+        point = {name: float(x[idx[0], i]) for i, name in enumerate(spec.names)}
+        comp = [spec.names[j] for j in idx[1:]]
+        point["wrt"] = "d/d" + comp[0] if order == 1 else f"d²/d{comp[0]} d{comp[1]}"
+        point["autodiff"] = float(ad[idx])
+        point["finite_difference"] = float(fd[idx])
+        tol = TOLERANCE[order]
+        results.append(CheckResult(spec.term, order, worst, point, bool(worst <= tol), tol, len(x), skipped))
+    return results
+
+
+#: The checked functions are small and run once, so compilation dominates the run time: they
+#: are compiled as one XLA program (one fixed overhead), with XLA's cheaper backend passes.
+_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+
+
+def run_checks(specs: Optional[Sequence[_Spec]] = None) -> list:
+    """Run every gradient check in float64; returns one `CheckResult` per (term, order).
+
+    For each function: autodiff gradient and Hessian (forward over reverse) at every grid point,
+    against the Richardson-extrapolated central differences of its values (see module docstring).
+    ``specs`` defaults to `all_specs()`.
+    """
+    h1, h2 = STEP_1, STEP_2
+    with jax.enable_x64(True):
+        specs = all_specs() if specs is None else list(specs)
+        prepared = [_prepare(spec, h1, h2) for spec in specs]
+        runs = [p[0] for p in prepared]
+        args = [p[1] for p in prepared]
+        lowered = jax.jit(lambda args: [run(*a) for run, a in zip(runs, args)]).lower(args)
+        try:
+            program = lowered.compile(_COMPILER_OPTIONS)
+        except Exception:  # an XLA build without these options: compile with the defaults
+            program = lowered.compile()
+        outputs = program(args)
+        results = []
+        for spec, prep, out in zip(specs, prepared, outputs):
+            _, _, x, pairs, skipped = prep
+            results.extend(_compare(spec, x, pairs, skipped, out, h1, h2))
+    return results
+
+
+# --- Report ------------------------------------------------------------------------------------
+def _fmt_point(point: dict) -> str:
+    inputs = [f"{k}={v:.4g}" for k, v in point.items() if k not in ("wrt", "autodiff", "finite_difference")]
+    extra = f" {point['wrt']}" if "wrt" in point else ""
+    return " ".join(inputs) + extra
+
+
+def print_report(results: Sequence[CheckResult], quiet: bool = False) -> bool:
+    """Print the results table, the named numerical floors and a summary line; return overall pass."""
+    from . import lights  # floors reported alongside the BRDF's
+
+    ok = all(r.passed for r in results)
+    rows = [r for r in results if not (quiet and r.passed)]
+    if rows:
+        width = max(len(r.term) for r in rows)
+        print(f"{'term':<{width}}  order  max rel error  tol      points  skipped  result  worst point")
+        for r in rows:
+            print(
+                f"{r.term:<{width}}  {r.order:>5}  {r.max_rel_error:13.2e}  {r.tolerance:7.0e}  {r.checked:>6}  "
+                f"{r.skipped:>7}  {'pass' if r.passed else 'FAIL':<6}  {_fmt_point(r.worst_point)}"
+            )
+    if not quiet:
+        print()
+        print("numerical floors (brdf.FLOORS, lights.MIN_DISTANCE):")
+        floors = dict(brdf.FLOORS)
+        floors["MIN_DISTANCE (lights)"] = lights.MIN_DISTANCE
+        for name, value in floors.items():
+            print(f"  {name:<22} {value:.6g}")
+        print(
+            f"finite differences: float64, central, Richardson-extrapolated, steps {STEP_1:g} (1st order) and "
+            f"{STEP_2:g} (2nd order); points within {KINK_MARGIN:g} of a clamp or branch switch are skipped"
+        )
+    failed = [r for r in results if not r.passed]
+    worst1 = max((r.max_rel_error for r in results if r.order == 1), default=0.0)
+    worst2 = max((r.max_rel_error for r in results if r.order == 2), default=0.0)
+    terms = len({r.term for r in results})
+    print(
+        f"check-grads: {'PASS' if ok else 'FAIL'}: {terms} terms, {len(results)} checks, {len(failed)} failed; "
+        f"max rel error {worst1:.1e} (1st order), {worst2:.1e} (2nd order)"
+    )
+    return ok
+
+
+def main() -> int:  # pragma: no cover - convenience for `python -m pbrfit.gradcheck`
+    t0 = time.perf_counter()
+    ok = print_report(run_checks())
+    print(f"({time.perf_counter() - t0:.1f} s)")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())
