@@ -18,11 +18,13 @@ azimuth (seamless at u = 0 = 1) and clamp at the poles.
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from pathlib import Path
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -214,6 +216,7 @@ def sample_equirect(image: Float[Array, "H W C"], uv: Float[Array, "*b 2"]) -> F
     return top * (1 - fy) + bot * fy
 
 
+@jax.jit
 def environment_lookup(env: Environment, dirs: Float[Array, "*b 3"]) -> Float[Array, "*b 3"]:
     """Radiance arriving from world directions ``dirs`` (unit), bilinear in the full-resolution map."""
     d = to_environment_frame(dirs, env.world_up, env.rotation_deg)
@@ -240,6 +243,7 @@ def _col_weights(w_src: int, w_dst: int) -> np.ndarray:
     return wgt / wgt.sum(1, keepdims=True)
 
 
+@functools.partial(jax.jit, static_argnames=("height", "width"))
 def resample_equirect(image: Float[Array, "H W C"], height: int, width: int) -> Float[Array, "h w C"]:
     """Box-filter an equirect image to (height, width), weighting source texels by solid angle.
 

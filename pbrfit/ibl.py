@@ -64,6 +64,9 @@ __all__ = [
     "monte_carlo_radiance",
 ]
 
+#: Floor on a sample's density in the LUT integrals (its weight is 1/pdf): the GGX visible-normal
+#: density is positive wherever a sample lands, the floor only guards float32 underflow.
+PDF_MIN = 1e-30
 #: Coarsest prefiltered level height: an 8 x 16 map still resolves a GGX lobe at roughness 1.
 PREFILTER_MIN_HEIGHT = 8
 #: Prefiltered resolution halves per this much perceptual roughness. The lobe widens roughly as
@@ -94,7 +97,7 @@ class IBLSettings:
     """
 
     lut_size: int = 32
-    lut_samples: int = 128
+    lut_samples: int = 512
     prefilter_levels: int = 6
     prefilter_resolution: int = 128
     prefilter_samples: int = 64
@@ -122,12 +125,15 @@ class IBLTables(eqx.Module):
         prefiltered: (levels, H, W, 3) padded stack; level k is ``level_shapes[k]`` in its corner.
         lut: (size, size, 2) BRDF LUT, see `brdf_lut`.
         diffuse: (size, size, 3) diffuse directional albedo tables, see `diffuse_lut`.
+        dielectric: (size, size, 1) specular directional albedo with the exact dielectric Fresnel
+            at the model's ior (used when ``model.fresnel == "dielectric"``), laid out like `lut`.
     """
 
     irradiance: Float[Array, "..."]
     prefiltered: Float[Array, "L H W 3"]
     lut: Float[Array, "S S 2"]
     diffuse: Float[Array, "S S 3"]
+    dielectric: Float[Array, "S S 1"]
     irradiance_kind: str = eqx.field(static=True, default="sh9")
     level_shapes: tuple = eqx.field(static=True, default=())
     world_up: str = eqx.field(static=True, default="+y")
@@ -159,20 +165,28 @@ def _dfg(nv, r, samples, model):
         pdf = ggx_vndf_pdf(nv, h[..., 2], alpha)
         ev = lambda base: brdf.evaluate_cosines(nv, nl, h[..., 2], vh, base, ones[..., :1], r[..., None], model)[..., 0]
         one, bias = ev(ones), ev(0.0 * ones)
-        w = jnp.where(nl > 0, 1.0 / jnp.maximum(pdf, 1e-30), 0.0)
-        return acc + jnp.stack([(one - bias) * w, bias * w], -1), None
+        diel = brdf.evaluate_cosines(nv, nl, h[..., 2], vh, ones, 0.0 * ones[..., :1], r[..., None],
+                                     model.replace(fresnel="dielectric"))[..., 0]
+        w = jnp.where(nl > 0, 1.0 / jnp.maximum(pdf, PDF_MIN), 0.0)
+        return acc + jnp.stack([(one - bias) * w, bias * w, diel * w], -1), None
 
-    acc, _ = jax.lax.scan(step, jnp.zeros(nv.shape + (2,), nv.dtype), jnp.asarray(hammersley(samples), nv.dtype))
+    acc, _ = jax.lax.scan(step, jnp.zeros(nv.shape + (3,), nv.dtype), jnp.asarray(hammersley(samples), nv.dtype))
     return acc / samples
 
 
-def specular_albedo(n_dot_v, roughness, samples: int = 128, model: Optional[Model] = None) -> Float[Array, "... 2"]:
+def _specular_tables(size, samples, model):
+    c = (np.arange(int(size)) + 0.5) / int(size)
+    nv, r = np.broadcast_arrays(c[:, None], c[None, :])
+    return _dfg(jnp.asarray(nv, float), jnp.asarray(r, float), int(samples), _lut_model(model))
+
+
+def specular_albedo(n_dot_v, roughness, samples: int = 512, model: Optional[Model] = None) -> Float[Array, "... 2"]:
     """(scale, bias) of `brdf_lut` at arbitrary (n·v, perceptual roughness), by the same integral."""
     nv, r = jnp.broadcast_arrays(jnp.asarray(n_dot_v, float), jnp.asarray(roughness, float))
-    return _dfg(nv, r, int(samples), _lut_model(model))
+    return _dfg(nv, r, int(samples), _lut_model(model))[..., :2]
 
 
-def brdf_lut(size: int = 32, samples: int = 128, model: Optional[Model] = None) -> Float[Array, "size size 2"]:
+def brdf_lut(size: int = 32, samples: int = 512, model: Optional[Model] = None) -> Float[Array, "size size 2"]:
     """The split-sum BRDF LUT: (scale, bias) with directional albedo = F0 · scale + F90 · bias.
 
     Entry [i, j] is at n·v = (i + 0.5)/size and perceptual roughness (j + 0.5)/size:
@@ -181,11 +195,10 @@ def brdf_lut(size: int = 32, samples: int = 128, model: Optional[Model] = None) 
 
     for the specular lobe of ``model`` (default: GGX with height-correlated Smith, glTF), taken
     from `brdf.evaluate_cosines` with Schlick Fresnel. Deterministic: ``samples`` Hammersley points
-    through GGX visible-normal sampling (Heitz 2018), whose weight G2/G1 is smooth, so a few
-    hundred samples reach 1e-3.
+    through GGX visible-normal sampling (Heitz 2018), whose weight G2/G1 is smooth: 512 samples
+    reach 1e-3 everywhere, grazing entries included (256 leave ~2e-3 in bias at n·v ≈ 0).
     """
-    c = (np.arange(int(size)) + 0.5) / int(size)
-    return specular_albedo(c[:, None], c[None, :], samples, model)
+    return _specular_tables(size, samples, model)[..., :2]
 
 
 @functools.partial(jax.jit, static_argnames=("size", "samples", "model"))
@@ -207,7 +220,7 @@ def _diffuse_lut(size, samples, model):
     return acc / samples
 
 
-def diffuse_lut(size: int = 32, samples: int = 128, model: Optional[Model] = None) -> Float[Array, "size size 3"]:
+def diffuse_lut(size: int = 32, samples: int = 512, model: Optional[Model] = None) -> Float[Array, "size size 3"]:
     """Directional albedo of the diffuse lobe f_d (white, Lambert or Burley per ``model``), [i, j] as in
     `brdf_lut`, three channels: ∫ f_d (1 - F_c(v·h)) (n·l) dω, ∫ f_d (n·l) dω, and
     ∫ f_d (1 - F_dielectric(v·h, ior)) (n·l) dω. `shade_ibl` combines them with the material's F0
@@ -216,6 +229,7 @@ def diffuse_lut(size: int = 32, samples: int = 128, model: Optional[Model] = Non
     return _diffuse_lut(int(size), int(samples), Model(diffuse=m.diffuse if m.diffuse != "none" else "lambert", ior=m.ior))
 
 
+@jax.jit
 def lookup_table(table: Float[Array, "S S C"], n_dot_v, roughness) -> Float[Array, "... C"]:
     """Bilinear lookup (clamp to edge) of an [n·v, roughness] table at entry centres (k + 0.5)/S."""
     s = table.shape[0]
@@ -249,6 +263,7 @@ def _sh9_basis(d):
                       y2 * x * z, y4 * (x * x - y * y)], -1)   # L00, L1-1, L10, L11, L2-2, L2-1, L20, L21, L22
 
 
+@jax.jit
 def sh9_coefficients(radiance: Float[Array, "H W 3"]) -> Float[Array, "9 3"]:
     """Project an environment-frame equirect onto 9 real SH: L_lm = Σ L(ω) Y_lm(ω) Ω (exact texel Ω)."""
     h, w, _ = radiance.shape
@@ -257,6 +272,7 @@ def sh9_coefficients(radiance: Float[Array, "H W 3"]) -> Float[Array, "9 3"]:
     return jnp.einsum("hwk,hwc->kc", basis * omega, radiance)
 
 
+@jax.jit
 def sh9_irradiance(coeffs: Float[Array, "9 3"], n: Float[Array, "*b 3"]) -> Float[Array, "*b 3"]:
     """E(n)/π from SH9 coefficients, environment-frame unit normals (R&H 2001, eq. 13):
 
@@ -272,21 +288,25 @@ def sh9_irradiance(coeffs: Float[Array, "9 3"], n: Float[Array, "*b 3"]) -> Floa
     return e / math.pi
 
 
+@functools.partial(jax.jit, static_argnames=("height",))
 def irradiance_map(radiance: Float[Array, "H W 3"], height: int) -> Float[Array, "h 2h 3"]:
     """E/π on an (height, 2 height) equirect by brute-force cosine convolution of a box-filtered source.
 
-    E(n)/π = (1/π) Σ_k L_k max(0, n·ω_k) Ω_k over the source texels k (exact solid angles Ω_k).
+    E(n)/π = (1/π) Σ_k L_k max(0, n·ω_k) Ω_k over the source texels k (exact solid angles Ω_k),
+    with the weights normalised to sum to 1 (their exact integral), so a constant stays exact.
     """
     hs = min(radiance.shape[0], max(2 * height, IRRADIANCE_SOURCE_MIN_HEIGHT))
     src = resample_equirect(radiance, hs, 2 * hs)
     ds = texel_directions(hs, 2 * hs).reshape(-1, 3)
     om = np.broadcast_to(texel_solid_angles(hs, 2 * hs), (hs, 2 * hs)).reshape(-1)
     dn = texel_directions(height, 2 * height).reshape(-1, 3)
-    kernel = np.maximum(dn @ ds.T, 0.0) * om[None, :] / math.pi
+    kernel = np.maximum(dn @ ds.T, 0.0) * om[None, :]
+    kernel /= kernel.sum(1, keepdims=True)      # = (1/π) Σ max(0, n·ω) Ω, exactly 1 once discretised
     out = jnp.asarray(kernel, radiance.dtype) @ src.reshape(-1, 3)
     return out.reshape(height, 2 * height, 3)
 
 
+@jax.jit
 def irradiance_lookup(tables: IBLTables, n_env: Float[Array, "*b 3"]) -> Float[Array, "*b 3"]:
     """E/π at environment-frame normals, from whichever representation the tables hold."""
     if tables.irradiance_kind == "sh9":
@@ -346,6 +366,7 @@ def prefilter_level(stack, shapes, roughness: float, height: int, samples: int, 
     return (acc / float(w.sum())).reshape(height, 2 * height, 3)
 
 
+@jax.jit
 def prefiltered_lookup(tables: IBLTables, r_env: Float[Array, "*b 3"], roughness) -> Float[Array, "*b 3"]:
     """Prefiltered radiance along environment-frame directions at continuous perceptual roughness."""
     k = tables.prefiltered.shape[0]
@@ -389,9 +410,9 @@ def build_ibl(env: Environment, settings: IBLSettings = IBLSettings(), model: Op
     model = model or Model()
     irr, pre = _build(env.radiance, settings)
     shapes = _prefiltered_shapes(settings)
-    lut = brdf_lut(settings.lut_size, settings.lut_samples, model)
-    dif = diffuse_lut(settings.lut_size, settings.lut_samples, model)
-    return IBLTables(irr, pre, lut.astype(pre.dtype), dif.astype(pre.dtype), settings.irradiance, shapes,
+    spec = _specular_tables(settings.lut_size, settings.lut_samples, model).astype(pre.dtype)
+    dif = diffuse_lut(settings.lut_size, settings.lut_samples, model).astype(pre.dtype)
+    return IBLTables(irr, pre, spec[..., :2], dif, spec[..., 2:], settings.irradiance, shapes,
                      env.world_up, env.rotation_deg)
 
 
@@ -408,13 +429,15 @@ def _diffuse_albedo(tables, n_dot_v, roughness, base_color, metallic, f0, model)
     return (1.0 - metallic) * t[..., 2:3] + metallic * (1.0 - base_color) * t[..., 0:1]
 
 
+@functools.partial(jax.jit, static_argnames=("model",))
 def shade_ibl(tables: IBLTables, n: Float[Array, "P 3"], v: Float[Array, "P 3"], base_color: Float[Array, "P 3"],
               metallic: Float[Array, "P 1"], roughness: Float[Array, "P 1"], model: Model = Model(),
               occlusion: Optional[Float[Array, "P 1"]] = None) -> Float[Array, "P 3"]:
     """Environment light reflected towards v by the split sum, linear RGB.
 
     diffuse = c_diff E(n)/π A_d(n·v, r) (A_d from `diffuse_lut`, matching the model's diffuse
-    weight); specular = L_pre(R, r) (F0 scale + F90 bias), F90 = 1, times
+    weight); specular = L_pre(R, r) (F0 scale + F90 bias), F90 = 1 (with ``fresnel="dielectric"``
+    the dielectric part uses the exact-Fresnel albedo table instead), times
     `brdf.energy_compensation` when ``model.multiscatter``. ``occlusion`` multiplies both. Zero
     where n·v <= 0, as `brdf.evaluate`. metallic, roughness, occlusion may be (P, 1) or (P,).
     """
@@ -429,7 +452,12 @@ def shade_ibl(tables: IBLTables, n: Float[Array, "P 3"], v: Float[Array, "P 3"],
     if model.specular:
         r = 2 * nv_raw[..., None] * n - v
         dfg = lookup_brdf_lut(tables.lut, nv, rough)
-        spec = prefiltered_lookup(tables, to_env(r), rough) * (f0 * dfg[..., 0:1] + dfg[..., 1:2])
+        albedo = f0 * dfg[..., 0:1] + dfg[..., 1:2]
+        if model.fresnel == "dielectric":        # F = mix(F_dielectric, Schlick(base_color), metallic)
+            diel = lookup_table(tables.dielectric, nv, rough)
+            albedo = diel if not model.metallic else (
+                (1.0 - metallic) * diel + metallic * (base_color * dfg[..., 0:1] + dfg[..., 1:2]))
+        spec = prefiltered_lookup(tables, to_env(r), rough) * albedo
         if model.multiscatter:
             spec = spec * brdf.energy_compensation(f0, dfg)
         out = out + spec

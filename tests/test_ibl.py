@@ -1,0 +1,287 @@
+"""Environment maps and the split sum: orientation, resampling, irradiance, prefiltering, LUT, shading.
+
+Physics checks: a constant environment is reproduced exactly by every table and the split sum
+matches the Monte Carlo reference there; SH9 irradiance is exact for a linear environment and
+within Ramamoorthi & Hanrahan's bound otherwise; the LUT matches a brute-force quadrature.
+"""
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pbrfit import brdf
+from pbrfit.environment import (Environment, dot3, environment_lookup, load_environment, procedural_sky,
+                                resample_equirect, texel_directions, texel_solid_angles)
+from pbrfit.errors import CaptureError
+from pbrfit.ibl import (IBLSettings, brdf_lut, build_ibl, irradiance_map, lookup_brdf_lut, prefiltered_lookup,
+                        sh9_coefficients, sh9_irradiance, shade_ibl, specular_albedo)
+from pbrfit.model import Model
+from pbrfit.montecarlo import monte_carlo_radiance
+
+SMALL = IBLSettings(lut_size=32, lut_samples=512, prefilter_levels=5, prefilter_resolution=16,
+                    prefilter_samples=32, irradiance_resolution=8, env_resolution=32)
+P = 256                      # points per Monte Carlo call: one compiled shape for the whole module
+RUNS = 16                    # independent Monte Carlo runs per comparison (for the noise estimate)
+MC_SAMPLES = 64              # per run; the same static value in every test (one compilation per model)
+
+
+def _unit(x):
+    return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+
+def _linear_env(a=1.0, b=0.5, h=64):
+    """L(ω) = a + b ω_y in every channel: its irradiance is E/π = a + (2/3) b n_y exactly."""
+    d = texel_directions(h, 2 * h)
+    return Environment(jnp.asarray(np.repeat(a + b * d[..., 1:2], 3, -1), jnp.float32))
+
+
+# --- orientation and lookup ------------------------------------------------------------------
+
+def _coded_env(h=8, w=16):
+    """Each texel holds (u, v, 0) of its centre, so a lookup says where it read."""
+    v, u = np.meshgrid((np.arange(h) + 0.5) / h, (np.arange(w) + 0.5) / w, indexing="ij")
+    return np.stack([u, v, np.zeros_like(u)], -1).astype(np.float32)
+
+
+@pytest.mark.parametrize("up", ["+y", "+z"])
+def test_orientation_follows_the_capture_format(up):
+    env = Environment(jnp.asarray(_coded_env()), world_up=up)
+    upv = np.array([0, 1.0, 0]) if up == "+y" else np.array([0, 0, 1.0])
+    fwd = np.array([0, 0, -1.0]) if up == "+y" else np.array([0, 1.0, 0])   # image centre
+    right = np.array([1.0, 0, 0])                                          # u = 0.75
+    out = np.asarray(environment_lookup(env, jnp.asarray(np.stack([upv, fwd, right]), jnp.float32)))
+    assert out[0, 1] == pytest.approx(1 / 16)                 # top row (clamped texel centre)
+    assert out[1, :2] == pytest.approx([0.5, 0.5], abs=1e-6)
+    assert out[2, :2] == pytest.approx([0.75, 0.5], abs=1e-6)
+
+
+def test_rotation_turns_counter_clockwise_seen_from_above():
+    env = Environment(jnp.asarray(_coded_env()), rotation_deg=90.0)
+    # Turned 90° CCW seen from +y, what was at +x (u = 0.75) now lies towards -z.
+    out = np.asarray(environment_lookup(env, jnp.array([[0.0, 0.0, -1.0]])))
+    assert out[0, :2] == pytest.approx([0.75, 0.5], abs=1e-6)
+
+
+def test_lookup_is_seamless_across_the_azimuth_wrap():
+    rng = np.random.default_rng(0)
+    env = Environment(jnp.asarray(rng.random((8, 16, 3)), jnp.float32))
+    eps = 1e-4
+    d = jnp.asarray(_unit(np.array([[-eps, 0.3, 1.0], [eps, 0.3, 1.0]])), jnp.float32)   # u just below 1, above 0
+    a, b = np.asarray(environment_lookup(env, d))
+    assert np.abs(a - b).max() < 1e-3
+    # ...and at the seam the value is the mean of the first and last columns (bilinear wrap).
+    row = np.asarray(environment_lookup(env, jnp.array([[0.0, 0.0, 1.0]])))[0]
+    rad = np.asarray(env.radiance)
+    np.testing.assert_allclose(row, 0.25 * (rad[3, 0] + rad[3, -1] + rad[4, 0] + rad[4, -1]), atol=1e-6)
+
+
+def test_load_environment(tmp_path):
+    import OpenImageIO as oiio
+
+    pix = np.random.default_rng(1).random((4, 8, 1)).astype(np.float32)
+    path = tmp_path / "env.exr"
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), oiio.ImageSpec(8, 4, 1, "float"))
+    out.write_image(pix)
+    out.close()
+    env = load_environment(path, world_up="+z", intensity=2.0, rotation_deg=30.0)
+    assert env.radiance.shape == (4, 8, 3) and env.world_up == "+z" and env.rotation_deg == 30.0
+    np.testing.assert_allclose(np.asarray(env.radiance), 2.0 * np.repeat(pix, 3, -1), rtol=1e-6)
+    with pytest.raises(CaptureError, match="not found"):
+        load_environment(tmp_path / "missing.hdr")
+    (tmp_path / "junk.exr").write_text("not an image")
+    with pytest.raises(CaptureError, match="junk.exr"):
+        load_environment(tmp_path / "junk.exr")
+
+
+def test_resampling_preserves_the_sphere_integral():
+    img = jnp.asarray(np.random.default_rng(2).random((16, 32, 3)), jnp.float32)
+    total = (np.asarray(img) * texel_solid_angles(16, 32)[..., None]).sum((0, 1))
+    for h, w in [(8, 16), (5, 7), (1, 2)]:
+        out = np.asarray(resample_equirect(img, h, w))
+        np.testing.assert_allclose((out * texel_solid_angles(h, w)[..., None]).sum((0, 1)), total, rtol=1e-5)
+
+
+# --- irradiance ----------------------------------------------------------------------------------
+
+def test_irradiance_of_a_linear_environment_is_exact():
+    env = _linear_env()
+    n = texel_directions(6, 12).reshape(-1, 3)
+    expect = 1.0 + (2.0 / 3.0) * 0.5 * n[:, 1]
+    sh = np.asarray(sh9_irradiance(sh9_coefficients(env.radiance), jnp.asarray(n, jnp.float32)))[:, 0]
+    mp = np.asarray(irradiance_map(env.radiance, 6)).reshape(-1, 3)[:, 0]
+    np.testing.assert_allclose(sh, expect, atol=2e-3)
+    np.testing.assert_allclose(mp, expect, atol=2e-3)
+
+
+def test_sh9_irradiance_within_the_known_error_bound():
+    """R&H 2001: order-2 SH approximates the clamped cosine A(t) = max(t, 0) by
+    A2(t) = 1/4 + t/2 + 5/16 (3t^2 - 1)/2, max |A - A2| = 3/32 (at t = 0); so
+    |E - E_sh|/π <= 3/32 ∫ L dω / π."""
+    env = procedural_sky(32, sun_radius_deg=6.0)
+    rad = env.radiance
+    n = texel_directions(8, 16).reshape(-1, 3)
+    brute = np.asarray(irradiance_map(rad, 8)).reshape(-1, 3)
+    sh = np.asarray(sh9_irradiance(sh9_coefficients(rad), jnp.asarray(n, jnp.float32)))
+    bound = 3 / 32 * (np.asarray(rad) * texel_solid_angles(32, 64)[..., None]).sum((0, 1)) / math.pi
+    err = np.abs(sh - brute).max(0)
+    assert np.all(err <= bound)
+    assert np.all(err > 0.05 * bound)              # a sun is not band-limited: the error is real
+    # t = 0 is where the bound is attained: 1/4 - 5/32.
+    assert 0.25 - 5 / 32 == pytest.approx(3 / 32)
+
+
+@pytest.fixture(scope="module")
+def constant_tables():
+    env = Environment(jnp.full((16, 32, 3), 1.5, jnp.float32))
+    return env, build_ibl(env, SMALL), build_ibl(env, dataclasses.replace(SMALL, irradiance="map"))
+
+
+def test_constant_environment_tables(constant_tables):
+    env, sh, mp = constant_tables
+    n = jnp.asarray(_unit(np.random.default_rng(3).normal(size=(50, 3))), jnp.float32)
+    from pbrfit.ibl import irradiance_lookup
+    np.testing.assert_allclose(irradiance_lookup(sh, n), 1.5, rtol=2e-3)
+    np.testing.assert_allclose(irradiance_lookup(mp, n), 1.5, rtol=2e-3)
+    for k, (h, w) in enumerate(sh.level_shapes):
+        np.testing.assert_allclose(sh.prefiltered[k, :h, :w], 1.5, rtol=1e-5)
+    r = jnp.linspace(0, 1, 50)
+    np.testing.assert_allclose(prefiltered_lookup(sh, n, r), 1.5, rtol=1e-5)
+
+
+# --- the BRDF LUT ----------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def lut():
+    return np.asarray(brdf_lut(32, 512))
+
+
+def test_lut_layout_and_limits(lut):
+    assert lut.shape == (32, 32, 2)
+    np.testing.assert_allclose(specular_albedo(1.0, 0.0), [1.0, 0.0], atol=1e-4)
+    assert lut[-1, 0] == pytest.approx([1.0, 0.0], abs=3e-3)           # n·v ≈ 1, smoothest
+    assert np.all(lut.sum(-1) <= 1.0 + 1e-4) and np.all(lut >= 0)
+    # [i, j]: n·v = (i + 0.5)/32, roughness = (j + 0.5)/32; grazing and rough loses energy.
+    np.testing.assert_allclose(lut[4, 20], specular_albedo(4.5 / 32, 20.5 / 32), atol=1e-6)
+    assert np.all(np.diff(lut[-1].sum(-1)) < 1e-6)                       # rougher loses more at n·v ≈ 1
+
+
+def _brute_albedo(nv, r, n=1200):
+    """∫ f_s (n·l) dω for F = 1 and F = F_c by midpoint quadrature in (θ_l, φ_l), float64 numpy."""
+    a = max(r, brdf.MIN_ROUGHNESS) ** 2
+    th = (np.arange(n) + 0.5) / n * (np.pi / 2)
+    ph = (np.arange(2 * n) + 0.5) / (2 * n) * np.pi                   # symmetric in φ: half, doubled
+    t, p = np.meshgrid(th, ph, indexing="ij")
+    l = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
+    v = np.array([np.sqrt(1 - nv * nv), 0.0, nv])
+    h = _unit(l + v)
+    nh, vh, nl = h[..., 2], h @ v, l[..., 2]
+    d = a * a / (np.pi * (nh * nh * (a * a - 1) + 1) ** 2)
+    vis = 0.5 / (nl * np.sqrt(nv * nv * (1 - a * a) + a * a) + nv * np.sqrt(nl * nl * (1 - a * a) + a * a))
+    f = d * vis * nl * np.sin(t) * (np.pi / 2 / n) * (np.pi / (2 * n)) * 2
+    fc = (1 - vh) ** 5
+    return np.array([(f * (1 - fc)).sum(), (f * fc).sum()])
+
+
+@pytest.mark.parametrize("i,j", [(31, 31), (16, 16), (6, 24), (25, 12), (0, 31)])
+def test_lut_matches_brute_force_quadrature(lut, i, j):
+    np.testing.assert_allclose(lut[i, j], _brute_albedo((i + 0.5) / 32, (j + 0.5) / 32), atol=1e-3)
+
+
+# --- the split sum against the Monte Carlo reference --------------------------------------------------
+
+def _points(nv_min=0.15, seed=4):
+    rng = np.random.default_rng(seed)
+    n = _unit(rng.normal(size=(P, 3)))
+    t = _unit(np.cross(n, _unit(rng.normal(size=(P, 3)))))
+    nv = rng.uniform(nv_min, 1.0, P)
+    v = nv[:, None] * n + np.sqrt(1 - nv * nv)[:, None] * t
+    f = lambda x: jnp.asarray(x, jnp.float32)
+    return (f(n), f(v), f(rng.random((P, 3))), f(rng.choice([0.0, 0.5, 1.0], (P, 1))), f(rng.random((P, 1))))
+
+
+@pytest.mark.parametrize("model", [Model(), Model(multiscatter=True), Model(diffuse="burley"),
+                                   Model(fresnel="dielectric")], ids=["gltf", "multiscatter", "burley", "dielectric"])
+def test_split_sum_is_exact_in_a_constant_environment(constant_tables, model):
+    env, sh, mp = constant_tables
+    if model.diffuse == "burley":
+        sh = build_ibl(env, SMALL, model)
+    n, v, base, metal, rough = _points()
+    split = np.asarray(shade_ibl(sh, n, v, base, metal, rough, model))
+    runs = np.stack([np.asarray(monte_carlo_radiance(env, n, v, base, metal, rough, model, MC_SAMPLES, jax.random.PRNGKey(k)))
+                     for k in range(RUNS)])
+    mc, se = runs.mean(0), runs.std(0, ddof=1) / math.sqrt(RUNS)
+    # t statistic of the difference (Student t, RUNS - 1 dof), allowing the 32² LUT's
+    # interpolation error (~1e-3) on top of the Monte Carlo noise.
+    t = np.abs(split - mc) / np.sqrt(se ** 2 + (2e-3 * (1 + mc)) ** 2)
+    assert np.mean(t > 4) < 0.01 and t.max() < 8
+    assert abs(np.mean(split - mc)) < 4 * np.std(split - mc) / math.sqrt(split.size) + 1e-3
+
+
+def test_occlusion_scales_both_terms(constant_tables):
+    _, sh, _ = constant_tables
+    n, v, base, metal, rough = _points()
+    full = shade_ibl(sh, n, v, base, metal, rough)
+    half = shade_ibl(sh, n, v, base, metal, rough, occlusion=jnp.full((P, 1), 0.5))
+    np.testing.assert_allclose(half, 0.5 * full, rtol=1e-6)
+    assert np.all(np.asarray(shade_ibl(sh, n, -v, base, metal, rough)) == 0)     # n·v <= 0: dark
+
+
+# --- differentiability -------------------------------------------------------------------------
+
+def test_gradients_wrt_roughness_match_finite_differences():
+    with jax.enable_x64(True):
+        env = procedural_sky(16, sun_radius_deg=10.0)
+        env = Environment(env.radiance.astype(jnp.float64))
+        tabs = build_ibl(env, SMALL)
+        lut64 = tabs.lut
+        d = jnp.asarray(_unit(np.array([0.3, 0.5, -0.8])))
+        for r in [0.13, 0.41, 0.77]:            # away from level and LUT knots (piecewise linear there)
+            for fn in (lambda x: prefiltered_lookup(tabs, d, x).sum(),
+                       lambda x: lookup_brdf_lut(lut64, 0.37, x).sum()):
+                g = jax.grad(fn)(r)
+                fd = (fn(r + 1e-6) - fn(r - 1e-6)) / 2e-6
+                assert np.isfinite(g) and g == pytest.approx(float(fd), rel=1e-5, abs=1e-9)
+
+
+def test_gradients_wrt_environment_pixels_and_material_are_finite_and_correct():
+    with jax.enable_x64(True):
+        rng = np.random.default_rng(5)
+        rad = jnp.asarray(rng.random((8, 16, 3)) + 0.1)
+        n = jnp.asarray(_unit(rng.normal(size=(6, 3))))
+        v = jnp.asarray(_unit(np.asarray(n) + 0.5 * _unit(rng.normal(size=(6, 3)))))
+        base, metal = jnp.full((6, 3), 0.6), jnp.full((6, 1), 0.3)
+        rough = jnp.asarray([[0.0], [1e-4], [0.3], [0.6], [0.95], [1.0]])
+        s = IBLSettings(lut_size=8, lut_samples=32, prefilter_levels=3, prefilter_resolution=8,
+                        prefilter_samples=8, env_resolution=8)
+
+        def loss(rad, rough):
+            return shade_ibl(build_ibl(Environment(rad), s), n, v, base, metal, rough).sum()
+
+        g_rad, g_r = jax.grad(loss, argnums=(0, 1))(rad, rough)
+        assert np.all(np.isfinite(g_rad)) and np.all(np.isfinite(g_r)) and float(jnp.abs(g_rad).sum()) > 0
+        dirn = jnp.asarray(rng.normal(size=rad.shape))
+        fd = (loss(rad + 1e-6 * dirn, rough) - loss(rad - 1e-6 * dirn, rough)) / 2e-6
+        assert float(jnp.sum(g_rad * dirn)) == pytest.approx(float(fd), rel=1e-6)
+
+
+def test_shading_is_finite_over_the_closed_domain(constant_tables):
+    _, sh, _ = constant_tables
+    n = jnp.tile(jnp.array([[0.0, 0.0, 1.0]]), (5, 1))
+    nv = jnp.array([0.0, 1e-7, 1e-3, 0.5, 1.0])
+    v = jnp.stack([jnp.sqrt(1 - nv * nv), 0 * nv, nv], -1)
+
+    def f(base, metal, rough):
+        return shade_ibl(sh, n, v, base, metal, rough, Model(multiscatter=True)).sum()
+
+    for r in (0.0, 1.0):
+        for m in (0.0, 1.0):
+            args = (jnp.full((5, 3), 1.0), jnp.full((5, 1), m), jnp.full((5, 1), r))
+            out = f(*args)
+            grads = jax.grad(f, argnums=(0, 1, 2))(*args)
+            assert np.isfinite(out) and all(np.all(np.isfinite(g)) for g in grads)
+    assert float(dot3(n, v)[0]) == 0.0
