@@ -34,7 +34,7 @@ from .observations import (Observations, TexelLayout, coverage_counts, neighbour
                            texel_layout, uniform_layout)
 from .optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
 from .parameters import CHANNELS, FIT_GROUPS, PRIOR, channel_mask
-from .solvers import LOSSES, Problem, linearize, normal_blocks, pixel_residuals, structured_lm
+from .solvers import LOSSES, Problem, linearize, normal_blocks, objective, pixel_residuals, structured_lm
 from .textures import sample_bilinear
 from .uncertainty import block_standard_errors, residual_variance
 
@@ -252,14 +252,13 @@ def fit_observations(
             x0 = np.asarray(grid_initialise(jnp.asarray(x0), problem))
             clock["init"] = time.perf_counter() - t0
         steps = max_steps if level == len(levels) - 1 else min(coarse_steps, max_steps)
-        out, info = runner(jnp.asarray(x0), problem, steps, int(np.sum(free)))
-        xs = out
+        xs, info = runner(jnp.asarray(x0), problem, steps, int(np.sum(free)))
         history.append(dict(resolution=list(shape), **info))
         x = xs[:t].reshape(shape + (5,))
 
     t_post = time.perf_counter()
     return _finish(obs, problem, x, final, channels, seen[:t_final], model, solver, history, loss, smooth,
-                   dict(setup=setup_time, **clock), t_post, t_start)
+                   dict(setup=setup_time, **clock), t_post, t_start, runner.linearization)
 
 
 class _Runner:
@@ -289,14 +288,21 @@ class _Runner:
         if structured:
             s = out[1]
             info = dict(steps=int(s.steps), accepted=int(s.accepted), cg_iterations=int(s.cg_iterations))
+            self.linearization = (out[2], out[3])
         else:
             info = dict(steps=int(out[1]), result=int(out[2]), method=type(opt).__name__)
+            self.linearization = None
         return x, info
 
 
-def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss, smooth, times, t_post, t_start):
+def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss, smooth, times, t_post, t_start,
+            linearization=None):
     xj = jnp.asarray(x.reshape(-1, 5))
-    r, jac, energy = jax.jit(linearize)(xj, problem)
+    if linearization is None:
+        r, jac, energy = jax.jit(linearize)(xj, problem)
+    else:
+        r, jac = linearization
+        energy = jax.jit(objective)(xj, problem) if float(problem.smooth) > 0 else 0.5 * jnp.sum(r * r)
     blocks = np.asarray(jax.jit(normal_blocks)(jac, problem))
     n_res = 3 * obs.num_pixels
     n_par = int(np.sum(seen)) * int(np.sum(channels))
@@ -304,10 +310,12 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     sigma = block_standard_errors(blocks, channels > 0, seen, sigma2).reshape(final + (5,))
     coverage = coverage_counts(_layout(obs, final, "repeat" if final != (1, 1) else "repeat"))
     # Per-view renders in image space and PSNR (peak 1: display values).
-    plain = problem if loss == "l2" else Problem(obs, problem.index, problem.weight, problem.free, problem.pairs,
-                                                  problem.pair_weight, problem.smooth, problem.loss_scale,
-                                                  problem.ibl, model, "l2")
-    resid = np.asarray(jax.jit(pixel_residuals)(xj, plain))
+    if loss == "l2":
+        resid = np.asarray(r)
+    else:
+        plain = Problem(obs, problem.index, problem.weight, problem.free, problem.pairs, problem.pair_weight,
+                        problem.smooth, problem.loss_scale, problem.ibl, model, "l2")
+        resid = np.asarray(jax.jit(pixel_residuals)(xj, plain))
     values = resid + np.asarray(obs.target)
     vidx = np.asarray(obs.view_index)
     pix = np.asarray(obs.pixel)

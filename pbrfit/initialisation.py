@@ -24,15 +24,23 @@ import jax.numpy as jnp
 import numpy as np
 
 from .color import encode, srgb_to_linear
+from .brdf import MIN_ROUGHNESS
 from .parameters import LOWER, UPPER
 from .render import shade
 from .solvers import Problem, _scatter, sample_texels
 
 __all__ = ["ROUGHNESS_CANDIDATES", "METALLIC_CANDIDATES", "grid_initialise"]
 
-#: Roughness values tried per texel: roughly geometric from the floor to 1 (highlight widths
-#: scale with alpha = r², so equal steps in log r are equal steps in highlight width).
-ROUGHNESS_CANDIDATES = (0.05, 0.08, 0.12, 0.16, 0.21, 0.27, 0.34, 0.42, 0.52, 0.64, 0.8, 1.0)
+#: Roughness values tried per texel: geometric from the BRDF's floor to 1 (highlight widths scale
+#: with alpha = r², so equal steps in log r are equal steps in highlight width). The spacing
+#: matters: seen from a few directions, a texel's objective has spurious minima in roughness
+#: (one off-specular sample of D is matched by two alphas) and the true basin is only about
+#: ±8% of r wide on the peer scene, so a 12-value grid started a few percent of texels in
+#: the wrong basin; `ROUGHNESS_RATIO` steps of 6% do not (experiments/solvers.md).
+ROUGHNESS_RATIO = 1.06
+ROUGHNESS_CANDIDATES = tuple(
+    min(float(MIN_ROUGHNESS * ROUGHNESS_RATIO**k), 1.0) for k in range(int(np.ceil(np.log(1 / MIN_ROUGHNESS) / np.log(ROUGHNESS_RATIO))) + 1)
+)
 #: Metallic values tried (the two at which radiance is affine in base colour).
 METALLIC_CANDIDATES = (0.0, 1.0)
 #: Floor on Σ w A² when solving a texel's base colour (a texel whose pixels see no light).

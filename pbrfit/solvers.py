@@ -278,22 +278,28 @@ def structured_lm(
     """Projected Levenberg-Marquardt on the structured objective (module docstring).
 
     Stops after `max_steps` steps, or at an accepted step that lowers E by less than
-    ``rtol · E`` or moves no value by more than `atol`. Returns (x, LMStats).
+    ``rtol · E`` or moves no value by more than `atol`. Returns (x, LMStats, residuals (P, 3),
+    per-pixel Jacobians (P, 3, 5)) at the returned x.
     """
     x0 = jnp.clip(x0, jnp.asarray(LOWER), jnp.asarray(UPPER))
-    r0, j0, loss0 = linearize(x0, problem)
+    p = problem.obs.num_pixels
     eye = jnp.eye(5, dtype=x0.dtype)
     degree = _degree(problem)
+    # Step 0 only linearises at x0 (no step is taken: every channel inactive), so the
+    # linearisation is traced once, inside the loop.
+    r0 = jnp.zeros((p, 3), x0.dtype)
+    j0 = jnp.zeros((p, 3, 5), x0.dtype)
+    loss0 = jnp.asarray(jnp.inf, x0.dtype)
 
     def cond(c):
-        return (c["k"] < max_steps) & ~c["done"]
+        return (c["k"] <= max_steps) & ~c["done"]
 
     def body(c):
         x, r, jac, loss, lam, nu = c["x"], c["r"], c["jac"], c["loss"], c["lam"], c["nu"]
         gp = jnp.einsum("pci,pcj->pij", jac, jac)
         g = gradient(r, jac, x, problem)
         blocks = normal_blocks(jac, problem) + problem.smooth * degree[:, None, None] * eye
-        a = _active(x, g, problem.free)
+        a = _active(x, g, problem.free) * (c["k"] > 0)
         diag = jnp.diagonal(blocks, axis1=1, axis2=2)
         mean_diag = jnp.sum(diag * problem.free) / jnp.maximum(jnp.sum(problem.free), 1.0)
         damp = diag + DAMPING_FLOOR * mean_diag
@@ -313,19 +319,23 @@ def structured_lm(
         step = x_new - x
         predicted = -(_vdot(g, step) + 0.5 * _vdot(step, gn_product(gp, step, problem)))
         r_new, jac_new, loss_new = linearize(x_new, problem)
-        actual = loss - loss_new
-        accept = jnp.isfinite(loss_new) & (loss_new < loss)
+        actual = jnp.where(c["k"] > 0, loss - loss_new, 0.0)
+        accept = jnp.isfinite(loss_new) & ((loss_new < loss) | (c["k"] == 0))
         rho = actual / jnp.maximum(predicted, jnp.finfo(x.dtype).tiny)
         lam_new = jnp.where(accept, lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), lam * nu)
         nu_new = jnp.where(accept, 2.0, 2.0 * nu)
         small = (actual <= rtol * loss) | (jnp.max(jnp.abs(step)) <= atol)
-        done = (accept & small) | (lam_new > LAMBDA_MAX) | (jnp.max(jnp.abs(step)) == 0)
+        first = c["k"] == 0
+        done = ~first & ((accept & small) | (lam_new > LAMBDA_MAX) | (jnp.max(jnp.abs(step)) == 0))
+        lam_new = jnp.where(first, lam, lam_new)
+        nu_new = jnp.where(first, nu, nu_new)
         if progress is not None:
-            jax.debug.callback(progress, c["k"] + 1, jnp.where(accept, loss_new, loss))
+            jax.debug.callback(progress, c["k"], jnp.where(accept, loss_new, loss))
         pick = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
         return dict(
             x=pick(x_new, x), r=pick(r_new, r), jac=pick(jac_new, jac), loss=pick(loss_new, loss),
-            lam=lam_new, nu=nu_new, k=c["k"] + 1, done=done, accepted=c["accepted"] + accept.astype(jnp.int32),
+            lam=lam_new, nu=nu_new, k=c["k"] + 1, done=done,
+            accepted=c["accepted"] + (accept & ~first).astype(jnp.int32),
             cg=c["cg"] + iters,
         )
 
@@ -333,4 +343,5 @@ def structured_lm(
                 nu=jnp.asarray(2.0, x0.dtype), k=jnp.asarray(0), done=jnp.asarray(False),
                 accepted=jnp.asarray(0), cg=jnp.asarray(0))
     out = lax.while_loop(cond, body, init)
-    return out["x"], LMStats(out["k"], out["accepted"], out["cg"], out["loss"], out["lam"])
+    stats = LMStats(jnp.maximum(out["k"] - 1, 0), out["accepted"], out["cg"], out["loss"], out["lam"])
+    return out["x"], stats, out["r"], out["jac"]

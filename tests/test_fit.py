@@ -1,0 +1,163 @@
+"""Fitting on tiny hand-built scenes: a plane under point lights seen by a few cameras.
+
+Geometry is analytic (no ray casting, no files), so these test the fit alone. Shapes are shared
+between tests so the solver compiles once per configuration.
+"""
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pbrfit.color import encode
+from pbrfit.fit import SOLVERS, default_resolution, fit_observations, map_rmse, schedule
+from pbrfit.lights import point_light
+from pbrfit.material import Material
+from pbrfit.model import Model
+from pbrfit.observations import observations_from_views
+from pbrfit.parameters import LOWER, UPPER, from_sine, to_sine
+from pbrfit.render import ViewInputs, light_arrays, radiance_view
+
+RES = 24  # pixels per view side
+
+
+def _look_at(eye):
+    eye = np.asarray(eye, float)
+    f = -eye / np.linalg.norm(eye)
+    right = np.cross(f, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, f)
+    return np.stack([right, up, -f], 1)
+
+
+def _views(n_views=4, extent=1.0, res=RES):
+    """Views of the plane z = 0, |x|, |y| < extent (uv = (x, y)/2/extent + 1/2), four lights."""
+    lights = [point_light((2.0 * math.cos(a), 2.0 * math.sin(a), 1.6), (1, 1, 1), 5.0)
+              for a in np.linspace(0.3, 2 * math.pi + 0.3, 4, endpoint=False)]
+    views = []
+    f = 0.5 * res / math.tan(math.radians(22.5))
+    for k in range(n_views):
+        az = 2 * math.pi * k / max(n_views, 1) + 0.2
+        el = math.radians(55 + 12 * (k % 2))
+        eye = 2.9 * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        rot = _look_at(eye)
+        j, i = np.meshgrid(np.arange(res) + 0.5, np.arange(res) + 0.5)
+        d = np.stack([(j - res / 2) / f, -(i - res / 2) / f, -np.ones_like(j)], -1) @ rot.T
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        t = -eye[2] / d[..., 2]
+        pos = eye + t[..., None] * d
+        hit = (np.abs(pos[..., 0]) < 0.999) & (np.abs(pos[..., 1]) < 0.999)
+        flat = np.flatnonzero(hit.reshape(-1))
+        p = pos.reshape(-1, 3)[flat]
+        v = eye - p
+        v /= np.linalg.norm(v, axis=-1, keepdims=True)
+        ll, lr = light_arrays(lights, p)
+        n = len(flat)
+        views.append(ViewInputs(
+            pixel=jnp.asarray(flat, jnp.int32), uv=jnp.asarray(p[:, :2] / (2 * extent) + 0.5, jnp.float32),
+            normal=jnp.tile(jnp.array([[0.0, 0.0, 1.0]]), (n, 1)),
+            tangent=jnp.tile(jnp.array([[1.0, 0.0, 0.0, 1.0]]), (n, 1)),
+            view=jnp.asarray(v, jnp.float32), light_l=ll, light_radiance=lr, shape=(res, res)))
+    return views
+
+
+def _images(views, material, model=Model(), color_space="linear"):
+    out = []
+    for vi in views:
+        img = np.zeros((vi.shape[0] * vi.shape[1], 3), np.float32)
+        img[np.asarray(vi.pixel)] = np.asarray(encode(radiance_view(vi, material, model), 0.0, "none", color_space))
+        out.append(img.reshape(vi.shape + (3,)))
+    return out
+
+
+VIEWS = _views()
+
+
+def _checker(n=8):
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    c = ((i // 2 + j // 2) % 2).astype(np.float32)[..., None]
+    base = np.where(c > 0, np.array([0.7, 0.3, 0.2]), np.array([0.2, 0.5, 0.6])).astype(np.float32)
+    return Material(jnp.asarray(base), jnp.zeros((n, n, 1)), jnp.asarray(0.35 + 0.1 * c))
+
+
+def test_sine_storage_reaches_bounds_and_inverts():
+    x = np.array([[0.0, 0.3, 1.0, 0.5, LOWER[4]], [1.0, 0.0, 0.2, 1.0, 1.0]], np.float32)
+    np.testing.assert_allclose(np.asarray(from_sine(to_sine(x))), x, atol=1e-6)
+    assert np.all(np.asarray(from_sine(jnp.full((5,), 100.0))) <= UPPER)
+
+
+@pytest.mark.parametrize("truth", [((0.6, 0.35, 0.2), 0.0, 0.35), ((0.9, 0.7, 0.3), 1.0, 0.25),
+                                   ((0.3, 0.5, 0.7), 0.4, 0.6)])
+def test_uniform_material_recovered(truth):
+    base, metal, rough = truth
+    obs = observations_from_views(VIEWS, _images(VIEWS, Material.uniform(base, metal, rough)))
+    res = fit_observations(obs, maps="none", max_steps=60, rtol=0.0, atol=1e-7)
+    got = np.concatenate([np.asarray(res.material.base_color).ravel(), np.asarray(res.material.metallic).ravel(),
+                          np.asarray(res.material.roughness).ravel()])
+    np.testing.assert_allclose(got, [*base, metal, rough], atol=1e-4)
+    assert res.material.resolution == (1, 1) and res.uncertainty.shape == (1, 1, 5)
+    assert res.report["solver"] == "structured" and len(res.report["psnr"]) == len(VIEWS)
+
+
+def test_maps_recovered_on_small_scene():
+    truth = _checker()
+    obs = observations_from_views(VIEWS, _images(VIEWS, truth))
+    assert default_resolution(obs) >= 8
+    res = fit_observations(obs, resolution=8, max_steps=40)
+    err = map_rmse(truth, res)
+    assert err["base_color"] < 0.01 and err["roughness"] < 0.03 and err["metallic"] < 0.02, err
+    assert np.all(res.coverage > 0)
+
+
+def test_unseen_texels_flagged_and_left_at_prior():
+    truth = _checker()
+    half = [_views(2, extent=2.0)[k] for k in range(2)]  # the plane covers only the centre of uv
+    obs = observations_from_views(half, _images(half, Material(truth.base_color, truth.metallic, truth.roughness)))
+    res = fit_observations(obs, resolution=8, max_steps=5)
+    unseen = res.coverage == 0
+    assert unseen.any() and (~unseen).any()
+    assert np.all(np.isinf(res.uncertainty[unseen]))
+    np.testing.assert_allclose(np.asarray(res.material.roughness)[unseen][:, 0], 0.5)
+    assert np.all(np.isfinite(res.uncertainty[~unseen]))
+
+
+def test_uncertainty_grows_when_views_are_removed():
+    truth = _checker()
+    rng = np.random.default_rng(0)
+    imgs = [i + rng.normal(0, 0.01, i.shape).astype(np.float32) for i in _images(VIEWS, truth)]
+    obs = observations_from_views(VIEWS, imgs)
+    full = fit_observations(obs, maps="none", fit=("base_color", "roughness"), max_steps=30)
+    fewer = fit_observations(obs.select_views([0]), maps="none", fit=("base_color", "roughness"), max_steps=30)
+    assert np.all(fewer.uncertainty[..., [0, 1, 2, 4]] > full.uncertainty[..., [0, 1, 2, 4]])
+    assert np.all(full.uncertainty[..., 3] == 0)  # metallic held fixed
+
+
+def test_fixed_channels_stay_fixed():
+    truth = _checker()
+    obs = observations_from_views(VIEWS, _images(VIEWS, truth))
+    res = fit_observations(obs, resolution=8, fit=("base_color",), fixed={"roughness": np.asarray(truth.roughness)},
+                           max_steps=20)
+    np.testing.assert_allclose(np.asarray(res.material.roughness), np.asarray(truth.roughness), atol=1e-6)
+    assert map_rmse(truth, res)["base_color"] < 0.01
+
+
+def test_srgb_targets_and_huber_loss():
+    truth = Material.uniform((0.5, 0.4, 0.3), 0.0, 0.4)
+    obs = observations_from_views(VIEWS, _images(VIEWS, truth, color_space="srgb"), color_space="srgb")
+    res = fit_observations(obs, maps="none", loss="huber", max_steps=40)
+    assert abs(float(res.material.roughness[0, 0, 0]) - 0.4) < 1e-3
+
+
+@pytest.mark.parametrize("solver", [s for s in SOLVERS if s != "structured"])
+def test_every_solver_runs(solver):
+    truth = Material.uniform((0.6, 0.35, 0.2), 0.0, 0.35)
+    obs = observations_from_views(VIEWS[:2], _images(VIEWS[:2], truth))
+    res = fit_observations(obs, resolution=4, solver=solver, max_steps=3, init="prior")
+    assert res.report["solver"] == solver
+    assert np.all(np.isfinite(np.asarray(res.material.base_color)))
+
+
+def test_schedule_levels():
+    assert schedule((64, 64)) == [(1, 1), (4, 4), (16, 16), (64, 64)]
+    assert schedule((8, 8)) == [(1, 1), (8, 8)]
