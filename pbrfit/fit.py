@@ -98,7 +98,7 @@ def _ibl_for_capture(capture, model: Model):
     spec = capture.environment
     env = load_environment(spec.file, world_up=capture.world_up, intensity=spec.intensity,
                            rotation_deg=spec.rotation_deg)
-    return build_ibl(env, IBLSettings())
+    return build_ibl(env, IBLSettings(), model)
 
 
 def _median_footprint(obs: Observations) -> float:
