@@ -94,6 +94,9 @@ class IBLSettings:
         irradiance_resolution: height of the irradiance map (``"map"`` only; width is twice).
         env_resolution: the environment is box-filtered down to at most this height before
             anything is built (the Monte Carlo reference always reads the full map).
+        specular_direction: ``"reflect"`` looks the prefiltered map up along R = reflect(-v, n);
+            ``"dominant"`` along normalize(mix(R, n, alpha)), the lobe's dominant direction for
+            rough surfaces (Filament's getReflectedVector; Lagarde & de Rousiers 2014, section 4.9.3).
     """
 
     lut_size: int = 32
@@ -105,6 +108,7 @@ class IBLSettings:
     irradiance: str = "sh9"
     irradiance_resolution: int = 16
     env_resolution: int = 256
+    specular_direction: str = "reflect"
 
     def __post_init__(self):
         if self.irradiance not in ("sh9", "map"):
@@ -113,6 +117,8 @@ class IBLSettings:
                      "irradiance_resolution", "env_resolution"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"IBLSettings.{name} must be >= 1, got {getattr(self, name)!r}")
+        if self.specular_direction not in ("reflect", "dominant"):
+            raise ValueError(f"IBLSettings.specular_direction must be 'reflect' or 'dominant', got {self.specular_direction!r}")
         if self.prefilter_levels < 2:
             raise ValueError(f"IBLSettings.prefilter_levels must be >= 2, got {self.prefilter_levels!r}")
 
@@ -138,6 +144,7 @@ class IBLTables(eqx.Module):
     level_shapes: tuple = eqx.field(static=True, default=())
     world_up: str = eqx.field(static=True, default="+y")
     rotation_deg: float = eqx.field(static=True, default=0.0)
+    specular_direction: str = eqx.field(static=True, default="reflect")
 
 
 # --- BRDF tables -------------------------------------------------------------------------------
@@ -413,7 +420,7 @@ def build_ibl(env: Environment, settings: IBLSettings = IBLSettings(), model: Op
     spec = _specular_tables(settings.lut_size, settings.lut_samples, model).astype(pre.dtype)
     dif = diffuse_lut(settings.lut_size, settings.lut_samples, model).astype(pre.dtype)
     return IBLTables(irr, pre, spec[..., :2], dif, spec[..., 2:], settings.irradiance, shapes,
-                     env.world_up, env.rotation_deg)
+                     env.world_up, env.rotation_deg, settings.specular_direction)
 
 
 def _diffuse_albedo(tables, n_dot_v, roughness, base_color, metallic, f0, model):
@@ -451,6 +458,9 @@ def shade_ibl(tables: IBLTables, n: Float[Array, "P 3"], v: Float[Array, "P 3"],
     out = jnp.zeros(jnp.broadcast_shapes(jnp.shape(f0), nv.shape + (3,)), f0.dtype)
     if model.specular:
         r = 2 * nv_raw[..., None] * n - v
+        if tables.specular_direction == "dominant":
+            a = brdf.alpha_from_roughness(rough)[..., None]
+            r = brdf.safe_normalize(r + (n - r) * a)
         dfg = lookup_brdf_lut(tables.lut, nv, rough)
         albedo = f0 * dfg[..., 0:1] + dfg[..., 1:2]
         if model.fresnel == "dielectric":        # F = mix(F_dielectric, Schlick(base_color), metallic)
