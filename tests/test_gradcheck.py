@@ -1,0 +1,100 @@
+"""`pbrfit.gradcheck` (``pbrfit check-grads``): the full run passes, and a wrong derivative is caught."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import pytest
+
+from pbrfit import brdf, gradcheck
+from pbrfit.cli import main
+
+
+@pytest.fixture(scope="module")
+def results():
+    """One full run (~40 s of compilation) shared by the tests of this module."""
+    return gradcheck.run_checks()
+
+
+def test_run_checks_passes(results):
+    failed = [r for r in results if not r.passed]
+    assert not failed, failed
+    terms = {r.term for r in results}
+    public = set(brdf.__all__) - {"MIN_ROUGHNESS", "MIN_ALPHA", "COS_MIN", "FLOORS", "evaluate_cosines"}
+    assert public <= terms, public - terms
+    for model in gradcheck.MODEL_VARIANTS:
+        assert f"evaluate_cosines[{gradcheck.model_label(model)}]" in terms
+    for name in ("srgb_to_linear", "linear_to_srgb", "tonemap_aces_hill", "tonemap_khronos_neutral"):
+        assert name in terms
+    assert {r.order for r in results} == {1, 2}
+    assert all(r.checked > 0 and r.tolerance == gradcheck.TOLERANCE[r.order] for r in results)
+    assert all(set(r.worst_point) >= {"wrt", "autodiff", "finite_difference"} for r in results)
+    r = results[0]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        r.passed = False  # type: ignore[misc]
+
+
+def _spec(term):
+    return [s for s in gradcheck.all_specs() if s.term == term]
+
+
+def test_wrong_first_derivative_is_caught(monkeypatch):
+    """A custom_jvp whose derivative is 1 % off in n·h: the gradient check fails at 1st order."""
+    true_d = brdf.d_ggx
+
+    @jax.custom_jvp
+    def d_wrong(n_dot_h, alpha):
+        return true_d(n_dot_h, alpha)
+
+    @d_wrong.defjvp
+    def _(primals, tangents):
+        out, tan = jax.jvp(true_d, primals, (tangents[0] * 1.01, tangents[1]))
+        return out, tan
+
+    monkeypatch.setattr(brdf, "d_ggx", d_wrong)
+    res = {r.order: r for r in gradcheck.run_checks(_spec("d_ggx"))}
+    assert not res[1].passed and res[1].max_rel_error > 1e-3
+    assert res[1].worst_point["wrt"] == "d/dn·h"
+
+
+def test_wrong_second_derivative_is_caught(monkeypatch):
+    """A custom_jvp whose first derivative is right but not itself differentiable (stop_gradient):
+    the Hessian is wrong and only the 2nd-order check sees it."""
+    true_f = brdf.f_dielectric
+
+    @jax.custom_jvp
+    def f_wrong(c, ior):
+        return true_f(c, ior)
+
+    @f_wrong.defjvp
+    def _(primals, tangents):
+        c, ior = primals
+        dc, dior = jax.grad(true_f, argnums=(0, 1))(c, ior)
+        tangent = jax.lax.stop_gradient(dc) * tangents[0] + jax.lax.stop_gradient(dior) * tangents[1]
+        return true_f(c, ior), tangent
+
+    monkeypatch.setattr(brdf, "f_dielectric", f_wrong)
+    res = {r.order: r for r in gradcheck.run_checks(_spec("f_dielectric"))}
+    assert res[1].passed, res[1]
+    assert not res[2].passed, res[2]
+
+
+def test_cli_check_grads_prints_table(results, monkeypatch, capsys):
+    """`pbrfit check-grads` end to end through the CLI (run_checks itself is the module fixture's run)."""
+    monkeypatch.setattr(gradcheck, "run_checks", lambda: results)
+    assert main(["check-grads"]) == 0
+    out = capsys.readouterr().out
+    assert "max rel error" in out and "d_ggx" in out and "evaluate_cosines[default]" in out
+    assert "MIN_ROUGHNESS" in out and "MIN_DISTANCE" in out
+    assert "check-grads: PASS" in out
+    assert main(["check-grads", "--quiet"]) == 0
+    quiet = capsys.readouterr().out
+    assert "d_ggx" not in quiet and "check-grads: PASS" in quiet
+
+
+def test_print_report_returns_false_on_failure(results, capsys):
+    bad = [dataclasses.replace(results[0], passed=False, max_rel_error=1.0)] + list(results[1:])
+    assert gradcheck.print_report(bad, quiet=True) is False
+    out = capsys.readouterr().out
+    assert "FAIL" in out and results[0].term in out
