@@ -48,18 +48,19 @@ DEFAULT = IBLSettings()
 
 SETTINGS = {
     "minimal": IBLSettings(lut_size=16, lut_samples=64, prefilter_levels=4, prefilter_resolution=32,
-                           prefilter_samples=16, env_resolution=64),
+                           prefilter_samples=16, irradiance="sh9", env_resolution=64),
     "fast": IBLSettings(lut_size=32, lut_samples=256, prefilter_levels=5, prefilter_resolution=64,
-                        prefilter_samples=32, env_resolution=128),
+                        prefilter_samples=32, irradiance="sh9", env_resolution=128),
     "default": DEFAULT,
-    "default, irradiance map": dataclasses.replace(DEFAULT, irradiance="map"),
+    "default, SH9 irradiance": dataclasses.replace(DEFAULT, irradiance="sh9"),
+    "default, reflect direction": dataclasses.replace(DEFAULT, specular_direction="reflect"),
+    "default, SH9 + reflect (Karis)": dataclasses.replace(DEFAULT, irradiance="sh9", specular_direction="reflect"),
     "default, LUT 16/128": dataclasses.replace(DEFAULT, lut_size=16, lut_samples=128),
     "default, 16 prefilter samples": dataclasses.replace(DEFAULT, prefilter_samples=16),
     "default, 256 prefilter samples": dataclasses.replace(DEFAULT, prefilter_samples=256),
     "default, 9 levels": dataclasses.replace(DEFAULT, prefilter_levels=9),
     "default, no FIS (lod bias -8)": dataclasses.replace(DEFAULT, prefilter_lod_bias=-8.0),
     "default, lod bias 0": dataclasses.replace(DEFAULT, prefilter_lod_bias=0.0),
-    "default, dominant direction": dataclasses.replace(DEFAULT, specular_direction="dominant"),
     "high": IBLSettings(lut_size=64, lut_samples=1024, prefilter_levels=9, prefilter_resolution=256,
                         prefilter_samples=256, irradiance="map", irradiance_resolution=32, env_resolution=256),
 }

@@ -105,10 +105,10 @@ class IBLSettings:
     prefilter_resolution: int = 128
     prefilter_samples: int = 64
     prefilter_lod_bias: float = 1.0
-    irradiance: str = "sh9"
+    irradiance: str = "map"
     irradiance_resolution: int = 16
     env_resolution: int = 256
-    specular_direction: str = "reflect"
+    specular_direction: str = "dominant"
 
     def __post_init__(self):
         if self.irradiance not in ("sh9", "map"):

@@ -83,6 +83,7 @@ def tangent_frame(n: Float[Array, "*b 3"]) -> tuple:
     return t, b
 
 
+@jax.jit
 def sample_ggx_ndf(u: Float[Array, "*b 2"], alpha) -> Float[Array, "*b 3"]:
     """Local half vector with density D(h) (n·h) (Walter et al. 2007, eq. 35-36): the prefilter's sampler.
 
@@ -95,6 +96,7 @@ def sample_ggx_ndf(u: Float[Array, "*b 2"], alpha) -> Float[Array, "*b 3"]:
     return jnp.stack([s * jnp.cos(phi), s * jnp.sin(phi), jnp.sqrt(c2)], axis=-1)
 
 
+@jax.jit
 def sample_ggx_vndf(v_local: Float[Array, "*b 3"], alpha, u: Float[Array, "*b 2"]) -> Float[Array, "*b 3"]:
     """Local half vector distributed as GGX's visible normals for view ``v_local`` (Heitz 2018, listing 1).
 
@@ -118,6 +120,7 @@ def sample_ggx_vndf(v_local: Float[Array, "*b 3"], alpha, u: Float[Array, "*b 2"
     return brdf.safe_normalize(jnp.concatenate([a * nh[..., :2], jnp.maximum(nh[..., 2:], 0.0)], axis=-1))
 
 
+@jax.jit
 def ggx_vndf_pdf(n_dot_v, n_dot_h, alpha):
     """Solid-angle density of l = reflect(v, h), h ~ VNDF: G1(v) D(h) / (4 n·v) (Heitz 2018, eq. 17)."""
     nv = jnp.clip(n_dot_v, brdf.COS_MIN, 1.0)
@@ -146,6 +149,7 @@ class EnvironmentSampler(NamedTuple):
     cos_edges: Float[Array, "H1"]       # cos(theta) at the row edges, top to bottom
 
 
+@jax.jit
 def environment_sampler(radiance: Float[Array, "H W 3"]) -> EnvironmentSampler:
     """Luminance × solid-angle texel distribution of an equirect map (no gradient flows through it).
 
@@ -169,6 +173,7 @@ def environment_sampler(radiance: Float[Array, "H W 3"]) -> EnvironmentSampler:
     return EnvironmentSampler(cdf, p / omega, edges)
 
 
+@jax.jit
 def sample_environment(sampler: EnvironmentSampler, u: Float[Array, "*b 3"]) -> tuple:
     """Environment-frame directions and their densities from three uniforms per sample."""
     cdf, pdf, edges = sampler
@@ -182,6 +187,7 @@ def sample_environment(sampler: EnvironmentSampler, u: Float[Array, "*b 3"]) -> 
     return d, pdf[i, j]
 
 
+@jax.jit
 def environment_pdf(sampler: EnvironmentSampler, d_env: Float[Array, "*b 3"]) -> Float[Array, "*b"]:
     """Solid-angle density with which `sample_environment` draws environment-frame direction ``d_env``."""
     _, pdf, _ = sampler
