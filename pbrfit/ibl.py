@@ -90,13 +90,16 @@ class IBLSettings:
             halving per `PREFILTER_ROUGHNESS_PER_OCTAVE`, down to `PREFILTER_MIN_HEIGHT`.
         prefilter_samples: GGX samples per prefiltered texel (filtered importance sampling).
         prefilter_lod_bias: Křivánek & Colbert's mip bias (1 in the paper; larger blurs more).
-        irradiance: ``"sh9"`` (9 spherical-harmonic coefficients) or ``"map"`` (a convolved map).
+        irradiance: ``"map"`` (a cosine-convolved map; default: no ringing around a sun) or
+            ``"sh9"`` (9 spherical-harmonic coefficients; as accurate under smooth light).
         irradiance_resolution: height of the irradiance map (``"map"`` only; width is twice).
         env_resolution: the environment is box-filtered down to at most this height before
             anything is built (the Monte Carlo reference always reads the full map).
-        specular_direction: ``"reflect"`` looks the prefiltered map up along R = reflect(-v, n);
-            ``"dominant"`` along normalize(mix(R, n, alpha)), the lobe's dominant direction for
-            rough surfaces (Filament's getReflectedVector; Lagarde & de Rousiers 2014, section 4.9.3).
+        specular_direction: ``"dominant"`` (default) reads the prefiltered map along
+            normalize(mix(R, n, alpha)), the lobe's dominant direction for rough surfaces
+            (Filament's getReflectedVector; Lagarde & de Rousiers 2014, section 4.9.3); ``"reflect"``
+            along R = reflect(-v, n) (Karis 2013). The dominant direction cuts the error by a third
+            under smooth light and most at grazing angles.
     """
 
     lut_size: int = 32
