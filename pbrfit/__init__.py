@@ -5,11 +5,32 @@ JAX; capture loading, ray casting and fitting are imported on first use.
 """
 
 import importlib
+import os
 
-from . import brdf, color
-from .errors import CaptureError
-from .material import Material
-from .model import Model
+
+def _xla_workarounds() -> None:
+    """jaxlib 0.10.2 on the CPU miscompiles a fused reduce-then-broadcast (``sum(a * b, -1,
+    keepdims=True) * b``) once an array passes 2**15 elements (jax-ml/jax#39103): jitted results
+    silently differ from eager ones. Turning that YNN fusion off is the upstream workaround. The
+    flag only exists in that release, and XLA rejects unknown flags, so it is set for it alone
+    (before the backend starts, which reads XLA_FLAGS once)."""
+    from importlib import metadata
+
+    try:
+        version = metadata.version("jaxlib")
+    except metadata.PackageNotFoundError:
+        return
+    flag = "--xla_cpu_experimental_ynn_fusion_type=-reduce"
+    if version == "0.10.2" and flag not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()
+
+
+_xla_workarounds()
+
+from . import brdf, color  # noqa: E402
+from .errors import CaptureError  # noqa: E402
+from .material import Material  # noqa: E402
+from .model import Model  # noqa: E402
 
 __version__ = "0.1.0"
 

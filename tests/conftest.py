@@ -1,5 +1,7 @@
 """Shared test settings: a small, deterministic hypothesis profile (the machine is shared)."""
 
+import pbrfit  # noqa: F401  (first: sets XLA workarounds before any JAX backend starts)
+
 from hypothesis import HealthCheck, settings
 
 settings.register_profile(
