@@ -87,35 +87,6 @@ def _frame_lights(scene: Scene, c2w: np.ndarray) -> tuple:
     return lights
 
 
-def _view_inputs(gbuffer, lights):
-    """`pbrfit.render.prepare_view` of every hit pixel, with the light arrays computed over the
-    whole (H, W) image first: the same shape for every view, so the eager jnp ops of
-    `pbrfit.render.light_arrays` compile once per capture instead of once per view."""
-    import jax.numpy as jnp
-
-    from pbrfit.render import ViewInputs, light_arrays
-
-    h, w = gbuffer.hit.shape
-    flat = np.flatnonzero(np.asarray(gbuffer.hit, bool).reshape(-1))
-    vis = np.asarray(gbuffer.visibility).reshape(h * w, -1) if len(lights) else None
-    light_l, light_radiance = (np.asarray(a) for a in light_arrays(lights, np.asarray(gbuffer.position).reshape(h * w, 3), vis))
-
-    def take(a):
-        a = np.asarray(a)
-        return a.reshape(h * w, *a.shape[2:])[flat]
-
-    return ViewInputs(
-        pixel=jnp.asarray(flat, jnp.int32),
-        uv=jnp.asarray(take(gbuffer.uv), jnp.float32),
-        normal=jnp.asarray(take(gbuffer.normal), jnp.float32),
-        tangent=jnp.asarray(take(gbuffer.tangent), jnp.float32),
-        view=jnp.asarray(take(gbuffer.view), jnp.float32),
-        light_l=jnp.asarray(light_l[flat]),
-        light_radiance=jnp.asarray(light_radiance[flat]),
-        shape=(h, w),
-    )
-
-
 def render_scene(scene: Scene, mesh, environment=None, ibl=None, progress: Optional[Callable[[str], None]] = None):
     """Clean display values and masks of every view: ([(H, W, 3) float32], [(H, W) bool]).
 
@@ -129,7 +100,7 @@ def render_scene(scene: Scene, mesh, environment=None, ibl=None, progress: Optio
     from pbrfit.color import encode
     from pbrfit.environment import environment_lookup
     from pbrfit.gbuffer import compute_gbuffer
-    from pbrfit.render import ViewInputs, radiance_view
+    from pbrfit.render import ViewInputs, prepare_view, radiance_view
 
     k = int(scene.supersample)
     hk, wk = scene.height * k, scene.width * k
@@ -139,7 +110,7 @@ def render_scene(scene: Scene, mesh, environment=None, ibl=None, progress: Optio
         camera = frame_camera(scene, c2w, k)
         lights = _frame_lights(scene, c2w)
         gbuffer = compute_gbuffer(mesh, camera, lights)
-        views.append(_view_inputs(gbuffer, lights))
+        views.append(prepare_view(gbuffer, lights))
         hits.append(np.asarray(gbuffer.hit, bool))
         if environment is not None:
             _, dirs = camera.rays()

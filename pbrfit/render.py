@@ -84,27 +84,32 @@ def light_arrays(lights, points: np.ndarray, visibility: Optional[np.ndarray] = 
 
 
 def prepare_view(gbuffer, lights, mask: Optional[np.ndarray] = None) -> ViewInputs:
-    """Flatten a G-buffer's hit pixels (and `mask`, if given) into `ViewInputs` for `lights`."""
+    """Flatten a G-buffer's hit pixels (and `mask`, if given) into `ViewInputs` for `lights`.
+
+    The light arrays are computed over the whole (H, W) image and then gathered, so their
+    (eager) jnp operations see the same shape for every view of a size and compile once, not
+    once per pixel count.
+    """
     keep = np.asarray(gbuffer.hit, bool)
     if mask is not None:
         keep = keep & np.asarray(mask, bool)
     height, width = keep.shape
     flat = np.flatnonzero(keep.reshape(-1))
 
-    def take(a):
+    def whole(a):
         a = np.asarray(a)
-        return a.reshape(height * width, *a.shape[2:])[flat]
+        return a.reshape(height * width, *a.shape[2:])
 
-    vis = take(gbuffer.visibility) if len(lights) else None
-    light_l, light_radiance = light_arrays(lights, take(gbuffer.position), vis)
+    vis = whole(gbuffer.visibility) if len(lights) else None
+    light_l, light_radiance = (np.asarray(a)[flat] for a in light_arrays(lights, whole(gbuffer.position), vis))
     return ViewInputs(
         pixel=jnp.asarray(flat, jnp.int32),
-        uv=jnp.asarray(take(gbuffer.uv), jnp.float32),
-        normal=jnp.asarray(take(gbuffer.normal), jnp.float32),
-        tangent=jnp.asarray(take(gbuffer.tangent), jnp.float32),
-        view=jnp.asarray(take(gbuffer.view), jnp.float32),
-        light_l=light_l,
-        light_radiance=light_radiance,
+        uv=jnp.asarray(whole(gbuffer.uv)[flat], jnp.float32),
+        normal=jnp.asarray(whole(gbuffer.normal)[flat], jnp.float32),
+        tangent=jnp.asarray(whole(gbuffer.tangent)[flat], jnp.float32),
+        view=jnp.asarray(whole(gbuffer.view)[flat], jnp.float32),
+        light_l=jnp.asarray(light_l),
+        light_radiance=jnp.asarray(light_radiance),
         shape=(height, width),
     )
 
