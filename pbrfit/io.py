@@ -171,16 +171,22 @@ def _info(path: Path, spec, file_format: str) -> ImageInfo:
     )
 
 
-def read_image_info(path: str | os.PathLike, where: str | None = None) -> ImageInfo:
-    """The `ImageInfo` of an image file, reading its header only (raises like `read_image`)."""
+def _open_image(path: Path, where: str | None):
+    """An open OpenImageIO ImageInput (alpha unassociated), or `CaptureError` naming the file."""
     oiio = _oiio()
-    path = Path(path)
     prefix = f"{where}: " if where else ""
     if not path.is_file():
         raise CaptureError(f"{prefix}image file not found: {path}")
     inp = oiio.ImageInput.open(str(path), _unassociated_config())
     if inp is None:
         raise CaptureError(f"{prefix}cannot read image {path}: {_first_line(oiio.geterror())}")
+    return inp
+
+
+def read_image_info(path: str | os.PathLike, where: str | None = None) -> ImageInfo:
+    """The `ImageInfo` of an image file, reading its header only (raises like `read_image`)."""
+    path = Path(path)
+    inp = _open_image(path, where)
     try:
         return _info(path, inp.spec(), inp.format_name())
     finally:
@@ -197,11 +203,7 @@ def read_image(path: str | os.PathLike, where: str | None = None) -> tuple[np.nd
     oiio = _oiio()
     path = Path(path)
     prefix = f"{where}: " if where else ""
-    if not path.is_file():
-        raise CaptureError(f"{prefix}image file not found: {path}")
-    inp = oiio.ImageInput.open(str(path), _unassociated_config())
-    if inp is None:
-        raise CaptureError(f"{prefix}cannot read image {path}: {_first_line(oiio.geterror())}")
+    inp = _open_image(path, where)
     try:
         spec = inp.spec()
         pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
