@@ -42,6 +42,7 @@ __all__ = [
     "spot_light",
     "directional_light",
     "flash_light",
+    "color_and_intensity",
     "incident",
     "range_window",
     "spot_falloff",
@@ -279,6 +280,17 @@ def _direction(d: Mapping[str, Any], where: str) -> np.ndarray:
     return v
 
 
+def color_and_intensity(d: Mapping[str, Any], where: str) -> tuple[np.ndarray, float]:
+    """A light object's ``color`` (default white) and ``intensity`` (default 1), both >= 0."""
+    color = _triple(d, "color", where, (1.0, 1.0, 1.0))
+    if np.any(color < 0):
+        raise CaptureError(f"{_loc(where, 'color')}: negative color {d['color']!r}")
+    intensity = _number(d, "intensity", where, 1.0)
+    if intensity < 0:
+        raise CaptureError(f"{_loc(where, 'intensity')}: negative intensity {intensity!r}")
+    return color, intensity
+
+
 def light_from_json(d: Any, where: str) -> Light:
     """Build a `Light` from its capture.json object, validating every key.
 
@@ -301,12 +313,7 @@ def light_from_json(d: Any, where: str) -> Light:
             raise CaptureError(
                 f"{where}: unknown key {key!r} for a {kind} light (allowed: {', '.join(allowed)})"
             )
-    color = _triple(d, "color", where, (1.0, 1.0, 1.0))
-    if np.any(color < 0):
-        raise CaptureError(f"{_loc(where, 'color')}: negative color {d['color']!r}")
-    intensity = _number(d, "intensity", where, 1.0)
-    if intensity < 0:
-        raise CaptureError(f"{_loc(where, 'intensity')}: negative intensity {intensity!r}")
+    color, intensity = color_and_intensity(d, where)
     range_ = _number(d, "range", where, 0.0)
     if range_ < 0:
         raise CaptureError(f"{_loc(where, 'range')}: negative range {range_!r} (0 means infinite)")

@@ -60,7 +60,7 @@ import numpy as np
 from .errors import CaptureError
 from .gbuffer import Camera
 from .io import _LDR_MAX, ImageInfo, read_image, read_image_info
-from .lights import Light, _loc, _number, _triple, flash_light, light_from_json
+from .lights import Light, _loc, _number, _triple, color_and_intensity, flash_light, light_from_json
 
 __all__ = [
     "CAPTURE_FORMAT",
@@ -489,12 +489,7 @@ def _parse_flash(raw: Mapping, name: str) -> Optional[tuple[np.ndarray, float, n
     where = f"{name}: flash"
     flash = _object(raw["flash"], where)
     _check_keys(flash, _FLASH_KEYS, where, "flash")
-    color = _triple(flash, "color", where, (1.0, 1.0, 1.0))
-    if np.any(color < 0):
-        raise CaptureError(f"{where}.color: negative color {flash['color']!r}")
-    intensity = _number(flash, "intensity", where, 1.0)
-    if intensity < 0:
-        raise CaptureError(f"{where}.intensity: negative intensity {intensity!r}")
+    color, intensity = color_and_intensity(flash, where)
     return color, intensity, _triple(flash, "offset", where, (0.0, 0.0, 0.0))
 
 
