@@ -257,7 +257,7 @@ def synthesize(
             if scene.model.ibl == "split_sum" or scene.model.multiscatter:
                 from pbrfit.ibl import IBLSettings, build_ibl
 
-                ibl = build_ibl(environment, IBLSettings())
+                ibl = build_ibl(environment, IBLSettings(), scene.model)
         clean, masks = render_scene(scene, mesh, environment, ibl, progress)
 
         rng = np.random.default_rng([scene.seed, 0x5E5])  # the sensor's own stream

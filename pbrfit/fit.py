@@ -92,13 +92,9 @@ def model_for_capture(capture, fit: Sequence[str] = ("base_color", "metallic", "
 def _ibl_for_capture(capture, model: Model):
     if model.ibl is None:
         return None
-    from .environment import load_environment
-    from .ibl import IBLSettings, build_ibl
+    from .views import capture_ibl
 
-    spec = capture.environment
-    env = load_environment(spec.file, world_up=capture.world_up, intensity=spec.intensity,
-                           rotation_deg=spec.rotation_deg)
-    return build_ibl(env, IBLSettings(), model)
+    return capture_ibl(capture, model=model)
 
 
 def _median_footprint(obs: Observations) -> float:

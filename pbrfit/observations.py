@@ -158,32 +158,23 @@ def observations_from_capture(capture, cache_dir=None, views=None) -> Observatio
     Masked pixels, pixels the mesh misses and saturated LDR pixels (`Frame.saturated`) are left
     out. `views` may pass precomputed `ViewInputs` (one per frame) to skip the ray casting.
     """
-    from .color import encode  # noqa: F401  (documents the target space)
-    from .gbuffer import compute_gbuffer
-    from .render import prepare_view
+    from .color import linear_to_srgb
+    from .views import capture_gbuffers, capture_views
 
     color_space = getattr(capture, "color_space", "linear")
     if views is None:
-        views = []
-        for frame in capture.frames:
-            gb = compute_gbuffer(capture.mesh, frame.camera, list(frame.lights), cache_dir=cache_dir)
-            views.append(prepare_view(gb, list(frame.lights), mask=frame.mask))
+        views = capture_views(capture, capture_gbuffers(capture, cache_dir))
     images, usable, exposures = [], [], []
     for frame in capture.frames:
         img = np.asarray(frame.image, np.float32)
         if color_space == "srgb":
-            img = _linear_to_srgb_np(img)  # frames hold decoded linear values; residuals live in file space
+            # frames hold decoded linear values; residuals live in file space
+            img = np.asarray(linear_to_srgb(np.clip(img, 0.0, None)), np.float32)
         images.append(img)
         sat = getattr(frame, "saturated", None)
         usable.append(None if sat is None else ~np.asarray(sat, bool))
         exposures.append(float(getattr(frame, "exposure", 0.0)))
     return observations_from_views(views, images, exposures, usable, getattr(capture, "tonemap", "none"), color_space)
-
-
-def _linear_to_srgb_np(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x.astype(np.float64), 0.0, None)
-    out = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0031308), 1 / 2.4) - 0.055)
-    return out.astype(np.float32)
 
 
 def texel_layout(obs: Observations, shape: tuple[int, int], wrap: str = "repeat") -> TexelLayout:

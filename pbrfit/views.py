@@ -67,14 +67,15 @@ def capture_environment(capture):
     return load_environment(spec.file, capture.world_up, spec.intensity, spec.rotation_deg)
 
 
-def capture_ibl(capture, settings=None, environment=None):
-    """Split-sum tables for the capture's environment (or `environment`), or None without one."""
+def capture_ibl(capture, settings=None, environment=None, model: Optional[Model] = None):
+    """Split-sum tables for the capture's environment (or `environment`), or None without one;
+    `model` picks the lobes the tables hold (see `pbrfit.ibl.build_ibl`)."""
     env = environment if environment is not None else capture_environment(capture)
     if env is None:
         return None
     from .ibl import IBLSettings, build_ibl
 
-    return build_ibl(env, settings if settings is not None else IBLSettings())
+    return build_ibl(env, settings if settings is not None else IBLSettings(), model)
 
 
 def capture_gbuffers(capture, cache_dir: Optional[os.PathLike] = None) -> list[GBuffer]:
@@ -108,7 +109,7 @@ def render_capture(
     model = model if model is not None else model_for_capture(capture, material)
     environment = capture_environment(capture)
     if ibl is None and (model.ibl == "split_sum" or model.multiscatter):
-        ibl = capture_ibl(capture, environment=environment)
+        ibl = capture_ibl(capture, environment=environment, model=model)
     gbuffers = gbuffers if gbuffers is not None else capture_gbuffers(capture, cache_dir)
     views = capture_views(capture, gbuffers, use_masks=False)
     out = []
