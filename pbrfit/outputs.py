@@ -31,10 +31,10 @@ def _heat(err: np.ndarray, scale: float) -> np.ndarray:
 
 def _display(x: np.ndarray, is_srgb: bool) -> np.ndarray:
     """Values to show in an 8-bit PNG: sRGB-encoded, clipped."""
-    x = np.clip(np.asarray(x, np.float64), 0.0, 1.0)
-    if is_srgb:
-        return x
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0031308), 1 / 2.4) - 0.055)
+    from .color import linear_to_srgb
+
+    x = np.clip(np.asarray(x, np.float32), 0.0, 1.0)
+    return x if is_srgb else np.asarray(linear_to_srgb(x))
 
 
 def contact_sheet(target: np.ndarray, fitted: np.ndarray, mask: np.ndarray, is_srgb: bool) -> np.ndarray:

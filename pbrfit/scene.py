@@ -59,7 +59,7 @@ import numpy as np
 
 from .errors import CaptureError
 from .gbuffer import Camera
-from .io import _LDR_MAX, ImageInfo, read_image, read_image_info
+from .io import _LDR_MAX, ImageInfo, _srgb_decode, read_image, read_image_info
 from .lights import Light, _loc, _number, _triple, color_and_intensity, flash_light, light_from_json
 
 __all__ = [
@@ -470,12 +470,6 @@ def _rgb(pixels: np.ndarray, info: ImageInfo, where: str) -> np.ndarray:
     raise CaptureError(f"{where}: image {info.path} has {info.channels} channels; expected gray, RGB or RGBA")
 
 
-def _srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    from .color import srgb_to_linear
-
-    return np.asarray(srgb_to_linear(x), dtype=np.float32)
-
-
 def _check_distortion(obj: Mapping, where: str) -> None:
     for key in _DISTORTION_KEYS:
         if key in obj and _number(obj, key, where, None) != 0.0:
@@ -554,7 +548,7 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
             CaptureWarning,
             stacklevel=3,
         )
-    image = _srgb_to_linear(rgb) if color_space == "srgb" else np.ascontiguousarray(rgb, dtype=np.float32)
+    image = _srgb_decode(rgb) if color_space == "srgb" else np.ascontiguousarray(rgb, dtype=np.float32)
 
     frame_lights_raw = frame_raw.get("lights", [])
     if not isinstance(frame_lights_raw, list):
