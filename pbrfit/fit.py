@@ -83,10 +83,11 @@ class FitResult:
 def model_for_capture(capture, fit: Sequence[str] = ("base_color", "metallic", "roughness"), fixed=None) -> Model:
     """The model the images need: split-sum IBL when there is an environment; the metal lobe
     only when metallic is fitted or fixed to something nonzero."""
+    from .views import model_for_capture as scene_model
+
     fixed = fixed or {}
     metal = "metallic" in fit or bool(np.any(np.asarray(fixed.get("metallic", 0.0)) != 0))
-    env = getattr(capture, "environment", None)
-    return Model(ibl="split_sum" if env is not None else None, metallic=metal)
+    return scene_model(capture, metallic=metal)
 
 
 def _ibl_for_capture(capture, model: Model):
