@@ -1,0 +1,268 @@
+"""Sharding the fit over devices (`pbrfit.sharding`).
+
+The multi-device check needs several JAX devices, and on the CPU their number is fixed by
+``XLA_FLAGS=--xla_force_host_platform_device_count`` before JAX starts, so it runs this file as
+a script in a fresh interpreter (`_multi_device_report`) and checks what it prints. The padding
+checks run here, on one device.
+
+The problems are synthetic and tiny: a plane (normal +z) seen along random directions under two
+lights, a 4 × 4 map read bilinearly at random uv, targets rendered from a random material.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.sharding import PartitionSpec
+
+from pbrfit.color import COLOR_SPACES, TONEMAPS, encode
+from pbrfit.ibl import IBLTables
+from pbrfit.model import Model
+from pbrfit.observations import Observations, coverage_counts, neighbour_pairs, texel_layout
+from pbrfit.render import shade
+from pbrfit.sharding import (PAD_LIGHT, PAD_NORMAL, PAD_VIEW, PIXEL_AXIS, pad_layout, pad_observations, pad_pixel_rows,
+                             padded_size, pixel_mesh, shard_problem)
+from pbrfit.solvers import Problem, gradient, linearize, normal_blocks, objective, pixel_residuals
+
+DEVICES = 4
+PIXELS = 1001          # not a multiple of DEVICES: the sharded problem is padded to 1004
+MAP = (4, 4)
+
+
+def _unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _hemisphere(rng, n, max_deg=70.0):
+    """n unit directions around +z, at most `max_deg` from it."""
+    theta = np.radians(max_deg) * np.sqrt(rng.random(n))
+    phi = 2 * np.pi * rng.random(n)
+    return np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1)
+
+
+def _problem(pixels=PIXELS, tonemap="none", color_space="linear", loss="l2", model=Model(), ibl=None, smooth=1e-3,
+             render=True, seed=0) -> tuple[Problem, np.ndarray]:
+    """A small fitting problem and its true (T, 5) texel values; targets rendered from them
+    (plus noise) when `render`, else random."""
+    rng = np.random.default_rng(seed)
+    views = 3
+    lights = _unit(np.array([[0.6, 0.2, 1.0], [-0.5, -0.4, 0.8]]))
+    obs = Observations(
+        normal=jnp.asarray(np.tile([[0.0, 0.0, 1.0]], (pixels, 1)), jnp.float32),
+        view=jnp.asarray(_hemisphere(rng, pixels), jnp.float32),
+        light_l=jnp.asarray(np.broadcast_to(lights, (pixels, 2, 3)), jnp.float32),
+        light_radiance=jnp.asarray(np.broadcast_to([[3.0, 3.0, 3.0], [2.0, 2.5, 3.0]], (pixels, 2, 3)), jnp.float32),
+        uv=jnp.asarray(rng.random((pixels, 2)), jnp.float32),
+        exposure=jnp.asarray(rng.choice([-0.5, 0.0, 0.5], pixels), jnp.float32),
+        target=jnp.asarray(rng.random((pixels, 3)), jnp.float32),
+        view_index=jnp.asarray(np.arange(pixels) % views, jnp.int32),
+        pixel=jnp.asarray(np.arange(pixels) // views, jnp.int32),
+        shapes=((1, -(-pixels // views)),) * views,
+        tonemap=tonemap,
+        color_space=color_space,
+    )
+    layout = texel_layout(obs, MAP)
+    t = MAP[0] * MAP[1]
+    pairs = neighbour_pairs(MAP)
+    free = np.ones((t, 5), np.float32)
+    free[:, 3] = 0.0  # dielectric: metallic held at 0
+    truth = np.concatenate([rng.uniform(0.2, 0.8, (t, 3)), np.zeros((t, 1)), rng.uniform(0.3, 0.7, (t, 1))], 1)
+    truth = truth.astype(np.float32)
+    problem = Problem(obs, layout.index, layout.weight, jnp.asarray(free), jnp.asarray(pairs),
+                      jnp.ones(len(pairs), jnp.float32), jnp.asarray(smooth, jnp.float32),
+                      jnp.asarray(0.05, jnp.float32), ibl, model, loss)
+    if render:
+        blank = dataclasses.replace(problem, obs=dataclasses.replace(obs, target=jnp.zeros_like(obs.target)), loss="l2")
+        clean = jax.jit(pixel_residuals)(jnp.asarray(truth), blank)  # target 0: the rendered values
+        noisy = clean + 0.01 * jnp.asarray(rng.standard_normal(clean.shape), jnp.float32)
+        problem = dataclasses.replace(problem, obs=dataclasses.replace(obs, target=noisy))
+    return problem, truth
+
+
+def _start(problem: Problem) -> jnp.ndarray:
+    return jnp.asarray(np.tile([[0.5, 0.5, 0.5, 0.0, 0.5]], (problem.num_texels, 1)), jnp.float32)
+
+
+def _constant_ibl() -> IBLTables:
+    """Split-sum tables of a grey environment, built by hand (no table building to compile)."""
+    sh = np.zeros((9, 3), np.float32)
+    sh[0] = 2.0
+    return IBLTables(jnp.asarray(sh), jnp.full((2, 4, 8, 3), 1.5, jnp.float32), jnp.full((4, 4, 2), 0.5, jnp.float32),
+                     jnp.full((4, 4, 3), 0.8, jnp.float32), jnp.full((4, 4, 1), 0.3, jnp.float32), "sh9",
+                     ((4, 8), (4, 8)))
+
+
+# --- one device: padding ---------------------------------------------------------------------
+
+
+def test_padded_size():
+    assert [padded_size(n, 4) for n in (0, 1, 4, 5, 1001)] == [0, 4, 4, 8, 1004]
+    with pytest.raises(ValueError):
+        padded_size(3, 0)
+
+
+def test_encode_sends_zero_radiance_to_zero():
+    zero = jnp.zeros((2, 3), jnp.float32)
+    for tonemap in TONEMAPS:
+        for space in COLOR_SPACES:
+            for ev in (0.0, -3.0, 2.5):
+                assert np.all(np.asarray(encode(zero, ev, tonemap, space)) == 0.0), (tonemap, space, ev)
+
+
+def test_shade_and_its_tangents_vanish_at_padded_geometry():
+    """n·v < 0 zeroes every lobe, punctual and environment, and the forward-mode derivative."""
+    model = Model(distribution="beckmann", geometry="schlick_ggx_direct", fresnel="dielectric", diffuse="burley",
+                  multiscatter=True, ibl="split_sum")
+    ibl = _constant_ibl()
+    n = 3
+    geometry = (jnp.tile(jnp.asarray([PAD_NORMAL]), (n, 1)), jnp.tile(jnp.asarray([PAD_VIEW]), (n, 1)),
+                jnp.tile(jnp.asarray([[PAD_LIGHT]]), (n, 1, 1)), jnp.ones((n, 1, 3)))  # lit, to be sure
+    front = (geometry[0], -geometry[1], geometry[0][:, None, :], geometry[3])
+
+    @jax.jit
+    def check(m):
+        f = lambda v, g: shade(*g, v[:, 0:3], v[:, 3:4], v[:, 4:5], model, ibl)  # noqa: E731
+        return f(m, geometry), jax.jacfwd(f)(m, geometry), f(m, front)
+
+    value, jac, lit = check(jnp.asarray([[0.7, 0.4, 0.2, 0.5, 0.3]] * n, jnp.float32))
+    assert np.all(np.asarray(value) == 0.0) and np.all(np.asarray(jac) == 0.0)
+    assert np.all(np.asarray(lit) > 0.0)  # seen from the front it is lit: the zeros are the n·v gate's
+
+
+def test_padded_pixels_have_zero_residual_and_jacobian():
+    """With a tone map, sRGB, a robust loss and an environment (linear, no tone map and l2 are
+    `test_padded_layout_and_problem_change_nothing_texel_side`)."""
+    tonemap, color_space, loss = "aces_hill", "srgb", "huber"
+    model = Model(ibl="split_sum", multiscatter=True)
+    problem, truth = _problem(pixels=37, tonemap=tonemap, color_space=color_space, loss=loss, model=model,
+                              ibl=_constant_ibl(), render=False)
+    obs, real = pad_observations(problem.obs, 8)
+    assert (real, obs.num_pixels) == (37, 40)
+    assert obs.shapes == problem.obs.shapes and (obs.tonemap, obs.color_space) == (tonemap, color_space)
+    np.testing.assert_array_equal(np.asarray(obs.view_index[real:]), -1)
+    np.testing.assert_array_equal(np.asarray(obs.pixel[real:]), -1)
+    np.testing.assert_array_equal(np.asarray(obs.target[:real]), np.asarray(problem.obs.target))
+    # Give the padded pixels real texels with full weight: their rows must vanish by themselves.
+    index = jnp.concatenate([problem.index, problem.index[:3]])
+    weight = jnp.concatenate([problem.weight, problem.weight[:3]])
+    padded = dataclasses.replace(problem, obs=obs, index=index, weight=weight)
+    r, jac, _ = jax.jit(linearize)(jnp.asarray(truth), padded)
+    assert np.all(np.asarray(r[real:]) == 0.0) and np.all(np.asarray(jac[real:]) == 0.0)
+    assert np.all(np.isfinite(np.asarray(jac))) and np.all(np.any(np.asarray(r[:real]) != 0.0, axis=1))
+
+
+def test_padded_layout_and_problem_change_nothing_texel_side():
+    problem, truth = _problem(pixels=37, render=False)
+    obs, real = pad_observations(problem.obs, 4)
+    layout = pad_layout(texel_layout(problem.obs, MAP), 4)
+    assert layout.index.shape == (40, 4) and layout.shape == MAP
+    assert np.all(np.asarray(layout.weight[real:]) == 0.0) and np.all(np.asarray(layout.index[real:]) == 0)
+    np.testing.assert_array_equal(coverage_counts(layout), coverage_counts(texel_layout(problem.obs, MAP)))
+    index, weight = pad_pixel_rows(problem.index, problem.weight, 4)
+    np.testing.assert_array_equal(np.asarray(index), np.asarray(layout.index))
+    padded = dataclasses.replace(problem, obs=obs, index=index, weight=weight)
+
+    @jax.jit
+    def texel_side(x, p):
+        r, jac, energy = linearize(x, p)
+        return (normal_blocks(jac, p), gradient(r, jac, x, p), energy, objective(x, p)), (r, jac)
+
+    x = jnp.asarray(truth)
+    got_all, (r, jac) = texel_side(x, padded)
+    assert np.all(np.asarray(r[real:]) == 0.0) and np.all(np.asarray(jac[real:]) == 0.0)
+    for got, want in zip(got_all, texel_side(x, problem)[0]):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-6, atol=1e-6)
+
+
+def test_shard_problem_on_one_device():
+    problem, _ = _problem(pixels=37, render=False)
+    sharded = shard_problem(problem, pixel_mesh(jax.devices()[:1]))
+    assert pixel_mesh().axis_names == (PIXEL_AXIS,)
+    assert sharded.obs.num_pixels == 37 and sharded.obs.target.sharding.spec == PartitionSpec(PIXEL_AXIS)
+    assert (sharded.model, sharded.loss, sharded.obs.shapes) == (problem.model, problem.loss, problem.obs.shapes)
+    np.testing.assert_array_equal(np.asarray(sharded.index), np.asarray(problem.index))
+
+
+# --- several devices (in a subprocess) ---------------------------------------------------------
+
+
+def _multi_device_report() -> dict:
+    """Solve the same problem unsharded and sharded over all devices; what the test checks."""
+    from pbrfit.initialisation import grid_initialise
+    from pbrfit.solvers import structured_lm
+
+    out = dict(devices=len(jax.devices()))
+    problem, _ = _problem()
+    mesh = pixel_mesh()
+    sharded = shard_problem(problem, mesh)
+    real = problem.obs.num_pixels
+    target = sharded.obs.target
+    out.update(
+        pixels=sharded.obs.num_pixels,
+        spec=str(target.sharding.spec), want_spec=str(PartitionSpec(PIXEL_AXIS)),
+        shard_rows=sorted(int(s.data.shape[0]) for s in target.addressable_shards),
+        shard_devices=len({s.device for s in target.addressable_shards}),
+        index_shards=len({s.device for s in sharded.index.addressable_shards}),
+        light_shard_rows=sorted(int(s.data.shape[0]) for s in sharded.obs.light_radiance.addressable_shards),
+        texels_replicated=bool(sharded.free.sharding.is_fully_replicated and sharded.pairs.sharding.is_fully_replicated
+                               and sharded.smooth.sharding.is_fully_replicated),
+    )
+
+    x0 = grid_initialise(_start(problem), problem)
+    x0_sh = grid_initialise(_start(problem), sharded)
+    out["init_diff"] = float(jnp.max(jnp.abs(x0 - x0_sh)))
+
+    # As `pbrfit.fit._Runner` does: ahead-of-time compile, then run.
+    args = (x0, problem, jnp.asarray(30, jnp.int32), 1e-7, 1e-6)
+    x, stats, r, jac = structured_lm.lower(*args).compile()(*args)
+    args_sh = (x0, sharded, jnp.asarray(30, jnp.int32), 1e-7, 1e-6)
+    x_sh, stats_sh, r_sh, jac_sh = structured_lm.lower(*args_sh).compile()(*args_sh)
+    energy = jax.jit(objective)
+    out.update(
+        x_diff=float(jnp.max(jnp.abs(x - x_sh))),
+        steps=[int(stats.steps), int(stats_sh.steps)],
+        loss=[float(stats.loss), float(stats_sh.loss)],
+        objective=[float(energy(x, problem)), float(energy(x_sh, problem))],
+        residual_spec=str(r_sh.sharding.spec), residual_rows=int(r_sh.shape[0]),
+        residual_diff=float(jnp.max(jnp.abs(r[:real] - r_sh[:real]))),
+        padded_residual=float(jnp.max(jnp.abs(r_sh[real:]))), padded_jacobian=float(jnp.max(jnp.abs(jac_sh[real:]))),
+    )
+    blocks = jax.jit(normal_blocks)(jac, problem)
+    blocks_sh = jax.jit(normal_blocks)(jac_sh, sharded)
+    out["blocks_rel_diff"] = float(jnp.max(jnp.abs(blocks - blocks_sh)) / jnp.max(jnp.abs(blocks)))
+    return out
+
+
+def test_structured_lm_sharded_over_four_cpu_devices():
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    flags = [f for f in env.get("XLA_FLAGS", "").split() if not f.startswith("--xla_force_host_platform_device_count")]
+    env["XLA_FLAGS"] = " ".join(flags + [f"--xla_force_host_platform_device_count={DEVICES}"])
+    proc = subprocess.run([sys.executable, __file__], env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    rep = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert rep["devices"] == DEVICES
+    assert rep["pixels"] == padded_size(PIXELS, DEVICES) == 1004
+    assert rep["spec"] == rep["want_spec"]
+    assert rep["shard_rows"] == [251] * DEVICES and rep["light_shard_rows"] == [251] * DEVICES
+    assert rep["shard_devices"] == DEVICES and rep["index_shards"] == DEVICES
+    assert rep["texels_replicated"]
+    assert rep["init_diff"] <= 1e-5, rep
+    assert rep["steps"][0] > 2 and rep["steps"][1] > 2, rep
+    assert rep["x_diff"] <= 1e-5, rep
+    np.testing.assert_allclose(rep["loss"][1], rep["loss"][0], rtol=1e-5)
+    np.testing.assert_allclose(rep["objective"], rep["loss"][0], rtol=1e-5)
+    assert rep["residual_spec"] == rep["want_spec"] and rep["residual_rows"] == 1004, rep
+    assert rep["residual_diff"] <= 1e-5 and rep["padded_residual"] == 0.0 and rep["padded_jacobian"] == 0.0, rep
+    assert rep["blocks_rel_diff"] <= 1e-5, rep
+
+
+if __name__ == "__main__":
+    print(json.dumps(_multi_device_report()))
