@@ -176,6 +176,10 @@ def _add_fit(sub) -> None:
     p.add_argument("--loss", choices=LOSSES, default="l2", help="robust loss (default l2: off)")
     p.add_argument("--smooth", type=float, default=0.0, help="weight of the smoothness prior (default 0: off)")
     p.add_argument("--coarse-to-fine", action="store_true", help="solve a uniform material and coarser maps first")
+    p.add_argument("--no-search", action="store_true",
+                   help="skip the per-texel re-search of metallic and roughness midway through the solve")
+    p.add_argument("--devices", type=int,
+                   help="split the pixels over this many JAX devices (default: one device)")
     p.add_argument("--cache", help="G-buffer cache folder (default $PBRFIT_CACHE or ~/.cache/pbrfit)")
     p.add_argument("--no-cache", action="store_true", help="do not read or write the G-buffer cache")
     p.add_argument("--quiet", action="store_true", help="no progress bar; only errors")
@@ -221,10 +225,18 @@ def _fit_options(args) -> dict:
         raise CaptureError(f"--max-steps: must be at least 1, got {args.max_steps}")
     if args.smooth < 0:
         raise CaptureError(f"--smooth: must be >= 0, got {args.smooth}")
+    devices = None
+    if args.devices is not None:
+        import jax
+
+        available = jax.devices()
+        if not 1 <= args.devices <= len(available):
+            raise CaptureError(f"--devices: expected 1 to {len(available)} (the devices JAX sees), got {args.devices}")
+        devices = available[: args.devices] if args.devices > 1 else None
     return dict(
         fit=tuple(free), fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
         max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, loss=args.loss, smooth=args.smooth,
-        coarse_to_fine=args.coarse_to_fine,
+        coarse_to_fine=args.coarse_to_fine, search=not args.no_search, devices=devices,
     )
 
 

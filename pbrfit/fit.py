@@ -6,14 +6,16 @@ solver chosen by ``solver=``:
 
 - ``"structured"`` (default): projected Levenberg-Marquardt on the exact image-space objective
   with per-pixel forward-mode Jacobians, block-sparse normal equations and block-Jacobi CG
-  (`pbrfit.solvers`), run coarse to fine: a uniform material first, then maps of growing
-  resolution, each started from the previous one. `experiments/solvers.md` has the numbers that
-  chose it.
+  (`pbrfit.solvers`), started by a per-texel grid search and, midway, re-searching each texel's
+  metallic and roughness with its neighbours fixed (`pbrfit.initialisation`); optionally coarse
+  to fine (a uniform material first, then maps of growing resolution). `experiments/solvers.md`
+  has the numbers that chose it.
 - ``"lm"``, ``"gn"``, ``"dogleg"``, ``"bfgs"``, ``"lbfgs"``, ``"ncg"``, ``"adam"``: optimistix
   solvers on the same objective (`pbrfit.optx_solvers`), run through the same schedule.
 
-The result carries the maps, per-texel standard errors (`pbrfit.uncertainty`), per-texel
-coverage, the fitted renders of every view and a report.
+Pixels can be split over several devices (``devices=``, `pbrfit.sharding`). The result carries
+the maps, per-texel standard errors (`pbrfit.uncertainty`), per-texel coverage, the fitted
+renders of every view and a report.
 """
 
 from __future__ import annotations
@@ -27,13 +29,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .initialisation import grid_initialise
+from .initialisation import coordinate_search, grid_initialise, parity_classes
 from .material import Material
 from .model import Model
 from .observations import (Observations, TexelLayout, coverage_counts, neighbour_pairs, observations_from_capture,
                            texel_layout, uniform_layout)
 from .optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
 from .parameters import CHANNELS, FIT_GROUPS, PRIOR, channel_mask
+from .sharding import pixel_mesh, shard_problem
 from .solvers import LOSSES, Problem, linearize, normal_blocks, objective, pixel_residuals, structured_lm
 from .textures import sample_bilinear
 from .uncertainty import block_standard_errors, residual_variance
@@ -46,6 +49,9 @@ SOLVERS = (DEFAULT_SOLVER,) + OPTX_SOLVERS
 #: Default step limits: per coarse level, and for the final level.
 COARSE_STEPS = 20
 MAX_STEPS = 40
+#: With ``search=True`` the final level runs this many steps, then `coordinate_search` (one sweep
+#: of the four parity classes), then the rest of its steps (experiments/solvers.md).
+SEARCH_AFTER = 15
 #: Default scale of the robust losses, in image units (a few times a typical noise level).
 LOSS_SCALE = 0.05
 #: Each coarse-to-fine level is this factor finer than the one before (see experiments/solvers.md).
@@ -183,6 +189,8 @@ def fit_observations(
     smooth: float = 0.0,
     coarse_to_fine: bool = False,
     init: str = "grid",
+    search: bool = True,
+    devices=None,
     level_factor: int = LEVEL_FACTOR,
     wrap: str = "repeat",
     progress: Optional[Callable] = None,
@@ -214,6 +222,7 @@ def fit_observations(
     pairs_final = neighbour_pairs(final)
     e_final = pairs_final.shape[0]
 
+    mesh = None if devices is None else pixel_mesh(devices)
     x = None
     history = []
     clock = dict(compile=0.0, solve=0.0)
@@ -244,18 +253,39 @@ def fit_observations(
             pw[: len(p)] = (seen[p[:, 0]] & seen[p[:, 1]]).astype(np.float32)
         problem = Problem(obs, layout.index, layout.weight, jnp.asarray(free), jnp.asarray(pairs), jnp.asarray(pw),
                           jnp.asarray(smooth, jnp.float32), jnp.asarray(loss_scale, jnp.float32), ibl, model, loss)
+        if mesh is not None:
+            problem = shard_problem(problem, mesh)
         if level == 0 and init == "grid":
-            t0 = time.perf_counter()
-            x0 = np.asarray(grid_initialise(jnp.asarray(x0), problem))
-            clock["init"] = time.perf_counter() - t0
-        steps = max_steps if level == len(levels) - 1 else min(coarse_steps, max_steps)
-        xs, info = runner(jnp.asarray(x0), problem, steps, int(np.sum(free)))
+            x0 = np.asarray(_timed(grid_initialise, clock, "init", jnp.asarray(x0), problem))
+        last = level == len(levels) - 1
+        steps = max_steps if last else min(coarse_steps, max_steps)
+        searching = last and search and shape != (1, 1) and np.any(channels[3:] > 0)
+        first = min(SEARCH_AFTER, steps) if searching else steps
+        xs, info = runner(jnp.asarray(x0), problem, first, int(np.sum(free)))
+        if searching and first < steps:
+            xn = np.asarray(_timed(coordinate_search, clock, "search", jnp.asarray(xs), problem,
+                                   jnp.asarray(parity_classes(shape))))
+            moved = int(np.sum(np.any(xn[:t] != xs[:t], axis=1)))
+            xs, more = runner(jnp.asarray(xn), problem, steps - first, int(np.sum(free)))
+            info = {k: (v + more[k] if isinstance(v, int) and k != "result" else more[k]) for k, v in info.items()}
+            info["search_moved"] = moved
         history.append(dict(resolution=list(shape), **info))
         x = xs[:t].reshape(shape + (5,))
 
     t_post = time.perf_counter()
     return _finish(obs, problem, x, final, channels, seen[:t_final], model, solver, history, loss, smooth,
                    dict(setup=setup_time, **clock), t_post, t_start, runner.linearization)
+
+
+def _timed(fn, clock: dict, name: str, *args):
+    """Compile `fn` ahead of time (added to ``clock["compile"]``), run it (``clock[name]``)."""
+    t0 = time.perf_counter()
+    compiled = fn.lower(*args).compile()
+    clock["compile"] += time.perf_counter() - t0
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(compiled(*args))
+    clock[name] = clock.get(name, 0.0) + time.perf_counter() - t0
+    return out
 
 
 class _Runner:
@@ -308,11 +338,11 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     coverage = coverage_counts(_layout(obs, final, "repeat" if final != (1, 1) else "repeat"))
     # Per-view renders in image space and PSNR (peak 1: display values).
     if loss == "l2":
-        resid = np.asarray(r)
+        resid = np.asarray(r)[: obs.num_pixels]
     else:
-        plain = Problem(obs, problem.index, problem.weight, problem.free, problem.pairs, problem.pair_weight,
+        plain = Problem(problem.obs, problem.index, problem.weight, problem.free, problem.pairs, problem.pair_weight,
                         problem.smooth, problem.loss_scale, problem.ibl, model, "l2")
-        resid = np.asarray(jax.jit(pixel_residuals)(xj, plain))
+        resid = np.asarray(jax.jit(pixel_residuals)(xj, plain))[: obs.num_pixels]
     values = resid + np.asarray(obs.target)
     vidx = np.asarray(obs.view_index)
     pix = np.asarray(obs.pixel)
@@ -349,7 +379,7 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
         psnr=psnr,
         times={k: float(v) for k, v in times.items()},
         wall_time=float(times["setup"] + time.perf_counter() - t_start),
-        devices=[str(d) for d in jax.devices()],
+        devices=sorted(str(d) for d in problem.obs.target.sharding.device_set),
     )
     return FitResult(material, sigma, coverage, report, images, targets, masks)
 
@@ -366,7 +396,13 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, *
         solver: one of `SOLVERS`; max_steps (final level), coarse_steps, rtol, atol.
         loss: "l2", "huber" or "cauchy" (scale `loss_scale`, image units); smooth: weight of the
             neighbour-difference prior (0 = off).
-        coarse_to_fine: run the levels of `schedule` (default) or the final resolution only.
+        coarse_to_fine: run the levels of `schedule`, or (default) the final resolution only.
+        init: "grid" (`pbrfit.initialisation.grid_initialise`, default) or "prior" (start at PRIOR).
+        search: after `SEARCH_AFTER` steps of the final level, re-search each texel's metallic and
+            roughness with its neighbours fixed (`pbrfit.initialisation.coordinate_search`), then
+            finish the steps: repairs texels left in a wrong roughness basin (default on).
+        devices: a sequence of JAX devices to split the pixels over (`pbrfit.sharding`); default
+            None: the default device.
         model: override the `Model` (default `model_for_capture`: the one that rendered the images).
         progress: called with {level, resolution, step, loss} after each step (a host callback;
             leave None for a solve with no host round-trips).

@@ -9,11 +9,21 @@ at metallic 1), so
 
     L_p(b) = L_p(0) + b (L_p(1) - L_p(0)).
 
-For every candidate (m, r) we render each pixel twice (b = 0 and b = 1), solve each texel's base
-colour in closed form from the pixels that read it (weighted by their bilinear weights, in linear
-radiance, the targets decoded from sRGB), score the candidate by the image-space residual of
-those pixels, and keep each texel's best candidate. Channels held fixed keep their values. This
-costs 2 × candidates forward renders and no solve; the structured solver refines from there.
+For every candidate (m, r) we render each pixel with its slope in b (one forward-mode pass),
+solve each texel's base colour in closed form from the pixels that read it (weighted by their
+bilinear weights, in linear radiance, the targets decoded from sRGB), score the candidate by the
+image-space residual of those pixels, and keep each texel's best candidate. Channels held fixed
+keep their values. This costs one forward-mode render per candidate and no solve; the
+structured solver refines from there.
+
+That start assumes a texel's four bilinear neighbours share its candidate, which fails where
+the maps change: at edges, and where one neighbour landed in a wrong roughness basin the others
+then bend around. `coordinate_search` repairs this after a solve. It splits the texels into the
+four parity classes (row mod 2, column mod 2); a bilinear footprint holds one texel of each, so
+the texels of one class share no pixel and each can be searched over the same candidates *with
+its neighbours held at their current values*: the exact conditional objective, texel by texel
+(iterated conditional modes, J. Besag, "On the statistical analysis of dirty pictures", JRSS B
+1986). A texel moves only if its pixels' exact residual drops.
 """
 
 from __future__ import annotations
@@ -27,9 +37,9 @@ from .color import encode, srgb_to_linear
 from .brdf import MIN_ROUGHNESS
 from .parameters import LOWER, UPPER
 from .render import shade
-from .solvers import Problem, _scatter, sample_texels
+from .solvers import Problem, _scatter, _smooth_residuals, objective, pixel_residuals, robust_residual, sample_texels
 
-__all__ = ["ROUGHNESS_CANDIDATES", "METALLIC_CANDIDATES", "grid_initialise"]
+__all__ = ["ROUGHNESS_CANDIDATES", "METALLIC_CANDIDATES", "grid_initialise", "coordinate_search", "parity_classes"]
 
 #: Roughness values tried per texel: geometric from the BRDF's floor to 1 (highlight widths scale
 #: with alpha = r², so equal steps in log r are equal steps in highlight width). The spacing
@@ -40,6 +50,13 @@ __all__ = ["ROUGHNESS_CANDIDATES", "METALLIC_CANDIDATES", "grid_initialise"]
 ROUGHNESS_RATIO = 1.06
 ROUGHNESS_CANDIDATES = tuple(
     min(float(MIN_ROUGHNESS * ROUGHNESS_RATIO**k), 1.0) for k in range(int(np.ceil(np.log(1 / MIN_ROUGHNESS) / np.log(ROUGHNESS_RATIO))) + 1)
+)
+#: The coarser roughness grid of `coordinate_search`: it runs after a solve, from texels already
+#: near their basin, and costs four times a full grid per sweep.
+SEARCH_ROUGHNESS_RATIO = 1.25
+SEARCH_ROUGHNESS_CANDIDATES = tuple(
+    min(float(MIN_ROUGHNESS * SEARCH_ROUGHNESS_RATIO**k), 1.0)
+    for k in range(int(np.ceil(np.log(1 / MIN_ROUGHNESS) / np.log(SEARCH_ROUGHNESS_RATIO))) + 1)
 )
 #: Metallic values tried (the two at which radiance is affine in base colour).
 METALLIC_CANDIDATES = (0.0, 1.0)
@@ -75,8 +92,8 @@ def grid_initialise(x_fixed, problem: Problem):
         def render(b):
             return shade(obs.normal, obs.view, obs.light_l, obs.light_radiance, b, m_p, r_p, problem.model, problem.ibl)
 
-        l0 = render(jnp.zeros_like(fixed_m[:, :3]))
-        a = render(jnp.ones_like(fixed_m[:, :3])) - l0
+        zero = jnp.zeros_like(fixed_m[:, :3])
+        l0, a = jax.jvp(render, (zero,), (jnp.ones_like(zero),))  # affine in b: the slope is exact
         w = problem.weight[:, :, None]
         num = _scatter(w * (a * (y - l0))[:, None, :], problem)
         den = _scatter(w * (a * a)[:, None, :], problem)
@@ -98,3 +115,109 @@ def grid_initialise(x_fixed, problem: Problem):
     x = jnp.concatenate([base, mm[best][:, None], rr[best][:, None]], axis=1)
     x = jnp.where(free > 0, x, x_fixed)
     return jnp.where(seen[:, None], x, x_fixed)
+
+
+def parity_classes(shape: tuple[int, int]) -> np.ndarray:
+    """(T,) int32 class of each texel of (H, W) maps: 2 (row mod 2) + (column mod 2)."""
+    h, w = shape
+    rows, cols = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    return (2 * (rows % 2) + (cols % 2)).reshape(-1).astype(np.int32)
+
+
+def _texel_scores(err, problem: Problem):
+    """(T,) Σ of the errors of the pixels that read each texel (with nonzero weight)."""
+    reads = (problem.weight > 0).astype(err.dtype)
+    return _scatter((reads * err[:, None])[:, :, None], problem)[:, 0]
+
+
+def _prior_scores(x, problem: Problem):
+    """(T,) Σ of the squared smoothness-prior residuals of the pairs each texel is in."""
+    s = _smooth_residuals(x, problem)
+    pair = jnp.sum(s * s, axis=1)
+    t = problem.num_texels
+    return jax.ops.segment_sum(pair, problem.pairs[:, 0], num_segments=t) + jax.ops.segment_sum(
+        pair, problem.pairs[:, 1], num_segments=t)
+
+
+def _local_energy(x, problem: Problem):
+    """(T,) the part of the objective that depends on each texel: the squared (robust)
+    residuals of the pixels that read it plus its smoothness-prior pairs. Exact for texels that
+    share no pixel and no pair (one parity class)."""
+    r = pixel_residuals(x, problem)
+    return _texel_scores(jnp.sum(r * r, axis=1), problem) + _prior_scores(x, problem)
+
+
+@eqx.filter_jit
+def coordinate_search(x, problem: Problem, classes, rounds: int = 1):
+    """Per-texel grid search with neighbours held fixed, one parity class at a time.
+
+    For class c, every texel t of the class tries each (metallic, roughness) candidate with its
+    base colour in closed form (radiance is affine in t's base colour for a fixed sampled
+    metallic: two renders per candidate), while every texel of other classes keeps its value.
+    Each pixel reads at most one texel of the class, so a texel's score, the summed squared
+    error of the pixels that read it, depends on its own value only. The best candidate is then
+    checked against the exact local energy (robust loss and smoothness prior included) and kept
+    only where it lowers it, so the objective never rises. `rounds` sweeps over the
+    four classes. `classes` is `parity_classes(shape)` (T,); channels that are not free keep x.
+    """
+    obs = problem.obs
+    free = problem.free
+    y = _linear_targets(problem)
+    metal_free = free[:, 3:4] > 0
+    rough_free = free[:, 4:5] > 0
+    base_free = free[:, 0:3] > 0
+    metals = jnp.asarray(METALLIC_CANDIDATES, x.dtype)
+    roughs = jnp.clip(jnp.asarray(SEARCH_ROUGHNESS_CANDIDATES, x.dtype), LOWER[4], UPPER[4])
+    mm, rr = jnp.meshgrid(metals, roughs, indexing="ij")
+    cands = jnp.stack([mm.reshape(-1), rr.reshape(-1)], axis=1)
+
+    def sweep(x, c):
+        member = (classes == c)[:, None] & (jnp.max(free, axis=1, keepdims=True) > 0)
+
+        def trial(metal, rough, base):
+            """x with class texels set to (base, metal, rough) where free."""
+            t = jnp.concatenate([base, jnp.broadcast_to(metal, base.shape[:1] + (1,)),
+                                 jnp.broadcast_to(rough, base.shape[:1] + (1,))], axis=1)
+            t = jnp.where(jnp.concatenate([base_free, metal_free, rough_free], axis=1), t, x)
+            return jnp.where(member, t, x)
+
+        def render(xx):
+            m = sample_texels(xx, problem)
+            return shade(obs.normal, obs.view, obs.light_l, obs.light_radiance, m[:, 0:3], m[:, 3:4], m[:, 4:5],
+                         problem.model, problem.ibl)
+
+        def candidate(mr):
+            # radiance at base 0 and its slope in the class texel's base colour (one forward-
+            # mode pass; exact for the affine cases, the tangent at 0 otherwise)
+            zero = jnp.zeros_like(x[:, :3])
+            l0, a = jax.jvp(lambda b: render(trial(mr[0], mr[1], b)), (zero,), (jnp.ones_like(zero),))
+            reads = (problem.weight > 0).astype(x.dtype)[:, :, None]
+            num = _scatter(reads * (a * (y - l0))[:, None, :], problem)
+            den = _scatter(reads * (a * a)[:, None, :], problem)
+            base_t = jnp.clip(num / jnp.maximum(den, _NORMAL_FLOOR), 0.0, 1.0)
+            base_t = jnp.where(base_free, base_t, x[:, :3])
+            # the affine model's prediction at the solved base colour, per pixel
+            xb = trial(mr[0], mr[1], base_t)
+            bp = sample_texels(xb, problem)[:, :3]
+            b0 = sample_texels(trial(mr[0], mr[1], jnp.zeros_like(x[:, :3])), problem)[:, :3]
+            b1 = sample_texels(trial(mr[0], mr[1], jnp.ones_like(x[:, :3])), problem)[:, :3]
+            s = jnp.where(b1 - b0 > 0, (bp - b0) / jnp.where(b1 - b0 > 0, b1 - b0, 1.0), 0.0)
+            value = encode(l0 + s * a, obs.exposure[:, None], obs.tonemap, obs.color_space)
+            resid = robust_residual(value - obs.target, problem.loss, problem.loss_scale)
+            return base_t, _texel_scores(jnp.sum(resid * resid, axis=1), problem) + _prior_scores(xb, problem)
+
+        bases, scores = jax.lax.map(candidate, cands)
+        best = jnp.argmin(scores, axis=0)
+        base = jnp.take_along_axis(bases, best[None, :, None], axis=0)[0]
+        proposal = trial(cands[best, 0][:, None], cands[best, 1][:, None], base)
+        before = _local_energy(x, problem)
+        after = _local_energy(proposal, problem)
+        keep = member & (after < before)[:, None]
+        new = jnp.where(keep, proposal, x)
+        # Texels of one class can share a pixel only across the seam of an odd-sized wrapped
+        # map; there the local energies are not separable, so check the whole objective.
+        return jnp.where(objective(new, problem) <= objective(x, problem), new, x), None
+
+    order = jnp.tile(jnp.arange(4, dtype=jnp.int32), rounds)
+    x, _ = jax.lax.scan(sweep, x, order)
+    return x

@@ -66,6 +66,8 @@ def test_uniform_fit_writes_one_texel_maps(capture, tmp_path, monkeypatch):
         (["--fit", "roughness", "--roughness", "0.3"], "nothing left to fit"),
         (["--resolution", "0"], "--resolution"),
         (["--roughness-from", "/no/such/folder"], "/no/such/folder"),
+        (["--devices", "99"], "--devices"),
+        (["--devices", "0"], "--devices"),
     ],
 )
 def test_bad_fit_options_exit_2_and_write_nothing(capture, tmp_path, capsys, extra, message):

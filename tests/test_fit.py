@@ -6,18 +6,21 @@ between tests so the solver compiles once per configuration.
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from pbrfit.color import encode
 from pbrfit.fit import SOLVERS, default_resolution, fit_observations, map_rmse, schedule
+from pbrfit.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, parity_classes
 from pbrfit.lights import point_light
 from pbrfit.material import Material
 from pbrfit.model import Model
-from pbrfit.observations import observations_from_views
+from pbrfit.observations import neighbour_pairs, observations_from_views, texel_layout
 from pbrfit.parameters import LOWER, UPPER, from_sine, to_sine
 from pbrfit.render import ViewInputs, light_arrays, radiance_view
+from pbrfit.solvers import Problem, objective, structured_lm
 
 RES = 24  # pixels per view side
 
@@ -156,6 +159,66 @@ def test_every_solver_runs(solver):
     res = fit_observations(obs, resolution=4, solver=solver, max_steps=3, init="prior")
     assert res.report["solver"] == solver
     assert np.all(np.isfinite(np.asarray(res.material.base_color)))
+
+
+def _texel_problem(truth, smooth=0.0):
+    obs = observations_from_views(VIEWS, _images(VIEWS, truth))
+    shape = truth.resolution
+    layout = texel_layout(obs, shape)
+    t = shape[0] * shape[1]
+    pairs = neighbour_pairs(shape)
+    free = np.ones((t, 5), np.float32)
+    return Problem(obs, layout.index, layout.weight, jnp.asarray(free), jnp.asarray(pairs),
+                   jnp.ones(len(pairs), jnp.float32), jnp.asarray(smooth, jnp.float32), jnp.asarray(0.05, jnp.float32),
+                   None, Model(), "l2")
+
+
+def _stack(material):
+    return jnp.concatenate([material.base_color, material.metallic, material.roughness], -1).reshape(-1, 5)
+
+
+@pytest.mark.parametrize("smooth", [0.0, 1e-3])
+def test_coordinate_search_repairs_texels_in_wrong_basins(smooth):
+    """Texels knocked into a wrong (metallic, roughness) basin come back; nothing gets worse."""
+    truth = _checker()
+    problem = _texel_problem(truth, smooth)
+    x_true = _stack(truth)
+    wrong = np.asarray(x_true).copy()
+    knocked = np.array([9, 18, 27, 45, 54])  # every parity class
+    wrong[knocked, 3] = 1.0
+    wrong[knocked, 4] = 0.9
+    x = coordinate_search(jnp.asarray(wrong), problem, jnp.asarray(parity_classes(truth.resolution)))
+    energy = jax.jit(objective)
+    assert float(energy(x, problem)) < 0.1 * float(energy(jnp.asarray(wrong), problem))
+    got = np.asarray(x)
+    assert np.all(got[knocked, 3] == 0.0)
+    # the roughness grid is geometric (ratio SEARCH_ROUGHNESS_RATIO): within one step of the truth
+    ratio = got[knocked, 4] / np.asarray(x_true)[knocked, 4]
+    assert np.all((ratio < SEARCH_ROUGHNESS_RATIO) & (ratio > 1 / SEARCH_ROUGHNESS_RATIO)), got[knocked]
+    # the neighbours bent towards the knocked texels while those were wrong; a solve finishes
+    polished = np.asarray(structured_lm(x, problem, jnp.asarray(40))[0])
+    optimum = np.asarray(structured_lm(x_true, problem, jnp.asarray(40))[0])  # the truth, unless smooth > 0
+    np.testing.assert_allclose(polished, optimum, atol=2e-3)
+
+
+def test_coordinate_search_never_raises_the_objective():
+    truth = _checker()
+    problem = _texel_problem(truth, 1e-3)
+    rng = np.random.default_rng(3)
+    x0 = jnp.asarray(rng.uniform(LOWER, UPPER, (64, 5)).astype(np.float32))
+    x = coordinate_search(x0, problem, jnp.asarray(parity_classes(truth.resolution)))
+    energy = jax.jit(objective)
+    assert float(energy(x, problem)) <= float(energy(x0, problem))
+    assert float(energy(x, problem)) < 0.5 * float(energy(x0, problem))
+
+
+def test_fit_reports_the_search():
+    truth = _checker()
+    obs = observations_from_views(VIEWS, _images(VIEWS, truth))
+    res = fit_observations(obs, resolution=8, max_steps=40)
+    assert "search_moved" in res.report["levels"][-1] and "search" in res.report["times"]
+    off = fit_observations(obs, resolution=8, max_steps=40, search=False)
+    assert "search_moved" not in off.report["levels"][-1]
 
 
 def test_schedule_levels():

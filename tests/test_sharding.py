@@ -196,7 +196,8 @@ def test_shard_problem_on_one_device():
 
 def _multi_device_report() -> dict:
     """Solve the same problem unsharded and sharded over all devices; what the test checks."""
-    from pbrfit.initialisation import grid_initialise
+    from pbrfit.fit import fit_observations
+    from pbrfit.initialisation import coordinate_search, grid_initialise, parity_classes
     from pbrfit.solvers import structured_lm
 
     out = dict(devices=len(jax.devices()))
@@ -238,6 +239,20 @@ def _multi_device_report() -> dict:
     blocks = jax.jit(normal_blocks)(jac, problem)
     blocks_sh = jax.jit(normal_blocks)(jac_sh, sharded)
     out["blocks_rel_diff"] = float(jnp.max(jnp.abs(blocks - blocks_sh)) / jnp.max(jnp.abs(blocks)))
+
+    classes = jnp.asarray(parity_classes(MAP))
+    out["search_diff"] = float(jnp.max(jnp.abs(coordinate_search(x0, problem, classes)
+                                               - coordinate_search(x0, sharded, classes))))
+    # The whole fit, as `pbrfit fit --devices 4` runs it.
+    one = fit_observations(problem.obs, resolution=MAP, max_steps=20)
+    many = fit_observations(problem.obs, resolution=MAP, max_steps=20, devices=jax.devices())
+    out.update(
+        fit_devices=len(many.report["devices"]),
+        fit_map_diff=max(float(np.max(np.abs(np.asarray(getattr(one.material, n)) - np.asarray(getattr(many.material, n)))))
+                         for n in ("base_color", "metallic", "roughness")),
+        fit_sigma_diff=float(np.max(np.abs(one.uncertainty - many.uncertainty))),
+        fit_render_diff=max(float(np.max(np.abs(a - b))) for a, b in zip(one.images, many.images)),
+    )
     return out
 
 
@@ -262,6 +277,9 @@ def test_structured_lm_sharded_over_four_cpu_devices():
     assert rep["residual_spec"] == rep["want_spec"] and rep["residual_rows"] == 1004, rep
     assert rep["residual_diff"] <= 1e-5 and rep["padded_residual"] == 0.0 and rep["padded_jacobian"] == 0.0, rep
     assert rep["blocks_rel_diff"] <= 1e-5, rep
+    assert rep["search_diff"] <= 1e-5, rep
+    assert rep["fit_devices"] == DEVICES, rep
+    assert rep["fit_map_diff"] <= 1e-4 and rep["fit_render_diff"] <= 1e-4 and rep["fit_sigma_diff"] <= 1e-4, rep
 
 
 if __name__ == "__main__":
