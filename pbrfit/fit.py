@@ -59,6 +59,10 @@ LEVEL_FACTOR = 4
 #: `default_resolution` picks the finest power of two whose texels are at least this many
 #: pixels wide in the median view (below one pixel per texel, neighbours become inseparable).
 PIXELS_PER_TEXEL = 1.0
+#: ... and at which the observed texels get at least this many pixel observations each, over
+#: all views (a texel has 5 unknowns; a pixel gives 3 numbers, and metallic and roughness need
+#: several directions).
+OBSERVATIONS_PER_TEXEL = 8.0
 MAX_RESOLUTION = 2048
 
 
@@ -126,11 +130,18 @@ def _median_footprint(obs: Observations) -> float:
 
 def default_resolution(capture_or_obs) -> int:
     """The finest power-of-two map size whose texels are at least `PIXELS_PER_TEXEL` pixels
-    wide, judged by the median pixel footprint in uv over all views."""
+    wide, judged by the median pixel footprint in uv over all views, and whose observed texels
+    get at least `OBSERVATIONS_PER_TEXEL` pixels each on average (more views allow finer maps)."""
     obs = capture_or_obs if isinstance(capture_or_obs, Observations) else observations_from_capture(capture_or_obs)
     side = _median_footprint(obs) * PIXELS_PER_TEXEL
     n = 2 ** int(math.floor(math.log2(max(1.0 / max(side, 1e-9), 1.0))))
-    return int(min(max(n, 1), MAX_RESOLUTION))
+    n = int(min(max(n, 1), MAX_RESOLUTION))
+    while n > 1:
+        seen = int(np.sum(coverage_counts(texel_layout(obs, (n, n))) > 0))
+        if obs.num_pixels >= OBSERVATIONS_PER_TEXEL * seen:
+            break
+        n //= 2
+    return n
 
 
 def schedule(resolution: tuple[int, int], factor: int = LEVEL_FACTOR) -> list[tuple[int, int]]:
