@@ -162,7 +162,8 @@ def _add_fit(sub) -> None:
     p.add_argument("--maps", choices=("texture", "none"), default="texture",
                    help="'none' fits one uniform material (five numbers)")
     p.add_argument("--fit", default="base_color,metallic,roughness",
-                   help="comma-separated maps to fit, some of base_color, metallic, roughness")
+                   help="comma-separated maps to fit, some of base_color, metallic, roughness, normal "
+                        "(a tangent-space normal map, written as normal.png)")
     p.add_argument("--base-color", help="hold base color fixed at R,G,B (linear)")
     p.add_argument("--metallic", type=float, help="hold metallic fixed at this value")
     p.add_argument("--roughness", type=float, help="hold roughness fixed at this value (perceptual)")
@@ -191,10 +192,8 @@ def _fit_options(args) -> dict:
 
     free = [m.strip() for m in args.fit.split(",") if m.strip()]
     for name in free:
-        if name == "normal":
-            raise CaptureError("--fit normal: normal-map fitting is not available; fit base_color, metallic, roughness")
-        if name not in _MAP_NAMES:
-            raise CaptureError(f"--fit: unknown map {name!r} (expected some of {', '.join(_MAP_NAMES)})")
+        if name not in _MAP_NAMES + ("normal",):
+            raise CaptureError(f"--fit: unknown map {name!r} (expected some of {', '.join(_MAP_NAMES + ('normal',))})")
     fixed = {}
     if args.base_color is not None:
         try:
@@ -273,6 +272,8 @@ class _Progress:
 def run_fit(capture, out, options: dict, cache_dir=None, quiet: bool = False):
     """Fit `capture`, add truth errors to the report when `truth/` exists, write `out`; return
     (result, per-map RMSE or None)."""
+    import numpy as np
+
     from .fit import fit, map_rmse
     from .io import read_material
     from .outputs import write_fit_output
@@ -287,9 +288,15 @@ def run_fit(capture, out, options: dict, cache_dir=None, quiet: bool = False):
         errors = map_rmse(read_material(capture.truth_dir), result)
         result.report["truth_rmse"] = errors
     history = [dict(step=i, loss=h["loss"]) for i, h in enumerate(progress.history)]
+    normals = result.material.normal is not None
+    if normals:  # uncertainty.exr holds the spec's five channels; the slopes' σ goes to the report
+        sig = np.asarray(result.uncertainty)[..., 5:7]
+        seen = np.asarray(result.coverage) > 0
+        result.report["normal_slope_sigma_median"] = float(np.median(sig[seen])) if seen.any() else float("nan")
     write_fit_output(
-        out, capture, result.material, result.uncertainty, result.coverage, result.report,
+        out, capture, result.material, np.asarray(result.uncertainty)[..., :5], result.coverage, result.report,
         targets=list(zip(result.targets, result.masks)), renders=result.images, history=history,
+        write_normal=normals,
     )
     return result, errors
 

@@ -35,7 +35,7 @@ from .model import Model
 from .observations import (Observations, TexelLayout, coverage_counts, neighbour_pairs, observations_from_capture,
                            texel_layout, uniform_layout)
 from .optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
-from .parameters import CHANNELS, FIT_GROUPS, PRIOR, channel_mask
+from .parameters import CHANNELS, FIT_GROUPS, NORMAL_CHANNELS, channel_mask, normal_from_slopes, prior
 from .sharding import pixel_mesh, shard_problem
 from .solvers import LOSSES, Problem, linearize, normal_blocks, objective, pixel_residuals, structured_lm
 from .textures import sample_bilinear
@@ -71,9 +71,11 @@ class FitResult:
     """What `fit` returns.
 
     Attributes:
-        material: the fitted maps (`pbrfit.material.Material`; 1 × 1 for a uniform fit).
-        uncertainty: (H, W, 5) one-sigma errors (base R, G, B, metallic, roughness); 0 for fixed
-            channels, +inf for texels no view sees.
+        material: the fitted maps (`pbrfit.material.Material`; 1 × 1 for a uniform fit), with a
+            tangent-space normal map when normals are fitted.
+        uncertainty: (H, W, K) one-sigma errors (base R, G, B, metallic, roughness, and the
+            normal's slopes s_x, s_y when normals are fitted); 0 for fixed channels, +inf for
+            texels no view sees.
         coverage: (H, W) pixel observations per texel (0 = never seen; such texels keep `PRIOR`).
         report: model, solver, steps, times (setup / compile / solve), final loss, per-view PSNR,
             devices and the levels run.
@@ -114,8 +116,8 @@ def _median_footprint(obs: Observations) -> float:
     vidx = np.asarray(obs.view_index)
     pix = np.asarray(obs.pixel)
     sides = []
-    for k, (h, w) in enumerate(obs.shapes):
-        sel = vidx == k
+    for view, (h, w) in enumerate(obs.shapes):
+        sel = vidx == view
         img = np.full((h * w, 2), np.nan)
         img[pix[sel]] = uv[sel]
         img = img.reshape(h, w, 2)
@@ -155,13 +157,15 @@ def schedule(resolution: tuple[int, int], factor: int = LEVEL_FACTOR) -> list[tu
     return list(dict.fromkeys(reversed(levels)))
 
 
-def _fixed_values(fixed: Mapping, shape: tuple[int, int]) -> np.ndarray:
-    """(H, W, 5) values of the channels held fixed (PRIOR where nothing is given)."""
-    out = np.broadcast_to(PRIOR, shape + (5,)).copy()
+def _fixed_values(fixed: Mapping, shape: tuple[int, int], k: int = 5) -> np.ndarray:
+    """(H, W, k) values of the channels held fixed (`prior` where nothing is given)."""
+    out = np.broadcast_to(prior(k), shape + (k,)).copy()
     for name, value in (fixed or {}).items():
         if name not in FIT_GROUPS:
             raise ValueError(f"unknown fixed map {name!r}; expected some of {', '.join(FIT_GROUPS)}")
         chans = list(FIT_GROUPS[name])
+        if max(chans) >= k:
+            raise ValueError(f"fixed map {name!r} needs {name!r} among the fitted maps' channels")
         v = np.asarray(value, np.float32)
         if v.ndim == 3:
             v = np.asarray(jax.image.resize(v, shape + (v.shape[-1],), "linear"))
@@ -219,6 +223,7 @@ def fit_observations(
         raise ValueError(f"maps must be 'texture' or 'none', got {maps!r}")
     fixed = dict(fixed or {})
     channels = channel_mask(fit)
+    k = len(channels)
     if not model.metallic:
         channels[3] = 0.0
         fixed.setdefault("metallic", 0.0)
@@ -249,11 +254,11 @@ def fit_observations(
         seen = np.zeros(t_final, bool)
         seen[:t] = cov > 0
         free = (seen[:, None] * channels[None, :]).astype(np.float32)
-        fixed_x = np.broadcast_to(PRIOR, (t_final, 5)).copy()
-        fixed_x[:t] = _fixed_values(fixed, shape).reshape(t, 5)
+        fixed_x = np.broadcast_to(prior(k), (t_final, k)).copy()
+        fixed_x[:t] = _fixed_values(fixed, shape, k).reshape(t, k)
         x0 = fixed_x.copy()
         if x is not None:
-            up = _upsample(x, shape).reshape(t, 5)
+            up = _upsample(x, shape).reshape(t, k)
             x0[:t] = np.where(channels[None, :] > 0, up, x0[:t])
         x0[:t] = np.where(seen[:t, None], x0[:t], fixed_x[:t])
         pairs = np.zeros((e_final, 2), np.int32)
@@ -281,7 +286,7 @@ def fit_observations(
             info = {k: (v + more[k] if isinstance(v, int) and k != "result" else more[k]) for k, v in info.items()}
             info["search_moved"] = moved
         history.append(dict(resolution=list(shape), **info))
-        x = xs[:t].reshape(shape + (5,))
+        x = xs[:t].reshape(shape + (k,))
 
     t_post = time.perf_counter()
     return _finish(obs, problem, x, final, channels, seen[:t_final], model, solver, history, loss, smooth,
@@ -335,7 +340,8 @@ class _Runner:
 
 def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss, smooth, times, t_post, t_start,
             linearization=None):
-    xj = jnp.asarray(x.reshape(-1, 5))
+    k = len(channels)
+    xj = jnp.asarray(x.reshape(-1, k))
     if linearization is None:
         r, jac, energy = jax.jit(linearize)(xj, problem)
     else:
@@ -345,7 +351,7 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     n_res = 3 * obs.num_pixels
     n_par = int(np.sum(seen)) * int(np.sum(channels))
     sigma2 = residual_variance(float(energy), n_res, n_par)
-    sigma = block_standard_errors(blocks, channels > 0, seen, sigma2).reshape(final + (5,))
+    sigma = block_standard_errors(blocks, channels > 0, seen, sigma2).reshape(final + (k,))
     coverage = coverage_counts(_layout(obs, final, "repeat" if final != (1, 1) else "repeat"))
     # Per-view renders in image space and PSNR (peak 1: display values).
     if loss == "l2":
@@ -358,8 +364,8 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     vidx = np.asarray(obs.view_index)
     pix = np.asarray(obs.pixel)
     images, targets, masks, psnr = [], [], [], []
-    for k, (h, w) in enumerate(obs.shapes):
-        sel = vidx == k
+    for view, (h, w) in enumerate(obs.shapes):
+        sel = vidx == view
         img = np.zeros((h * w, 3), np.float32)
         tgt = np.zeros((h * w, 3), np.float32)
         msk = np.zeros(h * w, bool)
@@ -371,8 +377,9 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
         masks.append(msk.reshape(h, w))
         mse = float(np.mean(resid[sel] ** 2)) if sel.any() else float("nan")
         psnr.append(10.0 * math.log10(1.0 / mse) if mse > 0 else float("inf"))
+    normal = normal_from_slopes(jnp.asarray(x[..., 5:7])) if k > 5 else None
     material = Material(base_color=jnp.asarray(x[..., 0:3]), metallic=jnp.asarray(x[..., 3:4]),
-                        roughness=jnp.asarray(x[..., 4:5]))
+                        roughness=jnp.asarray(x[..., 4:5]), normal=normal)
     times = dict(times, post=time.perf_counter() - t_post)
     report = dict(
         model=model.describe(),
@@ -380,7 +387,7 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
         loss=loss,
         smooth=smooth,
         resolution=list(final),
-        fitted=[c for c, m in zip(CHANNELS, channels) if m > 0],
+        fitted=[c for c, m in zip(CHANNELS + NORMAL_CHANNELS, channels) if m > 0],
         levels=history,
         steps=int(sum(h["steps"] for h in history)),
         final_loss=float(energy),
@@ -388,7 +395,7 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
         pixels=int(obs.num_pixels),
         observed_texels=int(np.sum(coverage > 0)),
         psnr=psnr,
-        times={k: float(v) for k, v in times.items()},
+        times={name: float(v) for name, v in times.items()},
         wall_time=float(times["setup"] + time.perf_counter() - t_start),
         devices=sorted(str(d) for d in problem.obs.target.sharding.device_set),
     )
@@ -400,7 +407,8 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, *
 
     Keyword arguments (all optional):
         resolution: map size N (or (H, W)); default `default_resolution(capture)`.
-        fit: which maps are free, some of "base_color", "metallic", "roughness".
+        fit: which maps are free, some of "base_color", "metallic", "roughness", "normal" (a
+            tangent-space normal map, `pbrfit.parameters`; needs the mesh's tangents: uv).
         fixed: values of maps held fixed: {"roughness": 0.4, "base_color": (H, W, 3) array, ...};
             maps neither fitted nor given stay at `pbrfit.parameters.PRIOR`.
         maps: "texture" (maps) or "none" (one uniform material, 1 × 1 maps).

@@ -37,7 +37,8 @@ from .color import encode, srgb_to_linear
 from .brdf import MIN_ROUGHNESS
 from .parameters import LOWER, UPPER
 from .render import shade
-from .solvers import Problem, _scatter, _smooth_residuals, objective, pixel_residuals, robust_residual, sample_texels
+from .solvers import (Problem, _scatter, _smooth_residuals, objective, pixel_residuals, robust_residual, sample_texels,
+                      shading_normal)
 
 __all__ = ["ROUGHNESS_CANDIDATES", "METALLIC_CANDIDATES", "grid_initialise", "coordinate_search", "parity_classes"]
 
@@ -58,6 +59,9 @@ SEARCH_ROUGHNESS_CANDIDATES = tuple(
     min(float(MIN_ROUGHNESS * SEARCH_ROUGHNESS_RATIO**k), 1.0)
     for k in range(int(np.ceil(np.log(1 / MIN_ROUGHNESS) / np.log(SEARCH_ROUGHNESS_RATIO))) + 1)
 )
+#: Tangent-space slopes tried per axis by `coordinate_search` when normals are fitted (tilts up
+#: to atan(0.6) = 31°; the solve refines between them).
+NORMAL_SEARCH_SLOPES = (-0.6, -0.4, -0.2, 0.0, 0.2, 0.4, 0.6)
 #: Metallic values tried (the two at which radiance is affine in base colour).
 METALLIC_CANDIDATES = (0.0, 1.0)
 #: Floor on Σ w A² when solving a texel's base colour (a texel whose pixels see no light).
@@ -89,8 +93,10 @@ def grid_initialise(x_fixed, problem: Problem):
         m_p = jnp.where(metal_free, metal, fixed_m[:, 3:4])
         r_p = jnp.where(rough_free, rough, fixed_m[:, 4:5])
 
+        normal = shading_normal(fixed_m, obs.normal, obs.tangent)
+
         def render(b):
-            return shade(obs.normal, obs.view, obs.light_l, obs.light_radiance, b, m_p, r_p, problem.model, problem.ibl)
+            return shade(normal, obs.view, obs.light_l, obs.light_radiance, b, m_p, r_p, problem.model, problem.ibl)
 
         zero = jnp.zeros_like(fixed_m[:, :3])
         l0, a = jax.jvp(render, (zero,), (jnp.ones_like(zero),))  # affine in b: the slope is exact
@@ -112,7 +118,7 @@ def grid_initialise(x_fixed, problem: Problem):
     bases, scores = jax.lax.map(lambda mr: candidate(mr[0], mr[1]), jnp.stack([mm, rr], axis=1))
     best = jnp.argmin(scores, axis=0)  # (T,)
     base = jnp.take_along_axis(bases, best[None, :, None], axis=0)[0]
-    x = jnp.concatenate([base, mm[best][:, None], rr[best][:, None]], axis=1)
+    x = jnp.concatenate([base, mm[best][:, None], rr[best][:, None], x_fixed[:, 5:]], axis=1)
     x = jnp.where(free > 0, x, x_fixed)
     return jnp.where(seen[:, None], x, x_fixed)
 
@@ -147,6 +153,24 @@ def _local_energy(x, problem: Problem):
     return _texel_scores(jnp.sum(r * r, axis=1), problem) + _prior_scores(x, problem)
 
 
+def _normal_search(x, problem: Problem, member):
+    """One parity class's texels (`member` (T, 2): their free slope channels) try every
+    (s_x, s_y) of `NORMAL_SEARCH_SLOPES`² with their other channels kept, scored by the exact
+    local energy; a texel moves only where the energy drops."""
+    slopes = jnp.asarray(NORMAL_SEARCH_SLOPES, x.dtype)
+    sx, sy = jnp.meshgrid(slopes, slopes, indexing="ij")
+    cands = jnp.stack([sx.reshape(-1), sy.reshape(-1)], axis=1)
+
+    def with_slopes(s):
+        return x.at[:, 5:].set(jnp.where(member, s, x[:, 5:]))
+
+    energies = jax.lax.map(lambda s: _local_energy(with_slopes(s), problem), cands)  # (C, T)
+    best = jnp.argmin(energies, axis=0)
+    proposal = x.at[:, 5:].set(jnp.where(member, cands[best], x[:, 5:]))
+    better = jnp.min(energies, axis=0) < _local_energy(x, problem)
+    return jnp.where(better[:, None], proposal, x)
+
+
 @eqx.filter_jit
 def coordinate_search(x, problem: Problem, classes, rounds: int = 1):
     """Per-texel grid search with neighbours held fixed, one parity class at a time.
@@ -157,7 +181,8 @@ def coordinate_search(x, problem: Problem, classes, rounds: int = 1):
     Each pixel reads at most one texel of the class, so a texel's score, the summed squared
     error of the pixels that read it, depends on its own value only. The best candidate is then
     checked against the exact local energy (robust loss and smoothness prior included) and kept
-    only where it lowers it, so the objective never rises. `rounds` sweeps over the
+    only where it lowers it, so the objective never rises. When normals are fitted, the class's
+    texels then try the slopes of `NORMAL_SEARCH_SLOPES` the same way (other channels kept). `rounds` sweeps over the
     four classes. `classes` is `parity_classes(shape)` (T,); channels that are not free keep x.
     """
     obs = problem.obs
@@ -173,17 +198,19 @@ def coordinate_search(x, problem: Problem, classes, rounds: int = 1):
 
     def sweep(x, c):
         member = (classes == c)[:, None] & (jnp.max(free, axis=1, keepdims=True) > 0)
+        # the search keeps normals: the shading normals are those of x
+        normal = shading_normal(sample_texels(x, problem), obs.normal, obs.tangent)
 
         def trial(metal, rough, base):
-            """x with class texels set to (base, metal, rough) where free."""
+            """x with class texels set to (base, metal, rough) where free (normals kept)."""
             t = jnp.concatenate([base, jnp.broadcast_to(metal, base.shape[:1] + (1,)),
-                                 jnp.broadcast_to(rough, base.shape[:1] + (1,))], axis=1)
-            t = jnp.where(jnp.concatenate([base_free, metal_free, rough_free], axis=1), t, x)
+                                 jnp.broadcast_to(rough, base.shape[:1] + (1,)), x[:, 5:]], axis=1)
+            t = jnp.where(jnp.concatenate([base_free, metal_free, rough_free, free[:, 5:] > 0], axis=1), t, x)
             return jnp.where(member, t, x)
 
         def render(xx):
             m = sample_texels(xx, problem)
-            return shade(obs.normal, obs.view, obs.light_l, obs.light_radiance, m[:, 0:3], m[:, 3:4], m[:, 4:5],
+            return shade(normal, obs.view, obs.light_l, obs.light_radiance, m[:, 0:3], m[:, 3:4], m[:, 4:5],
                          problem.model, problem.ibl)
 
         def candidate(mr):
@@ -214,6 +241,8 @@ def coordinate_search(x, problem: Problem, classes, rounds: int = 1):
         after = _local_energy(proposal, problem)
         keep = member & (after < before)[:, None]
         new = jnp.where(keep, proposal, x)
+        if x.shape[1] > 5:
+            new = _normal_search(new, problem, member & (free[:, 5:] > 0))
         # Texels of one class can share a pixel only across the seam of an odd-sized wrapped
         # map; there the local energies are not separable, so check the whole objective.
         return jnp.where(objective(new, problem) <= objective(x, problem), new, x), None

@@ -25,8 +25,13 @@ from jaxtyping import Array, Float, Int
 from .render import ViewInputs
 from .textures import bilinear_weights
 
-__all__ = ["Observations", "TexelLayout", "observations_from_views", "observations_from_capture",
+__all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "observations_from_views", "observations_from_capture",
            "texel_layout", "uniform_layout", "coverage_counts", "neighbour_pairs"]
+
+
+#: The per-pixel fields of `Observations` (leading axis P).
+PIXEL_FIELDS = ("normal", "tangent", "view", "light_l", "light_radiance", "uv", "exposure", "target", "view_index",
+                "pixel")
 
 
 class Observations(eqx.Module):
@@ -35,6 +40,7 @@ class Observations(eqx.Module):
 
     Attributes:
         normal, view: (P, 3) unit shading normal and surface-to-camera direction.
+        tangent: (P, 4) unit tangent and handedness (for normal maps).
         light_l, light_radiance: (P, L, 3) per light: direction to it and arriving radiance.
         uv: (P, 2) texture coordinates (glTF orientation).
         exposure: (P,) exposure in EV of the pixel's frame.
@@ -47,6 +53,7 @@ class Observations(eqx.Module):
     """
 
     normal: Float[Array, "P 3"]
+    tangent: Float[Array, "P 4"]
     view: Float[Array, "P 3"]
     light_l: Float[Array, "P L 3"]
     light_radiance: Float[Array, "P L 3"]
@@ -76,10 +83,9 @@ class Observations(eqx.Module):
 def _take(obs: Observations, rows: np.ndarray) -> Observations:
     rows = jnp.asarray(rows, jnp.int32)
     return eqx.tree_at(
-        lambda o: (o.normal, o.view, o.light_l, o.light_radiance, o.uv, o.exposure, o.target, o.view_index, o.pixel),
+        lambda o: tuple(getattr(o, n) for n in PIXEL_FIELDS),
         obs,
-        tuple(getattr(obs, n)[rows] for n in ("normal", "view", "light_l", "light_radiance", "uv", "exposure",
-                                               "target", "view_index", "pixel")),
+        tuple(getattr(obs, n)[rows] for n in PIXEL_FIELDS),
     )
 
 
@@ -120,8 +126,7 @@ def observations_from_views(
     exposures = [0.0] * len(views) if exposures is None else list(exposures)
     usable = [None] * len(views) if usable is None else list(usable)
     lights = max((int(v.light_l.shape[1]) for v in views), default=0)
-    parts = {k: [] for k in ("normal", "view", "light_l", "light_radiance", "uv", "exposure", "target",
-                             "view_index", "pixel")}
+    parts = {k: [] for k in PIXEL_FIELDS}
     for k, (vi, img, ev, use) in enumerate(zip(views, images, exposures, usable)):
         pix = np.asarray(vi.pixel)
         keep = np.ones(pix.shape[0], bool)
@@ -132,6 +137,7 @@ def observations_from_views(
         rows = np.flatnonzero(keep)
         normal = np.asarray(vi.normal)[rows]
         parts["normal"].append(normal)
+        parts["tangent"].append(np.asarray(vi.tangent)[rows])
         parts["view"].append(np.asarray(vi.view)[rows])
         parts["light_l"].append(_pad_lights(np.asarray(vi.light_l)[rows], lights, np.array([0.0, 0.0, 1.0])))
         parts["light_radiance"].append(_pad_lights(np.asarray(vi.light_radiance)[rows], lights, np.zeros(3)))

@@ -49,7 +49,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, Float, Int
 
-from .observations import Observations, TexelLayout
+from .observations import PIXEL_FIELDS, Observations, TexelLayout
 from .solvers import Problem
 
 __all__ = ["PIXEL_AXIS", "PAD_NORMAL", "PAD_VIEW", "PAD_LIGHT", "padded_size", "pad_observations", "pad_pixel_rows",
@@ -62,8 +62,8 @@ PAD_NORMAL = (0.0, 0.0, 1.0)
 PAD_VIEW = (0.0, 0.0, -1.0)
 PAD_LIGHT = (1.0, 0.0, 0.0)
 
-#: Fields of `Observations` with one row per pixel.
-_PIXEL_FIELDS = ("normal", "view", "light_l", "light_radiance", "uv", "exposure", "target", "view_index", "pixel")
+#: Tangent frame of a padded pixel: a normal map tilts its normal within z > 0, so n·v stays < 0.
+PAD_TANGENT = (1.0, 0.0, 0.0, 1.0)
 
 
 def padded_size(count: int, multiple: int) -> int:
@@ -85,9 +85,9 @@ def _padded_pixel_fields(obs: Observations, multiple: int) -> dict:
     extra = padded_size(obs.num_pixels, multiple) - obs.num_pixels
     if extra == 0:
         return {}
-    fills = dict(normal=PAD_NORMAL, view=PAD_VIEW, light_l=PAD_LIGHT, light_radiance=0.0, uv=0.0, exposure=0.0,
+    fills = dict(normal=PAD_NORMAL, tangent=PAD_TANGENT, view=PAD_VIEW, light_l=PAD_LIGHT, light_radiance=0.0, uv=0.0, exposure=0.0,
                  target=0.0, view_index=-1, pixel=-1)
-    return {name: _append(getattr(obs, name), extra, fills[name]) for name in _PIXEL_FIELDS}
+    return {name: _append(getattr(obs, name), extra, fills[name]) for name in PIXEL_FIELDS}
 
 
 def _padded_texel_rows(index, weight, multiple: int) -> tuple[np.ndarray, np.ndarray]:
@@ -151,7 +151,7 @@ def shard_problem(problem: Problem, mesh: Mesh) -> Problem:
     whole = NamedSharding(mesh, PartitionSpec())
     # Padding is done on the host and the padded arrays go straight to their shards.
     obs = problem.obs
-    pixel_fields = {name: getattr(obs, name) for name in _PIXEL_FIELDS}
+    pixel_fields = {name: getattr(obs, name) for name in PIXEL_FIELDS}
     pixel_fields.update(_padded_pixel_fields(obs, n))
     obs = dataclasses.replace(obs, **{k: jax.device_put(v, rows) for k, v in pixel_fields.items()})
     index, weight = problem.index, problem.weight

@@ -1,18 +1,19 @@
 """The fit's objective and its structured Levenberg-Marquardt solver.
 
-Objective (images' own space, see `pbrfit.observations`), for texel values x (T, 5):
+Objective (images' own space, see `pbrfit.observations`), for texel values x (T, K), K = 5
+channels (`pbrfit.parameters`), or 7 when tangent-space normals are fitted too:
 
     E(x) = 1/2 Σ_p ||ρ̃(encode(shade(m_p(x))) - target_p)||² + smooth/2 Σ_(a,b) ||x_a - x_b||²
 
 where m_p(x) = Σ_k w_pk x_(t_pk) is the bilinear sample of pixel p (four texels t_pk, weights
 w_pk) and ρ̃ the residual transform of the robust loss (identity for "l2").
 
-Structure. A pixel's residual (3 numbers) depends on its 5 sampled values only, so its Jacobian
-is J_p = ∂r_p/∂m_p (3 × 5), computed exactly by forward mode (5 tangents, `jax.jacfwd`, vmapped
+Structure. A pixel's residual (3 numbers) depends on its K sampled values only, so its Jacobian
+is J_p = ∂r_p/∂m_p (3 × K), computed exactly by forward mode (K tangents, `jax.jacfwd`, vmapped
 over pixels). The full Jacobian is J_p w_pk in the columns of texel t_pk: the Gauss-Newton matrix
-JᵀJ = Σ_p Σ_kl w_pk w_pl [t_pk, t_pl] ⊗ J_pᵀJ_p is block-sparse (5 × 5 blocks between texels that
+JᵀJ = Σ_p Σ_kl w_pk w_pl [t_pk, t_pl] ⊗ J_pᵀJ_p is block-sparse (K × K blocks between texels that
 share a pixel), its diagonal blocks D_t = Σ w_pk² J_pᵀJ_p and the gradient g_t = Σ w_pk J_pᵀ r_p
-are segment sums, and a product JᵀJ v costs one gather, a 5 × 5 product per pixel and one
+are segment sums, and a product JᵀJ v costs one gather, a K × K product per pixel and one
 scatter-add. The damped normal equations
 
     (JᵀJ + λ diag(D) + smooth L) δ = -g
@@ -48,10 +49,11 @@ from jaxtyping import Array, Float, Int
 from .color import encode
 from .model import Model
 from .observations import Observations
-from .parameters import LOWER, UPPER
+from .material import apply_normal_map
+from .parameters import lower, normal_from_slopes, upper
 from .render import shade
 
-__all__ = ["Problem", "LOSSES", "pixel_residuals", "residuals", "linearize", "objective", "structured_lm",
+__all__ = ["Problem", "LOSSES", "shading_normal", "pixel_residuals", "residuals", "linearize", "objective", "structured_lm",
            "normal_blocks", "LMStats"]
 
 #: Robust losses, as residual transforms r -> r sqrt(ρ(r²)/r²) (so the objective stays a sum of squares).
@@ -73,7 +75,7 @@ class Problem(eqx.Module):
     Attributes:
         obs: the usable pixels (`pbrfit.observations.Observations`).
         index, weight: (P, 4) texels read by each pixel and their bilinear weights.
-        free: (T, 5) 1 where a channel of a texel is fitted (free and observed), else 0.
+        free: (T, K) 1 where a channel of a texel is fitted (free and observed), else 0.
         pairs: (E, 2) neighbouring texels for the smoothness prior; pair_weight (E,) 0 or 1.
         smooth: weight of the smoothness prior (0 = off).
         loss_scale: the robust loss's scale c, in image units.
@@ -84,7 +86,7 @@ class Problem(eqx.Module):
     obs: Observations
     index: Int[Array, "P 4"]
     weight: Float[Array, "P 4"]
-    free: Float[Array, "T 5"]
+    free: Float[Array, "T K"]
     pairs: Int[Array, "E 2"]
     pair_weight: Float[Array, " E"]
     smooth: Float[Array, ""]
@@ -118,11 +120,19 @@ def robust_residual(r, loss: str, scale):
     return r * jnp.sqrt(ratio)
 
 
-def _pixel_residual(m, normal, view, light_l, light_radiance, exposure, target, *, problem: Problem):
-    """Residual (3,) of one pixel from its sampled (5,) material values."""
+def shading_normal(m: Float[Array, "*P K"], normal: Float[Array, "*P 3"], tangent: Float[Array, "*P 4"]):
+    """The normal a pixel shades with: the geometric one, tilted by the fitted tangent-space
+    normal (slopes in channels 5, 6) when normals are fitted (K = 7)."""
+    if m.shape[-1] <= 5:
+        return normal
+    return apply_normal_map(normal, tangent, normal_from_slopes(m[..., 5:7]))
+
+
+def _pixel_residual(m, normal, tangent, view, light_l, light_radiance, exposure, target, *, problem: Problem):
+    """Residual (3,) of one pixel from its sampled (K,) material values."""
     obs = problem.obs
     rad = shade(
-        normal[None], view[None], light_l[None], light_radiance[None],
+        shading_normal(m, normal, tangent)[None], view[None], light_l[None], light_radiance[None],
         m[None, 0:3], m[None, 3:4], m[None, 4:5], problem.model, problem.ibl,
     )[0]
     value = encode(rad, exposure, obs.tonemap, obs.color_space)
@@ -130,15 +140,15 @@ def _pixel_residual(m, normal, view, light_l, light_radiance, exposure, target, 
 
 
 def _pixel_args(obs: Observations):
-    return (obs.normal, obs.view, obs.light_l, obs.light_radiance, obs.exposure, obs.target)
+    return (obs.normal, obs.tangent, obs.view, obs.light_l, obs.light_radiance, obs.exposure, obs.target)
 
 
-def sample_texels(x: Float[Array, "T 5"], problem: Problem) -> Float[Array, "P 5"]:
+def sample_texels(x: Float[Array, "T K"], problem: Problem) -> Float[Array, "P K"]:
     """Bilinear samples m_p = Σ_k w_pk x_(t_pk)."""
     return jnp.einsum("pk,pkc->pc", problem.weight, x[problem.index])
 
 
-def pixel_residuals(x: Float[Array, "T 5"], problem: Problem) -> Float[Array, "P 3"]:
+def pixel_residuals(x: Float[Array, "T K"], problem: Problem) -> Float[Array, "P 3"]:
     """Every pixel's (transformed) residual at texel values x."""
     m = sample_texels(x, problem)
     f = jax.vmap(lambda mm, *a: _pixel_residual(mm, *a, problem=problem))
@@ -151,19 +161,19 @@ def _smooth_residuals(x, problem: Problem):
     return jnp.sqrt(problem.smooth) * problem.pair_weight[:, None] * chan * (x[a] - x[b])
 
 
-def residuals(x: Float[Array, "T 5"], problem: Problem):
+def residuals(x: Float[Array, "T K"], problem: Problem):
     """All residuals as a pytree (pixels, smoothness prior): E = 1/2 Σ leaves²."""
     return pixel_residuals(x, problem), _smooth_residuals(x, problem)
 
 
-def objective(x: Float[Array, "T 5"], problem: Problem) -> Float[Array, ""]:
+def objective(x: Float[Array, "T K"], problem: Problem) -> Float[Array, ""]:
     """E(x) = 1/2 Σ residuals²."""
     r, s = residuals(x, problem)
     return 0.5 * (jnp.sum(r * r) + jnp.sum(s * s))
 
 
-def linearize(x: Float[Array, "T 5"], problem: Problem):
-    """Residuals (P, 3), per-pixel Jacobians J_p = ∂r_p/∂m_p (P, 3, 5) and E(x)."""
+def linearize(x: Float[Array, "T K"], problem: Problem):
+    """Residuals (P, 3), per-pixel Jacobians J_p = ∂r_p/∂m_p (P, 3, K) and E(x)."""
     m = sample_texels(x, problem)
 
     def one(mm, *a):
@@ -198,14 +208,14 @@ def _degree(problem: Problem):
         w, problem.pairs[:, 1], num_segments=t)
 
 
-def normal_blocks(jac: Float[Array, "P 3 5"], problem: Problem) -> Float[Array, "T 5 5"]:
-    """Diagonal 5 × 5 blocks of JᵀJ: D_t = Σ w_pk² J_pᵀ J_p (pixels only, no prior)."""
+def normal_blocks(jac: Float[Array, "P 3 K"], problem: Problem) -> Float[Array, "T K K"]:
+    """Diagonal K × K blocks of JᵀJ: D_t = Σ w_pk² J_pᵀ J_p (pixels only, no prior)."""
     gp = jnp.einsum("pci,pcj->pij", jac, jac)
     w2 = problem.weight * problem.weight
     return _scatter(w2[:, :, None, None] * gp[:, None], problem)
 
 
-def gradient(r, jac, x, problem: Problem) -> Float[Array, "T 5"]:
+def gradient(r, jac, x, problem: Problem) -> Float[Array, "T K"]:
     """g = Jᵀ r (+ smooth L x)."""
     jr = jnp.einsum("pci,pc->pi", jac, r)
     return _scatter(problem.weight[:, :, None] * jr[:, None, :], problem) + problem.smooth * _laplacian(x, problem)
@@ -258,15 +268,15 @@ class LMStats(eqx.Module):
 
 
 def _active(x, g, free):
-    lo = jnp.asarray(LOWER, x.dtype)
-    hi = jnp.asarray(UPPER, x.dtype)
+    lo = jnp.asarray(lower(x.shape[-1]), x.dtype)
+    hi = jnp.asarray(upper(x.shape[-1]), x.dtype)
     blocked = ((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0))
     return free * (~blocked).astype(x.dtype)
 
 
 @eqx.filter_jit
 def structured_lm(
-    x0: Float[Array, "T 5"],
+    x0: Float[Array, "T K"],
     problem: Problem,
     max_steps: int = 50,
     rtol: float = 1e-6,
@@ -279,16 +289,18 @@ def structured_lm(
 
     Stops after `max_steps` steps, or at an accepted step that lowers E by less than
     ``rtol · E`` or moves no value by more than `atol`. Returns (x, LMStats, residuals (P, 3),
-    per-pixel Jacobians (P, 3, 5)) at the returned x.
+    per-pixel Jacobians (P, 3, K)) at the returned x.
     """
-    x0 = jnp.clip(x0, jnp.asarray(LOWER), jnp.asarray(UPPER))
+    k = x0.shape[-1]
+    lo, hi = jnp.asarray(lower(k)), jnp.asarray(upper(k))
+    x0 = jnp.clip(x0, lo, hi)
     p = problem.obs.num_pixels
-    eye = jnp.eye(5, dtype=x0.dtype)
+    eye = jnp.eye(k, dtype=x0.dtype)
     degree = _degree(problem)
     # Step 0 only linearises at x0 (no step is taken: every channel inactive), so the
     # linearisation is traced once, inside the loop.
     r0 = jnp.zeros((p, 3), x0.dtype)
-    j0 = jnp.zeros((p, 3, 5), x0.dtype)
+    j0 = jnp.zeros((p, 3, k), x0.dtype)
     loss0 = jnp.asarray(jnp.inf, x0.dtype)
 
     def cond(c):
@@ -315,7 +327,7 @@ def structured_lm(
             return jnp.einsum("tij,tj->ti", m_inv, v)
 
         delta, iters = pcg(matvec, -a * g, precond, cg_rtol, cg_max_steps)
-        x_new = jnp.clip(x + a * delta, jnp.asarray(LOWER), jnp.asarray(UPPER))
+        x_new = jnp.clip(x + a * delta, lo, hi)
         step = x_new - x
         predicted = -(_vdot(g, step) + 0.5 * _vdot(step, gn_product(gp, step, problem)))
         r_new, jac_new, loss_new = linearize(x_new, problem)

@@ -32,8 +32,8 @@ def residual_variance(loss: float, residual_count: int, parameter_count: int) ->
 
 
 def block_standard_errors(blocks: np.ndarray, channels: np.ndarray, seen: np.ndarray, sigma2: float) -> np.ndarray:
-    """(T, 5) one-sigma errors from (T, 5, 5) normal-matrix blocks, the (5,) fitted-channel mask
-    and the (T,) observed-texel mask.
+    """(T, K) one-sigma errors from (T, K, K) normal-matrix blocks, the (K,) fitted-channel mask
+    and the (T,) observed-texel mask (K = 5, or 7 with normals).
 
     σ_c² = σ̂² Σ_k V_ck² / e_k over the eigenpairs (e_k, V_k) of the block restricted to the
     fitted channels; 0 for fixed channels; +inf for fitted channels of texels no pixel reads.
@@ -42,7 +42,7 @@ def block_standard_errors(blocks: np.ndarray, channels: np.ndarray, seen: np.nda
     free = np.broadcast_to(np.asarray(channels, bool), blocks.shape[:2])
     seen = np.asarray(seen, bool)
     mask2 = free[:, :, None] & free[:, None, :]
-    eye = np.eye(5)
+    eye = np.eye(blocks.shape[1])
     b = np.where(mask2, blocks, 0.0) + np.where(free, 0.0, 1.0)[:, :, None] * eye
     e, v = np.linalg.eigh(b)
     top = np.max(np.abs(e), axis=1, keepdims=True)

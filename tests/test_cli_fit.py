@@ -45,6 +45,19 @@ def test_fit_writes_the_spec_output(capture, tmp_path, monkeypatch):
     assert len(list((out / "views").glob("*.png"))) == 3
 
 
+def test_fit_with_normals_writes_normal_png(capture, tmp_path, monkeypatch):
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "out"
+    assert main(["fit", str(capture), "--out", str(out), "--resolution", "8", "--max-steps", "4",
+                 "--fit", "base_color,roughness,normal", "--metallic", "0", "--quiet"]) == 0
+    normal, _ = read_image(out / "normal.png")
+    assert normal.shape == (8, 8, 3)
+    unc, info = read_image(out / "uncertainty.exr")
+    assert unc.shape == (8, 8, 5)  # the spec's five channels; the normal's σ is in the report
+    report = json.loads((out / "report.json").read_text())
+    assert report["fitted"][-2:] == ["normal_sx", "normal_sy"] and "normal_slope_sigma_median" in report
+
+
 def test_uniform_fit_writes_one_texel_maps(capture, tmp_path, monkeypatch):
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
     out = tmp_path / "out"
@@ -59,7 +72,7 @@ def test_uniform_fit_writes_one_texel_maps(capture, tmp_path, monkeypatch):
 @pytest.mark.parametrize(
     "extra,message",
     [
-        (["--fit", "normal"], "--fit normal"),
+        (["--fit", "normals"], "unknown map 'normals'"),
         (["--fit", "albedo"], "unknown map 'albedo'"),
         (["--roughness", "1.5"], "--roughness"),
         (["--base-color", "1,2"], "--base-color"),

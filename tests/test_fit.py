@@ -224,3 +224,29 @@ def test_fit_reports_the_search():
 def test_schedule_levels():
     assert schedule((64, 64)) == [(1, 1), (4, 4), (16, 16), (64, 64)]
     assert schedule((8, 8)) == [(1, 1), (8, 8)]
+
+
+def _bumpy(n=8):
+    """The checker material with a smooth tangent-space normal map (tilts up to 17°)."""
+    from pbrfit.parameters import normal_from_slopes
+
+    m = _checker(n)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    slopes = np.stack([0.3 * np.sin(2 * np.pi * i / n + 0.4), 0.3 * np.cos(2 * np.pi * j / n + 0.2)], -1)
+    return Material(m.base_color, m.metallic, m.roughness, normal=normal_from_slopes(jnp.asarray(slopes, jnp.float32)))
+
+
+def test_normal_map_recovered_on_small_scene():
+    truth = _bumpy()
+    obs = observations_from_views(VIEWS, _images(VIEWS, truth))
+    res = fit_observations(obs, resolution=8, fit=("base_color", "roughness", "normal"), max_steps=60)
+    got, want = np.asarray(res.material.normal), np.asarray(truth.normal)
+    angle = np.degrees(np.arccos(np.clip(np.sum(got * want, -1), -1.0, 1.0)))
+    # Most texels come back to a degree; a few at the map's edge, where roughness and tilt trade
+    # off in the highlights these four views see, stay in a local minimum.
+    assert np.median(angle) < 1.0 and np.mean(angle < 3.0) > 0.7, angle
+    assert map_rmse(truth, res)["base_color"] < 0.03
+    assert res.uncertainty.shape == (8, 8, 7) and np.all(np.isfinite(res.uncertainty[..., 5:]))
+    # the same images fitted with flat normals leave a clearly worse match
+    flat = fit_observations(obs, resolution=8, fit=("base_color", "roughness"), max_steps=60)
+    assert flat.report["final_loss"] > 5 * res.report["final_loss"], (flat.report["final_loss"], res.report["final_loss"])

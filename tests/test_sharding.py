@@ -57,6 +57,7 @@ def _problem(pixels=PIXELS, tonemap="none", color_space="linear", loss="l2", mod
     lights = _unit(np.array([[0.6, 0.2, 1.0], [-0.5, -0.4, 0.8]]))
     obs = Observations(
         normal=jnp.asarray(np.tile([[0.0, 0.0, 1.0]], (pixels, 1)), jnp.float32),
+        tangent=jnp.asarray(np.tile([[1.0, 0.0, 0.0, 1.0]], (pixels, 1)), jnp.float32),
         view=jnp.asarray(_hemisphere(rng, pixels), jnp.float32),
         light_l=jnp.asarray(np.broadcast_to(lights, (pixels, 2, 3)), jnp.float32),
         light_radiance=jnp.asarray(np.broadcast_to([[3.0, 3.0, 3.0], [2.0, 2.5, 3.0]], (pixels, 2, 3)), jnp.float32),
