@@ -149,6 +149,8 @@ def _cmd_synth(args) -> int:
 
 # --- fit -------------------------------------------------------------------------------------
 _MAP_NAMES = ("base_color", "metallic", "roughness")
+#: What --fit accepts: the maps above (which can also be held fixed) and normals.
+_FIT_NAMES = _MAP_NAMES + ("normal",)
 
 
 def _add_fit(sub) -> None:
@@ -192,8 +194,8 @@ def _fit_options(args) -> dict:
 
     free = [m.strip() for m in args.fit.split(",") if m.strip()]
     for name in free:
-        if name not in _MAP_NAMES + ("normal",):
-            raise CaptureError(f"--fit: unknown map {name!r} (expected some of {', '.join(_MAP_NAMES + ('normal',))})")
+        if name not in _FIT_NAMES:
+            raise CaptureError(f"--fit: unknown map {name!r} (expected some of {', '.join(_FIT_NAMES)})")
     fixed = {}
     if args.base_color is not None:
         try:

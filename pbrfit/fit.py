@@ -165,7 +165,7 @@ def _fixed_values(fixed: Mapping, shape: tuple[int, int], k: int = 5) -> np.ndar
             raise ValueError(f"unknown fixed map {name!r}; expected some of {', '.join(FIT_GROUPS)}")
         chans = list(FIT_GROUPS[name])
         if max(chans) >= k:
-            raise ValueError(f"fixed map {name!r} needs {name!r} among the fitted maps' channels")
+            raise ValueError(f"a fixed {name!r} map is not supported: fit it or leave it out")
         v = np.asarray(value, np.float32)
         if v.ndim == 3:
             v = np.asarray(jax.image.resize(v, shape + (v.shape[-1],), "linear"))
@@ -283,8 +283,10 @@ def fit_observations(
                                    jnp.asarray(parity_classes(shape))))
             moved = int(np.sum(np.any(xn[:t] != xs[:t], axis=1)))
             xs, more = runner(jnp.asarray(xn), problem, steps - first, int(np.sum(free)))
-            info = {k: (v + more[k] if isinstance(v, int) and k != "result" else more[k]) for k, v in info.items()}
-            info["search_moved"] = moved
+            for count in ("steps", "accepted", "cg_iterations"):  # counts add up; the rest is the last run's
+                if count in info:
+                    more[count] += info[count]
+            info = dict(more, search_moved=moved)
         history.append(dict(resolution=list(shape), **info))
         x = xs[:t].reshape(shape + (k,))
 
@@ -293,11 +295,17 @@ def fit_observations(
                    dict(setup=setup_time, **clock), t_post, t_start, runner.linearization)
 
 
-def _timed(fn, clock: dict, name: str, *args):
-    """Compile `fn` ahead of time (added to ``clock["compile"]``), run it (``clock[name]``)."""
+def _compile(fn, clock: dict, *args, **kwargs):
+    """`fn` compiled ahead of time for these arguments; the time goes to ``clock["compile"]``."""
     t0 = time.perf_counter()
-    compiled = fn.lower(*args).compile()
+    compiled = fn.lower(*args, **kwargs).compile()
     clock["compile"] += time.perf_counter() - t0
+    return compiled
+
+
+def _timed(fn, clock: dict, name: str, *args):
+    """Compile `fn` ahead of time (`_compile`), run it and add the run time to ``clock[name]``."""
+    compiled = _compile(fn, clock, *args)
     t0 = time.perf_counter()
     out = jax.block_until_ready(compiled(*args))
     clock[name] = clock.get(name, 0.0) + time.perf_counter() - t0
@@ -321,9 +329,7 @@ class _Runner:
             opt, is_ls = make_solver(self.solver, self.rtol, self.atol, num_free)
             key, args, kwargs, fn = (type(opt).__name__, steps), (x0, problem, opt, is_ls, steps), {}, optx_solve
         if key not in self.compiled:
-            t0 = time.perf_counter()
-            self.compiled[key] = fn.lower(*args, **kwargs).compile()
-            self.clock["compile"] += time.perf_counter() - t0
+            self.compiled[key] = _compile(fn, self.clock, *args, **kwargs)
         t0 = time.perf_counter()
         out = self.compiled[key](*args, **kwargs)
         x = np.asarray(jax.block_until_ready(out[0]))

@@ -76,9 +76,26 @@ def _linear_targets(problem: Problem):
     return y * jnp.exp2(-obs.exposure)[:, None]  # tone maps are not inverted: this is only a start
 
 
+def _candidates(roughness, dtype) -> jnp.ndarray:
+    """(C, 2) (metallic, roughness) pairs: `METALLIC_CANDIDATES` × `roughness` (clipped to bounds)."""
+    metals = jnp.asarray(METALLIC_CANDIDATES, dtype)
+    roughs = jnp.clip(jnp.asarray(roughness, dtype), LOWER[4], UPPER[4])
+    mm, rr = jnp.meshgrid(metals, roughs, indexing="ij")
+    return jnp.stack([mm.reshape(-1), rr.reshape(-1)], axis=1)
+
+
+def _solve_base(l0, a, y, weight, problem: Problem):
+    """(T, 3) per-texel base colour b minimising Σ_pk weight_pk ||y_p - l0_p - b a_p||² channel by
+    channel (linear radiance L_p = l0_p + b a_p), clipped to [0, 1]."""
+    w = weight[:, :, None]
+    num = _scatter(w * (a * (y - l0))[:, None, :], problem)
+    den = _scatter(w * (a * a)[:, None, :], problem)
+    return jnp.clip(num / jnp.maximum(den, _NORMAL_FLOOR), 0.0, 1.0)
+
+
 @eqx.filter_jit
 def grid_initialise(x_fixed, problem: Problem):
-    """(T, 5) starting values: each observed texel's best (metallic, roughness) candidate with its
+    """(T, K) starting values: each observed texel's best (metallic, roughness) candidate with its
     closed-form base colour; channels that are not free keep `x_fixed`."""
     obs = problem.obs
     free = problem.free
@@ -88,22 +105,18 @@ def grid_initialise(x_fixed, problem: Problem):
     metal_free = jnp.max(free[:, 3]) > 0
     rough_free = jnp.max(free[:, 4]) > 0
     base_free = jnp.max(free[:, 0]) > 0
+    normal = shading_normal(fixed_m, obs.normal, obs.tangent)
 
     def candidate(metal, rough):
         m_p = jnp.where(metal_free, metal, fixed_m[:, 3:4])
         r_p = jnp.where(rough_free, rough, fixed_m[:, 4:5])
-
-        normal = shading_normal(fixed_m, obs.normal, obs.tangent)
 
         def render(b):
             return shade(normal, obs.view, obs.light_l, obs.light_radiance, b, m_p, r_p, problem.model, problem.ibl)
 
         zero = jnp.zeros_like(fixed_m[:, :3])
         l0, a = jax.jvp(render, (zero,), (jnp.ones_like(zero),))  # affine in b: the slope is exact
-        w = problem.weight[:, :, None]
-        num = _scatter(w * (a * (y - l0))[:, None, :], problem)
-        den = _scatter(w * (a * a)[:, None, :], problem)
-        base_t = jnp.clip(num / jnp.maximum(den, _NORMAL_FLOOR), 0.0, 1.0)
+        base_t = _solve_base(l0, a, y, problem.weight, problem)
         base_t = jnp.where(base_free, base_t, x_fixed[:, :3])
         b_p = sample_texels(jnp.concatenate([base_t, x_fixed[:, 3:]], axis=1), problem)[:, :3]
         value = encode(l0 + b_p * a, obs.exposure[:, None], obs.tonemap, obs.color_space)
@@ -111,14 +124,11 @@ def grid_initialise(x_fixed, problem: Problem):
         score = _scatter((problem.weight * err[:, None])[:, :, None], problem)[:, 0]
         return base_t, score
 
-    metals = jnp.asarray(METALLIC_CANDIDATES, jnp.float32)
-    roughs = jnp.clip(jnp.asarray(ROUGHNESS_CANDIDATES, jnp.float32), LOWER[4], UPPER[4])
-    mm, rr = jnp.meshgrid(metals, roughs, indexing="ij")
-    mm, rr = mm.reshape(-1), rr.reshape(-1)
-    bases, scores = jax.lax.map(lambda mr: candidate(mr[0], mr[1]), jnp.stack([mm, rr], axis=1))
+    cands = _candidates(ROUGHNESS_CANDIDATES, x_fixed.dtype)
+    bases, scores = jax.lax.map(lambda mr: candidate(mr[0], mr[1]), cands)
     best = jnp.argmin(scores, axis=0)  # (T,)
     base = jnp.take_along_axis(bases, best[None, :, None], axis=0)[0]
-    x = jnp.concatenate([base, mm[best][:, None], rr[best][:, None], x_fixed[:, 5:]], axis=1)
+    x = jnp.concatenate([base, cands[best], x_fixed[:, 5:]], axis=1)
     x = jnp.where(free > 0, x, x_fixed)
     return jnp.where(seen[:, None], x, x_fixed)
 
@@ -177,13 +187,15 @@ def coordinate_search(x, problem: Problem, classes, rounds: int = 1):
 
     For class c, every texel t of the class tries each (metallic, roughness) candidate with its
     base colour in closed form (radiance is affine in t's base colour for a fixed sampled
-    metallic: two renders per candidate), while every texel of other classes keeps its value.
+    metallic: one forward-mode render per candidate), while every texel of other classes keeps
+    its value.
     Each pixel reads at most one texel of the class, so a texel's score, the summed squared
     error of the pixels that read it, depends on its own value only. The best candidate is then
     checked against the exact local energy (robust loss and smoothness prior included) and kept
     only where it lowers it, so the objective never rises. When normals are fitted, the class's
-    texels then try the slopes of `NORMAL_SEARCH_SLOPES` the same way (other channels kept). `rounds` sweeps over the
-    four classes. `classes` is `parity_classes(shape)` (T,); channels that are not free keep x.
+    texels then try the slopes of `NORMAL_SEARCH_SLOPES` the same way (other channels kept).
+    `rounds` sweeps over the four classes. `classes` is `parity_classes(shape)` (T,); channels
+    that are not free keep x.
     """
     obs = problem.obs
     free = problem.free
@@ -191,10 +203,8 @@ def coordinate_search(x, problem: Problem, classes, rounds: int = 1):
     metal_free = free[:, 3:4] > 0
     rough_free = free[:, 4:5] > 0
     base_free = free[:, 0:3] > 0
-    metals = jnp.asarray(METALLIC_CANDIDATES, x.dtype)
-    roughs = jnp.clip(jnp.asarray(SEARCH_ROUGHNESS_CANDIDATES, x.dtype), LOWER[4], UPPER[4])
-    mm, rr = jnp.meshgrid(metals, roughs, indexing="ij")
-    cands = jnp.stack([mm.reshape(-1), rr.reshape(-1)], axis=1)
+    cands = _candidates(SEARCH_ROUGHNESS_CANDIDATES, x.dtype)
+    reads = (problem.weight > 0).astype(x.dtype)
 
     def sweep(x, c):
         member = (classes == c)[:, None] & (jnp.max(free, axis=1, keepdims=True) > 0)
@@ -213,22 +223,20 @@ def coordinate_search(x, problem: Problem, classes, rounds: int = 1):
             return shade(normal, obs.view, obs.light_l, obs.light_radiance, m[:, 0:3], m[:, 3:4], m[:, 4:5],
                          problem.model, problem.ibl)
 
+        # per pixel and channel: the bilinear weight of the class texel whose base colour moves
+        moving = (member & base_free).astype(x.dtype)
+        share = sample_texels(moving, problem)
+
         def candidate(mr):
             # radiance at base 0 and its slope in the class texel's base colour (one forward-
             # mode pass; exact for the affine cases, the tangent at 0 otherwise)
             zero = jnp.zeros_like(x[:, :3])
             l0, a = jax.jvp(lambda b: render(trial(mr[0], mr[1], b)), (zero,), (jnp.ones_like(zero),))
-            reads = (problem.weight > 0).astype(x.dtype)[:, :, None]
-            num = _scatter(reads * (a * (y - l0))[:, None, :], problem)
-            den = _scatter(reads * (a * a)[:, None, :], problem)
-            base_t = jnp.clip(num / jnp.maximum(den, _NORMAL_FLOOR), 0.0, 1.0)
-            base_t = jnp.where(base_free, base_t, x[:, :3])
-            # the affine model's prediction at the solved base colour, per pixel
+            base_t = jnp.where(base_free, _solve_base(l0, a, y, reads, problem), x[:, :3])
+            # the affine model's prediction at the solved base colour: a is the slope per unit of
+            # the class texel's base colour, times its weight `share`
             xb = trial(mr[0], mr[1], base_t)
-            bp = sample_texels(xb, problem)[:, :3]
-            b0 = sample_texels(trial(mr[0], mr[1], jnp.zeros_like(x[:, :3])), problem)[:, :3]
-            b1 = sample_texels(trial(mr[0], mr[1], jnp.ones_like(x[:, :3])), problem)[:, :3]
-            s = jnp.where(b1 - b0 > 0, (bp - b0) / jnp.where(b1 - b0 > 0, b1 - b0, 1.0), 0.0)
+            s = jnp.where(share > 0, sample_texels(moving * base_t, problem) / jnp.where(share > 0, share, 1.0), 0.0)
             value = encode(l0 + s * a, obs.exposure[:, None], obs.tonemap, obs.color_space)
             resid = robust_residual(value - obs.target, problem.loss, problem.loss_scale)
             return base_t, _texel_scores(jnp.sum(resid * resid, axis=1), problem) + _prior_scores(xb, problem)
