@@ -38,6 +38,7 @@ __all__ = [
     "CHANNELS",
     "NORMAL_CHANNELS",
     "NORMAL_SLOPE_MAX",
+    "HORIZON_Z",
     "lower",
     "upper",
     "prior",
@@ -61,6 +62,9 @@ NORMAL_CHANNELS = ("normal_sx", "normal_sy")
 FIT_GROUPS = {"base_color": (0, 1, 2), "metallic": (3,), "roughness": (4,), "normal": (5, 6)}
 #: Largest fitted slope: a normal tilted up to atan(4) = 76° from the surface normal.
 NORMAL_SLOPE_MAX = 4.0
+#: Floor on n_z in `slopes_from_normal`: only keeps the division finite for normals at or below
+#: the horizon, whose slopes the clip to ±NORMAL_SLOPE_MAX then bounds.
+HORIZON_Z = 1e-6
 #: Lower bounds per channel. Roughness stops at the BRDF's floor: below it values are identical.
 LOWER = np.array([0.0, 0.0, 0.0, 0.0, MIN_ROUGHNESS], np.float32)
 #: Upper bounds per channel.
@@ -94,7 +98,7 @@ def normal_from_slopes(s: Float[ArrayLike, "... 2"]) -> Float[Array, "... 3"]:
 def slopes_from_normal(n: Float[ArrayLike, "... 3"]) -> Float[Array, "... 2"]:
     """Slopes (n_x / n_z, n_y / n_z) of tangent-space normals, clipped to ±NORMAL_SLOPE_MAX."""
     n = jnp.asarray(n)
-    z = jnp.maximum(n[..., 2:3], 1.0 / NORMAL_SLOPE_MAX)
+    z = jnp.maximum(n[..., 2:3], HORIZON_Z)
     return jnp.clip(n[..., :2] / z, -NORMAL_SLOPE_MAX, NORMAL_SLOPE_MAX)
 
 

@@ -90,6 +90,24 @@ def test_sine_storage_reaches_bounds_and_inverts():
     assert np.all(np.asarray(from_sine(jnp.full((5,), 100.0))) <= UPPER)
 
 
+def test_normal_slopes_round_trip_and_bounds():
+    from pbrfit.parameters import NORMAL_SLOPE_MAX, channel_mask, lower, normal_from_slopes, slopes_from_normal, upper
+
+    s = np.array([[0.0, 0.0], [0.3, -0.2], [-2.0, 1.5], [NORMAL_SLOPE_MAX, -NORMAL_SLOPE_MAX]], np.float32)
+    n = np.asarray(normal_from_slopes(s))
+    np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(n[0], [0.0, 0.0, 1.0])
+    np.testing.assert_allclose(n[1], np.array([0.3, -0.2, 1.0]) / np.sqrt(1.13), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(slopes_from_normal(n)), s, rtol=1e-5, atol=1e-6)
+    # a normal at the horizon maps to the largest slope, not to infinity
+    assert np.all(np.abs(np.asarray(slopes_from_normal(jnp.array([1.0, 0.0, 0.0])))) <= NORMAL_SLOPE_MAX)
+    # sine storage covers the slope channels too
+    x = np.concatenate([[0.2, 0.4, 0.6, 1.0, 0.5], s[2]]).astype(np.float32)
+    np.testing.assert_allclose(np.asarray(from_sine(to_sine(x))), x, atol=1e-5)
+    assert np.all(np.asarray(from_sine(jnp.full((7,), 100.0))) <= upper(7))
+    assert lower(7)[5] == -NORMAL_SLOPE_MAX and channel_mask(("roughness", "normal")).tolist() == [0, 0, 0, 0, 1, 1, 1]
+
+
 @pytest.mark.parametrize("truth", [((0.6, 0.35, 0.2), 0.0, 0.35), ((0.9, 0.7, 0.3), 1.0, 0.25),
                                    ((0.3, 0.5, 0.7), 0.4, 0.6)])
 def test_uniform_material_recovered(truth):
