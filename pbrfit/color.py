@@ -6,6 +6,7 @@ All functions are elementwise, differentiable ``jnp`` functions of linear RGB (.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -35,6 +36,7 @@ _SRGB_ENCODED_CUTOFF = 0.04045
 _POW_FLOOR = 1e-8
 
 
+@jax.jit  # one fused kernel when called eagerly (output encoding, decoding frames)
 def srgb_to_linear(x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     """Decode sRGB to linear (IEC 61966-2-1): x / 12.92 below 0.04045, else ((x + 0.055)/1.055)^2.4."""
     x = jnp.asarray(x)
@@ -42,6 +44,7 @@ def srgb_to_linear(x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     return jnp.where(x <= _SRGB_ENCODED_CUTOFF, x / 12.92, hi)
 
 
+@jax.jit
 def linear_to_srgb(x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     """Encode linear to sRGB (IEC 61966-2-1): 12.92 x below 0.0031308, else 1.055 x^(1/2.4) - 0.055."""
     x = jnp.asarray(x)

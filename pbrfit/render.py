@@ -69,12 +69,17 @@ class ViewInputs(eqx.Module):
 
 def light_arrays(lights, points: np.ndarray, visibility: Optional[np.ndarray] = None):
     """Per point and light: unit direction to the light (P, L, 3) and arriving radiance (P, L, 3)."""
-    from .lights import incident
-
     points = jnp.asarray(points, jnp.float32)
     if len(lights) == 0:
         empty = jnp.zeros((points.shape[0], 0, 3), jnp.float32)
         return empty, empty
+    return _light_arrays(tuple(lights), points, visibility)
+
+
+@eqx.filter_jit  # eagerly: one compile per image size and light set, not one per operation
+def _light_arrays(lights, points, visibility):
+    from .lights import incident
+
     dirs, rad = zip(*(incident(light, points) for light in lights))
     light_l = jnp.stack(dirs, axis=1)
     light_radiance = jnp.stack(rad, axis=1)

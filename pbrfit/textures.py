@@ -8,6 +8,9 @@ sampler) or ``"clamp"`` (clamp-to-edge).
 
 from __future__ import annotations
 
+import functools
+
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
@@ -22,6 +25,7 @@ def _wrap_index(k, n: int, wrap: str):
     return jnp.clip(k, 0, n - 1)
 
 
+@functools.partial(jax.jit, static_argnames=("shape", "wrap"))  # eagerly: one compile per map size
 def bilinear_weights(
     uv: Float[ArrayLike, "*batch 2"], shape: tuple[int, int], wrap: str = "repeat"
 ) -> tuple[Int[Array, "*batch 4"], Float[Array, "*batch 4"]]:
