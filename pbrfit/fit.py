@@ -49,9 +49,11 @@ SOLVERS = (DEFAULT_SOLVER,) + OPTX_SOLVERS
 #: Default step limits: per coarse level, and for the final level.
 COARSE_STEPS = 20
 MAX_STEPS = 40
-#: With ``search=True`` the final level runs this many steps, then `coordinate_search` (one sweep
-#: of the four parity classes), then the rest of its steps (experiments/solvers.md).
+#: With ``search=True`` the final level runs this many steps, then `coordinate_search`
+#: (`SEARCH_ROUNDS` sweeps of the four parity classes), then the rest of its steps
+#: (experiments/solvers.md).
 SEARCH_AFTER = 15
+SEARCH_ROUNDS = 1
 #: Default scale of the robust losses, in image units (a few times a typical noise level).
 LOSS_SCALE = 0.05
 #: Each coarse-to-fine level is this factor finer than the one before (see experiments/solvers.md).
@@ -280,7 +282,7 @@ def fit_observations(
         xs, info = runner(jnp.asarray(x0), problem, first, int(np.sum(free)))
         if searching and first < steps:
             xn = np.asarray(_timed(coordinate_search, clock, "search", jnp.asarray(xs), problem,
-                                   jnp.asarray(parity_classes(shape))))
+                                   jnp.asarray(parity_classes(shape)), SEARCH_ROUNDS, bool(channels[3] > 0)))
             moved = int(np.sum(np.any(xn[:t] != xs[:t], axis=1)))
             xs, more = runner(jnp.asarray(xn), problem, steps - first, int(np.sum(free)))
             for count in ("steps", "accepted", "cg_iterations"):  # counts add up; the rest is the last run's

@@ -40,7 +40,7 @@ from .render import shade
 from .solvers import (Problem, _scatter, _smooth_residuals, objective, pixel_residuals, robust_residual, sample_texels,
                       shading_normal)
 
-__all__ = ["ROUGHNESS_CANDIDATES", "METALLIC_CANDIDATES", "grid_initialise", "coordinate_search", "parity_classes"]
+__all__ = ["ROUGHNESS_CANDIDATES", "METALLIC_CANDIDATES", "BLEND_METALLIC_CANDIDATES", "grid_initialise", "coordinate_search", "parity_classes"]
 
 #: Roughness values tried per texel: geometric from the BRDF's floor to 1 (highlight widths scale
 #: with alpha = r², so equal steps in log r are equal steps in highlight width). The spacing
@@ -64,6 +64,16 @@ SEARCH_ROUGHNESS_CANDIDATES = tuple(
 NORMAL_SEARCH_SLOPES = (-0.6, -0.4, -0.2, 0.0, 0.2, 0.4, 0.6)
 #: Metallic values tried (the two at which radiance is affine in base colour).
 METALLIC_CANDIDATES = (0.0, 1.0)
+#: Blended metallic values `coordinate_search` also tries (charts, worn metal, filtered edges),
+#: each at the texel's current roughness times `BLEND_ROUGHNESS_FACTORS`. Between 0 and 1 the
+#: radiance is quadratic in base colour (b enters both c_diff and f0), so their base colour is
+#: solved from the radiance linearised at the texel's current base colour (a Gauss-Newton step).
+#: The grid start does not try them: on the peer scene a patch of dielectric texels under a
+#: highlight then starts at (0.3, 0.16) instead of (0, 0.43), and the solve keeps the whole patch
+#: in that basin (a patch moves together; the search moves one texel at a time). The search
+#: runs from near the solution and moves a texel only where the exact energy drops.
+BLEND_METALLIC_CANDIDATES = (0.25, 0.5, 0.75)
+BLEND_ROUGHNESS_FACTORS = (0.8, 1.0, 1.25)
 #: Floor on Σ w A² when solving a texel's base colour (a texel whose pixels see no light).
 _NORMAL_FLOOR = 1e-12
 
@@ -76,9 +86,9 @@ def _linear_targets(problem: Problem):
     return y * jnp.exp2(-obs.exposure)[:, None]  # tone maps are not inverted: this is only a start
 
 
-def _candidates(roughness, dtype) -> jnp.ndarray:
-    """(C, 2) (metallic, roughness) pairs: `METALLIC_CANDIDATES` × `roughness` (clipped to bounds)."""
-    metals = jnp.asarray(METALLIC_CANDIDATES, dtype)
+def _candidates(roughness, dtype, metallic=METALLIC_CANDIDATES) -> jnp.ndarray:
+    """(C, 2) (metallic, roughness) pairs: `metallic` × `roughness` (clipped to bounds)."""
+    metals = jnp.asarray(metallic, dtype)
     roughs = jnp.clip(jnp.asarray(roughness, dtype), LOWER[4], UPPER[4])
     mm, rr = jnp.meshgrid(metals, roughs, indexing="ij")
     return jnp.stack([mm.reshape(-1), rr.reshape(-1)], axis=1)
@@ -182,13 +192,14 @@ def _normal_search(x, problem: Problem, member):
 
 
 @eqx.filter_jit
-def coordinate_search(x, problem: Problem, classes, rounds: int = 1):
+def coordinate_search(x, problem: Problem, classes, rounds: int = 1, blend: bool = True):
     """Per-texel grid search with neighbours held fixed, one parity class at a time.
 
     For class c, every texel t of the class tries each (metallic, roughness) candidate with its
     base colour in closed form (radiance is affine in t's base colour for a fixed sampled
     metallic: one forward-mode render per candidate), while every texel of other classes keeps
-    its value.
+    its value. With `blend` (static) it also tries `BLEND_METALLIC_CANDIDATES` near the texel's
+    roughness (pass False when metallic is fixed: they would repeat the grid).
     Each pixel reads at most one texel of the class, so a texel's score, the summed squared
     error of the pixels that read it, depends on its own value only. The best candidate is then
     checked against the exact local energy (robust loss and smoothness prior included) and kept
@@ -203,7 +214,13 @@ def coordinate_search(x, problem: Problem, classes, rounds: int = 1):
     metal_free = free[:, 3:4] > 0
     rough_free = free[:, 4:5] > 0
     base_free = free[:, 0:3] > 0
+    # rows (metallic, roughness or factor, relative): the grid, then the blends relative to x
     cands = _candidates(SEARCH_ROUGHNESS_CANDIDATES, x.dtype)
+    cands = jnp.concatenate([cands, jnp.zeros_like(cands[:, :1])], axis=1)
+    if blend and BLEND_METALLIC_CANDIDATES:
+        mm, ff = np.meshgrid(BLEND_METALLIC_CANDIDATES, BLEND_ROUGHNESS_FACTORS, indexing="ij")
+        blends = np.stack([mm.reshape(-1), ff.reshape(-1), np.ones(mm.size)], axis=1)
+        cands = jnp.concatenate([cands, jnp.asarray(blends, x.dtype)])
     reads = (problem.weight > 0).astype(x.dtype)
 
     def sweep(x, c):
@@ -227,24 +244,35 @@ def coordinate_search(x, problem: Problem, classes, rounds: int = 1):
         moving = (member & base_free).astype(x.dtype)
         share = sample_texels(moving, problem)
 
-        def candidate(mr):
-            # radiance at base 0 and its slope in the class texel's base colour (one forward-
-            # mode pass; exact for the affine cases, the tangent at 0 otherwise)
-            zero = jnp.zeros_like(x[:, :3])
-            l0, a = jax.jvp(lambda b: render(trial(mr[0], mr[1], b)), (zero,), (jnp.ones_like(zero),))
+        def class_value(base_t):
+            """Per pixel: the base colour of the class texel the pixel reads (0 where none)."""
+            return jnp.where(share > 0, sample_texels(moving * base_t, problem) / jnp.where(share > 0, share, 1.0), 0.0)
+
+        def roughness(row):
+            """(T, 1) the row's roughness: absolute, or a factor on each texel's current one."""
+            r = jnp.where(row[2] > 0, x[:, 4:5] * row[1], row[1])
+            return jnp.clip(r, LOWER[4], UPPER[4])
+
+        def candidate(row):
+            # the radiance and its slope in the class texels' base colour, linearised at their
+            # current base colour (one forward-mode pass): exact where the radiance is affine in
+            # it (metallic 0 or 1 throughout the footprint), a Gauss-Newton step elsewhere
+            rough = roughness(row)
+            b0 = x[:, :3]
+            lb, a = jax.jvp(lambda b: render(trial(row[0], rough, b)), (b0,), (jnp.ones_like(b0),))
+            l0 = lb - class_value(b0) * a  # the linear model at class base colour 0
             base_t = jnp.where(base_free, _solve_base(l0, a, y, reads, problem), x[:, :3])
-            # the affine model's prediction at the solved base colour: a is the slope per unit of
+            # the linear model's prediction at the solved base colour: a is the slope per unit of
             # the class texel's base colour, times its weight `share`
-            xb = trial(mr[0], mr[1], base_t)
-            s = jnp.where(share > 0, sample_texels(moving * base_t, problem) / jnp.where(share > 0, share, 1.0), 0.0)
-            value = encode(l0 + s * a, obs.exposure[:, None], obs.tonemap, obs.color_space)
+            xb = trial(row[0], rough, base_t)
+            value = encode(l0 + class_value(base_t) * a, obs.exposure[:, None], obs.tonemap, obs.color_space)
             resid = robust_residual(value - obs.target, problem.loss, problem.loss_scale)
             return base_t, _texel_scores(jnp.sum(resid * resid, axis=1), problem) + _prior_scores(xb, problem)
 
         bases, scores = jax.lax.map(candidate, cands)
         best = jnp.argmin(scores, axis=0)
         base = jnp.take_along_axis(bases, best[None, :, None], axis=0)[0]
-        proposal = trial(cands[best, 0][:, None], cands[best, 1][:, None], base)
+        proposal = trial(cands[best, 0][:, None], roughness(cands[best].T[:, :, None]), base)
         before = _local_energy(x, problem)
         after = _local_energy(proposal, problem)
         keep = member & (after < before)[:, None]

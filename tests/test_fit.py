@@ -219,6 +219,30 @@ def test_coordinate_search_repairs_texels_in_wrong_basins(smooth):
     np.testing.assert_allclose(polished, optimum, atol=2e-3)
 
 
+def test_coordinate_search_tries_blended_metallic():
+    """Texels of a half-metal square stuck at the metallic bound move to the blend candidate."""
+    checker = _checker()
+    c = np.asarray(checker.roughness) > 0.4  # the squares with roughness 0.45
+    truth = Material(checker.base_color, jnp.asarray(np.where(c, 0.5, 0.0), jnp.float32), checker.roughness)
+    problem = _texel_problem(truth, 0.0)
+    x_true = np.asarray(_stack(truth))
+    knocked = np.flatnonzero(x_true[:, 3] == 0.5)[::3]
+    wrong = x_true.copy()
+    wrong[knocked, 3] = 0.0
+    wrong[knocked, 4] *= 1.15
+    classes = jnp.asarray(parity_classes(truth.resolution))
+    x = np.asarray(coordinate_search(jnp.asarray(wrong), problem, classes))
+    assert np.all((x[knocked, 3] > 0.0) & (x[knocked, 3] < 1.0)), x[knocked]  # a blend candidate
+    # without the blends the class texels can only try metallic 0 or 1
+    plain = np.asarray(coordinate_search(jnp.asarray(wrong), problem, classes, 1, False))
+    assert set(np.unique(plain[knocked, 3])) <= {0.0, 1.0}
+    energy = jax.jit(objective)
+    assert float(energy(jnp.asarray(x), problem)) < float(energy(jnp.asarray(plain), problem))
+    # from the blend a solve reaches the truth
+    polished = np.asarray(structured_lm(jnp.asarray(x), problem, jnp.asarray(40))[0])
+    np.testing.assert_allclose(polished, x_true, atol=2e-3)
+
+
 def test_coordinate_search_never_raises_the_objective():
     truth = _checker()
     problem = _texel_problem(truth, 1e-3)
