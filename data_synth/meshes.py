@@ -4,7 +4,7 @@ A `MeshData` holds float32 vertices, int32 triangles (counter-clockwise seen fro
 analytic unit vertex normals, and uv in **glTF orientation** (v = 0 at the top row of the
 texture image). trimesh keeps uv the OpenGL way (v = 0 at the bottom) and flips v when it
 reads or writes glTF; `MeshData.to_trimesh` does that flip, so a GLB written from a `MeshData`
-carries exactly its uv as ``TEXCOORD_0``. `load_mesh` reads through `pbrfit.scene.load_mesh`,
+carries exactly its uv as ``TEXCOORD_0``. `load_mesh` reads through `pbrfit.mesh.load_mesh`,
 which hands back glTF-oriented uv.
 
 Every generator builds in the y-up frame and takes `world_up`: for ``"+z"`` the mesh is
@@ -274,14 +274,14 @@ def combine(meshes: Sequence[MeshData], tiles: Sequence[tuple[float, float, floa
 
 
 def load_mesh(path, normalize: bool = False) -> MeshData:
-    """A user's mesh (anything `pbrfit.scene.load_mesh` reads: glTF/GLB, OBJ, PLY) with its uv.
+    """A user's mesh (anything `pbrfit.mesh.load_mesh` reads: glTF/GLB, OBJ, PLY) with its uv.
 
     Read exactly as a capture's mesh is read (scenes flattened, uv turned to glTF orientation,
     the file's normals kept), so a synthetic capture of it shows what a fit will see. With
     `normalize`, it is centred on its bounding box and scaled to fit a unit-radius sphere.
     Raises `CaptureError` when the file cannot be read or has no texture coordinates.
     """
-    from pbrfit.scene import load_mesh as load_capture_mesh
+    from pbrfit.mesh import load_mesh as load_capture_mesh
 
     mesh = load_capture_mesh(Path(path), where=f"mesh {path}")
     data = MeshData(mesh.vertices, mesh.faces, mesh.vertex_normals, np.asarray(mesh.visual.uv)[:, :2])

@@ -13,7 +13,7 @@ The folder (built under a temporary name and renamed into place, so a failure le
     contact_sheet.png   every view side by side (sRGB 8-bit)
 
 Rendering uses the project's own path, so a fit sees exactly the geometry that made the images:
-the mesh is read back from ``mesh.glb`` with `pbrfit.scene.load_mesh`, the environment from
+the mesh is read back from ``mesh.glb`` with `pbrfit.mesh.load_mesh`, the environment from
 ``env.exr`` with `pbrfit.environment.load_environment`, the split-sum tables come from
 `pbrfit.ibl.build_ibl` with default `IBLSettings`, G-buffers from `pbrfit.gbuffer.compute_gbuffer`
 (with each frame's lights in capture order: global lights, then the flash), and shading from
@@ -90,7 +90,7 @@ def _frame_lights(scene: Scene, c2w: np.ndarray) -> tuple:
 def render_scene(scene: Scene, mesh, environment=None, ibl=None, progress: Optional[Callable[[str], None]] = None):
     """Clean display values and masks of every view: ([(H, W, 3) float32], [(H, W) bool]).
 
-    `mesh`: a `trimesh.Trimesh` with glTF-oriented uv (as `pbrfit.scene.load_mesh` returns);
+    `mesh`: a `trimesh.Trimesh` with glTF-oriented uv (as `pbrfit.mesh.load_mesh` returns);
     `environment`: a `pbrfit.environment.Environment` or None; `ibl`: its split-sum tables when
     ``scene.model.ibl == "split_sum"``.
     """
@@ -241,7 +241,7 @@ def synthesize(
     """Render `scene` and write its capture folder at `out` (see the module docstring)."""
     from pbrfit.environment import load_environment
     from pbrfit.io import atomic_dir, write_gltf, write_image, write_material
-    from pbrfit.scene import load_mesh
+    from pbrfit.mesh import load_mesh
 
     t0 = time.perf_counter()
     suffix, dtype, color_space, bits = IMAGE_FORMATS[scene.image_format]

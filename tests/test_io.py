@@ -202,7 +202,7 @@ def test_read_material_errors(tmp_path):
 
 # --- glTF export --------------------------------------------------------------------------------
 def test_write_gltf_uv_and_texture_orientation(tmp_path):
-    from pbrfit.scene import load_mesh
+    from pbrfit.mesh import load_mesh
 
     mesh = load_mesh(write_quad_glb(tmp_path / "quad.glb"))
     rng = np.random.default_rng(2)

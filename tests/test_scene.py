@@ -23,7 +23,8 @@ from _capture_fixtures import (
 from pbrfit.color import srgb_to_linear
 from pbrfit.errors import CaptureError
 from pbrfit.io import write_image
-from pbrfit.scene import CaptureWarning, load_capture, load_mesh
+from pbrfit.mesh import load_mesh
+from pbrfit.scene import CaptureWarning, load_capture
 
 
 # --- a well-formed capture ----------------------------------------------------------------------
