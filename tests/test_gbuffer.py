@@ -325,7 +325,7 @@ def test_cache_round_trip_and_invalidation(tmp_path, monkeypatch):
         raise AssertionError("ray cast despite a cached result")
 
     with monkeypatch.context() as m:
-        m.setattr(gb, "_make_first_hit", boom)
+        m.setattr(gb, "make_first_hit", boom)
         g2 = compute_gbuffer(mesh, SHADOW_CAM, SHADOW_LIGHTS, cache_dir=tmp_path)
     for name, a in g1._arrays().items():
         b = getattr(g2, name)
