@@ -202,7 +202,7 @@ def environment_pdf(sampler: EnvironmentSampler, d_env: Float[Array, "*b 3"]) ->
 
 @functools.lru_cache(maxsize=None)
 def _default_lut():
-    from .ibl import brdf_lut
+    from .brdf_lut import brdf_lut
     return np.asarray(brdf_lut(64, 512))
 
 
@@ -318,7 +318,7 @@ def monte_carlo_radiance(env: Environment, n: Float[Array, "P 3"], v: Float[Arra
     metallic = _as_column(metallic, base_color)
     roughness = _as_column(roughness, base_color)
     if model.multiscatter and dfg is None:
-        from .ibl import lookup_brdf_lut
+        from .brdf_lut import lookup_brdf_lut
         nv = jnp.clip(dot3(n, v), 0.0, 1.0)
         dfg = lookup_brdf_lut(jnp.asarray(_default_lut(), n.dtype), nv, roughness[..., 0])
     samples = int(samples)

@@ -174,7 +174,7 @@ def shade(
     if model.multiscatter:
         if ibl is None:
             raise ValueError("Model(multiscatter=True) needs IBL tables (for the DFG LUT)")
-        from .ibl import lookup_brdf_lut
+        from .brdf_lut import lookup_brdf_lut
 
         n_dot_v = jnp.clip(jnp.sum(normal * view, axis=-1), 0.0, 1.0)
         dfg = lookup_brdf_lut(ibl.lut, n_dot_v, roughness[..., 0])

@@ -16,8 +16,9 @@ from pbrfit import brdf
 from pbrfit.environment import (Environment, dot3, environment_lookup, load_environment, procedural_sky,
                                 resample_equirect, texel_directions, texel_solid_angles)
 from pbrfit.errors import CaptureError
-from pbrfit.ibl import (IBLSettings, brdf_lut, build_ibl, irradiance_map, lookup_brdf_lut, prefiltered_lookup,
-                        sh9_coefficients, sh9_irradiance, shade_ibl, specular_albedo)
+from pbrfit.brdf_lut import brdf_lut, lookup_brdf_lut, specular_albedo
+from pbrfit.ibl import (IBLSettings, build_ibl, irradiance_map, prefiltered_lookup, sh9_coefficients, sh9_irradiance,
+                        shade_ibl)
 from pbrfit.model import Model
 from pbrfit.montecarlo import monte_carlo_radiance
 

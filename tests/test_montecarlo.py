@@ -10,7 +10,7 @@ import pytest
 from scipy import stats
 
 from pbrfit.environment import Environment, procedural_sky, texel_directions, texel_solid_angles
-from pbrfit.ibl import specular_albedo
+from pbrfit.brdf_lut import specular_albedo
 from pbrfit.model import Model
 from pbrfit.montecarlo import (environment_pdf, environment_sampler, ggx_vndf_pdf, hammersley, monte_carlo_radiance,
                                sample_environment, sample_ggx_ndf, sample_ggx_vndf)
