@@ -234,7 +234,6 @@ def _spheres_grid(seed: int, **kw) -> Scene:
                          texture_size=None))
     from pbrfit.lights import point_light
 
-    rng = np.random.default_rng(seed)
     met, rough = tuple(p["metallic"]), tuple(p["roughness"])
     rows, cols = len(met), len(rough)
     if p["texture_size"] is not None:  # the chart's size: one tile per sphere

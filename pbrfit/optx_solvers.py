@@ -22,7 +22,6 @@ told not to throw (a breakdown ends the solve, reported in its result).
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import lineax as lx
 import optax

@@ -11,7 +11,7 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Sequence
 
 import numpy as np
 

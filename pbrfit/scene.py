@@ -275,9 +275,8 @@ def _camera(top: Mapping, frame: Mapping, c2w: np.ndarray, width: int, height: i
                     )
                 break
     fl_x = _positive(frame, "fl_x", where)
-    fl_x_owner = where
     if fl_x is None:
-        fl_x, fl_x_owner = _positive(top, "fl_x", name), name
+        fl_x = _positive(top, "fl_x", name)
     if fl_x is not None:
         fl_y = _positive(frame, "fl_y", where) or _positive(top, "fl_y", name) or fl_x
         fx, fy = fl_x, fl_y

@@ -352,7 +352,6 @@ def test_capture_round_trip_srgb_png_flash(flash_capture):
 
 
 def test_rerender_with_truth_reproduces_images(peer_capture):
-    from pbrfit.material import Material
     from pbrfit.io import read_material
     from pbrfit.scene import load_capture
     from pbrfit.views import render_capture
