@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import platform
 import tempfile
 import time
@@ -70,6 +71,9 @@ SCENES = {
     "peer-plane-noisy": ("peer-plane", dict(noise=0.01),
                          ["structured (default: grid + search)", "structured (grid, no search)",
                           "structured (default, smooth=0.003)", "structured (default, smooth=0.03)", ORACLE]),
+    # the same noise with lights π times brighter (intensity 6π): three times the signal-to-noise
+    "peer-plane-noisy-bright": ("peer-plane", dict(noise=0.01, light_intensity=6.0 * math.pi),
+                                ["structured (default: grid + search)", "structured (grid, no search)", ORACLE]),
 }
 
 
