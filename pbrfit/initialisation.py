@@ -23,7 +23,9 @@ four parity classes (row mod 2, column mod 2); a bilinear footprint holds one te
 the texels of one class share no pixel and each can be searched over the same candidates *with
 its neighbours held at their current values*: the exact conditional objective, texel by texel
 (iterated conditional modes, J. Besag, "On the statistical analysis of dirty pictures", JRSS B
-1986). A texel moves only if its pixels' exact residual drops.
+1986). A texel moves only if its pixels' exact residual drops. The search also tries blended
+metallic values near the texel's roughness (`BLEND_METALLIC_CANDIDATES`), which the grid start
+cannot represent; their base colour comes from the radiance linearised at the current one.
 """
 
 from __future__ import annotations
