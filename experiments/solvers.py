@@ -71,6 +71,9 @@ SCENES = {
     "peer-plane-noisy": ("peer-plane", dict(noise=0.01),
                          ["structured (default: grid + search)", "structured (grid, no search)",
                           "structured (default, smooth=0.003)", "structured (default, smooth=0.03)", ORACLE]),
+    # plane-flash with a third of the noise: three times the signal-to-noise
+    "plane-flash-quiet": ("plane-flash", dict(noise=0.01 / 3),
+                          ["structured (default: grid + search)", "structured (grid, no search)", ORACLE]),
     # the same noise with lights π times brighter (intensity 6π): three times the signal-to-noise
     "peer-plane-noisy-bright": ("peer-plane", dict(noise=0.01, light_intensity=6.0 * math.pi),
                                 ["structured (default: grid + search)", "structured (grid, no search)", ORACLE]),
