@@ -158,21 +158,35 @@ def _texel_scores(err, problem: Problem):
     return _scatter((reads * err[:, None])[:, :, None], problem)[:, 0]
 
 
-def _prior_scores(x, problem: Problem):
-    """(T,) Σ of the squared smoothness-prior residuals of the pairs each texel is in."""
-    s = _smooth_residuals(x, problem)
-    pair = jnp.sum(s * s, axis=1)
+def _pair_scores(pair, problem: Problem):
+    """(T,) Σ of the pair energies `pair` (E,) of the smoothness pairs each texel is in."""
     t = problem.num_texels
     return jax.ops.segment_sum(pair, problem.pairs[:, 0], num_segments=t) + jax.ops.segment_sum(
         pair, problem.pairs[:, 1], num_segments=t)
 
 
-def _local_energy(x, problem: Problem):
-    """(T,) the part of the objective that depends on each texel: the squared (robust)
-    residuals of the pixels that read it plus its smoothness-prior pairs. Exact for texels that
-    share no pixel and no pair (one parity class)."""
+def _prior_scores(x, problem: Problem):
+    """(T,) Σ of the squared smoothness-prior residuals of the pairs each texel is in."""
+    s = _smooth_residuals(x, problem)
+    return _pair_scores(jnp.sum(s * s, axis=1), problem)
+
+
+def _energies(x, problem: Problem):
+    """(T,) local energies and the whole objective E(x), from one evaluation of the residuals.
+
+    A texel's local energy is the part of the objective that depends on it: the squared
+    (robust) residuals of the pixels that read it plus its smoothness-prior pairs. Exact for
+    texels that share no pixel and no pair (one parity class)."""
     r = pixel_residuals(x, problem)
-    return _texel_scores(jnp.sum(r * r, axis=1), problem) + _prior_scores(x, problem)
+    s = _smooth_residuals(x, problem)
+    err = jnp.sum(r * r, axis=1)
+    pair = jnp.sum(s * s, axis=1)
+    return _texel_scores(err, problem) + _pair_scores(pair, problem), 0.5 * (jnp.sum(err) + jnp.sum(pair))
+
+
+def _local_energy(x, problem: Problem):
+    """(T,) the local energies of `_energies`."""
+    return _energies(x, problem)[0]
 
 
 def _normal_search(x, problem: Problem, member):
@@ -275,7 +289,7 @@ def coordinate_search(x, problem: Problem, classes, rounds: int = 1, blend: bool
         best = jnp.argmin(scores, axis=0)
         base = jnp.take_along_axis(bases, best[None, :, None], axis=0)[0]
         proposal = trial(cands[best, 0][:, None], roughness(cands[best].T[:, :, None]), base)
-        before = _local_energy(x, problem)
+        before, energy = _energies(x, problem)
         after = _local_energy(proposal, problem)
         keep = member & (after < before)[:, None]
         new = jnp.where(keep, proposal, x)
@@ -283,7 +297,7 @@ def coordinate_search(x, problem: Problem, classes, rounds: int = 1, blend: bool
             new = _normal_search(new, problem, member & (free[:, 5:] > 0))
         # Texels of one class can share a pixel only across the seam of an odd-sized wrapped
         # map; there the local energies are not separable, so check the whole objective.
-        return jnp.where(objective(new, problem) <= objective(x, problem), new, x), None
+        return jnp.where(objective(new, problem) <= energy, new, x), None
 
     order = jnp.tile(jnp.arange(4, dtype=jnp.int32), rounds)
     x, _ = jax.lax.scan(sweep, x, order)
