@@ -10,12 +10,14 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from .parameters import FIT_GROUPS
+
 __all__ = ["run_demo", "recovery_table", "CONFIDENT_SIGMA"]
 
 
 #: The demo's "confident" texels: those whose reported standard error is at most this.
 CONFIDENT_SIGMA = 0.05
-_CHANNELS = {"base_color": [0, 1, 2], "metallic": [3], "roughness": [4]}
+_MAPS = ("base_color", "metallic", "roughness")
 
 
 def recovery_table(fitted, truth, sigma, coverage) -> list[dict]:
@@ -33,7 +35,8 @@ def recovery_table(fitted, truth, sigma, coverage) -> list[dict]:
     sig = np.asarray(sigma)
     seen = np.asarray(coverage) > 0
     rows = []
-    for name, ch in _CHANNELS.items():
+    for name in _MAPS:
+        ch = list(FIT_GROUPS[name])
         err, s = (x - t)[seen][:, ch], sig[seen][:, ch]
         sure = np.max(s, axis=1) <= CONFIDENT_SIGMA
         rows.append(dict(

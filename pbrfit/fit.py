@@ -360,13 +360,12 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     n_par = int(np.sum(seen)) * int(np.sum(channels))
     sigma2 = residual_variance(float(energy), n_res, n_par)
     sigma = block_standard_errors(blocks, channels > 0, seen, sigma2).reshape(final + (k,))
-    coverage = coverage_counts(_layout(obs, final, "repeat" if final != (1, 1) else "repeat"))
+    coverage = coverage_counts(_layout(obs, final, "repeat"))
     # Per-view renders in image space and PSNR (peak 1: display values).
     if loss == "l2":
         resid = np.asarray(r)[: obs.num_pixels]
     else:
-        plain = Problem(problem.obs, problem.index, problem.weight, problem.free, problem.pairs, problem.pair_weight,
-                        problem.smooth, problem.loss_scale, problem.ibl, model, "l2")
+        plain = dataclasses.replace(problem, loss="l2")
         resid = np.asarray(jax.jit(pixel_residuals)(xj, plain))[: obs.num_pixels]
     values = resid + np.asarray(obs.target)
     vidx = np.asarray(obs.view_index)
