@@ -12,8 +12,9 @@ KHR_lights_punctual, where a light shines down its node's -Z axis.
 
 Range window (glTF-Sample-Viewer ``getRangeAttenuation``, after Karis 2013):
 ``window(d) = clamp(1 - (d / range)^4, 0, 1)`` when ``range > 0``, else 1; the ``1/d^2`` stays
-outside the window. Spot falloff (glTF-Sample-Viewer ``getSpotAttenuation``):
-``cd = dot(spot_direction, -l)``, ``spot = smoothstep(cos(outer), cos(inner), cd)``.
+outside the window. Spot falloff (the KHR_lights_punctual reference code, as glTF-Sample-Viewer's
+``getSpotAttenuation``): ``cd = dot(spot_direction, -l)``,
+``spot = clamp((cd - cos(outer)) / (cos(inner) - cos(outer)), 0, 1)^2``.
 
 Every function here is pure ``jnp`` and jittable; ``kind`` is static, so a jitted function
 specialises on the light type.
@@ -58,7 +59,7 @@ KINDS = ("point", "spot", "directional")
 # capture's scale, far above float32's underflow of d^2 (~1e-38).
 MIN_DISTANCE = 1e-4
 
-# Floor of cos(inner) - cos(outer) in the spot smoothstep: KHR_lights_punctual's reference
+# Floor of cos(inner) - cos(outer) in the spot falloff: KHR_lights_punctual's reference
 # implementation uses the same 0.001 so that inner == outer (a hard-edged spot) stays finite.
 SPOT_MIN_COS_DELTA = 1e-3
 
@@ -180,17 +181,21 @@ def range_window(d: Float[Array, "*batch"], range_: Float[Array, ""]) -> Float[A
 def spot_falloff(
     cd: Float[Array, "*batch"], inner: Float[Array, ""], outer: Float[Array, ""]
 ) -> Float[Array, "*batch"]:
-    """``smoothstep(cos(outer), cos(inner), cd)`` with ``cd = dot(spot_direction, -l)``.
+    """``t^2`` with ``t = clamp((cd - cos(outer)) / (cos(inner) - cos(outer)), 0, 1)`` and
+    ``cd = dot(spot_direction, -l)``.
 
-    glTF-Sample-Viewer's ``getSpotAttenuation``: 0 outside the outer cone, 1 inside the inner,
-    smoothstep ``t^2 (3 - 2t)`` between. ``cos(inner) - cos(outer)`` is floored at
-    `SPOT_MIN_COS_DELTA` so that a hard-edged cone stays finite.
+    The KHR_lights_punctual reference code ("Inner and Outer Cone Angles": ``lightAngleScale``,
+    ``lightAngleOffset``, then ``angularAttenuation *= angularAttenuation``), which
+    glTF-Sample-Viewer's ``getSpotAttenuation`` implements: 0 outside the outer cone, 1 inside the
+    inner, a steep decline leveling off towards the outer cone between.
+    ``cos(inner) - cos(outer)`` is floored at `SPOT_MIN_COS_DELTA`, as in the reference code, so
+    that a hard-edged cone stays finite.
     """
     cos_outer = jnp.cos(outer)
     cos_inner = jnp.cos(inner)
     delta = jnp.maximum(cos_inner - cos_outer, SPOT_MIN_COS_DELTA)
     t = jnp.clip((cd - cos_outer) / delta, 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
+    return t * t
 
 
 def incident(

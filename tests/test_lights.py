@@ -31,9 +31,12 @@ def _point_sum(points, position):
 _grad_point = jax.jit(jax.grad(_point_sum, argnums=(0, 1)))
 
 
-def _smoothstep(e0, e1, x):
-    t = min(max((x - e0) / (e1 - e0), 0.0), 1.0)
-    return t * t * (3 - 2 * t)
+def _khr_spot(cos_outer, cos_inner, cd):
+    # KHR_lights_punctual's reference code, written out as it is there
+    light_angle_scale = 1.0 / max(0.001, cos_inner - cos_outer)
+    light_angle_offset = -cos_outer * light_angle_scale
+    attenuation = min(max(cd * light_angle_scale + light_angle_offset, 0.0), 1.0)
+    return attenuation * attenuation
 
 
 def test_point_light_inverse_square_and_direction():
@@ -56,14 +59,14 @@ def test_range_window_matches_spec_formula():
     assert float(range_window(jnp.asarray(5.0), jnp.asarray(0.0))) == 1.0
 
 
-def test_spot_smoothstep_falloff_matches_sample_viewer():
+def test_spot_falloff_matches_khr_reference_code():
     inner, outer = 0.3, 0.6
     light = spot_light([0.0, 0.0, 0.0], [0.0, -2.0, 0.0], [1, 1, 1], 1.0, 0.0, inner, outer)
     angles = np.array([0.0, 0.2, 0.31, 0.45, 0.59, 0.7])
     pts = np.stack([np.sin(angles), -np.cos(angles), np.zeros_like(angles)], -1).astype(np.float32)
     l, e = incident_jit(light, pts)
     # cd = dot(spotDir, -l) = cos(angle)
-    expected = [_smoothstep(math.cos(outer), math.cos(inner), math.cos(a)) for a in angles]
+    expected = [_khr_spot(math.cos(outer), math.cos(inner), math.cos(a)) for a in angles]
     np.testing.assert_allclose(e[:, 0], expected, atol=1e-5)
     assert e[0, 0] == pytest.approx(1.0) and e[-1, 0] == 0.0
     np.testing.assert_allclose(l, -pts, atol=1e-6)
