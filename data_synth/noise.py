@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["box_downsample", "gaussian", "poisson_gaussian", "quantize", "add_noise", "NOISE_MODELS"]
+__all__ = ["box_downsample", "gaussian", "relative", "poisson_gaussian", "quantize", "add_noise", "NOISE_MODELS"]
 
-NOISE_MODELS = ("gaussian", "poisson_gaussian")
+NOISE_MODELS = ("gaussian", "relative", "poisson_gaussian")
 
 
 def box_downsample(image: np.ndarray, factor: int) -> np.ndarray:
@@ -37,6 +37,14 @@ def gaussian(image: np.ndarray, sigma: float, rng: np.random.Generator) -> np.nd
     return (image + rng.normal(0.0, sigma, image.shape)).astype(np.float32)
 
 
+def relative(image: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """image (1 + N(0, sigma^2)): Gaussian noise whose std is `sigma` times the value ("1% noise" read
+    as 1% of the signal), independently per pixel and channel. Dark pixels are nearly noiseless."""
+    if sigma <= 0:
+        return image
+    return (image * (1.0 + rng.normal(0.0, sigma, image.shape))).astype(np.float32)
+
+
 def poisson_gaussian(
     image: np.ndarray, photons_at_one: float, read_sigma: float, rng: np.random.Generator
 ) -> np.ndarray:
@@ -52,6 +60,7 @@ def add_noise(image: np.ndarray, sigma: float, rng: np.random.Generator, model: 
     """Noise of strength `sigma` (the standard deviation at a value of 1):
 
     - ``gaussian``: additive, std `sigma` everywhere;
+    - ``relative``: multiplicative, std `sigma` times the value;
     - ``poisson_gaussian``: shot noise with std `sigma` at a value of 1 (q = 1 / sigma^2) plus
       read noise `sigma` / 4.
     """
@@ -59,6 +68,8 @@ def add_noise(image: np.ndarray, sigma: float, rng: np.random.Generator, model: 
         return image.astype(np.float32)
     if model == "gaussian":
         return gaussian(image, sigma, rng)
+    if model == "relative":
+        return relative(image, sigma, rng)
     if model == "poisson_gaussian":
         return poisson_gaussian(image, 1.0 / sigma**2, sigma / 4.0, rng)
     raise ValueError(f"noise model must be one of {NOISE_MODELS}, got {model!r}")

@@ -76,7 +76,7 @@ class Scene:
         image_format: a key of `IMAGE_FORMATS`.
         supersample: k: rendered at k x the size, box-filtered down.
         noise: noise strength (std at a display value of 1); 0 = none.
-        noise_model: ``"gaussian"`` or ``"poisson_gaussian"``.
+        noise_model: ``"gaussian"``, ``"relative"`` or ``"poisson_gaussian"`` (`data_synth.noise`).
         model: the `pbrfit.model.Model` that renders the images.
         params: the preset's parameters, for ``truth/synth.json``.
     """

@@ -107,7 +107,7 @@ def _add_synth(sub) -> None:
     p.add_argument("--size", type=int, help="image width and height in pixels")
     p.add_argument("--views", type=int, help="number of cameras")
     p.add_argument("--noise", type=float, help="noise std at a display value of 1 (0 = none)")
-    p.add_argument("--noise-model", choices=NOISE_MODELS, help="gaussian or poisson_gaussian")
+    p.add_argument("--noise-model", choices=NOISE_MODELS, help="gaussian (additive), relative (std proportional to the value) or poisson_gaussian")
     p.add_argument("--supersample", type=int, help="render k x k samples per pixel and box-filter down")
     p.add_argument("--texture-size", type=int, help="ground-truth map resolution")
     p.add_argument("--format", choices=sorted(IMAGE_FORMATS), help="exr (linear float), png16 or png8 (sRGB)")

@@ -222,6 +222,10 @@ def test_noise_statistics():
     # variance x / q + read^2 with q = 1 / sigma^2, read = sigma / 4
     expected = np.sqrt(0.25 * 0.02**2 + (0.02 / 4) ** 2)
     assert abs(pg.std() / expected - 1) < 0.05
+    y = np.concatenate([x, 4 * x], axis=-1)  # values 0.25 and 1.0
+    rel = noise.add_noise(y, 0.01, np.random.default_rng(0), model="relative")
+    for c, value in ((0, 0.25), (3, 1.0)):
+        assert abs(rel[..., c].std() / (0.01 * value) - 1) < 0.05 and abs(rel[..., c].mean() / value - 1) < 1e-3
     np.testing.assert_array_equal(g, noise.add_noise(x, 0.01, np.random.default_rng(0)))
 
 
