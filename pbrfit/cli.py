@@ -54,7 +54,7 @@ def _add_render(sub) -> None:
     )
     p.add_argument("capture", help="capture folder or capture.json")
     p.add_argument("--material", required=True, help="material folder (base_color.exr, metallic.exr, ...)")
-    p.add_argument("--out", required=True, help="output capture folder (written whole or not at all)")
+    p.add_argument("--out", required=True, help="output capture folder (written whole or not at all; replaces only an earlier capture folder)")
     p.add_argument("--environment", help="relight with this equirect HDR instead of the capture's")
     p.add_argument("--lights", help="relight with these global lights: a JSON list (KHR_lights_punctual units)")
     p.add_argument("--cache", help="G-buffer cache folder (default $PBRFIT_CACHE or ~/.cache/pbrfit)")
@@ -73,11 +73,12 @@ def _cache_dir(args):
 def _cmd_render(args) -> int:
     import time
 
-    from .io import read_material
+    from .io import check_output_dir, read_material
     from .scene import load_capture
     from .views import apply_overrides, load_lights_override, render_capture, write_rendered_capture
 
     start = time.perf_counter()
+    check_output_dir(args.out, "capture.json", "capture folder")
     capture = load_capture(args.capture)
     material = read_material(args.material)
     lights_json = load_lights_override(args.lights) if args.lights else None
@@ -122,6 +123,8 @@ def _cmd_synth(args) -> int:
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
 
+    from .io import check_output_dir
+
     for name, low in (("size", 1), ("views", 1), ("supersample", 1), ("texture_size", 1)):
         value = getattr(args, name)
         if value is not None and value < low:
@@ -129,8 +132,7 @@ def _cmd_synth(args) -> int:
     if args.noise is not None and not args.noise >= 0:
         raise CaptureError(f"--noise: must be a number >= 0, got {args.noise}")
     out = Path(args.out)
-    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "capture.json").is_file())):
-        raise CaptureError(f"--out {out}: exists and is not a capture folder; refusing to replace it")
+    check_output_dir(out, "capture.json", "capture folder")
     overrides = dict(
         size=args.size, views=args.views, noise=args.noise, noise_model=args.noise_model,
         supersample=args.supersample, texture_size=args.texture_size, image_format=args.format,
@@ -159,7 +161,7 @@ def _add_fit(sub) -> None:
 
     p = sub.add_parser("fit", help="fit base color, metallic and roughness maps to a capture")
     p.add_argument("capture", help="capture folder, capture.json or NeRF-style transforms.json")
-    p.add_argument("--out", required=True, help="output folder (written whole or not at all)")
+    p.add_argument("--out", required=True, help="output folder (written whole or not at all; replaces only an earlier fit output)")
     p.add_argument("--resolution", type=int, help="map size N (N x N); default from the views' texel coverage")
     p.add_argument("--maps", choices=("texture", "none"), default="texture",
                    help="'none' fits one uniform material (five numbers)")
@@ -316,11 +318,13 @@ def _summary(result, errors) -> str:
 def _cmd_fit(args) -> int:
     from pathlib import Path
 
+    from .io import check_output_dir
     from .scene import load_capture
 
     options = _fit_options(args)
-    capture = load_capture(args.capture, require_uv=options["maps"] == "texture")
     out = Path(args.out)
+    check_output_dir(out, "report.json", "pbrfit fit output")
+    capture = load_capture(args.capture, require_uv=options["maps"] == "texture")
     result, errors = run_fit(capture, out, options, _cache_dir(args), args.quiet)
     if not args.quiet:
         print(_summary(result, errors))

@@ -68,7 +68,8 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
     from data_synth.writer import synthesize
 
     from .cli import run_fit
-    from .io import read_material
+    from .errors import CaptureError
+    from .io import check_output_dir, read_material
     from .scene import load_capture
     from .views import default_cache_dir
 
@@ -77,6 +78,10 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
             print(message, flush=True)
 
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise CaptureError(f"{out}: exists and is not a folder; choose another --out")
+    check_output_dir(out / "capture", "capture.json", "capture folder")
+    check_output_dir(out / "fit", "report.json", "pbrfit fit output")
     start = time.perf_counter()
     scene = make_scene("demo", seed=seed, **scene)
     say(f"pbrfit demo: synthesizing '{scene.name}' ({scene.num_views} views of {scene.width}x{scene.height}) ...")

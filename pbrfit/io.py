@@ -33,6 +33,7 @@ __all__ = [
     "ImageInfo",
     "atomic_path",
     "atomic_dir",
+    "check_output_dir",
     "read_image",
     "read_image_info",
     "write_image",
@@ -88,17 +89,38 @@ def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+def check_output_dir(final_dir: str | os.PathLike, marker: str, what: str) -> None:
+    """Refuse an output folder that writing would destroy: `final_dir` may be missing, an empty
+    folder, or a folder holding `marker` (an earlier output of the same command, `what`), which is
+    replaced. Anything else (a file, a folder of other things) is `CaptureError`."""
+    final_dir = Path(final_dir)
+    if not final_dir.exists():
+        return
+    if not final_dir.is_dir():
+        raise CaptureError(f"{final_dir}: exists and is not a folder; choose another output folder")
+    if any(final_dir.iterdir()) and not (final_dir / marker).is_file():
+        raise CaptureError(
+            f"{final_dir}: exists and is not a {what} (no {marker}); refusing to replace it, "
+            "choose another output folder or remove it"
+        )
+
+
 @contextlib.contextmanager
-def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True) -> Iterator[Path]:
+def atomic_dir(
+    final_dir: str | os.PathLike, overwrite: bool = True, marker: Optional[str] = None, what: str = "pbrfit output"
+) -> Iterator[Path]:
     """Yield a temporary folder beside ``final_dir``; rename it to ``final_dir`` on success.
 
     If the body raises, the temporary folder is removed and nothing appears at ``final_dir``.
     An existing ``final_dir`` is replaced when ``overwrite`` (moved aside, the new folder
-    renamed in, the old one deleted), else `CaptureError`.
+    renamed in, the old one deleted), else `CaptureError`; with a `marker`, only an empty folder
+    or one holding `marker` is replaced (`check_output_dir`).
     """
     final_dir = Path(final_dir)
     if final_dir.exists() and not overwrite:
         raise CaptureError(f"{final_dir}: already exists")
+    if marker is not None:
+        check_output_dir(final_dir, marker, what)
     final_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".tmp", dir=final_dir.parent))
     try:

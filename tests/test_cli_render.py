@@ -53,3 +53,16 @@ def test_render_relights_with_lights_override(tmp_path, monkeypatch):
     before, _ = read_image(cap / raw["frames"][0]["file_path"])
     after, _ = read_image(out / raw["frames"][0]["file_path"])
     assert not np.allclose(before[..., :3], after[..., :3], atol=1e-3)
+
+
+def test_render_and_synth_refuse_an_out_folder_they_did_not_write(tmp_path, capsys):
+    out = tmp_path / "photos"
+    out.mkdir()
+    (out / "keep.jpg").write_text("not ours")
+    # refused before anything is read: the capture and material need not exist
+    assert main(["render", str(tmp_path / "cap"), "--material", str(tmp_path / "m"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(out) in err[0] and "no capture.json" in err[0]
+    assert main(["synth", "peer-plane", "--out", str(out), "--quiet"]) == 2
+    assert "no capture.json" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["keep.jpg"]

@@ -36,3 +36,14 @@ def test_recovery_table_counts_and_calibration():
     assert b["confident"] == 2 and b["rmse_confident"] == 0.0 and 0.2 > CONFIDENT_SIGMA
     assert b["within_2sigma"] == 1.0
     assert rows["roughness"]["rmse"] == 0.0 and rows["roughness"]["confident"] == 3
+
+
+def test_demo_refuses_to_replace_folders_it_did_not_write(tmp_path, capsys):
+    from pbrfit.cli import main
+
+    (tmp_path / "fit").mkdir()
+    (tmp_path / "fit" / "thesis.tex").write_text("keep")
+    assert main(["demo", "--out", str(tmp_path), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no report.json" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fit"]

@@ -8,6 +8,7 @@ from pbrfit.color import linear_to_srgb, srgb_to_linear
 from pbrfit.errors import CaptureError
 from pbrfit.io import (
     atomic_dir,
+    check_output_dir,
     atomic_path,
     read_image,
     read_image_info,
@@ -63,6 +64,20 @@ def test_atomic_dir_success_failure_and_overwrite(tmp_path):
     with pytest.raises(CaptureError, match="already exists"):
         with atomic_dir(out, overwrite=False):
             pass
+    # with a marker, only an empty folder or an earlier output holding the marker is replaced
+    with pytest.raises(CaptureError, match="no report.json"):
+        with atomic_dir(out, marker="report.json") as d:
+            (d / "report.json").write_text("{}")
+    assert _listing(out) == ["y"] and _listing(tmp_path) == ["out"]
+    (out / "y").unlink()
+    with atomic_dir(out, marker="report.json") as d:  # empty: replaced
+        (d / "report.json").write_text("{}")
+    with atomic_dir(out, marker="report.json") as d:  # an earlier output: replaced
+        (d / "report.json").write_text("[]")
+    assert (out / "report.json").read_text() == "[]"
+    (tmp_path / "f").write_text("")
+    with pytest.raises(CaptureError, match="not a folder"):
+        check_output_dir(tmp_path / "f", "report.json", "fit output")
 
 
 # --- images -------------------------------------------------------------------------------------
