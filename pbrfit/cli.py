@@ -282,14 +282,20 @@ def run_fit(capture, out, options: dict, cache_dir=None, quiet: bool = False):
     from .io import read_material
     from .outputs import write_fit_output
 
+    truth = None
+    if capture.truth_dir is not None:  # read first: only evaluation uses it, so a bad one is skipped
+        try:
+            truth = read_material(capture.truth_dir)
+        except CaptureError as err:
+            print(f"pbrfit: warning: {err}; truth/ ignored (no truth_rmse)", file=sys.stderr)
     progress = _Progress(not quiet)
     try:
         result = fit(capture, cache_dir=cache_dir, progress=progress, **options)
     finally:
         progress.close()
     errors = None
-    if capture.truth_dir is not None:
-        errors = map_rmse(read_material(capture.truth_dir), result)
+    if truth is not None:
+        errors = map_rmse(truth, result)
         result.report["truth_rmse"] = errors
     history = [dict(step=i, loss=h["loss"]) for i, h in enumerate(progress.history)]
     normals = result.material.normal is not None

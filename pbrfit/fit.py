@@ -406,6 +406,11 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
         wall_time=float(times["setup"] + time.perf_counter() - t_start),
         devices=sorted(str(d) for d in problem.obs.target.sharding.device_set),
     )
+    if tuple(final) == (1, 1):  # a uniform material: the five numbers and their standard errors
+        report["material"] = dict(base_color=[float(v) for v in x[0, 0, 0:3]], metallic=float(x[0, 0, 3]),
+                                  roughness=float(x[0, 0, 4]))
+        report["material_sigma"] = dict(base_color=[float(v) for v in sigma[0, 0, 0:3]],
+                                        metallic=float(sigma[0, 0, 3]), roughness=float(sigma[0, 0, 4]))
     return FitResult(material, sigma, coverage, report, images, targets, masks)
 
 

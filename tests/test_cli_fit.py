@@ -67,6 +67,43 @@ def test_uniform_fit_writes_one_texel_maps(capture, tmp_path, monkeypatch):
     assert base.shape[:2] == (1, 1) and float(rough[0, 0, 0]) == pytest.approx(0.5)
     unc, _ = read_image(out / "uncertainty.exr")
     assert float(unc[0, 0, 4]) == 0.0  # held fixed
+    report = json.loads((out / "report.json").read_text())  # the spec: report.json holds the five numbers
+    np.testing.assert_allclose(report["material"]["base_color"], base[0, 0], rtol=1e-6)
+    assert report["material"]["roughness"] == pytest.approx(0.5) and report["material_sigma"]["roughness"] == 0.0
+    assert 0.0 <= report["material"]["metallic"] <= 1.0 and report["material_sigma"]["base_color"][0] > 0.0
+    # a second fit to the same folder replaces the first (it holds report.json)
+    (out / "stale.txt").write_text("from the first fit")
+    assert main(["fit", str(capture), "--out", str(out), "--maps", "none", "--quiet"]) == 0
+    assert not (out / "stale.txt").exists() and (out / "report.json").is_file()
+
+
+def test_fit_refuses_an_out_folder_it_did_not_write(capture, tmp_path, capsys):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    assert main(["fit", str(capture), "--out", str(out), "--maps", "none", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(out) in err[0] and "no report.json" in err[0]
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    a_file = tmp_path / "file.txt"
+    a_file.write_text("x")
+    assert main(["fit", str(capture), "--out", str(a_file), "--maps", "none", "--quiet"]) == 2
+    assert "not a folder" in capsys.readouterr().err and a_file.read_text() == "x"
+
+
+def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys, monkeypatch):
+    import shutil
+
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    cap = tmp_path / "cap"
+    shutil.copytree(capture, cap)
+    for f in (cap / "truth").glob("base_color.*"):
+        f.unlink()
+    out = tmp_path / "out"
+    assert main(["fit", str(cap), "--out", str(out), "--maps", "none", "--quiet"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "warning" in err[0] and "truth" in err[0]
+    assert "truth_rmse" not in json.loads((out / "report.json").read_text())
 
 
 @pytest.mark.parametrize(
