@@ -74,6 +74,9 @@ __all__ = [
 
 CAPTURE_FORMAT = "pbrfit-capture/1"
 WORLD_UPS = ("+y", "+z")
+#: When a capture gives both intrinsics forms, fl_x and the fl_x implied by camera_angle_x must
+#: agree to this relative tolerance (rounding in the writer), else the capture is refused.
+INTRINSICS_RTOL = 1e-2
 
 PBRFIT_TOP_LEVEL_KEYS = (
     "format", "mesh", "world_up", "camera_angle_x", "fl_x", "fl_y", "cx", "cy",
@@ -275,11 +278,20 @@ def _camera(top: Mapping, frame: Mapping, c2w: np.ndarray, width: int, height: i
                     )
                 break
     fl_x = _positive(frame, "fl_x", where)
+    frame_fl_x = fl_x is not None  # a frame's own intrinsics override the global ones
     if fl_x is None:
         fl_x = _positive(top, "fl_x", name)
     if fl_x is not None:
         fl_y = _positive(frame, "fl_y", where) or _positive(top, "fl_y", name) or fl_x
         fx, fy = fl_x, fl_y
+        if "camera_angle_x" in top and not frame_fl_x:  # both global forms (instant-ngp writes both): must agree
+            angle = _number(top, "camera_angle_x", name, None)
+            fx_angle = 0.5 * width / math.tan(0.5 * angle) if 0.0 < angle < math.pi else float("nan")
+            if not abs(fl_x - fx_angle) <= INTRINSICS_RTOL * fx_angle:
+                raise CaptureError(
+                    f"{where}: fl_x {fl_x:g} disagrees with camera_angle_x {angle!r} "
+                    f"(= fl_x {fx_angle:.6g} at width {width}); give one of the two or make them agree"
+                )
     elif "camera_angle_x" in top:
         angle = _number(top, "camera_angle_x", name, None)
         if not 0.0 < angle < math.pi:

@@ -213,6 +213,11 @@ def test_global_fl_and_camera_angle_y(tmp_path):
     data["camera_angle_y"] = 0.6
     c0 = load_capture(write_capture(tmp_path / "b", data)).frames[0].camera
     assert c0.fy == pytest.approx(0.5 * H / math.tan(0.3))
+    # both forms, as instant-ngp writes them: accepted when they agree
+    data = base_capture_dict()
+    data["fl_x"] = fov_focal(W, data["camera_angle_x"]) * 1.001
+    c0 = load_capture(write_capture(tmp_path / "c", data)).frames[0].camera
+    assert c0.fx == pytest.approx(data["fl_x"])
 
 
 def test_nan_pixels_masked_with_one_counting_warning(tmp_path):
@@ -263,6 +268,7 @@ MALFORMED = {
     "missing file_path": (lambda d, r: _frame0(d).pop("file_path"), "capture.json: frames[0]: missing key 'file_path'"),
     "no intrinsics": (lambda d, r: d.pop("camera_angle_x"), "capture.json: frames[0]: no intrinsics: give camera_angle_x, or fl_x"),
     "bad fov": (lambda d, r: d.update(camera_angle_x=3.5), "capture.json: camera_angle_x: must be in (0, pi) radians"),
+    "intrinsics disagree": (lambda d, r: d.update(fl_x=100.0), "capture.json: frames[0]: fl_x 100 disagrees with camera_angle_x"),
     "principal point outside": (lambda d, r: _frame0(d).update(cx=20.0), "capture.json: frames[0]: principal point (cx, cy) = (20, 3) lies outside the 8x6 image"),
     "w disagrees with image": (lambda d, r: d.update(w=16), "capture.json: w: says 16 but image"),
     "negative focal": (lambda d, r: _frame0(d).update(fl_x=-3), "capture.json: frames[0].fl_x: must be > 0"),
