@@ -36,7 +36,11 @@ __all__ = [
     "write_rendered_capture",
     "apply_overrides",
     "load_lights_override",
+    "NO_ALPHA_SUFFIXES",
 ]
+
+#: Image file types that hold no alpha channel: a render to one writes its coverage as a mask file.
+NO_ALPHA_SUFFIXES = (".hdr", ".jpg", ".jpeg")
 
 
 def default_cache_dir() -> Path:
@@ -153,8 +157,10 @@ def write_rendered_capture(
 
     capture.json keeps the cameras, lights and environment (with the overrides applied), each
     image goes to the frame's relative ``file_path`` in the same file type and color space as
-    the input frame, with an alpha channel of 1 where the mesh covers the pixel; the mesh and
-    environment files are copied beside it. The folder is built under a temporary name and
+    the input frame, with an alpha channel of 1 where the mesh covers the pixel; file types
+    that hold no alpha (`NO_ALPHA_SUFFIXES`: Radiance HDR, JPEG) get RGB and the same coverage
+    as an 8-bit mask at ``masks/<file_path>.png``, named by the frame's ``mask_path``. The mesh
+    and environment files are copied beside it. The folder is built under a temporary name and
     renamed into place, so a failure leaves nothing.
     """
     from .io import atomic_dir, write_image
@@ -179,10 +185,16 @@ def write_rendered_capture(
             rel = os.path.relpath(frame.file_path, capture.root)
             entry["file_path"] = rel
             entry.pop("mask_path", None)  # the alpha channel is the mask
-            rgba = np.concatenate([image, alpha[..., None]], axis=-1)
             dst = tmp / rel
             dst.parent.mkdir(parents=True, exist_ok=True)
-            write_image(dst, rgba, _image_dtype(frame))
+            if Path(rel).suffix.lower() in NO_ALPHA_SUFFIXES:  # RGB, and the coverage as a mask file
+                mask_rel = os.path.join("masks", str(Path(rel).with_suffix(".png")))
+                entry["mask_path"] = mask_rel
+                (tmp / mask_rel).parent.mkdir(parents=True, exist_ok=True)
+                write_image(tmp / mask_rel, alpha[..., None], "uint8")
+                write_image(dst, image, _image_dtype(frame))
+            else:
+                write_image(dst, np.concatenate([image, alpha[..., None]], axis=-1), _image_dtype(frame))
         (tmp / "capture.json").write_text(json.dumps(raw, indent=2) + "\n")
     return out_dir
 

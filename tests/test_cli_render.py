@@ -1,6 +1,7 @@
 """`pbrfit synth` then `pbrfit render` with the truth material reproduces the capture."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -66,3 +67,29 @@ def test_render_and_synth_refuse_an_out_folder_they_did_not_write(tmp_path, caps
     assert main(["synth", "peer-plane", "--out", str(out), "--quiet"]) == 2
     assert "no capture.json" in capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == ["keep.jpg"]
+
+
+@pytest.mark.parametrize("suffix,fmt,dtype", [(".hdr", "exr", "float"), (".jpg", "png8", "uint8")])
+def test_render_to_a_file_type_without_alpha_writes_a_mask(tmp_path, monkeypatch, suffix, fmt, dtype):
+    from pbrfit.io import write_image
+    from pbrfit.scene import load_capture
+
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    cap, out = tmp_path / "cap", tmp_path / "out"
+    assert main(["synth", "sphere-env", "--out", str(cap), "--size", "16", "--views", "2", "--format", fmt,
+                 "--quiet"]) == 0
+    data = json.loads((cap / "capture.json").read_text())
+    for frame in data["frames"]:  # the same frames as Radiance HDR / JPEG files
+        image, _ = read_image(cap / frame["file_path"])
+        frame["file_path"] = str(Path(frame["file_path"]).with_suffix(suffix))
+        write_image(cap / frame["file_path"], image[..., :3], dtype)
+    (cap / "capture.json").write_text(json.dumps(data))
+    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--quiet"]) == 0
+    rendered = load_capture(out)
+    for frame, source in zip(_frames(out), load_capture(cap).frames):
+        image, info = read_image(out / frame["file_path"])
+        assert frame["file_path"].endswith(suffix) and image.shape[-1] == 3
+        mask, _ = read_image(out / frame["mask_path"])
+        assert set(np.unique(mask)) <= {0.0, 1.0} and mask.any()
+        np.testing.assert_array_equal(mask[..., 0] > 0, source.mask)
+    assert len(rendered.frames) == 2
