@@ -77,6 +77,11 @@ SCENES = {
     # the same noise with lights π times brighter (intensity 6π): three times the signal-to-noise
     "peer-plane-noisy-bright": ("peer-plane", dict(noise=0.01, light_intensity=6.0 * math.pi),
                                 ["structured (default: grid + search)", "structured (grid, no search)", ORACLE]),
+    # "1% noise" read as 1% of each value (std proportional to the signal) rather than 1% of a value of 1
+    "peer-plane-noisy-relative": ("peer-plane", dict(noise=0.01, noise_model="relative"),
+                                  ["structured (default: grid + search)", ORACLE]),
+    "plane-flash-relative": ("plane-flash", dict(noise=0.01, noise_model="relative"),
+                             ["structured (default: grid + search)", ORACLE]),
 }
 
 
