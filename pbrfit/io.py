@@ -150,6 +150,8 @@ class ImageInfo:
         bits: bits per channel.
         is_ldr: integer pixels (a code maximum exists, values lie in [0, 1] once read).
         alpha_channel: index of the alpha channel, or None.
+        associated_alpha: the color channels are premultiplied by alpha as stored (OpenEXR's
+            convention; OpenImageIO reports PNG and unassociated TIFF alpha as unassociated).
         file_format: OpenImageIO's format name (``"png"``, ``"openexr"``, ``"hdr"``, ``"tiff"``, ``"jpeg"``).
     """
 
@@ -163,6 +165,7 @@ class ImageInfo:
     is_ldr: bool
     alpha_channel: Optional[int]
     file_format: str
+    associated_alpha: bool = False
 
 
 def _first_line(message: str) -> str:
@@ -190,6 +193,7 @@ def _info(path: Path, spec, file_format: str) -> ImageInfo:
         is_ldr=fmt in _LDR_MAX,
         alpha_channel=int(spec.alpha_channel) if spec.alpha_channel >= 0 else None,
         file_format=str(file_format),
+        associated_alpha=spec.alpha_channel >= 0 and spec.get_int_attribute("oiio:UnassociatedAlpha", 0) != 1,
     )
 
 

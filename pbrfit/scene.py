@@ -31,7 +31,9 @@ Rules pinned here (tests in ``tests/test_scene.py``):
   `pbrfit.color.srgb_to_linear`.
 * Exposure: a frame's effective EV is ``images.exposure + frames[].exposure`` (both default 0).
 * Masks: ``mask_path`` (nonzero in its first channel = use), else the image's alpha channel
-  (nonzero = use), else every pixel. Pixels with a NaN or inf channel are set to 0 and masked
+  (nonzero = use), else every pixel. Color stored premultiplied by alpha (EXR's associated
+  alpha) is divided by it where 0 < alpha < 1, so a partly covered edge pixel holds the
+  surface's color rather than a darkened one (PNG and TIFF alpha are read unassociated). Pixels with a NaN or inf channel are set to 0 and masked
   out, with one `CaptureWarning` per frame that counts them. ``saturated`` marks pixels of
   integer (LDR) files with any color channel at the maximum code.
 * Lights of a frame: the global ``lights``, then the frame's ``lights``, then the ``flash`` as a
@@ -382,6 +384,10 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
     camera = _camera(raw, frame_raw, c2w, width, height, where, name, file_path)
 
     rgb = _rgb(pixels, info, f"{where}.file_path")
+    if info.associated_alpha:  # premultiplied (EXR): partly covered pixels get the surface's color back
+        alpha = pixels[..., info.alpha_channel : info.alpha_channel + 1]
+        partial = (alpha > 0.0) & (alpha < 1.0)
+        rgb = np.where(partial, rgb / np.where(partial, alpha, 1.0), rgb).astype(np.float32)
     color_space = color_space_override or _default_color_space(info)
     saturated = np.zeros((height, width), bool)
     if info.is_ldr:

@@ -336,3 +336,18 @@ def test_cli_exits_2_with_one_line_and_writes_nothing(tmp_path, capsys, case):
     assert status == 2
     assert err.startswith("pbrfit: error: ") and err.count("\n") == 1 and fragment in err
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["cap"]
+
+
+def test_premultiplied_exr_edge_pixels_are_unpremultiplied(tmp_path):
+    rgb = np.full((H, W, 3), 0.6, np.float32)
+    alpha = np.ones((H, W, 1), np.float32)
+    alpha[0] = 0.0
+    alpha[1, :4] = 0.25  # partly covered: stored premultiplied, 0.6 * 0.25
+    root = _single_frame(tmp_path, "img.exr", np.concatenate([rgb * alpha, alpha], -1), "float")
+    frame = load_capture(root).frames[0]
+    np.testing.assert_allclose(frame.image[1:], 0.6, rtol=1e-6)
+    assert not frame.mask[0].any() and frame.mask[1:].all()
+    # a PNG's alpha is unassociated: its color is taken as stored
+    codes = np.concatenate([np.full((H, W, 3), 0.6), alpha], -1)
+    frame = load_capture(_single_frame(tmp_path / "png", "img.png", codes, "uint16")).frames[0]
+    np.testing.assert_allclose(frame.image[1], srgb_to_linear(np.float32(round(0.6 * 65535) / 65535)), rtol=1e-5)
