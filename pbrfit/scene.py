@@ -26,9 +26,10 @@ Rules pinned here (tests in ``tests/test_scene.py``):
   extension (NeRF's ``./train/r_0``) is tried with ``.png`` appended, then ``.exr``, then as
   written; a path with an image suffix is used as written. Same rule for ``mask_path``.
 * Color space: ``images.color_space`` when given, else by file: EXR and HDR linear, PNG and
-  JPEG sRGB, other files sRGB when 8-bit integer, linear otherwise (16-bit TIFF). Frames whose
-  defaults differ need ``images.color_space``. sRGB files are decoded to linear with
-  `pbrfit.color.srgb_to_linear`.
+  JPEG sRGB, other files sRGB when 8-bit integer, linear otherwise (16-bit TIFF), frame by
+  frame. sRGB files are decoded to linear with `pbrfit.color.srgb_to_linear`. ``Capture.color_space``
+  is the space a fit takes residuals in: the frames' common one, or linear when they mix (the
+  sRGB frames are then compared after decoding).
 * Exposure: a frame's effective EV is ``images.exposure + frames[].exposure`` (both default 0).
 * Masks: ``mask_path`` (nonzero in its first channel = use), else the image's alpha channel
   (nonzero = use), else every pixel. Color stored premultiplied by alpha (EXR's associated
@@ -511,15 +512,13 @@ def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
             _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposure, global_lights, flash)
         )
 
+    # the space a fit compares in: the frames' own, or linear when their file types' defaults mix
     spaces = {f.color_space for f in frames}
-    if len(spaces) > 1:
-        first = {s: next(f for f in frames if f.color_space == s) for s in sorted(spaces)}
-        detail = " and ".join(f"{s} ({first[s].file_path.name})" for s in sorted(spaces))
-        raise CaptureError(f"{name}: images.color_space: frames mix {detail} files; set images.color_space")
+    residual_space = frames[0].color_space if len(spaces) == 1 else "linear"
     truth = root / "truth"
     return Capture(
         root=root, mesh=mesh, mesh_path=mesh_path, world_up=world_up, frames=frames,
-        environment=environment, color_space=frames[0].color_space, tonemap=tonemap,
+        environment=environment, color_space=residual_space, tonemap=tonemap,
         truth_dir=truth if truth.is_dir() else None, raw=raw, json_path=json_path,
         lights=global_lights, exposure=base_exposure,
     )  # fmt: skip

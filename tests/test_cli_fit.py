@@ -133,3 +133,27 @@ def test_fit_missing_capture_exits_2(tmp_path, capsys):
     assert main(["fit", str(tmp_path / "nope"), "--out", str(out)]) == 2
     assert "pbrfit: error:" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_fit_a_capture_mixing_exr_and_png_frames(tmp_path, monkeypatch):
+    # color space by file type, frame by frame (the spec's default): two of four frames re-saved
+    # as 16-bit sRGB PNGs; the maps are still recovered exactly
+    from pbrfit.color import linear_to_srgb
+    from pbrfit.io import write_image
+
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    cap = tmp_path / "cap"
+    assert main(["synth", "peer-plane", "--out", str(cap), "--size", "48", "--views", "4", "--texture-size", "16",
+                 "--quiet"]) == 0
+    data = json.loads((cap / "capture.json").read_text())
+    data["images"].pop("color_space", None)
+    for frame in data["frames"][::2]:
+        image, _ = read_image(cap / frame["file_path"])
+        (cap / frame["file_path"]).unlink()
+        frame["file_path"] = frame["file_path"].rsplit(".", 1)[0] + ".png"
+        write_image(cap / frame["file_path"], np.asarray(linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))), "uint16")
+    (cap / "capture.json").write_text(json.dumps(data))
+    out = tmp_path / "out"
+    assert main(["fit", str(cap), "--out", str(out), "--resolution", "16", "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert max(report["truth_rmse"].values()) < 1e-3, report["truth_rmse"]

@@ -290,8 +290,6 @@ MALFORMED = {
     "lens distortion": (lambda d, r: d.update(k1=0.1), "capture.json: k1: lens distortion is not supported"),
     "fisheye": (lambda d, r: d.update(is_fisheye=True), "capture.json: is_fisheye: fisheye cameras are not supported"),
     "lights not a list": (lambda d, r: d.update(lights={"type": "point"}), "capture.json: lights: expected a list of lights"),
-    "mixed color spaces": (lambda d, r: (d["images"].pop("color_space"), write_image(r / "images" / "001.png", np.zeros((H, W, 3)), "uint8"), (r / "images" / "001.exr").unlink()),
-                           "capture.json: images.color_space: frames mix linear (000.exr) and srgb (001.png) files"),
 }  # fmt: skip
 
 
@@ -351,3 +349,17 @@ def test_premultiplied_exr_edge_pixels_are_unpremultiplied(tmp_path):
     codes = np.concatenate([np.full((H, W, 3), 0.6), alpha], -1)
     frame = load_capture(_single_frame(tmp_path / "png", "img.png", codes, "uint16")).frames[0]
     np.testing.assert_allclose(frame.image[1], srgb_to_linear(np.float32(round(0.6 * 65535) / 65535)), rtol=1e-5)
+
+
+def test_frames_of_mixed_file_types_keep_their_own_color_spaces(tmp_path):
+    # the spec's default color space is by file type, frame by frame: EXR linear, PNG sRGB
+    data = base_capture_dict()
+    data["images"].pop("color_space")
+    data["frames"][1]["file_path"] = "images/001.png"
+    root = write_capture(tmp_path / "cap", data)
+    codes = np.random.default_rng(1).integers(0, 255, size=(H, W, 3)) / 255.0
+    write_image(root / "images" / "001.png", codes, "uint8")
+    cap = load_capture(root)
+    assert [f.color_space for f in cap.frames] == ["linear", "srgb"]
+    assert cap.color_space == "linear"  # residuals in linear: the PNG frame is compared decoded
+    np.testing.assert_allclose(cap.frames[1].image, srgb_to_linear(codes.astype(np.float32)), rtol=1e-5, atol=1e-7)
