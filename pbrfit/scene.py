@@ -31,7 +31,7 @@ Rules pinned here (tests in ``tests/test_scene.py``):
   is the space a fit takes residuals in: the frames' common one, or linear when they mix (the
   sRGB frames are then compared after decoding).
 * Exposure: a frame's effective EV is ``images.exposure + frames[].exposure`` (both default 0).
-* Masks: ``mask_path`` (nonzero in its first channel = use), else the image's alpha channel
+* Masks: ``mask_path`` (nonzero in its first channel, and in its alpha when it has one = use), else the image's alpha channel
   (nonzero = use), else every pixel. Color stored premultiplied by alpha (EXR's associated
   alpha) is divided by it where 0 < alpha < 1, so a partly covered edge pixel holds the
   surface's color rather than a darkened one (PNG and TIFF alpha are read unassociated). Pixels with a NaN or inf channel are set to 0 and masked
@@ -397,13 +397,15 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
 
     if "mask_path" in frame_raw:
         mask_file = resolve_image_path(root, _string(frame_raw, "mask_path", where), f"{where}.mask_path")
-        mask_pixels, _ = read_image(mask_file, f"{where}.mask_path")
+        mask_pixels, mask_info = read_image(mask_file, f"{where}.mask_path")
         if mask_pixels.shape[:2] != (height, width):
             raise CaptureError(
                 f"{_loc(where, 'mask_path')}: mask {mask_file} is {mask_pixels.shape[1]}x{mask_pixels.shape[0]}, "
                 f"image is {width}x{height}"
             )
         mask = mask_pixels[..., 0] > 0
+        if mask_info.alpha_channel is not None and mask_info.alpha_channel != 0:  # an RGBA mask: alpha too
+            mask &= mask_pixels[..., mask_info.alpha_channel] > 0
     elif info.alpha_channel is not None:
         mask = pixels[..., info.alpha_channel] > 0
     else:

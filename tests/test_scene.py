@@ -363,3 +363,13 @@ def test_frames_of_mixed_file_types_keep_their_own_color_spaces(tmp_path):
     assert [f.color_space for f in cap.frames] == ["linear", "srgb"]
     assert cap.color_space == "linear"  # residuals in linear: the PNG frame is compared decoded
     np.testing.assert_allclose(cap.frames[1].image, srgb_to_linear(codes.astype(np.float32)), rtol=1e-5, atol=1e-7)
+
+
+def test_rgba_mask_uses_its_alpha_too(tmp_path):
+    mask = np.ones((H, W, 4), np.float32)
+    mask[:2, :, 3] = 0.0  # white RGB, alpha holds the mask
+    mask[:, :1, :3] = 0.0  # black RGB, opaque
+    root = _single_frame(tmp_path, "img.exr", np.full((H, W, 3), 0.5, np.float32), "float", mask_path="m.png")
+    write_image(root / "m.png", mask, "uint8")
+    used = load_capture(root).frames[0].mask
+    assert not used[:2].any() and not used[:, 0].any() and used[2:, 1:].all()
