@@ -31,8 +31,8 @@ Rules pinned here (tests in ``tests/test_scene.py``):
   is the space a fit takes residuals in: the frames' common one, or linear when they mix (the
   sRGB frames are then compared after decoding).
 * Exposure: a frame's effective EV is ``images.exposure + frames[].exposure`` (both default 0).
-* Masks: ``mask_path`` (nonzero in its first channel, and in its alpha when it has one = use), else the image's alpha channel
-  (nonzero = use), else every pixel. Color stored premultiplied by alpha (EXR's associated
+* Masks: ``mask_path`` (nonzero in its first channel, and in its alpha when it has one = use),
+  else the image's alpha channel (nonzero = use), else every pixel. Color stored premultiplied by alpha (EXR's associated
   alpha) is divided by it where 0 < alpha < 1, so a partly covered edge pixel holds the
   surface's color rather than a darkened one (PNG and TIFF alpha are read unassociated). Pixels with a NaN or inf channel are set to 0 and masked
   out, with one `CaptureWarning` per frame that counts them. ``saturated`` marks pixels of
