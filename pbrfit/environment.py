@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import functools
 import math
-import warnings
 from pathlib import Path
 
 import equinox as eqx
@@ -113,8 +112,10 @@ def load_environment(path, world_up: str = "+y", intensity: float = 1.0,
     pixels = pixels[..., :3]
     bad = ~np.isfinite(pixels)
     if bad.any():
-        warnings.warn(f"{path}: {int(bad.any(-1).sum())} non-finite environment pixels set to 0")
-        pixels = np.where(bad, 0.0, pixels)
+        row, col = (int(i) for i in np.argwhere(bad.any(-1))[0])
+        raise CaptureError(
+            f"{path}: {int(bad.any(-1).sum())} environment pixels with NaN or inf values (first at row {row}, column {col})"
+        )
     pixels = np.maximum(pixels, 0.0) * np.float32(intensity)
     return Environment(jnp.asarray(pixels, jnp.float32), world_up, float(rotation_deg))
 

@@ -34,9 +34,10 @@ Rules pinned here (tests in ``tests/test_scene.py``):
 * Masks: ``mask_path`` (nonzero in its first channel, and in its alpha when it has one = use),
   else the image's alpha channel (nonzero = use), else every pixel. Color stored premultiplied by alpha (EXR's associated
   alpha) is divided by it where 0 < alpha < 1, so a partly covered edge pixel holds the
-  surface's color rather than a darkened one (PNG and TIFF alpha are read unassociated). Pixels with a NaN or inf channel are set to 0 and masked
-  out, with one `CaptureWarning` per frame that counts them. ``saturated`` marks pixels of
-  integer (LDR) files with any color channel at the maximum code.
+  surface's color rather than a darkened one (PNG and TIFF alpha are read unassociated). A used
+  pixel with a NaN or inf channel is an error (mask it out to use the frame); masked-out ones
+  are set to 0. ``saturated`` marks pixels of integer (LDR) files with any color channel at
+  the maximum code.
 * Lights of a frame: the global ``lights``, then the frame's ``lights``, then the ``flash`` as a
   point light at the camera centre plus ``offset`` (camera space).
 * Mesh: `pbrfit.mesh.load_mesh` (uv in glTF orientation for every format).
@@ -46,7 +47,6 @@ from __future__ import annotations
 
 import json
 import math
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Optional
@@ -67,7 +67,6 @@ __all__ = [
     "PBRFIT_FRAME_KEYS",
     "NERF_FRAME_KEYS",
     "IMAGE_SUFFIXES",
-    "CaptureWarning",
     "EnvironmentSpec",
     "Frame",
     "Capture",
@@ -109,10 +108,6 @@ _LINEAR_FORMATS = ("openexr", "hdr")
 _SRGB_FORMATS = ("png", "jpeg")
 # The last row of a camera-to-world matrix must be (0, 0, 0, 1) to this tolerance.
 _AFFINE_ROW_TOL = 1e-6
-
-
-class CaptureWarning(UserWarning):
-    """Something in a capture was repaired (non-finite pixels masked out)."""
 
 
 @dataclass(frozen=True)
@@ -412,15 +407,16 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
         mask = np.ones((height, width), bool)
 
     bad = ~np.all(np.isfinite(rgb), axis=-1)
-    n_bad = int(bad.sum())
-    if n_bad:
-        rgb = np.where(bad[..., None], 0.0, rgb).astype(np.float32)
-        mask = mask & ~bad
-        warnings.warn(
-            f"{where}: {n_bad} pixel{'s' if n_bad != 1 else ''} with NaN or inf values in {file_path} masked out",
-            CaptureWarning,
-            stacklevel=3,
-        )
+    if bad.any():
+        used = bad & mask
+        if used.any():
+            row, col = (int(i) for i in np.argwhere(used)[0])
+            n = int(used.sum())
+            raise CaptureError(
+                f"{where}.file_path: {n} used pixel{'s' if n != 1 else ''} with NaN or inf values in {file_path} "
+                f"(first at row {row}, column {col}); mask them out (mask_path, or alpha 0) to use this frame"
+            )
+        rgb = np.where(bad[..., None], 0.0, rgb).astype(np.float32)  # masked out: never read
     image = _srgb_decode(rgb) if color_space == "srgb" else np.ascontiguousarray(rgb, dtype=np.float32)
 
     frame_lights_raw = frame_raw.get("lights", [])

@@ -96,6 +96,13 @@ def test_load_environment(tmp_path):
     (tmp_path / "junk.exr").write_text("not an image")
     with pytest.raises(CaptureError, match="junk.exr"):
         load_environment(tmp_path / "junk.exr")
+    pix[2, 5] = np.nan
+    out = oiio.ImageOutput.create(str(tmp_path / "nan.exr"))
+    out.open(str(tmp_path / "nan.exr"), oiio.ImageSpec(8, 4, 1, "float"))
+    out.write_image(pix)
+    out.close()
+    with pytest.raises(CaptureError, match=r"nan.exr: 1 environment pixels with NaN or inf values \(first at row 2, column 5\)"):
+        load_environment(tmp_path / "nan.exr")
 
 
 def test_resampling_preserves_the_sphere_integral():

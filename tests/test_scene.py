@@ -1,7 +1,6 @@
 import json
 import math
 import shutil
-import warnings
 
 import numpy as np
 import pytest
@@ -24,7 +23,7 @@ from pbrfit.color import srgb_to_linear
 from pbrfit.errors import CaptureError
 from pbrfit.io import write_image
 from pbrfit.mesh import load_mesh
-from pbrfit.scene import CaptureWarning, load_capture
+from pbrfit.scene import load_capture
 
 
 # --- a well-formed capture ----------------------------------------------------------------------
@@ -220,18 +219,21 @@ def test_global_fl_and_camera_angle_y(tmp_path):
     assert c0.fx == pytest.approx(data["fl_x"])
 
 
-def test_nan_pixels_masked_with_one_counting_warning(tmp_path):
-    pixels = np.ones((H, W, 3), np.float32)
+def test_nan_pixels_are_an_error_unless_masked_out(tmp_path):
+    pixels = np.ones((H, W, 4), np.float32)
     pixels[1, 1, 0] = np.nan
     pixels[2, 5, 2] = np.inf
-    pixels[3, 3] = -np.inf
-    root = _single_frame(tmp_path, "img.exr", pixels, "float")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        frame = load_capture(root).frames[0]
-    messages = [str(w.message) for w in caught if issubclass(w.category, CaptureWarning)]
-    assert len(messages) == 1 and "3 pixels with NaN or inf values" in messages[0]
-    assert "\n" not in messages[0]
+    pixels[3, 3, :3] = -np.inf
+    root = _single_frame(tmp_path / "a", "img.exr", pixels, "float")
+    with pytest.raises(CaptureError) as err:
+        load_capture(root)
+    message = str(err.value)
+    assert "\n" not in message and "frames[0].file_path: 3 used pixels with NaN or inf values in" in message
+    assert "img.exr (first at row 1, column 1)" in message
+    # the same pixels with alpha 0: never used, so the frame loads and holds no NaN
+    for r, c in ((1, 1), (2, 5), (3, 3)):
+        pixels[r, c, 3] = 0.0
+    frame = load_capture(_single_frame(tmp_path / "b", "img.exr", pixels, "float")).frames[0]
     assert np.all(np.isfinite(frame.image))
     assert frame.mask.sum() == H * W - 3 and not frame.mask[1, 1] and not frame.mask[3, 3]
 
