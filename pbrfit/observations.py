@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from .errors import CaptureError
 from .render import ViewInputs
 from .textures import bilinear_weights
 
@@ -163,6 +164,8 @@ def observations_from_capture(capture, cache_dir=None, views=None) -> Observatio
 
     Masked pixels, pixels the mesh misses and saturated LDR pixels (`Frame.saturated`) are left
     out. `views` may pass precomputed `ViewInputs` (one per frame) to skip the ray casting.
+    A capture that leaves no usable pixel, or whose pixels no light reaches (no environment,
+    every punctual light off or pointing away), is `CaptureError`: nothing could be fitted.
     """
     from .color import linear_to_srgb
     from .views import capture_gbuffers, capture_views
@@ -180,7 +183,15 @@ def observations_from_capture(capture, cache_dir=None, views=None) -> Observatio
         sat = getattr(frame, "saturated", None)
         usable.append(None if sat is None else ~np.asarray(sat, bool))
         exposures.append(float(getattr(frame, "exposure", 0.0)))
-    return observations_from_views(views, images, exposures, usable, getattr(capture, "tonemap", "none"), color_space)
+    obs = observations_from_views(views, images, exposures, usable, getattr(capture, "tonemap", "none"), color_space)
+    name = getattr(capture, "json_path", None) or getattr(capture, "root", "capture")
+    if obs.num_pixels == 0:
+        raise CaptureError(
+            f"{name}: no usable pixels: in every frame each pixel is masked out, saturated or misses the mesh"
+        )
+    if getattr(capture, "environment", None) is None and not float(jnp.max(obs.light_radiance, initial=0.0)) > 0.0:
+        raise CaptureError(f"{name}: no light reaches the mesh: no environment, and every light is off or points away")
+    return obs
 
 
 def texel_layout(obs: Observations, shape: tuple[int, int], wrap: str = "repeat") -> TexelLayout:
