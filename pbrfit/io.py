@@ -38,6 +38,7 @@ __all__ = [
     "read_image_info",
     "write_image",
     "read_material",
+    "read_map",
     "write_material",
     "write_gltf",
     "MATERIAL_FILES",
@@ -385,6 +386,28 @@ def _channels(pixels: np.ndarray, n: int, path: Path) -> np.ndarray:
     return pixels[..., :n]
 
 
+def read_map(directory: str | os.PathLike, name: str) -> np.ndarray:
+    """One map of a material folder: ``base_color`` (H, W, 3, linear), ``metallic`` or
+    ``roughness`` (H, W, 1), from its EXR when present, else from the 8-bit PNG that holds it
+    (``base_color.png`` sRGB-decoded; metallic from B and roughness from G of
+    ``metallic_roughness.png``). Raises `CaptureError` naming the folder and the files tried."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise CaptureError(f"material folder not found: {directory}")
+    exr, png = directory / f"{name}.exr", directory / ("base_color.png" if name == "base_color" else "metallic_roughness.png")
+    if name not in ("base_color", "metallic", "roughness"):
+        raise ValueError(f"unknown map {name!r}")
+    if exr.is_file():
+        pixels = read_image(exr)[0]
+        return _channels(pixels, 3, exr) if name == "base_color" else pixels[..., :1]
+    if png.is_file():
+        pixels = _channels(read_image(png)[0], 3, png)
+        if name == "base_color":
+            return _srgb_decode(pixels)
+        return pixels[..., 2:3] if name == "metallic" else pixels[..., 1:2]
+    raise CaptureError(f"{directory}: material folder has no {exr.name} or {png.name}")
+
+
 def read_material(directory: str | os.PathLike):
     """Read a material folder (fit-output layout) as a `pbrfit.material.Material`.
 
@@ -396,28 +419,11 @@ def read_material(directory: str | os.PathLike):
     from .material import Material
 
     directory = Path(directory)
-    if not directory.is_dir():
-        raise CaptureError(f"material folder not found: {directory}")
+    base, metallic, roughness = (read_map(directory, name) for name in ("base_color", "metallic", "roughness"))
 
     def has(name: str) -> bool:
         return (directory / name).is_file()
 
-    if has("base_color.exr"):
-        base = _channels(read_image(directory / "base_color.exr")[0], 3, directory / "base_color.exr")
-    elif has("base_color.png"):
-        base = _srgb_decode(_channels(read_image(directory / "base_color.png")[0], 3, directory / "base_color.png"))
-    else:
-        raise CaptureError(f"{directory}: material folder has no base_color.exr or base_color.png")
-
-    orm = None
-    if not (has("metallic.exr") and has("roughness.exr")):
-        if not has("metallic_roughness.png"):
-            raise CaptureError(
-                f"{directory}: material folder has neither metallic.exr + roughness.exr nor metallic_roughness.png"
-            )
-        orm = _channels(read_image(directory / "metallic_roughness.png")[0], 3, directory / "metallic_roughness.png")
-    metallic = read_image(directory / "metallic.exr")[0][..., :1] if has("metallic.exr") else orm[..., 2:3]
-    roughness = read_image(directory / "roughness.exr")[0][..., :1] if has("roughness.exr") else orm[..., 1:2]
     normal = _decode_normal(_channels(read_image(directory / "normal.png")[0], 3, directory / "normal.png")) if has("normal.png") else None
     occlusion = read_image(directory / "occlusion.exr")[0][..., :1] if has("occlusion.exr") else None
     emissive = _channels(read_image(directory / "emissive.exr")[0], 3, directory / "emissive.exr") if has("emissive.exr") else None
@@ -438,6 +444,54 @@ def _pil_image(pixels: np.ndarray):
     return Image.fromarray(np.ascontiguousarray(codes[..., :3]), mode="RGB")
 
 
+def _is_uniform(material) -> bool:
+    maps = [_np(material.base_color), _np(material.metallic), _np(material.roughness)]
+    extra = [_np(getattr(material, name, None)) for name in ("normal", "emissive")]
+    return all(m.shape[:2] == (1, 1) for m in maps) and all(e is None for e in extra)
+
+
+def _glb_with_json(data: bytes, edit) -> bytes:
+    """A GLB whose JSON chunk is ``edit(json)``: header, JSON chunk (space-padded to 4 bytes),
+    then the other chunks unchanged (glTF 2.0, "GLB File Format Specification")."""
+    import json
+    import struct
+
+    magic, version, _ = struct.unpack_from("<4sII", data, 0)
+    json_len, json_type = struct.unpack_from("<I4s", data, 12)
+    if magic != b"glTF" or json_type != b"JSON":
+        raise ValueError("not a GLB with a leading JSON chunk")
+    tree = edit(json.loads(data[20 : 20 + json_len]))
+    text = json.dumps(tree, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    rest = data[20 + json_len :]
+    chunk = struct.pack("<I4s", len(text), b"JSON") + text
+    return struct.pack("<4sII", magic, version, 12 + len(chunk) + len(rest)) + chunk + rest
+
+
+def _write_uniform_gltf(path: Path, mesh, material) -> Path:
+    import trimesh
+    from trimesh.visual.material import PBRMaterial
+    from trimesh.visual.texture import TextureVisuals
+
+    base = [float(v) for v in np.clip(_np(material.base_color).reshape(-1)[:3], 0.0, 1.0)] + [1.0]
+    metallic = float(np.clip(_np(material.metallic).reshape(-1)[0], 0.0, 1.0))
+    roughness = float(np.clip(_np(material.roughness).reshape(-1)[0], 0.0, 1.0))
+    out_mesh = trimesh.Trimesh(
+        vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces), vertex_normals=np.asarray(mesh.vertex_normals),
+        visual=TextureVisuals(material=PBRMaterial(name="pbrfit")), process=False,
+    )
+
+    def exact_factors(tree):  # trimesh stores baseColorFactor as 8-bit; write the floats
+        for m in tree.get("materials", []):
+            m["pbrMetallicRoughness"] = dict(baseColorFactor=base, metallicFactor=metallic, roughnessFactor=roughness)
+        return tree
+
+    data = _glb_with_json(out_mesh.export(file_type="glb", include_normals=True), exact_factors)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return path
+
+
 def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
     """Write ``mesh`` with ``material`` as a binary glTF (GLB) at ``path``, atomically.
 
@@ -450,15 +504,21 @@ def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
     factors 1; normalTexture, occlusionTexture (the same image, R) and emissiveTexture
     (factor 1, clipped to [0, 1]) when the material has them. Vertex normals are written
     (NORMAL), so shading matches the mesh the material was fitted on.
+
+    A uniform material (1 x 1 maps, no normal or emissive map) is written as glTF factors
+    instead, exactly (baseColorFactor is linear, as the fit's base color): no textures, and no
+    texture coordinates needed.
     """
     import trimesh
     from trimesh.visual.material import PBRMaterial
     from trimesh.visual.texture import TextureVisuals
 
+    base = _np(material.base_color)
+    if _is_uniform(material):
+        return _write_uniform_gltf(Path(path), mesh, material)
     uv = getattr(getattr(mesh, "visual", None), "uv", None)
     if uv is None or len(uv) != len(mesh.vertices):
         raise ValueError("write_gltf needs a mesh with one texture coordinate per vertex (mesh.visual.uv)")
-    base = _np(material.base_color)
     orm_image = _pil_image(_pack_orm(material))
     kwargs = dict(
         baseColorTexture=_pil_image(_srgb_encode(base)),

@@ -12,6 +12,7 @@ from pbrfit.io import (
     atomic_path,
     read_image,
     read_image_info,
+    read_map,
     read_material,
     write_gltf,
     write_image,
@@ -211,8 +212,35 @@ def test_read_material_errors(tmp_path):
     with pytest.raises(CaptureError, match="no base_color.exr or base_color.png"):
         read_material(tmp_path)
     write_image(tmp_path / "base_color.exr", np.zeros((2, 2, 3)))
-    with pytest.raises(CaptureError, match="neither metallic.exr"):
+    with pytest.raises(CaptureError, match="no metallic.exr or metallic_roughness.png"):
         read_material(tmp_path)
+
+
+def test_read_map_reads_one_map_alone(tmp_path):
+    # --metallic-from DIR: a folder holding only metallic.exr is enough
+    write_image(tmp_path / "metallic.exr", np.full((2, 3, 1), 0.25, np.float32))
+    np.testing.assert_array_equal(read_map(tmp_path, "metallic"), np.full((2, 3, 1), 0.25, np.float32))
+    with pytest.raises(CaptureError, match="no roughness.exr or metallic_roughness.png"):
+        read_map(tmp_path, "roughness")
+    orm = np.zeros((2, 3, 3), np.float32)
+    orm[..., 1], orm[..., 2] = 0.6, 1.0  # G = roughness, B = metallic
+    write_image(tmp_path / "metallic_roughness.png", orm, "uint8")
+    np.testing.assert_allclose(read_map(tmp_path, "roughness"), round(0.6 * 255) / 255, rtol=1e-6)
+    np.testing.assert_array_equal(read_map(tmp_path, "metallic"), 0.25)  # the EXR wins
+
+
+def test_write_gltf_uniform_material_as_exact_factors_without_uv(tmp_path):
+    import trimesh
+
+    box = trimesh.creation.box()  # no texture coordinates
+    out = write_gltf(tmp_path / "u.glb", box, Material.uniform([0.123456, 0.5, 0.9], 0.3, 0.7))
+    tree, _ = read_glb(out)
+    pbr = tree["materials"][0]["pbrMetallicRoughness"]
+    np.testing.assert_allclose(pbr["baseColorFactor"], [0.123456, 0.5, 0.9, 1.0], rtol=1e-6)
+    assert pbr["metallicFactor"] == pytest.approx(0.3) and pbr["roughnessFactor"] == pytest.approx(0.7)
+    assert "baseColorTexture" not in pbr and "images" not in tree
+    assert "TEXCOORD_0" not in tree["meshes"][0]["primitives"][0]["attributes"]
+    assert len(trimesh.load(out).geometry) == 1
 
 
 # --- glTF export --------------------------------------------------------------------------------
