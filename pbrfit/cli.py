@@ -56,22 +56,32 @@ def _add_render(sub) -> None:
     p.add_argument("--material", required=True, help="material folder (base_color.exr, metallic.exr, ...)")
     p.add_argument("--out", required=True, help="output capture folder (written whole or not at all; replaces only an earlier capture folder)")
     p.add_argument("--environment", help="relight with this equirect HDR instead of the capture's")
-    p.add_argument("--lights", help="relight with these global lights: a JSON list (KHR_lights_punctual units)")
+    p.add_argument("--lights", help="relight with these global lights: a JSON file, or inline JSON, holding a list of lights "
+                        "(KHR_lights_punctual units)")
     p.add_argument("--cache", help="G-buffer cache folder (default $PBRFIT_CACHE or ~/.cache/pbrfit)")
     p.add_argument("--no-cache", action="store_true", help="do not read or write the G-buffer cache")
     p.add_argument("--quiet", action="store_true")
 
 
 def _cache_dir(args):
+    """The G-buffer (and XLA) cache folder of a command, or None; a path that is not a folder
+    is refused."""
+    from pathlib import Path
+
     from .views import default_cache_dir
 
     if getattr(args, "no_cache", False):
         return None
-    return args.cache if getattr(args, "cache", None) else default_cache_dir()
+    folder = Path(args.cache) if getattr(args, "cache", None) else default_cache_dir()
+    if folder.exists() and not folder.is_dir():
+        where = "--cache" if getattr(args, "cache", None) else "cache folder ($PBRFIT_CACHE or ~/.cache/pbrfit)"
+        raise CaptureError(f"{where} {folder}: exists and is not a folder")
+    return folder
 
 
 def _cmd_render(args) -> int:
     import time
+    from pathlib import Path
 
     from .io import check_output_dir, read_material
     from .scene import load_capture
@@ -80,6 +90,8 @@ def _cmd_render(args) -> int:
     start = time.perf_counter()
     check_output_dir(args.out, "capture.json", "capture folder")
     capture = load_capture(args.capture)
+    if Path(args.out).resolve() == capture.root.resolve():
+        raise CaptureError(f"--out {args.out}: is the capture being rendered; choose another folder")
     material = read_material(args.material)
     lights_json = load_lights_override(args.lights) if args.lights else None
     capture = apply_overrides(capture, args.environment, lights_json)
@@ -165,9 +177,10 @@ def _add_fit(sub) -> None:
     p.add_argument("--resolution", type=int, help="map size N (N x N); default from the views' texel coverage")
     p.add_argument("--maps", choices=("texture", "none"), default="texture",
                    help="'none' fits one uniform material (five numbers)")
-    p.add_argument("--fit", default="base_color,metallic,roughness",
+    p.add_argument("--fit",
                    help="comma-separated maps to fit, some of base_color, metallic, roughness, normal "
-                        "(a tangent-space normal map, written as normal.png)")
+                        "(a tangent-space normal map, written as normal.png); default: the three maps "
+                        "not held by --base-color, --metallic, --roughness or --*-from")
     p.add_argument("--base-color", help="hold base color fixed at R,G,B (linear)")
     p.add_argument("--metallic", type=float, help="hold metallic fixed at this value")
     p.add_argument("--roughness", type=float, help="hold roughness fixed at this value (perceptual)")
@@ -192,9 +205,12 @@ def _add_fit(sub) -> None:
 
 def _fit_options(args) -> dict:
     """Keyword arguments of `pbrfit.fit.fit` from the command line (errors name the option)."""
-    from .io import read_material
+    import math
 
-    free = [m.strip() for m in args.fit.split(",") if m.strip()]
+    from .io import read_map
+
+    explicit = args.fit is not None
+    free = [m.strip() for m in (args.fit if explicit else ",".join(_MAP_NAMES)).split(",") if m.strip()]
     for name in free:
         if name not in _FIT_NAMES:
             raise CaptureError(f"--fit: unknown map {name!r} (expected some of {', '.join(_FIT_NAMES)})")
@@ -216,18 +232,24 @@ def _fit_options(args) -> dict:
     for name in _MAP_NAMES:
         folder = getattr(args, f"{name}_from")
         if folder is not None:
-            fixed[name] = getattr(read_material(folder), name)
+            fixed[name] = read_map(folder, name)
     for name in fixed:
         if name in free:
-            free.remove(name)  # a value given on the command line is held, not fitted
+            if explicit:
+                raise CaptureError(f"--fit: lists {name}, which --{name.replace('_', '-')} holds fixed; drop one of the two")
+            free.remove(name)  # by default a map given on the command line is held, not fitted
     if not free:
         raise CaptureError("--fit: nothing left to fit (every map is held fixed)")
     if args.resolution is not None and args.resolution < 1:
         raise CaptureError(f"--resolution: must be at least 1, got {args.resolution}")
     if args.max_steps is not None and args.max_steps < 1:
         raise CaptureError(f"--max-steps: must be at least 1, got {args.max_steps}")
-    if args.smooth < 0:
-        raise CaptureError(f"--smooth: must be >= 0, got {args.smooth}")
+    if not (math.isfinite(args.smooth) and args.smooth >= 0):
+        raise CaptureError(f"--smooth: must be a finite number >= 0, got {args.smooth}")
+    for name in ("rtol", "atol"):
+        value = getattr(args, name)
+        if not (math.isfinite(value) and value > 0):
+            raise CaptureError(f"--{name}: must be a finite number > 0, got {value}")
     devices = None
     if args.devices is not None:
         import jax
@@ -356,9 +378,7 @@ def _enable_compilation_cache(args) -> None:
         return
     import jax
 
-    from .views import default_cache_dir
-
-    folder = (args.cache if getattr(args, "cache", None) else default_cache_dir())
+    folder = _cache_dir(args)
     try:
         jax.config.update("jax_compilation_cache_dir", str(os.path.join(folder, "xla")))
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
@@ -366,8 +386,15 @@ def _enable_compilation_cache(args) -> None:
         pass
 
 
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors are one line (``pbrfit fit: error: ...``), status 2."""
+
+    def error(self, message: str):
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="pbrfit",
         description="Differentiable glTF PBR material fitting: recover base color, metallic and roughness maps.",
     )
@@ -380,12 +407,15 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Entry point of the `pbrfit` console script; returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as stop:  # --help (0) or a usage error (2, one line already printed)
+        return int(stop.code or 0)
     if args.command is None:
         parser.print_help()
         return EXIT_USAGE
-    _enable_compilation_cache(args)
     try:
+        _enable_compilation_cache(args)
         return _COMMANDS[args.command](args)
     except CaptureError as err:
         print(f"pbrfit: error: {err}", file=sys.stderr)

@@ -199,17 +199,26 @@ def write_rendered_capture(
     return out_dir
 
 
-def load_lights_override(path: os.PathLike) -> list:
-    """Read a `--lights` file: a JSON list of lights (or an object with a ``lights`` list)."""
+def load_lights_override(path: os.PathLike | str) -> list:
+    """Read `--lights`: a JSON list of lights (or an object with a ``lights`` list), in a file or
+    given inline (a string starting with ``[`` or ``{``)."""
     from .lights import light_from_json
 
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise CaptureError(f"{path}: no such lights file") from None
-    except (OSError, json.JSONDecodeError) as err:
-        raise CaptureError(f"{path}: cannot read lights: {err}") from None
+    text = str(path).strip()
+    if text.startswith(("[", "{")):
+        path = "--lights"
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as err:
+            raise CaptureError(f"--lights: invalid JSON: {err}") from None
+    else:
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise CaptureError(f"{path}: no such lights file") from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+            raise CaptureError(f"{path}: cannot read lights: {err}") from None
     if isinstance(data, dict):
         data = data.get("lights")
     if not isinstance(data, list):

@@ -113,18 +113,28 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--fit", "albedo"], "unknown map 'albedo'"),
         (["--roughness", "1.5"], "--roughness"),
         (["--base-color", "1,2"], "--base-color"),
-        (["--fit", "roughness", "--roughness", "0.3"], "nothing left to fit"),
+        (["--fit", "roughness", "--roughness", "0.3"], "--fit: lists roughness, which --roughness holds fixed"),
+        (["--base-color", "0.5,0.5,0.5", "--metallic", "0", "--roughness", "0.3"], "nothing left to fit"),
         (["--resolution", "0"], "--resolution"),
         (["--roughness-from", "/no/such/folder"], "/no/such/folder"),
         (["--devices", "99"], "--devices"),
         (["--devices", "0"], "--devices"),
+        (["--smooth", "nan"], "--smooth"),
+        (["--rtol", "-1"], "--rtol"),
+        (["--atol", "inf"], "--atol"),
+        (["--metallic", "0.5", "--fit", "metallic,roughness"], "--fit: lists metallic, which --metallic holds fixed"),
+        (["--resolution", "abc"], "argument --resolution: invalid int value: 'abc'"),
+        (["--solver", "bogus"], "argument --solver: invalid choice: 'bogus'"),
+        (["--cache", "__FILE__"], "exists and is not a folder"),
     ],
 )
 def test_bad_fit_options_exit_2_and_write_nothing(capture, tmp_path, capsys, extra, message):
     out = tmp_path / "out"
+    (tmp_path / "a_file").write_text("")
+    extra = [str(tmp_path / "a_file") if e == "__FILE__" else e for e in extra]
     assert main(["fit", str(capture), "--out", str(out), "--quiet", *extra]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("pbrfit: error: ") and message in err[0]
+    assert len(err) == 1 and err[0].startswith(("pbrfit: error: ", "pbrfit fit: error: ")) and message in err[0]
     assert not out.exists()
 
 
@@ -157,3 +167,69 @@ def test_fit_a_capture_mixing_exr_and_png_frames(tmp_path, monkeypatch):
     assert main(["fit", str(cap), "--out", str(out), "--resolution", "16", "--quiet"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert max(report["truth_rmse"].values()) < 1e-3, report["truth_rmse"]
+
+
+def _broken_copy(capture, tmp_path, edit):
+    import shutil
+
+    cap = tmp_path / "cap"
+    shutil.copytree(capture, cap)
+    data = json.loads((cap / "capture.json").read_text())
+    edit(data, cap)
+    (cap / "capture.json").write_text(json.dumps(data))
+    return cap
+
+
+def _all_masks_zero(data, cap):
+    from pbrfit.io import write_image
+
+    for frame in data["frames"]:
+        if "mask_path" in frame:
+            write_image(cap / frame["mask_path"], np.zeros((32, 32, 1), np.float32), "uint8")
+
+
+def _lights_off(data, cap):
+    for light in data.get("lights", []):
+        light["intensity"] = 0.0
+
+
+@pytest.mark.parametrize(
+    "edit,message",
+    [(_all_masks_zero, "no usable pixels"), (_lights_off, "no light reaches the mesh")],
+)
+def test_captures_that_leave_nothing_to_fit_exit_2(capture, tmp_path, capsys, monkeypatch, edit, message):
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    cap = _broken_copy(capture, tmp_path, edit)
+    out = tmp_path / "out"
+    assert main(["fit", str(cap), "--out", str(out), "--maps", "none", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0] and "capture.json" in err[0]
+    assert not out.exists()
+
+
+def test_uniform_fit_of_a_mesh_without_uvs_and_a_map_held_from_a_folder(capture, tmp_path, monkeypatch):
+    import shutil
+
+    import trimesh
+
+    from pbrfit.io import write_image
+
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+
+    def strip_uv(data, cap):
+        mesh = trimesh.load(cap / data["mesh"], force="mesh")
+        trimesh.Trimesh(mesh.vertices, mesh.faces).export(cap / data["mesh"])
+
+    cap = _broken_copy(capture, tmp_path, strip_uv)
+    held = tmp_path / "held"
+    held.mkdir()
+    write_image(held / "metallic.exr", np.zeros((1, 1, 1), np.float32))  # only the held map
+    out = tmp_path / "out"
+    assert main(["fit", str(cap), "--out", str(out), "--maps", "none", "--metallic-from", str(held), "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["fitted"] == ["base_r", "base_g", "base_b", "roughness"]
+    assert report["material"]["metallic"] == 0.0 and (out / "material.glb").is_file()
+    shutil.rmtree(out)
+    # texture maps still need texture coordinates: a one-line error before any work
+    assert main(["fit", str(cap), "--out", str(out), "--quiet"]) == 2
+    assert not out.exists()

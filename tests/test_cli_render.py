@@ -93,3 +93,21 @@ def test_render_to_a_file_type_without_alpha_writes_a_mask(tmp_path, monkeypatch
         assert set(np.unique(mask)) <= {0.0, 1.0} and mask.any()
         np.testing.assert_array_equal(mask[..., 0] > 0, source.mask)
     assert len(rendered.frames) == 2
+
+
+def test_render_refuses_to_write_over_its_own_capture_and_takes_inline_lights(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    cap, out = tmp_path / "cap", tmp_path / "out"
+    assert main(["synth", "peer-plane", "--out", str(cap), "--size", "16", "--views", "2", "--texture-size", "4",
+                 "--quiet"]) == 0
+    before = sorted(p.name for p in cap.rglob("*"))
+    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(cap), "--quiet"]) == 2
+    assert "is the capture being rendered" in capsys.readouterr().err
+    assert sorted(p.name for p in cap.rglob("*")) == before
+    light = '[{"type": "point", "position": [0, 0, 3], "color": [1, 1, 1], "intensity": 3}]'
+    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--lights", light,
+                 "--quiet"]) == 0
+    assert json.loads((out / "capture.json").read_text())["lights"] == json.loads(light)
+    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o2"), "--lights",
+                 "[{bad"]) == 2
+    assert "--lights: invalid JSON" in capsys.readouterr().err
