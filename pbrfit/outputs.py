@@ -49,23 +49,45 @@ def contact_sheet(target: np.ndarray, fitted: np.ndarray, mask: np.ndarray, is_s
     return np.concatenate([_display(target, is_srgb), _display(fitted, is_srgb), _heat(err, scale)], axis=1)
 
 
-def _convergence_plot(path: Path, history: Sequence[dict]) -> None:
-    import matplotlib
+def _convergence_plot(path: Path, history: Sequence[dict], size: tuple[int, int] = (520, 320)) -> None:
+    """Loss against step on a log axis, drawn with PIL (no plotting library to import: the plot is
+    one of a fit's outputs, and a fit's wall time is a feature). Decade grid lines, labelled."""
+    from PIL import Image, ImageDraw, ImageFont
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    steps = np.asarray([h["step"] for h in history], np.float64)
+    loss = np.log10(np.maximum(np.asarray([h["loss"] for h in history], np.float64), 1e-30))
+    width, height = size
+    left, right, top, bottom = 64, 16, 30, 40
+    image = Image.new("RGB", size, "white")
+    draw = ImageDraw.Draw(image)
+    font = ImageFont.load_default()
+    lo, hi = (math.floor(loss.min()), math.ceil(loss.max())) if loss.size else (0, 1)
+    hi = max(hi, lo + 1)
+    s_max = max(float(steps.max()) if steps.size else 1.0, 1.0)
 
-    steps = [h["step"] for h in history]
-    loss = [h["loss"] for h in history]
-    fig, ax = plt.subplots(figsize=(5, 3.2), dpi=100)
-    ax.semilogy(steps, np.maximum(loss, 1e-30), marker="o", ms=3)
-    ax.set_xlabel("step")
-    ax.set_ylabel("loss (mean squared residual)")
-    ax.set_title("convergence")
-    ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    def xy(step, value):
+        return (left + (width - left - right) * step / s_max, top + (height - top - bottom) * (hi - value) / (hi - lo))
+
+    every = max(1, math.ceil((hi - lo) / 8))  # at most about eight labelled decades
+    for decade in range(lo, hi + 1):
+        y = xy(0, decade)[1]
+        draw.line([(left, y), (width - right, y)], fill=(225, 225, 225))
+        if (decade - lo) % every == 0:
+            draw.text((4, y - 6), f"1e{decade}", fill="black", font=font)
+    tick = next((t * 10**k for k in range(6) for t in (1, 2, 5) if s_max / (t * 10**k) <= 8), 10**6)
+    for step in range(0, int(s_max) + 1, tick):
+        x = xy(step, lo)[0]
+        draw.line([(x, height - bottom), (x, height - bottom + 4)], fill="black")
+        draw.text((x - 4, height - bottom + 6), str(step), fill="black", font=font)
+    draw.rectangle([left, top, width - right, height - bottom], outline="black")
+    points = [xy(a, b) for a, b in zip(steps, loss)]
+    if len(points) > 1:
+        draw.line(points, fill=(31, 119, 180), width=2)
+    for x, y in points:
+        draw.ellipse([x - 2.5, y - 2.5, x + 2.5, y + 2.5], fill=(31, 119, 180))
+    draw.text((left, 8), "convergence: loss (mean squared residual), log scale", fill="black", font=font)
+    draw.text(((width - left) // 2 + left - 12, height - 16), "step", fill="black", font=font)
+    image.save(path)
 
 
 def _json_safe(x):

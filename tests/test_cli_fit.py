@@ -43,6 +43,8 @@ def test_fit_writes_the_spec_output(capture, tmp_path, monkeypatch):
     assert len(report["psnr"]) == 3
     assert set(report["truth_rmse"]) == {"base_color", "metallic", "roughness"}
     assert len(list((out / "views").glob("*.png"))) == 3
+    plot, _ = read_image(out / "convergence.png")
+    assert plot.shape == (320, 520, 3) and plot.min() < 0.5 < plot.max()  # drawn, not blank
 
 
 def test_fit_with_normals_writes_normal_png(capture, tmp_path, monkeypatch):
