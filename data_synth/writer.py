@@ -187,7 +187,7 @@ def _dumps(obj) -> str:
 
 def contact_sheet(images, color_space: str, columns: Optional[int] = None, gap: int = 2) -> np.ndarray:
     """(H', W', 3) sRGB-encoded [0, 1] mosaic of the views, row-major, `gap` black pixels apart."""
-    from pbrfit.color import linear_to_srgb
+    from pbrfit.color import linear_to_srgb_host
 
     n = len(images)
     columns = columns or int(math.ceil(math.sqrt(n)))
@@ -197,7 +197,7 @@ def contact_sheet(images, color_space: str, columns: Optional[int] = None, gap: 
     for i, img in enumerate(images):
         tile = np.clip(img, 0.0, 1.0)
         if color_space == "linear":
-            tile = np.asarray(linear_to_srgb(tile))
+            tile = linear_to_srgb_host(tile)
         r, c = divmod(i, columns)
         sheet[r * (h + gap) : r * (h + gap) + h, c * (w + gap) : c * (w + gap) + w] = tile
     return sheet

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 __all__ = [
@@ -15,6 +16,8 @@ __all__ = [
     "COLOR_SPACES",
     "srgb_to_linear",
     "linear_to_srgb",
+    "srgb_to_linear_host",
+    "linear_to_srgb_host",
     "apply_exposure",
     "tonemap_reinhard",
     "tonemap_aces_narkowicz",
@@ -50,6 +53,21 @@ def linear_to_srgb(x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     x = jnp.asarray(x)
     hi = 1.055 * jnp.power(jnp.maximum(x, _SRGB_LINEAR_CUTOFF), 1.0 / 2.4) - 0.055
     return jnp.where(x <= _SRGB_LINEAR_CUTOFF, 12.92 * x, hi)
+
+
+def srgb_to_linear_host(x) -> np.ndarray:
+    """`srgb_to_linear` in numpy (float32), for host work on files (decoding frames, writing
+    PNGs): no XLA kernel compiled per image shape, no device round trip."""
+    x = np.asarray(x, np.float32)
+    hi = np.power((np.maximum(x, np.float32(_SRGB_ENCODED_CUTOFF)) + np.float32(0.055)) / np.float32(1.055), np.float32(2.4))
+    return np.where(x <= _SRGB_ENCODED_CUTOFF, x / np.float32(12.92), hi).astype(np.float32)
+
+
+def linear_to_srgb_host(x) -> np.ndarray:
+    """`linear_to_srgb` in numpy (float32), for host work on files (see `srgb_to_linear_host`)."""
+    x = np.asarray(x, np.float32)
+    hi = np.float32(1.055) * np.power(np.maximum(x, np.float32(_SRGB_LINEAR_CUTOFF)), np.float32(1.0 / 2.4)) - np.float32(0.055)
+    return np.where(x <= _SRGB_LINEAR_CUTOFF, np.float32(12.92) * x, hi).astype(np.float32)
 
 
 def apply_exposure(x: Float[ArrayLike, "..."], ev) -> Float[Array, "..."]:

@@ -303,15 +303,15 @@ def write_image(
 
 # --- material folders --------------------------------------------------------------------------
 def _srgb_encode(x: np.ndarray) -> np.ndarray:
-    from .color import linear_to_srgb
+    from .color import linear_to_srgb_host
 
-    return np.asarray(linear_to_srgb(np.clip(np.asarray(x, np.float32), 0.0, 1.0)), dtype=np.float32)
+    return linear_to_srgb_host(np.clip(np.asarray(x, np.float32), 0.0, 1.0))
 
 
 def _srgb_decode(x: np.ndarray) -> np.ndarray:
-    from .color import srgb_to_linear
+    from .color import srgb_to_linear_host
 
-    return np.asarray(srgb_to_linear(np.asarray(x, np.float32)), dtype=np.float32)
+    return srgb_to_linear_host(x)
 
 
 def _np(x) -> Optional[np.ndarray]:

@@ -31,10 +31,10 @@ def _heat(err: np.ndarray, scale: float) -> np.ndarray:
 
 def _display(x: np.ndarray, is_srgb: bool) -> np.ndarray:
     """Values to show in an 8-bit PNG: sRGB-encoded, clipped."""
-    from .color import linear_to_srgb
+    from .color import linear_to_srgb_host
 
     x = np.clip(np.asarray(x, np.float32), 0.0, 1.0)
-    return x if is_srgb else np.asarray(linear_to_srgb(x))
+    return x if is_srgb else linear_to_srgb_host(x)
 
 
 def contact_sheet(target: np.ndarray, fitted: np.ndarray, mask: np.ndarray, is_srgb: bool) -> np.ndarray:

@@ -27,7 +27,7 @@ Rules pinned here (tests in ``tests/test_scene.py``):
   written; a path with an image suffix is used as written. Same rule for ``mask_path``.
 * Color space: ``images.color_space`` when given, else by file: EXR and HDR linear, PNG and
   JPEG sRGB, other files sRGB when 8-bit integer, linear otherwise (16-bit TIFF), frame by
-  frame. sRGB files are decoded to linear with `pbrfit.color.srgb_to_linear`. ``Capture.color_space``
+  frame. sRGB files are decoded to linear with `pbrfit.color.srgb_to_linear_host`. ``Capture.color_space``
   is the space a fit takes residuals in: the frames' common one, or linear when they mix (the
   sRGB frames are then compared after decoding).
 * Exposure: a frame's effective EV is ``images.exposure + frames[].exposure`` (both default 0).

@@ -38,6 +38,17 @@ def test_srgb_matches_the_iec_formula_and_round_trips():
     np.testing.assert_allclose(color.srgb_to_linear(color.linear_to_srgb(x)), x, atol=2e-6)
 
 
+def test_host_srgb_twins_match_the_jax_curves():
+    # numpy twins for file work: same formula, float32, agreeing with the jitted curves
+    x = np.linspace(-0.1, 1.2, 2601).astype(np.float32)
+    for host, dev, ref in ((color.srgb_to_linear_host, color.srgb_to_linear, _srgb_decode_np),
+                           (color.linear_to_srgb_host, color.linear_to_srgb, _srgb_encode_np)):
+        got = host(x)
+        assert isinstance(got, np.ndarray) and got.dtype == np.float32
+        np.testing.assert_allclose(got, np.asarray(dev(x)), rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(got[x >= 0], ref(x[x >= 0]), rtol=2e-6, atol=2e-7)
+
+
 def test_srgb_breakpoints_are_continuous():
     """The IEC constants make the two branches meet to ~1e-7 (they were rounded in the standard: at the
     encode breakpoint the power branch starts 3e-8 below the linear one)."""
