@@ -39,6 +39,7 @@ from .parameters import CHANNELS, FIT_GROUPS, NORMAL_CHANNELS, channel_mask, nor
 from .sharding import pixel_mesh, shard_problem
 from .solvers import LOSSES, Problem, linearize, normal_blocks, objective, pixel_residuals, structured_lm
 from .textures import sample_bilinear
+from .transfer import to_device
 from .uncertainty import block_standard_errors, residual_variance
 
 __all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "model_for_capture",
@@ -269,22 +270,22 @@ def fit_observations(
             p = neighbour_pairs(shape)
             pairs[: len(p)] = p
             pw[: len(p)] = (seen[p[:, 0]] & seen[p[:, 1]]).astype(np.float32)
-        problem = Problem(obs, layout.index, layout.weight, jnp.asarray(free), jnp.asarray(pairs), jnp.asarray(pw),
-                          jnp.asarray(smooth, jnp.float32), jnp.asarray(loss_scale, jnp.float32), ibl, model, loss)
+        problem = Problem(obs, layout.index, layout.weight, to_device(free), to_device(pairs), to_device(pw),
+                          to_device(smooth, np.float32), to_device(loss_scale, np.float32), ibl, model, loss)
         if mesh is not None:
             problem = shard_problem(problem, mesh)
         if level == 0 and init == "grid":
-            x0 = np.asarray(_timed(grid_initialise, clock, "init", jnp.asarray(x0), problem))
+            x0 = np.asarray(_timed(grid_initialise, clock, "init", to_device(x0, np.float32), problem))
         last = level == len(levels) - 1
         steps = max_steps if last else min(coarse_steps, max_steps)
         searching = last and search and shape != (1, 1) and np.any(channels[3:] > 0)
         first = min(SEARCH_AFTER, steps) if searching else steps
-        xs, info = runner(jnp.asarray(x0), problem, first, int(np.sum(free)))
+        xs, info = runner(to_device(x0, np.float32), problem, first, int(np.sum(free)))
         if searching and first < steps:
-            xn = np.asarray(_timed(coordinate_search, clock, "search", jnp.asarray(xs), problem,
-                                   jnp.asarray(parity_classes(shape)), SEARCH_ROUNDS, bool(channels[3] > 0)))
+            xn = np.asarray(_timed(coordinate_search, clock, "search", to_device(xs, np.float32), problem,
+                                   to_device(parity_classes(shape)), SEARCH_ROUNDS, bool(channels[3] > 0)))
             moved = int(np.sum(np.any(xn[:t] != xs[:t], axis=1)))
-            xs, more = runner(jnp.asarray(xn), problem, steps - first, int(np.sum(free)))
+            xs, more = runner(to_device(xn, np.float32), problem, steps - first, int(np.sum(free)))
             for count in ("steps", "accepted", "cg_iterations"):  # counts add up; the rest is the last run's
                 if count in info:
                     more[count] += info[count]
@@ -324,7 +325,7 @@ class _Runner:
     def __call__(self, x0, problem, steps, num_free):
         structured = self.solver == DEFAULT_SOLVER
         if structured:
-            key, args = "structured", (x0, problem, jnp.asarray(steps, jnp.int32), self.rtol, self.atol)
+            key, args = "structured", (x0, problem, to_device(steps, np.int32), self.rtol, self.atol)
             kwargs = dict(progress=self.progress)
             fn = structured_lm
         else:
@@ -349,12 +350,13 @@ class _Runner:
 def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss, smooth, times, t_post, t_start,
             linearization=None):
     k = len(channels)
-    xj = jnp.asarray(x.reshape(-1, k))
+    xj = to_device(x.reshape(-1, k), np.float32)
     if linearization is None:
         r, jac, energy = jax.jit(linearize)(xj, problem)
     else:
         r, jac = linearization
-        energy = jax.jit(objective)(xj, problem) if float(problem.smooth) > 0 else 0.5 * jnp.sum(r * r)
+        # (numpy: an eager jnp reduction would compile kernels of its own)
+        energy = jax.jit(objective)(xj, problem) if float(problem.smooth) > 0 else 0.5 * np.sum(np.square(np.asarray(r)))
     blocks = np.asarray(jax.jit(normal_blocks)(jac, problem))
     n_res = 3 * obs.num_pixels
     n_par = int(np.sum(seen)) * int(np.sum(channels))
@@ -384,9 +386,9 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
         masks.append(msk.reshape(h, w))
         mse = float(np.mean(resid[sel] ** 2)) if sel.any() else float("nan")
         psnr.append(10.0 * math.log10(1.0 / mse) if mse > 0 else float("inf"))
-    normal = normal_from_slopes(jnp.asarray(x[..., 5:7])) if k > 5 else None
-    material = Material(base_color=jnp.asarray(x[..., 0:3]), metallic=jnp.asarray(x[..., 3:4]),
-                        roughness=jnp.asarray(x[..., 4:5]), normal=normal)
+    normal = normal_from_slopes(to_device(x[..., 5:7], np.float32)) if k > 5 else None
+    material = Material(base_color=to_device(x[..., 0:3], np.float32), metallic=to_device(x[..., 3:4], np.float32),
+                        roughness=to_device(x[..., 4:5], np.float32), normal=normal)
     times = dict(times, post=time.perf_counter() - t_post)
     report = dict(
         model=model.describe(),

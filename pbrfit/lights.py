@@ -26,11 +26,13 @@ import math
 from typing import Any, Mapping
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
 from .errors import CaptureError
+from .transfer import to_device
 
 __all__ = [
     "KINDS",
@@ -95,14 +97,22 @@ class Light(eqx.Module):
 
 
 def _vec3(x) -> Float[Array, "3"]:
-    return jnp.asarray(x, dtype=jnp.float32).reshape(3)
+    if isinstance(x, jax.Array):  # a device array or a tracer
+        return jnp.asarray(x, dtype=jnp.float32).reshape(3)
+    return to_device(np.asarray(x, np.float32).reshape(3))  # host values: no eager kernels
 
 
 def _scalar(x) -> Float[Array, ""]:
-    return jnp.asarray(x, dtype=jnp.float32).reshape(())
+    if isinstance(x, jax.Array):
+        return jnp.asarray(x, dtype=jnp.float32).reshape(())
+    return to_device(np.asarray(x, np.float32).reshape(()))
 
 
 def _unit(x) -> Float[Array, "3"]:
+    if not isinstance(x, jax.Array):  # host values: numpy, no eager kernels
+        v = np.asarray(x, np.float64).reshape(3)
+        n = float(np.linalg.norm(v))
+        return to_device((v / n if n > 0 else v).astype(np.float32))
     v = _vec3(x)
     n2 = jnp.sum(v * v)
     safe = jnp.where(n2 > 0, n2, 1.0)
@@ -114,7 +124,7 @@ def point_light(position, color=(1.0, 1.0, 1.0), intensity=1.0, range=0.0) -> Li
     return Light(
         kind="point",
         position=_vec3(position),
-        direction=jnp.zeros(3, jnp.float32),
+        direction=to_device(np.zeros(3, np.float32)),
         color=_vec3(color),
         intensity=_scalar(intensity),
         range=_scalar(range),
@@ -149,7 +159,7 @@ def directional_light(direction, color=(1.0, 1.0, 1.0), intensity=1.0) -> Light:
     """A directional light whose rays travel along ``direction``; ``intensity`` in lux."""
     return Light(
         kind="directional",
-        position=jnp.zeros(3, jnp.float32),
+        position=to_device(np.zeros(3, np.float32)),
         direction=_unit(direction),
         color=_vec3(color),
         intensity=_scalar(intensity),
@@ -165,8 +175,12 @@ def flash_light(c2w, color=(1.0, 1.0, 1.0), intensity=1.0, offset=(0.0, 0.0, 0.0
     ``position = c2w[:3, 3] + c2w[:3, :3] @ offset`` (OpenGL camera axes: +X right, +Y up,
     the camera looks down -Z).
     """
-    m = jnp.asarray(c2w, dtype=jnp.float32).reshape(4, 4)
-    position = m[:3, 3] + m[:3, :3] @ _vec3(offset)
+    if isinstance(c2w, jax.Array) or isinstance(offset, jax.Array):
+        m = jnp.asarray(c2w, dtype=jnp.float32).reshape(4, 4)
+        position = m[:3, 3] + m[:3, :3] @ _vec3(offset)
+    else:  # host values (a capture's cameras): numpy, no eager kernels
+        m = np.asarray(c2w, np.float64).reshape(4, 4)
+        position = m[:3, 3] + m[:3, :3] @ np.asarray(offset, np.float64).reshape(3)
     return point_light(position, color, intensity, 0.0)
 
 

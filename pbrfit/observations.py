@@ -25,6 +25,7 @@ from jaxtyping import Array, Float, Int
 from .errors import CaptureError
 from .render import ViewInputs
 from .textures import bilinear_weights
+from .transfer import to_device
 
 __all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "observations_from_views", "observations_from_capture",
            "texel_layout", "uniform_layout", "coverage_counts", "neighbour_pairs"]
@@ -147,12 +148,12 @@ def observations_from_views(
         parts["target"].append(img[pix[rows]])
         parts["view_index"].append(np.full(rows.shape[0], k, np.int32))
         parts["pixel"].append(pix[rows].astype(np.int32))
-    cat = {k: jnp.asarray(np.concatenate(v, axis=0)) for k, v in parts.items()}
+    cat = {k: np.concatenate(v, axis=0) for k, v in parts.items()}
     if lights == 0:
-        cat["light_l"] = jnp.zeros((cat["normal"].shape[0], 0, 3), jnp.float32)
-        cat["light_radiance"] = jnp.zeros((cat["normal"].shape[0], 0, 3), jnp.float32)
+        cat["light_l"] = np.zeros((cat["normal"].shape[0], 0, 3), np.float32)
+        cat["light_radiance"] = np.zeros((cat["normal"].shape[0], 0, 3), np.float32)
     return Observations(
-        **{k: (v.astype(jnp.float32) if v.dtype.kind == "f" else v) for k, v in cat.items()},
+        **{k: to_device(v, np.float32 if v.dtype.kind == "f" else None) for k, v in cat.items()},
         shapes=tuple(tuple(int(s) for s in v.shape) for v in views),
         tonemap=tonemap,
         color_space=color_space,
@@ -167,7 +168,7 @@ def observations_from_capture(capture, cache_dir=None, views=None) -> Observatio
     A capture that leaves no usable pixel, or whose pixels no light reaches (no environment,
     every punctual light off or pointing away), is `CaptureError`: nothing could be fitted.
     """
-    from .color import linear_to_srgb
+    from .color import linear_to_srgb_host
     from .views import capture_gbuffers, capture_views
 
     color_space = getattr(capture, "color_space", "linear")
@@ -178,7 +179,7 @@ def observations_from_capture(capture, cache_dir=None, views=None) -> Observatio
         img = np.asarray(frame.image, np.float32)
         if color_space == "srgb":
             # frames hold decoded linear values; residuals live in file space
-            img = np.asarray(linear_to_srgb(np.clip(img, 0.0, None)), np.float32)
+            img = linear_to_srgb_host(np.clip(img, 0.0, None))
         images.append(img)
         sat = getattr(frame, "saturated", None)
         usable.append(None if sat is None else ~np.asarray(sat, bool))
@@ -189,7 +190,7 @@ def observations_from_capture(capture, cache_dir=None, views=None) -> Observatio
         raise CaptureError(
             f"{name}: no usable pixels: in every frame each pixel is masked out, saturated or misses the mesh"
         )
-    if getattr(capture, "environment", None) is None and not float(jnp.max(obs.light_radiance, initial=0.0)) > 0.0:
+    if getattr(capture, "environment", None) is None and not np.max(np.asarray(obs.light_radiance), initial=0.0) > 0.0:
         raise CaptureError(f"{name}: no light reaches the mesh: no environment, and every light is off or points away")
     return obs
 

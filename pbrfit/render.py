@@ -21,6 +21,7 @@ from . import brdf
 from .color import encode
 from .material import Material, apply_normal_map, material_at
 from .model import Model
+from .transfer import to_device
 
 __all__ = [
     "ViewInputs",
@@ -108,13 +109,13 @@ def prepare_view(gbuffer, lights, mask: Optional[np.ndarray] = None) -> ViewInpu
     vis = whole(gbuffer.visibility) if len(lights) else None
     light_l, light_radiance = (np.asarray(a)[flat] for a in light_arrays(lights, whole(gbuffer.position), vis))
     return ViewInputs(
-        pixel=jnp.asarray(flat, jnp.int32),
-        uv=jnp.asarray(whole(gbuffer.uv)[flat], jnp.float32),
-        normal=jnp.asarray(whole(gbuffer.normal)[flat], jnp.float32),
-        tangent=jnp.asarray(whole(gbuffer.tangent)[flat], jnp.float32),
-        view=jnp.asarray(whole(gbuffer.view)[flat], jnp.float32),
-        light_l=jnp.asarray(light_l),
-        light_radiance=jnp.asarray(light_radiance),
+        pixel=to_device(flat, np.int32),
+        uv=to_device(whole(gbuffer.uv)[flat], np.float32),
+        normal=to_device(whole(gbuffer.normal)[flat], np.float32),
+        tangent=to_device(whole(gbuffer.tangent)[flat], np.float32),
+        view=to_device(whole(gbuffer.view)[flat], np.float32),
+        light_l=to_device(light_l, np.float32),
+        light_radiance=to_device(light_radiance, np.float32),
         shape=(height, width),
     )
 
