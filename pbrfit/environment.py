@@ -9,7 +9,9 @@ follows the capture format (`shared/spec/capture-format.md`): in the environment
 
 A world with ``world_up = "+z"`` is first mapped ``(x, y, z) -> (x, z, -y)`` (Blender to glTF), and
 ``rotation_deg`` turns the environment about the up axis, counter-clockwise seen from above: a world
-direction d reads the image at ``R_up(-rotation) d``.
+direction d reads the image at ``R_up(-rotation) d``. So with ``+z`` up the image centre looks along
++y; Blender's own equirectangular world texture (centre along +x, ``u = 0.5 - atan2(y, x) / 2 pi``)
+is this mapping with ``rotation_deg = -90``.
 
 Images follow the in-memory convention (float32, (H, W, C), row 0 at the top); texel (i, j) has its
 centre at ``u = (j + 0.5) / W``, ``v = (i + 0.5) / H``. Lookups are bilinear, wrap around in

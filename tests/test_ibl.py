@@ -66,6 +66,18 @@ def test_rotation_turns_counter_clockwise_seen_from_above():
     assert out[0, :2] == pytest.approx([0.75, 0.5], abs=1e-6)
 
 
+def test_z_up_with_rotation_minus_90_is_blenders_world_mapping():
+    # Blender's equirectangular world texture: u = 0.5 - atan2(y, x) / 2π, v = acos(z) / π
+    env = Environment(jnp.asarray(_coded_env(16, 32)), world_up="+z", rotation_deg=-90.0)
+    dirs = _unit(np.random.default_rng(3).normal(size=(200, 3)))
+    u = (0.5 - np.arctan2(dirs[:, 1], dirs[:, 0]) / (2 * np.pi)) % 1.0
+    v = np.arccos(np.clip(dirs[:, 2], -1, 1)) / np.pi
+    inner = (u > 1 / 32) & (u < 31 / 32) & (v > 1 / 16) & (v < 15 / 16)  # bilinear reads of the coded
+    out = np.asarray(environment_lookup(env, jnp.asarray(dirs[inner], jnp.float32)))  # map return (u, v)
+    np.testing.assert_allclose(out[:, 0], u[inner], atol=1e-5)
+    np.testing.assert_allclose(out[:, 1], v[inner], atol=1e-5)
+
+
 def test_lookup_is_seamless_across_the_azimuth_wrap():
     rng = np.random.default_rng(0)
     env = Environment(jnp.asarray(rng.random((8, 16, 3)), jnp.float32))
