@@ -23,9 +23,6 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
-import lineax as lx
-import optax
-import optimistix as optx
 
 from .parameters import from_sine, to_sine
 from .solvers import Problem, residuals
@@ -43,6 +40,12 @@ CG_MAX_STEPS = 100
 
 def make_solver(name: str, rtol: float, atol: float, num_parameters: int):
     """The optimistix solver for `name` (see the module docstring) and whether it is least squares."""
+    # optimistix, lineax and optax are imported here, not with the module: the default solver
+    # never needs them, and they cost every fit about 0.4 s of imports.
+    import lineax as lx
+    import optax
+    import optimistix as optx
+
     cg = lx.Normal(lx.CG(rtol=1e-3, atol=1e-8, max_steps=CG_MAX_STEPS))
     if name == "lm":
         return optx.LevenbergMarquardt(rtol, atol, linear_solver=cg), True
@@ -68,6 +71,8 @@ def _values(z, x_fixed, problem: Problem):
 @eqx.filter_jit
 def optx_solve(x0, problem: Problem, solver, least_squares: bool, max_steps: int):
     """Run an optimistix solver from texel values x0; returns (x, steps, result code)."""
+    import optimistix as optx
+
     z0 = to_sine(x0)
 
     def res(z, args):
