@@ -246,7 +246,7 @@ def synthesize(
     t0 = time.perf_counter()
     suffix, dtype, color_space, bits = IMAGE_FORMATS[scene.image_format]
     out = Path(out)
-    with atomic_dir(out, overwrite=overwrite, marker="capture.json", what="capture folder") as tmp:
+    with atomic_dir(out, overwrite=overwrite, kind="capture") as tmp:
         tmp = Path(tmp)
         write_glb(tmp / "mesh.glb", scene.mesh)
         mesh = load_mesh(tmp / "mesh.glb")  # what a fit will see

@@ -81,17 +81,16 @@ def _cache_dir(args):
 
 def _cmd_render(args) -> int:
     import time
-    from pathlib import Path
 
-    from .io import check_output_dir, read_material
+    from .io import check_not_inside, check_output_dir, read_material
     from .scene import load_capture
     from .views import apply_overrides, load_lights_override, render_capture, write_rendered_capture
 
     start = time.perf_counter()
-    check_output_dir(args.out, "capture.json", "capture folder")
+    check_output_dir(args.out, "capture")
     capture = load_capture(args.capture)
-    if Path(args.out).resolve() == capture.root.resolve():
-        raise CaptureError(f"--out {args.out}: is the capture being rendered; choose another folder")
+    check_not_inside(capture.root, args.out, "capture being rendered")
+    check_not_inside(args.material, args.out, "material being rendered")
     material = read_material(args.material)
     lights_json = load_lights_override(args.lights) if args.lights else None
     capture = apply_overrides(capture, args.environment, lights_json)
@@ -144,7 +143,7 @@ def _cmd_synth(args) -> int:
     if args.noise is not None and not args.noise >= 0:
         raise CaptureError(f"--noise: must be a number >= 0, got {args.noise}")
     out = Path(args.out)
-    check_output_dir(out, "capture.json", "capture folder")
+    check_output_dir(out, "capture")
     overrides = dict(
         size=args.size, views=args.views, noise=args.noise, noise_model=args.noise_model,
         supersample=args.supersample, texture_size=args.texture_size, image_format=args.format,
@@ -346,13 +345,14 @@ def _summary(result, errors) -> str:
 def _cmd_fit(args) -> int:
     from pathlib import Path
 
-    from .io import check_output_dir
+    from .io import check_not_inside, check_output_dir
     from .scene import load_capture
 
     options = _fit_options(args)
     out = Path(args.out)
-    check_output_dir(out, "report.json", "pbrfit fit output")
-    capture = load_capture(args.capture, require_uv=options["maps"] == "texture")
+    check_output_dir(out, "fit")
+    capture = load_capture(args.capture, require_uv=options["maps"] == "texture" or "normal" in options["fit"])
+    check_not_inside(capture.root, out, "capture being fitted")
     result, errors = run_fit(capture, out, options, _cache_dir(args), args.quiet)
     if not args.quiet:
         print(_summary(result, errors))

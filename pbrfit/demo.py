@@ -80,8 +80,8 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise CaptureError(f"{out}: exists and is not a folder; choose another --out")
-    check_output_dir(out / "capture", "capture.json", "capture folder")
-    check_output_dir(out / "fit", "report.json", "pbrfit fit output")
+    check_output_dir(out / "capture", "capture")
+    check_output_dir(out / "fit", "fit")
     start = time.perf_counter()
     scene = make_scene("demo", seed=seed, **scene)
     say(f"pbrfit demo: synthesizing '{scene.name}' ({scene.num_views} views of {scene.width}x{scene.height}) ...")

@@ -34,6 +34,8 @@ __all__ = [
     "atomic_path",
     "atomic_dir",
     "check_output_dir",
+    "check_not_inside",
+    "OUTPUT_MARKER",
     "read_image",
     "read_image_info",
     "write_image",
@@ -90,47 +92,80 @@ def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
-def check_output_dir(final_dir: str | os.PathLike, marker: str, what: str) -> None:
-    """Refuse an output folder that writing would destroy: `final_dir` may be missing, an empty
-    folder, or a folder holding `marker` (an earlier output of the same command, `what`), which is
-    replaced. Anything else (a file, a folder of other things) is `CaptureError`."""
-    final_dir = Path(final_dir)
+#: The file every output folder of a pbrfit command holds (its content: the kind of output).
+#: Only a folder holding it, with the same kind, or an empty one, is ever replaced.
+OUTPUT_MARKER = ".pbrfit-output"
+#: Kinds of output folder: a fit's maps and report, or a capture folder (`render`, `synth`).
+OUTPUT_KINDS = {"fit": "pbrfit fit output", "capture": "capture folder written by pbrfit"}
+
+
+def check_output_dir(final_dir: str | os.PathLike, kind: str) -> Path:
+    """Refuse an output folder that writing would destroy; return it as an absolute path.
+
+    `final_dir` may be missing, an empty folder, or a folder an earlier pbrfit command of the
+    same `kind` (`OUTPUT_KINDS`) wrote, marked by `OUTPUT_MARKER`; that one is replaced. A file,
+    any other folder (a user's capture, photos, home), and the current folder or one above it
+    are `CaptureError`.
+    """
+    what = OUTPUT_KINDS[kind]
+    final_dir = Path(os.path.abspath(final_dir))
+    cwd = Path.cwd()
+    if final_dir == cwd or final_dir in cwd.parents:
+        raise CaptureError(f"{final_dir}: is the current folder or holds it; choose another output folder")
     if not final_dir.exists():
-        return
+        return final_dir
     if not final_dir.is_dir():
         raise CaptureError(f"{final_dir}: exists and is not a folder; choose another output folder")
-    if any(final_dir.iterdir()) and not (final_dir / marker).is_file():
-        raise CaptureError(
-            f"{final_dir}: exists and is not a {what} (no {marker}); refusing to replace it, "
-            "choose another output folder or remove it"
-        )
+    if any(final_dir.iterdir()):
+        marker = final_dir / OUTPUT_MARKER
+        if not marker.is_file() or marker.read_text().strip() != kind:
+            raise CaptureError(
+                f"{final_dir}: exists and is not a {what} (no {OUTPUT_MARKER} of kind {kind!r}); "
+                "refusing to replace it, choose another output folder or remove it"
+            )
+    return final_dir
+
+
+def check_not_inside(folder: str | os.PathLike, out_dir: str | os.PathLike, role: str) -> None:
+    """`CaptureError` when `folder` (an input: `role`) is `out_dir` or lies inside it, which
+    replacing `out_dir` would delete."""
+    folder, out_dir = Path(os.path.abspath(folder)), Path(os.path.abspath(out_dir))
+    if folder == out_dir or out_dir in folder.parents:
+        raise CaptureError(f"{out_dir}: holds the {role} ({folder}); choose another output folder")
 
 
 @contextlib.contextmanager
-def atomic_dir(
-    final_dir: str | os.PathLike, overwrite: bool = True, marker: Optional[str] = None, what: str = "pbrfit output"
-) -> Iterator[Path]:
+def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optional[str] = None) -> Iterator[Path]:
     """Yield a temporary folder beside ``final_dir``; rename it to ``final_dir`` on success.
 
     If the body raises, the temporary folder is removed and nothing appears at ``final_dir``.
     An existing ``final_dir`` is replaced when ``overwrite`` (moved aside, the new folder
-    renamed in, the old one deleted), else `CaptureError`; with a `marker`, only an empty folder
-    or one holding `marker` is replaced (`check_output_dir`).
+    renamed in, the old one deleted), else `CaptureError`. With a `kind` (`OUTPUT_KINDS`), only
+    an empty folder or an earlier output of that kind is replaced (`check_output_dir`), and the
+    new folder is marked as one (`OUTPUT_MARKER`).
     """
-    final_dir = Path(final_dir)
+    final_dir = Path(os.path.abspath(final_dir))
     if final_dir.exists() and not overwrite:
         raise CaptureError(f"{final_dir}: already exists")
-    if marker is not None:
-        check_output_dir(final_dir, marker, what)
+    if kind is not None:
+        check_output_dir(final_dir, kind)
     final_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".tmp", dir=final_dir.parent))
     try:
         yield tmp
+        if kind is not None:
+            (tmp / OUTPUT_MARKER).write_text(kind + "\n")
         if final_dir.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".old", dir=final_dir.parent))
-            os.replace(final_dir, old / "d")
-            os.replace(tmp, final_dir)
-            shutil.rmtree(old, ignore_errors=True)
+            try:
+                os.replace(final_dir, old / "d")
+                try:
+                    os.replace(tmp, final_dir)
+                except BaseException:
+                    os.replace(old / "d", final_dir)  # the earlier output goes back
+                    raise
+            finally:
+                shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, final_dir)
     except BaseException:

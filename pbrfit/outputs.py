@@ -133,7 +133,7 @@ def write_fit_output(
         raise ValueError(f"uncertainty must have {len(UNCERTAINTY_CHANNELS)} channels, got {uncertainty.shape}")
     if not write_normal and getattr(material, "normal", None) is not None:
         material = type(material)(material.base_color, material.metallic, material.roughness)
-    with atomic_dir(out_dir, marker="report.json", what="pbrfit fit output") as tmp:
+    with atomic_dir(out_dir, kind="fit") as tmp:
         tmp = Path(tmp)
         write_material(tmp, material)
         write_image(tmp / "uncertainty.exr", uncertainty, "float", channel_names=UNCERTAINTY_CHANNELS)

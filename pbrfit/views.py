@@ -167,7 +167,7 @@ def write_rendered_capture(
 
     raw = copy.deepcopy(capture.raw)
     out_dir = Path(out_dir)
-    with atomic_dir(out_dir, marker="capture.json", what="capture folder") as tmp:
+    with atomic_dir(out_dir, kind="capture") as tmp:
         tmp = Path(tmp)
         mesh_rel = raw.get("mesh", capture.mesh_path.name)
         _copy_into(capture.mesh_path, tmp, mesh_rel)

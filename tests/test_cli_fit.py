@@ -85,7 +85,7 @@ def test_fit_refuses_an_out_folder_it_did_not_write(capture, tmp_path, capsys):
     (out / "notes.txt").write_text("keep me")
     assert main(["fit", str(capture), "--out", str(out), "--maps", "none", "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and str(out) in err[0] and "no report.json" in err[0]
+    assert len(err) == 1 and str(out) in err[0] and "no .pbrfit-output of kind 'fit'" in err[0]
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
     a_file = tmp_path / "file.txt"
     a_file.write_text("x")

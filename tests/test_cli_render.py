@@ -63,10 +63,14 @@ def test_render_and_synth_refuse_an_out_folder_they_did_not_write(tmp_path, caps
     # refused before anything is read: the capture and material need not exist
     assert main(["render", str(tmp_path / "cap"), "--material", str(tmp_path / "m"), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and str(out) in err[0] and "no capture.json" in err[0]
+    assert len(err) == 1 and str(out) in err[0] and "no .pbrfit-output of kind 'capture'" in err[0]
     assert main(["synth", "peer-plane", "--out", str(out), "--quiet"]) == 2
-    assert "no capture.json" in capsys.readouterr().err
-    assert sorted(p.name for p in out.iterdir()) == ["keep.jpg"]
+    assert "no .pbrfit-output" in capsys.readouterr().err
+    # a user's own capture folder holds capture.json but no marker: never replaced either
+    (out / "capture.json").write_text("{}")
+    assert main(["synth", "peer-plane", "--out", str(out), "--quiet"]) == 2
+    assert "no .pbrfit-output" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["capture.json", "keep.jpg"]
 
 
 @pytest.mark.parametrize("suffix,fmt,dtype", [(".hdr", "exr", "float"), (".jpg", "png8", "uint8")])
@@ -102,12 +106,18 @@ def test_render_refuses_to_write_over_its_own_capture_and_takes_inline_lights(tm
                  "--quiet"]) == 0
     before = sorted(p.name for p in cap.rglob("*"))
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(cap), "--quiet"]) == 2
-    assert "is the capture being rendered" in capsys.readouterr().err
+    assert "holds the capture being rendered" in capsys.readouterr().err
     assert sorted(p.name for p in cap.rglob("*")) == before
     light = '[{"type": "point", "position": [0, 0, 3], "color": [1, 1, 1], "intensity": 3}]'
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--lights", light,
                  "--quiet"]) == 0
     assert json.loads((out / "capture.json").read_text())["lights"] == json.loads(light)
+    # nor over an earlier render that holds the capture (replacing it would delete the capture)
+    inner = out / "inner"
+    assert main(["synth", "peer-plane", "--out", str(inner), "--size", "8", "--views", "1", "--texture-size", "4",
+                 "--quiet"]) == 0
+    assert main(["render", str(inner), "--material", str(inner / "truth"), "--out", str(out), "--quiet"]) == 2
+    assert "holds the capture being rendered" in capsys.readouterr().err and (inner / "capture.json").is_file()
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o2"), "--lights",
                  "[{bad"]) == 2
     assert "--lights: invalid JSON" in capsys.readouterr().err

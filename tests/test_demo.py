@@ -45,5 +45,5 @@ def test_demo_refuses_to_replace_folders_it_did_not_write(tmp_path, capsys):
     (tmp_path / "fit" / "thesis.tex").write_text("keep")
     assert main(["demo", "--out", str(tmp_path), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "no report.json" in err[0]
+    assert len(err) == 1 and "no .pbrfit-output of kind 'fit'" in err[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fit"]

@@ -8,6 +8,8 @@ from pbrfit.color import linear_to_srgb, srgb_to_linear
 from pbrfit.errors import CaptureError
 from pbrfit.io import (
     atomic_dir,
+    OUTPUT_MARKER,
+    check_not_inside,
     check_output_dir,
     atomic_path,
     read_image,
@@ -65,20 +67,30 @@ def test_atomic_dir_success_failure_and_overwrite(tmp_path):
     with pytest.raises(CaptureError, match="already exists"):
         with atomic_dir(out, overwrite=False):
             pass
-    # with a marker, only an empty folder or an earlier output holding the marker is replaced
-    with pytest.raises(CaptureError, match="no report.json"):
-        with atomic_dir(out, marker="report.json") as d:
+    # with a kind, only an empty folder or an earlier output of that kind (its marker) is replaced
+    with pytest.raises(CaptureError, match=r"no \.pbrfit-output of kind 'fit'"):
+        with atomic_dir(out, kind="fit") as d:
             (d / "report.json").write_text("{}")
     assert _listing(out) == ["y"] and _listing(tmp_path) == ["out"]
     (out / "y").unlink()
-    with atomic_dir(out, marker="report.json") as d:  # empty: replaced
+    with atomic_dir(out, kind="fit") as d:  # empty: replaced, and marked
         (d / "report.json").write_text("{}")
-    with atomic_dir(out, marker="report.json") as d:  # an earlier output: replaced
+    assert (out / OUTPUT_MARKER).read_text().strip() == "fit"
+    with atomic_dir(out, kind="fit") as d:  # an earlier output of the kind: replaced
         (d / "report.json").write_text("[]")
     assert (out / "report.json").read_text() == "[]"
+    with pytest.raises(CaptureError, match="kind 'capture'"):  # another kind: refused
+        check_output_dir(out, "capture")
     (tmp_path / "f").write_text("")
     with pytest.raises(CaptureError, match="not a folder"):
-        check_output_dir(tmp_path / "f", "report.json", "fit output")
+        check_output_dir(tmp_path / "f", "fit")
+    with pytest.raises(CaptureError, match="is the current folder or holds it"):
+        check_output_dir(".", "fit")
+    with pytest.raises(CaptureError, match="is the current folder or holds it"):
+        check_output_dir("..", "fit")
+    with pytest.raises(CaptureError, match="holds the capture"):
+        check_not_inside(tmp_path / "out" / "cap", tmp_path / "out", "capture")
+    check_not_inside(tmp_path / "outer", tmp_path / "out", "capture")  # a sibling whose name extends it
 
 
 # --- images -------------------------------------------------------------------------------------
