@@ -186,8 +186,8 @@ class ImageInfo:
         bits: bits per channel.
         is_ldr: integer pixels (a code maximum exists, values lie in [0, 1] once read).
         alpha_channel: index of the alpha channel, or None.
-        associated_alpha: the color channels are premultiplied by alpha as stored (OpenEXR's
-            convention; OpenImageIO reports PNG and unassociated TIFF alpha as unassociated).
+        associated_alpha: the color channels are premultiplied by alpha as stored: always for
+            OpenEXR, for TIFF unless the file says unassociated; PNG, BMP, TGA... are straight.
         file_format: OpenImageIO's format name (``"png"``, ``"openexr"``, ``"hdr"``, ``"tiff"``, ``"jpeg"``).
     """
 
@@ -229,7 +229,10 @@ def _info(path: Path, spec, file_format: str) -> ImageInfo:
         is_ldr=fmt in _LDR_MAX,
         alpha_channel=int(spec.alpha_channel) if spec.alpha_channel >= 0 else None,
         file_format=str(file_format),
-        associated_alpha=spec.alpha_channel >= 0 and spec.get_int_attribute("oiio:UnassociatedAlpha", 0) != 1,
+        associated_alpha=spec.alpha_channel >= 0 and (
+            str(file_format) == "openexr"
+            or (str(file_format) == "tiff" and spec.get_int_attribute("oiio:UnassociatedAlpha", 0) != 1)
+        ),
     )
 
 

@@ -55,7 +55,10 @@ def _convergence_plot(path: Path, history: Sequence[dict], size: tuple[int, int]
     from PIL import Image, ImageDraw, ImageFont
 
     steps = np.asarray([h["step"] for h in history], np.float64)
-    loss = np.log10(np.maximum(np.asarray([h["loss"] for h in history], np.float64), 1e-30))
+    with np.errstate(invalid="ignore"):
+        loss = np.log10(np.maximum(np.asarray([h["loss"] for h in history], np.float64), 1e-30))
+    finite = np.isfinite(loss) & np.isfinite(steps)  # a NaN or inf loss is not drawn
+    steps, loss = steps[finite], loss[finite]
     width, height = size
     left, right, top, bottom = 64, 16, 30, 40
     image = Image.new("RGB", size, "white")

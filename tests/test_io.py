@@ -288,3 +288,22 @@ def test_write_gltf_uv_and_texture_orientation(tmp_path):
     again = load_mesh(out)
     np.testing.assert_allclose(again.visual.uv, QUAD_UV_GLTF)
     np.testing.assert_allclose(again.vertices, mesh.vertices)
+
+
+def test_only_exr_and_associated_tiff_alpha_count_as_premultiplied(tmp_path):
+    rgba = np.random.default_rng(0).random((4, 4, 4)).astype(np.float32)
+    for name, dtype, associated in (("a.exr", "float", True), ("a.png", "uint8", False), ("a.bmp", "uint8", False),
+                                    ("a.tif", "uint16", False)):
+        write_image(tmp_path / name, rgba, dtype)
+        info = read_image(tmp_path / name)[1]
+        assert info.alpha_channel == 3 and info.associated_alpha is associated, name
+
+
+def test_convergence_plot_survives_non_finite_losses(tmp_path):
+    from pbrfit.outputs import _convergence_plot
+
+    history = [dict(step=0, loss=float("inf")), dict(step=1, loss=float("nan")), dict(step=2, loss=0.5),
+               dict(step=3, loss=0.01)]
+    _convergence_plot(tmp_path / "c.png", history)
+    _convergence_plot(tmp_path / "d.png", history[:2])  # nothing finite: an empty frame
+    assert read_image(tmp_path / "c.png")[0].shape == (320, 520, 3) and (tmp_path / "d.png").is_file()
