@@ -96,20 +96,26 @@ class Light(eqx.Module):
     outer_cone_angle: Float[Array, ""]
 
 
+def _on_host(*xs) -> bool:
+    """Whether every leaf of `xs` is a host value (numbers, lists, numpy), none a device array or
+    a tracer: then a light is built in numpy and handed over whole, compiling no eager kernels."""
+    return not any(isinstance(leaf, jax.Array) for leaf in jax.tree_util.tree_leaves(xs))
+
+
 def _vec3(x) -> Float[Array, "3"]:
-    if isinstance(x, jax.Array):  # a device array or a tracer
-        return jnp.asarray(x, dtype=jnp.float32).reshape(3)
-    return to_device(np.asarray(x, np.float32).reshape(3))  # host values: no eager kernels
+    if _on_host(x):
+        return to_device(np.asarray(x, np.float32).reshape(3))
+    return jnp.asarray(x, dtype=jnp.float32).reshape(3)
 
 
 def _scalar(x) -> Float[Array, ""]:
-    if isinstance(x, jax.Array):
-        return jnp.asarray(x, dtype=jnp.float32).reshape(())
-    return to_device(np.asarray(x, np.float32).reshape(()))
+    if _on_host(x):
+        return to_device(np.asarray(x, np.float32).reshape(()))
+    return jnp.asarray(x, dtype=jnp.float32).reshape(())
 
 
 def _unit(x) -> Float[Array, "3"]:
-    if not isinstance(x, jax.Array):  # host values: numpy, no eager kernels
+    if _on_host(x):
         v = np.asarray(x, np.float64).reshape(3)
         n = float(np.linalg.norm(v))
         return to_device((v / n if n > 0 else v).astype(np.float32))
@@ -175,12 +181,12 @@ def flash_light(c2w, color=(1.0, 1.0, 1.0), intensity=1.0, offset=(0.0, 0.0, 0.0
     ``position = c2w[:3, 3] + c2w[:3, :3] @ offset`` (OpenGL camera axes: +X right, +Y up,
     the camera looks down -Z).
     """
-    if isinstance(c2w, jax.Array) or isinstance(offset, jax.Array):
-        m = jnp.asarray(c2w, dtype=jnp.float32).reshape(4, 4)
-        position = m[:3, 3] + m[:3, :3] @ _vec3(offset)
-    else:  # host values (a capture's cameras): numpy, no eager kernels
+    if _on_host(c2w, offset):  # a capture's cameras: numpy, no eager kernels
         m = np.asarray(c2w, np.float64).reshape(4, 4)
         position = m[:3, 3] + m[:3, :3] @ np.asarray(offset, np.float64).reshape(3)
+    else:
+        m = jnp.asarray(c2w, dtype=jnp.float32).reshape(4, 4)
+        position = m[:3, 3] + m[:3, :3] @ _vec3(offset)
     return point_light(position, color, intensity, 0.0)
 
 

@@ -164,3 +164,16 @@ def test_json_errors(d, fragment):
         light_from_json(d, "lights[1]")
     assert fragment in str(info.value)
     assert "\n" not in str(info.value)
+
+
+def test_lights_built_from_traced_values_differentiate():
+    # a light built inside a traced function (a list holding a tracer) stays differentiable
+    pts = np.array([[0.0, 0.0, 0.0]], np.float32)
+
+    def irradiance(s):
+        light = point_light([s, 0.0, 1.0], [1.0, 1.0, 1.0], 3.0)
+        spot = spot_light([0.0, 0.0, 2.0], [s, 0.0, -1.0], [1.0, 1.0, 1.0], 3.0, 0.0, 0.2, 0.6)
+        return incident(light, pts)[1].sum() + incident(spot, pts)[1].sum()
+
+    g = jax.grad(irradiance)(0.3)
+    assert np.isfinite(float(g)) and float(g) != 0.0
