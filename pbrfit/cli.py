@@ -235,7 +235,8 @@ def _fit_options(args) -> dict:
     for name in fixed:
         if name in free:
             if explicit:
-                raise CaptureError(f"--fit: lists {name}, which --{name.replace('_', '-')} holds fixed; drop one of the two")
+                flag = name.replace("_", "-") + ("-from" if getattr(args, f"{name}_from") is not None else "")
+                raise CaptureError(f"--fit: lists {name}, which --{flag} holds fixed; drop one of the two")
             free.remove(name)  # by default a map given on the command line is held, not fitted
     if not free:
         raise CaptureError("--fit: nothing left to fit (every map is held fixed)")
@@ -247,8 +248,8 @@ def _fit_options(args) -> dict:
         raise CaptureError(f"--smooth: must be a finite number >= 0, got {args.smooth}")
     for name in ("rtol", "atol"):
         value = getattr(args, name)
-        if not (math.isfinite(value) and value > 0):
-            raise CaptureError(f"--{name}: must be a finite number > 0, got {value}")
+        if not (math.isfinite(value) and value >= 0):
+            raise CaptureError(f"--{name}: must be a finite number >= 0, got {value}")
     devices = None
     if args.devices is not None:
         import jax
@@ -378,7 +379,10 @@ def _enable_compilation_cache(args) -> None:
         return
     import jax
 
-    folder = _cache_dir(args)
+    try:
+        folder = _cache_dir(args)
+    except CaptureError:  # not a folder: the commands that use the cache say so; the rest run uncached
+        return
     try:
         jax.config.update("jax_compilation_cache_dir", str(os.path.join(folder, "xla")))
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)

@@ -284,7 +284,9 @@ def _camera(top: Mapping, frame: Mapping, c2w: np.ndarray, width: int, height: i
         fx, fy = fl_x, fl_y
         if "camera_angle_x" in top and not frame_fl_x:  # both global forms (instant-ngp writes both): must agree
             angle = _number(top, "camera_angle_x", name, None)
-            fx_angle = 0.5 * width / math.tan(0.5 * angle) if 0.0 < angle < math.pi else float("nan")
+            if not 0.0 < angle < math.pi:
+                raise CaptureError(f"{name}: camera_angle_x: must be in (0, pi) radians, got {angle!r}")
+            fx_angle = 0.5 * width / math.tan(0.5 * angle)
             if not abs(fl_x - fx_angle) <= INTRINSICS_RTOL * fx_angle:
                 raise CaptureError(
                     f"{where}: fl_x {fl_x:g} disagrees with camera_angle_x {angle!r} "

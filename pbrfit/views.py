@@ -159,7 +159,8 @@ def write_rendered_capture(
     image goes to the frame's relative ``file_path`` in the same file type and color space as
     the input frame, with an alpha channel of 1 where the mesh covers the pixel; file types
     that hold no alpha (`NO_ALPHA_SUFFIXES`: Radiance HDR, JPEG) get RGB and the same coverage
-    as an 8-bit mask at ``masks/<file_path>.png``, named by the frame's ``mask_path``. The mesh
+    as an 8-bit mask at ``masks/<file_path>.png`` (suffix kept: ``masks/images/0.jpg.png``),
+    named by the frame's ``mask_path``. The mesh
     and environment files are copied beside it. The folder is built under a temporary name and
     renamed into place, so a failure leaves nothing.
     """
@@ -188,7 +189,7 @@ def write_rendered_capture(
             dst = tmp / rel
             dst.parent.mkdir(parents=True, exist_ok=True)
             if Path(rel).suffix.lower() in NO_ALPHA_SUFFIXES:  # RGB, and the coverage as a mask file
-                mask_rel = os.path.join("masks", str(Path(rel).with_suffix(".png")))
+                mask_rel = os.path.join("masks", rel + ".png")  # a.jpg and a.hdr keep apart
                 entry["mask_path"] = mask_rel
                 (tmp / mask_rel).parent.mkdir(parents=True, exist_ok=True)
                 write_image(tmp / mask_rel, alpha[..., None], "uint8")
