@@ -166,7 +166,8 @@ def observations_from_capture(capture, cache_dir=None, views=None) -> Observatio
     Masked pixels, pixels the mesh misses and saturated LDR pixels (`Frame.saturated`) are left
     out. `views` may pass precomputed `ViewInputs` (one per frame) to skip the ray casting.
     A capture that leaves no usable pixel, or whose pixels no light reaches (no environment,
-    every punctual light off or pointing away), is `CaptureError`: nothing could be fitted.
+    every punctual light off or pointing away), is `CaptureError`: nothing could be fitted; so
+    is a NaN or inf pixel on the mesh (`pbrfit.scene.Frame.nonfinite`).
     """
     from .color import linear_to_srgb_host
     from .views import capture_gbuffers, capture_views
@@ -184,8 +185,20 @@ def observations_from_capture(capture, cache_dir=None, views=None) -> Observatio
         sat = getattr(frame, "saturated", None)
         usable.append(None if sat is None else ~np.asarray(sat, bool))
         exposures.append(float(getattr(frame, "exposure", 0.0)))
-    obs = observations_from_views(views, images, exposures, usable, getattr(capture, "tonemap", "none"), color_space)
     name = getattr(capture, "json_path", None) or getattr(capture, "root", "capture")
+    for k, (frame, view) in enumerate(zip(capture.frames, views)):
+        bad = getattr(frame, "nonfinite", None)
+        if bad is not None and bad.any():
+            hit = np.asarray(bad).reshape(-1)[np.asarray(view.pixel)]
+            if hit.any():
+                flat = int(np.asarray(view.pixel)[np.flatnonzero(hit)[0]])
+                width = np.asarray(bad).shape[1]
+                raise CaptureError(
+                    f"{name}: frames[{k}].file_path: {int(hit.sum())} pixel(s) on the mesh with NaN or inf values in "
+                    f"{frame.file_path} (first at row {flat // width}, column {flat % width}); mask them out "
+                    "(mask_path, or alpha 0) to use this frame"
+                )
+    obs = observations_from_views(views, images, exposures, usable, getattr(capture, "tonemap", "none"), color_space)
     if obs.num_pixels == 0:
         raise CaptureError(
             f"{name}: no usable pixels: in every frame each pixel is masked out, saturated or misses the mesh"

@@ -34,9 +34,9 @@ Rules pinned here (tests in ``tests/test_scene.py``):
 * Masks: ``mask_path`` (nonzero in its first channel, and in its alpha when it has one = use),
   else the image's alpha channel (nonzero = use), else every pixel. Color stored premultiplied by alpha (EXR's associated
   alpha) is divided by it where 0 < alpha < 1, so a partly covered edge pixel holds the
-  surface's color rather than a darkened one (PNG and TIFF alpha are read unassociated). A used
-  pixel with a NaN or inf channel is an error (mask it out to use the frame); masked-out ones
-  are set to 0. ``saturated`` marks pixels of integer (LDR) files with any color channel at
+  surface's color rather than a darkened one (PNG and TIFF alpha are read unassociated). Pixels
+  with a NaN or inf channel are set to 0 and, within the mask, marked (``Frame.nonfinite``): a fit
+  that would read one (the mesh covers it) refuses the capture. ``saturated`` marks pixels of integer (LDR) files with any color channel at
   the maximum code.
 * Lights of a frame: the global ``lights``, then the frame's ``lights``, then the ``flash`` as a
   point light at the camera centre plus ``offset`` (camera space).
@@ -127,8 +127,11 @@ class Frame:
         file_path: the image file (resolved).
         image: (H, W, 3) float32 linear RGB (sRGB-decoded when the frame is sRGB); 0 where the
             file held NaN or inf.
-        mask: (H, W) bool, pixels to use (mask file, alpha, or all; non-finite pixels removed).
+        mask: (H, W) bool, pixels to use (mask file, alpha, or all).
         saturated: (H, W) bool, LDR pixels with a color channel at the maximum code.
+        nonfinite: (H, W) bool, pixels of the mask whose file values were NaN or inf (set to 0
+            in ``image``): a fit that would read one refuses the capture
+            (`pbrfit.observations.observations_from_capture`); off the mesh they do no harm.
         camera: `pbrfit.gbuffer.Camera`.
         lights: global lights + the frame's lights + the flash (as a point light).
         exposure: effective EV (``images.exposure + frames[i].exposure``).
@@ -147,6 +150,7 @@ class Frame:
     color_space: str = "linear"
     info: Optional[ImageInfo] = None
     index: int = 0
+    nonfinite: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -409,16 +413,9 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
         mask = np.ones((height, width), bool)
 
     bad = ~np.all(np.isfinite(rgb), axis=-1)
+    nonfinite = bad & mask  # an error only if the mesh covers one (known after ray casting)
     if bad.any():
-        used = bad & mask
-        if used.any():
-            row, col = (int(i) for i in np.argwhere(used)[0])
-            n = int(used.sum())
-            raise CaptureError(
-                f"{where}.file_path: {n} used pixel{'s' if n != 1 else ''} with NaN or inf values in {file_path} "
-                f"(first at row {row}, column {col}); mask them out (mask_path, or alpha 0) to use this frame"
-            )
-        rgb = np.where(bad[..., None], 0.0, rgb).astype(np.float32)  # masked out: never read
+        rgb = np.where(bad[..., None], 0.0, rgb).astype(np.float32)
     image = _srgb_decode(rgb) if color_space == "srgb" else np.ascontiguousarray(rgb, dtype=np.float32)
 
     frame_lights_raw = frame_raw.get("lights", [])
@@ -431,7 +428,7 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
         lights = lights + (flash_light(c2w, *flash),)
     exposure = base_exposure + _number(frame_raw, "exposure", where, 0.0)
     return Frame(
-        file_path=file_path, image=image, mask=mask, saturated=saturated, camera=camera,
+        file_path=file_path, image=image, mask=mask, saturated=saturated, nonfinite=nonfinite, camera=camera,
         lights=lights, exposure=exposure, color_space=color_space, info=info, index=i,
     )  # fmt: skip
 

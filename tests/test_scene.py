@@ -219,23 +219,31 @@ def test_global_fl_and_camera_angle_y(tmp_path):
     assert c0.fx == pytest.approx(data["fl_x"])
 
 
-def test_nan_pixels_are_an_error_unless_masked_out(tmp_path):
+def test_nan_pixels_on_the_mesh_are_an_error_off_it_harmless(tmp_path):
+    from pbrfit.observations import observations_from_capture
+    from pbrfit.views import capture_gbuffers
+
     pixels = np.ones((H, W, 4), np.float32)
-    pixels[1, 1, 0] = np.nan
-    pixels[2, 5, 2] = np.inf
-    pixels[3, 3, :3] = -np.inf
     root = _single_frame(tmp_path / "a", "img.exr", pixels, "float")
+    hit = np.asarray(capture_gbuffers(load_capture(root), None)[0].hit, bool)
+    assert hit.any() and (~hit).any()
+    (r_on, c_on), (r_off, c_off) = np.argwhere(hit)[0], np.argwhere(~hit)[0]
+    pixels[r_off, c_off, 0] = np.nan  # off the mesh: loads, and fits
+    pixels[1, 1, 3] = 0.0  # masked out (alpha 0): never read whatever it holds
+    pixels[1, 1, 1] = np.inf
+    cap = load_capture(_single_frame(tmp_path / "b", "img.exr", pixels, "float"))
+    frame = cap.frames[0]
+    assert np.all(np.isfinite(frame.image)) and frame.nonfinite[r_off, c_off] and not frame.nonfinite[1, 1]
+    assert observations_from_capture(cap).num_pixels > 0
+    pixels[r_on, c_on, 2] = -np.inf  # on the mesh: refused, naming the file and the pixel
+    cap = load_capture(_single_frame(tmp_path / "c", "img.exr", pixels, "float"))
     with pytest.raises(CaptureError) as err:
-        load_capture(root)
+        observations_from_capture(cap)
     message = str(err.value)
-    assert "\n" not in message and "frames[0].file_path: 3 used pixels with NaN or inf values in" in message
-    assert "img.exr (first at row 1, column 1)" in message
-    # the same pixels with alpha 0: never used, so the frame loads and holds no NaN
-    for r, c in ((1, 1), (2, 5), (3, 3)):
-        pixels[r, c, 3] = 0.0
-    frame = load_capture(_single_frame(tmp_path / "b", "img.exr", pixels, "float")).frames[0]
-    assert np.all(np.isfinite(frame.image))
-    assert frame.mask.sum() == H * W - 3 and not frame.mask[1, 1] and not frame.mask[3, 3]
+    assert "\n" not in message and "frames[0].file_path: 1 pixel(s) on the mesh with NaN or inf values in" in message
+    assert f"img.exr (first at row {r_on}, column {c_on})" in message
+
+
 
 
 # --- malformed captures: every one a CaptureError with one line naming the key or file ---------------
