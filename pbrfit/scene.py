@@ -106,6 +106,9 @@ IMAGE_SUFFIXES = (".exr", ".hdr", ".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bm
 _TRY_SUFFIXES = (".png", ".exr")
 _LINEAR_FORMATS = ("openexr", "hdr")
 _SRGB_FORMATS = ("png", "jpeg")
+# Premultiplied colour is divided by alpha only from this coverage up: below it the colour holds
+# too little of the surface to recover (and the division could overflow float32).
+_MIN_UNPREMULTIPLY_ALPHA = 1.0 / 256.0
 # The last row of a camera-to-world matrix must be (0, 0, 0, 1) to this tolerance.
 _AFFINE_ROW_TOL = 1e-6
 
@@ -388,7 +391,7 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
     rgb = _rgb(pixels, info, f"{where}.file_path")
     if info.associated_alpha:  # premultiplied (EXR): partly covered pixels get the surface's color back
         alpha = pixels[..., info.alpha_channel : info.alpha_channel + 1]
-        partial = (alpha > 0.0) & (alpha < 1.0)
+        partial = (alpha >= _MIN_UNPREMULTIPLY_ALPHA) & (alpha < 1.0)
         rgb = np.where(partial, rgb / np.where(partial, alpha, 1.0), rgb).astype(np.float32)
     color_space = color_space_override or _default_color_space(info)
     saturated = np.zeros((height, width), bool)
