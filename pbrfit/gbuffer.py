@@ -55,6 +55,7 @@ __all__ = [
     "GBuffer",
     "compute_gbuffer",
     "vertex_tangents",
+    "silhouette",
     "has_embree",
     "SHADOW_OFFSET_REL",
     "UV_CONVENTIONS",
@@ -203,6 +204,19 @@ class GBuffer:
 
 
 # ---------------------------------------------------------------------------------- tangents
+
+
+def silhouette(hit: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels that hit the mesh while one of their four neighbours misses it, i.e.
+    pixels a silhouette edge may cross. Outside the image counts as unknown, not as a miss."""
+    hit = np.asarray(hit, bool)
+    miss = ~hit
+    edge = np.zeros_like(hit)
+    edge[1:] |= miss[:-1]
+    edge[:-1] |= miss[1:]
+    edge[:, 1:] |= miss[:, :-1]
+    edge[:, :-1] |= miss[:, 1:]
+    return hit & edge
 
 
 def vertex_tangents(

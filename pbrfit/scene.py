@@ -32,7 +32,8 @@ Rules pinned here (tests in ``tests/test_scene.py``):
   sRGB frames are then compared after decoding).
 * Exposure: a frame's effective EV is ``images.exposure + frames[].exposure`` (both default 0).
 * Masks: ``mask_path`` (nonzero in its first channel, and in its alpha when it has one = use),
-  else the image's alpha channel (nonzero = use), else every pixel. Color stored premultiplied by alpha (EXR's associated
+  else the image's alpha channel (nonzero = use), else every pixel (and a fit leaves out the
+  mesh's silhouette pixels, which may hold background: `pbrfit.views.capture_views`). Color stored premultiplied by alpha (EXR's associated
   alpha) is divided by it where 0 < alpha < 1, so a partly covered edge pixel holds the
   surface's color rather than a darkened one (PNG and TIFF alpha are read unassociated). Pixels
   with a NaN or inf channel are set to 0 and, within the mask, marked (``Frame.nonfinite``): a fit
@@ -135,6 +136,9 @@ class Frame:
         nonfinite: (H, W) bool, pixels of the mask whose file values were NaN or inf (set to 0
             in ``image``): a fit that would read one refuses the capture
             (`pbrfit.observations.observations_from_capture`); off the mesh they do no harm.
+        mask_source: where ``mask`` came from: ``"file"`` (mask_path), ``"alpha"``, or ``"none"``
+            (every pixel; a fit then leaves out the mesh's silhouette pixels, see
+            `pbrfit.views.capture_views`).
         camera: `pbrfit.gbuffer.Camera`.
         lights: global lights + the frame's lights + the flash (as a point light).
         exposure: effective EV (``images.exposure + frames[i].exposure``).
@@ -154,6 +158,7 @@ class Frame:
     info: Optional[ImageInfo] = None
     index: int = 0
     nonfinite: Optional[np.ndarray] = None
+    mask_source: str = "none"
 
 
 @dataclass
@@ -410,9 +415,12 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
         mask = mask_pixels[..., 0] > 0
         if mask_info.alpha_channel is not None and mask_info.alpha_channel != 0:  # an RGBA mask: alpha too
             mask &= mask_pixels[..., mask_info.alpha_channel] > 0
+        mask_source = "file"
     elif info.alpha_channel is not None:
         mask = pixels[..., info.alpha_channel] > 0
+        mask_source = "alpha"
     else:
+        mask_source = "none"
         mask = np.ones((height, width), bool)
 
     bad = ~np.all(np.isfinite(rgb), axis=-1)
@@ -431,7 +439,8 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
         lights = lights + (flash_light(c2w, *flash),)
     exposure = base_exposure + _number(frame_raw, "exposure", where, 0.0)
     return Frame(
-        file_path=file_path, image=image, mask=mask, saturated=saturated, nonfinite=nonfinite, camera=camera,
+        file_path=file_path, image=image, mask=mask, saturated=saturated, nonfinite=nonfinite,
+        mask_source=mask_source, camera=camera,
         lights=lights, exposure=exposure, color_space=color_space, info=info, index=i,
     )  # fmt: skip
 

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import CaptureError
-from .gbuffer import GBuffer, compute_gbuffer
+from .gbuffer import GBuffer, compute_gbuffer, silhouette
 from .material import Material
 from .model import Model
 from .render import ViewInputs, prepare_view, render_view
@@ -89,10 +89,18 @@ def capture_gbuffers(capture, cache_dir: Optional[os.PathLike] = None) -> list[G
 
 def capture_views(capture, gbuffers: Sequence[GBuffer], use_masks: bool = True) -> list[ViewInputs]:
     """Shading inputs of every frame: the pixels where the mesh is hit (and, with `use_masks`,
-    which the frame's mask keeps)."""
-    return [
-        prepare_view(g, f.lights, f.mask if use_masks else None) for g, f in zip(gbuffers, capture.frames)
-    ]
+    which the frame's mask keeps). A frame with neither a mask file nor alpha also loses the
+    mesh's silhouette pixels (`pbrfit.gbuffer.silhouette`): an antialiased image mixes the
+    background into them, and nothing says by how much."""
+
+    def mask(g, f):
+        if not use_masks:
+            return None
+        if getattr(f, "mask_source", "none") == "none":
+            return f.mask & ~silhouette(g.hit)
+        return f.mask
+
+    return [prepare_view(g, f.lights, mask(g, f)) for g, f in zip(gbuffers, capture.frames)]
 
 
 def render_capture(

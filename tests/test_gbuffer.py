@@ -351,3 +351,14 @@ def test_real_light_objects_when_available():
     g = compute_gbuffer(mesh, SHADOW_CAM, (light,))
     ref = compute_gbuffer(mesh, SHADOW_CAM, SHADOW_LIGHTS[:1])
     np.testing.assert_array_equal(g.visibility, ref.visibility)
+
+
+def test_silhouette_marks_hit_pixels_beside_a_miss():
+    from pbrfit.gbuffer import silhouette
+
+    hit = np.zeros((5, 6), bool)
+    hit[1:4, 1:6] = True  # touches the right border: the border is not a miss
+    ring = silhouette(hit)
+    expected = hit.copy()
+    expected[2, 2:6] = False  # interior: every neighbour hits
+    np.testing.assert_array_equal(ring, expected)

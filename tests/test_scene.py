@@ -383,3 +383,22 @@ def test_rgba_mask_uses_its_alpha_too(tmp_path):
     write_image(root / "m.png", mask, "uint8")
     used = load_capture(root).frames[0].mask
     assert not used[:2].any() and not used[:, 0].any() and used[2:, 1:].all()
+
+
+def test_frames_without_mask_or_alpha_leave_out_the_silhouette(tmp_path):
+    from pbrfit.gbuffer import silhouette
+    from pbrfit.views import capture_gbuffers, capture_views
+
+    rgb = np.ones((H, W, 3), np.float32)
+    cap = load_capture(_single_frame(tmp_path / "a", "img.exr", rgb, "float"))
+    assert cap.frames[0].mask_source == "none"
+    hit = np.asarray(capture_gbuffers(cap, None)[0].hit, bool)
+    ring = silhouette(hit)
+    assert ring.any() and (hit & ~ring).any()
+    used = np.asarray(capture_views(cap, capture_gbuffers(cap, None))[0].pixel)
+    np.testing.assert_array_equal(np.sort(used), np.flatnonzero((hit & ~ring).reshape(-1)))
+    # with an alpha channel (or a mask file) the mask says which pixels hold the surface: all kept
+    cap = load_capture(_single_frame(tmp_path / "b", "img.exr", np.concatenate([rgb, rgb[..., :1]], -1), "float"))
+    assert cap.frames[0].mask_source == "alpha"
+    used = np.asarray(capture_views(cap, capture_gbuffers(cap, None))[0].pixel)
+    assert used.size == hit.sum()
