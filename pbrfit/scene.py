@@ -27,18 +27,18 @@ Rules pinned here (tests in ``tests/test_scene.py``):
   written; a path with an image suffix is used as written. Same rule for ``mask_path``.
 * Color space: ``images.color_space`` when given, else by file: EXR and HDR linear, PNG and
   JPEG sRGB, other files sRGB when 8-bit integer, linear otherwise (16-bit TIFF), frame by
-  frame. sRGB files are decoded to linear with `pbrfit.color.srgb_to_linear_host`. ``Capture.color_space``
-  is the space a fit takes residuals in: the frames' common one, or linear when they mix (the
+  frame. sRGB files are decoded to linear with `pbrfit.color.srgb_to_linear_host`.
+  ``Capture.color_space`` is the space a fit takes residuals in: the frames' common one, or linear when they mix (the
   sRGB frames are then compared after decoding).
 * Exposure: a frame's effective EV is ``images.exposure + frames[].exposure`` (both default 0).
 * Masks: ``mask_path`` (nonzero in its first channel, and in its alpha when it has one = use),
   else the image's alpha channel (nonzero = use), else every pixel (and a fit leaves out the
-  mesh's silhouette pixels, which may hold background: `pbrfit.views.capture_views`). Color stored premultiplied by alpha (EXR's associated
-  alpha) is divided by it where 0 < alpha < 1, so a partly covered edge pixel holds the
-  surface's color rather than a darkened one (PNG and TIFF alpha are read unassociated). Pixels
-  with a NaN or inf channel are set to 0 and, within the mask, marked (``Frame.nonfinite``): a fit
-  that would read one (the mesh covers it) refuses the capture. ``saturated`` marks pixels of integer (LDR) files with any color channel at
-  the maximum code.
+  mesh's silhouette pixels, which may hold background: `pbrfit.views.capture_views`). Color
+  stored premultiplied by alpha (`pbrfit.io.ImageInfo.associated_alpha`: EXR) is divided by it
+  where 1/256 <= alpha < 1, so a partly covered edge pixel holds the surface's color rather than
+  a darkened one. Pixels with a NaN or inf channel are set to 0 and, within the mask, marked
+  (``Frame.nonfinite``): a fit that would read one (the mesh covers it) refuses the capture.
+  ``saturated`` marks pixels of integer (LDR) files with any color channel at the maximum code.
 * Lights of a frame: the global ``lights``, then the frame's ``lights``, then the ``flash`` as a
   point light at the camera centre plus ``offset`` (camera space).
 * Mesh: `pbrfit.mesh.load_mesh` (uv in glTF orientation for every format).
@@ -295,26 +295,15 @@ def _camera(top: Mapping, frame: Mapping, c2w: np.ndarray, width: int, height: i
         fl_y = _positive(frame, "fl_y", where) or _positive(top, "fl_y", name) or fl_x
         fx, fy = fl_x, fl_y
         if "camera_angle_x" in top and not frame_fl_x:  # both global forms (instant-ngp writes both): must agree
-            angle = _number(top, "camera_angle_x", name, None)
-            if not 0.0 < angle < math.pi:
-                raise CaptureError(f"{name}: camera_angle_x: must be in (0, pi) radians, got {angle!r}")
-            fx_angle = 0.5 * width / math.tan(0.5 * angle)
+            fx_angle = _fov_focal(top, "camera_angle_x", width, name)
             if not abs(fl_x - fx_angle) <= INTRINSICS_RTOL * fx_angle:
                 raise CaptureError(
-                    f"{where}: fl_x {fl_x:g} disagrees with camera_angle_x {angle!r} "
+                    f"{where}: fl_x {fl_x:g} disagrees with camera_angle_x {top['camera_angle_x']!r} "
                     f"(= fl_x {fx_angle:.6g} at width {width}); give one of the two or make them agree"
                 )
     elif "camera_angle_x" in top:
-        angle = _number(top, "camera_angle_x", name, None)
-        if not 0.0 < angle < math.pi:
-            raise CaptureError(f"{name}: camera_angle_x: must be in (0, pi) radians, got {angle!r}")
-        fx = 0.5 * width / math.tan(0.5 * angle)
-        fy = fx
-        if "camera_angle_y" in top:
-            angle_y = _number(top, "camera_angle_y", name, None)
-            if not 0.0 < angle_y < math.pi:
-                raise CaptureError(f"{name}: camera_angle_y: must be in (0, pi) radians, got {angle_y!r}")
-            fy = 0.5 * height / math.tan(0.5 * angle_y)
+        fx = _fov_focal(top, "camera_angle_x", width, name)
+        fy = _fov_focal(top, "camera_angle_y", height, name) if "camera_angle_y" in top else fx
     else:
         raise CaptureError(f"{where}: no intrinsics: give camera_angle_x, or fl_x (top level or per frame)")
     cx = _number(frame, "cx", where, None) if "cx" in frame else _number(top, "cx", name, 0.5 * width)
@@ -327,6 +316,15 @@ def _camera(top: Mapping, frame: Mapping, c2w: np.ndarray, width: int, height: i
         return Camera(c2w, fx, fy, cx, cy, width, height)
     except CaptureError as err:
         raise CaptureError(f"{where}: {err}") from None
+
+
+def _fov_focal(top, key: str, size: int, name: str) -> float:
+    """The focal length in pixels of the field of view ``top[key]`` (radians, in (0, pi)) across
+    `size` pixels: ``size / (2 tan(angle / 2))``."""
+    angle = _number(top, key, name, None)
+    if not 0.0 < angle < math.pi:
+        raise CaptureError(f"{name}: {key}: must be in (0, pi) radians, got {angle!r}")
+    return 0.5 * size / math.tan(0.5 * angle)
 
 
 def _default_color_space(info: ImageInfo) -> str:
