@@ -429,12 +429,12 @@ def read_map(directory: str | os.PathLike, name: str) -> np.ndarray:
     ``roughness`` (H, W, 1), from its EXR when present, else from the 8-bit PNG that holds it
     (``base_color.png`` sRGB-decoded; metallic from B and roughness from G of
     ``metallic_roughness.png``). Raises `CaptureError` naming the folder and the files tried."""
+    if name not in ("base_color", "metallic", "roughness"):
+        raise ValueError(f"unknown map {name!r}")
     directory = Path(directory)
     if not directory.is_dir():
         raise CaptureError(f"material folder not found: {directory}")
     exr, png = directory / f"{name}.exr", directory / ("base_color.png" if name == "base_color" else "metallic_roughness.png")
-    if name not in ("base_color", "metallic", "roughness"):
-        raise ValueError(f"unknown map {name!r}")
     if exr.is_file():
         pixels = read_image(exr)[0]
         return _channels(pixels, 3, exr) if name == "base_color" else pixels[..., :1]
@@ -506,28 +506,41 @@ def _glb_with_json(data: bytes, edit) -> bytes:
     return struct.pack("<4sII", magic, version, 12 + len(chunk) + len(rest)) + chunk + rest
 
 
-def _write_uniform_gltf(path: Path, mesh, material) -> Path:
+def _export_glb(path, mesh, visual, edit=None) -> Path:
+    """``mesh``'s vertices, faces and vertex normals with ``visual``, as a GLB at ``path``
+    (atomically); ``edit`` may rewrite the glTF JSON first (`_glb_with_json`)."""
     import trimesh
+
+    out_mesh = trimesh.Trimesh(
+        vertices=np.asarray(mesh.vertices),
+        faces=np.asarray(mesh.faces),
+        vertex_normals=np.asarray(mesh.vertex_normals),
+        visual=visual,
+        process=False,
+    )
+    data = out_mesh.export(file_type="glb", include_normals=True)
+    if edit is not None:
+        data = _glb_with_json(data, edit)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return path
+
+
+def _write_uniform_gltf(path: Path, mesh, material) -> Path:
     from trimesh.visual.material import PBRMaterial
     from trimesh.visual.texture import TextureVisuals
 
     base = [float(v) for v in np.clip(_np(material.base_color).reshape(-1)[:3], 0.0, 1.0)] + [1.0]
     metallic = float(np.clip(_np(material.metallic).reshape(-1)[0], 0.0, 1.0))
     roughness = float(np.clip(_np(material.roughness).reshape(-1)[0], 0.0, 1.0))
-    out_mesh = trimesh.Trimesh(
-        vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces), vertex_normals=np.asarray(mesh.vertex_normals),
-        visual=TextureVisuals(material=PBRMaterial(name="pbrfit")), process=False,
-    )
 
     def exact_factors(tree):  # trimesh stores baseColorFactor as 8-bit; write the floats
         for m in tree.get("materials", []):
             m["pbrMetallicRoughness"] = dict(baseColorFactor=base, metallicFactor=metallic, roughnessFactor=roughness)
         return tree
 
-    data = _glb_with_json(out_mesh.export(file_type="glb", include_normals=True), exact_factors)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    return path
+    return _export_glb(path, mesh, TextureVisuals(material=PBRMaterial(name="pbrfit")), exact_factors)
 
 
 def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
@@ -547,16 +560,15 @@ def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
     instead, exactly (baseColorFactor is linear, as the fit's base color): no textures, and no
     texture coordinates needed.
     """
-    import trimesh
     from trimesh.visual.material import PBRMaterial
     from trimesh.visual.texture import TextureVisuals
 
-    base = _np(material.base_color)
     if _is_uniform(material):
         return _write_uniform_gltf(Path(path), mesh, material)
     uv = getattr(getattr(mesh, "visual", None), "uv", None)
     if uv is None or len(uv) != len(mesh.vertices):
         raise ValueError("write_gltf needs a mesh with one texture coordinate per vertex (mesh.visual.uv)")
+    base = _np(material.base_color)
     orm_image = _pil_image(_pack_orm(material))
     kwargs = dict(
         baseColorTexture=_pil_image(_srgb_encode(base)),
@@ -577,16 +589,4 @@ def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
         kwargs["emissiveFactor"] = [1.0, 1.0, 1.0]
     uv = np.asarray(uv, dtype=np.float64)[:, :2]
     uv_trimesh = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])  # undone by trimesh's exporter
-    visual = TextureVisuals(uv=uv_trimesh, material=PBRMaterial(**kwargs))
-    out_mesh = trimesh.Trimesh(
-        vertices=np.asarray(mesh.vertices),
-        faces=np.asarray(mesh.faces),
-        vertex_normals=np.asarray(mesh.vertex_normals),
-        visual=visual,
-        process=False,
-    )
-    data = out_mesh.export(file_type="glb", include_normals=True)
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    return path
+    return _export_glb(path, mesh, TextureVisuals(uv=uv_trimesh, material=PBRMaterial(**kwargs)))
