@@ -70,9 +70,10 @@ class ViewInputs(eqx.Module):
 
 def light_arrays(lights, points: np.ndarray, visibility: Optional[np.ndarray] = None):
     """Per point and light: unit direction to the light (P, L, 3) and arriving radiance (P, L, 3)."""
-    points = jnp.asarray(points, jnp.float32)
+    # host points (a G-buffer) go over by `to_device`: jnp.asarray would compile a kernel per shape
+    points = jnp.asarray(points, jnp.float32) if isinstance(points, jax.Array) else to_device(points, np.float32)
     if len(lights) == 0:
-        empty = jnp.zeros((points.shape[0], 0, 3), jnp.float32)
+        empty = to_device(np.zeros((points.shape[0], 0, 3), np.float32))
         return empty, empty
     return _light_arrays(tuple(lights), points, visibility)
 
