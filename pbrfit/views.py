@@ -168,9 +168,9 @@ def write_rendered_capture(
     the input frame, with an alpha channel of 1 where the mesh covers the pixel; file types
     that hold no alpha (`NO_ALPHA_SUFFIXES`: Radiance HDR, JPEG) get RGB and the same coverage
     as an 8-bit mask at ``masks/<file_path>.png`` (suffix kept: ``masks/images/0.jpg.png``),
-    named by the frame's ``mask_path``. The mesh
-    and environment files are copied beside it. The folder is built under a temporary name and
-    renamed into place, so a failure leaves nothing.
+    named by the frame's ``mask_path``. The mesh and environment files are copied beside it.
+    The folder is built under a temporary name and renamed into place, so a failure leaves
+    nothing.
     """
     from .io import atomic_dir, write_image
 
