@@ -114,9 +114,10 @@ def tonemap_aces_hill(x):
     out = clamp(M_out c, 0, 1). Without the viewer's optional /0.6 exposure boost.
     """
     x = jnp.maximum(jnp.asarray(x), 0.0)
-    c = jnp.einsum("ij,...j->...i", _ACES_INPUT.astype(x.dtype), x)
+    c = jnp.einsum("ij,...j->...i", _ACES_INPUT.astype(x.dtype), x, precision=jax.lax.Precision.HIGHEST)
     c = (c * (c + 0.0245786) - 0.000090537) / (c * (0.983729 * c + 0.4329510) + 0.238081)
-    return jnp.clip(jnp.einsum("ij,...j->...i", _ACES_OUTPUT.astype(x.dtype), c), 0.0, 1.0)
+    out = jnp.einsum("ij,...j->...i", _ACES_OUTPUT.astype(x.dtype), c, precision=jax.lax.Precision.HIGHEST)
+    return jnp.clip(out, 0.0, 1.0)
 
 
 def tonemap_khronos_neutral(x):

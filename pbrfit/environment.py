@@ -258,13 +258,14 @@ def resample_equirect(image: Float[Array, "H W C"], height: int, width: int) -> 
     while h >= 2 * height and w >= 2 * width and h % 2 == 0 and w % 2 == 0:
         sa = jnp.asarray(texel_solid_angles(h, w)[:, 0].reshape(h // 2, 2), image.dtype)
         pairs = image.reshape(h // 2, 2, w // 2, 2, c)
-        image = jnp.einsum("ab,abjkc->ajc", sa / sa.sum(1, keepdims=True), pairs) * 0.5
+        weights = sa / sa.sum(1, keepdims=True)
+        image = jnp.einsum("ab,abjkc->ajc", weights, pairs, precision=jax.lax.Precision.HIGHEST) * 0.5
         h, w = h // 2, w // 2
     if (h, w) == (height, width):
         return image
     rows = jnp.asarray(_row_weights(h, height), image.dtype)
     cols = jnp.asarray(_col_weights(w, width), image.dtype)
-    return jnp.einsum("ih,hwc,jw->ijc", rows, image, cols)
+    return jnp.einsum("ih,hwc,jw->ijc", rows, image, cols, precision=jax.lax.Precision.HIGHEST)
 
 
 def mip_pyramid(image: Float[Array, "H W C"], min_height: int = 1) -> list:

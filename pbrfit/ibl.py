@@ -169,7 +169,7 @@ def sh9_coefficients(radiance: Float[Array, "H W 3"]) -> Float[Array, "9 3"]:
     h, w, _ = radiance.shape
     basis = _sh9_basis(jnp.asarray(texel_directions(h, w), radiance.dtype))
     omega = jnp.asarray(texel_solid_angles(h, w), radiance.dtype)[..., None]
-    return jnp.einsum("hwk,hwc->kc", basis * omega, radiance)
+    return jnp.einsum("hwk,hwc->kc", basis * omega, radiance, precision=jax.lax.Precision.HIGHEST)
 
 
 @jax.jit
@@ -202,7 +202,7 @@ def irradiance_map(radiance: Float[Array, "H W 3"], height: int) -> Float[Array,
     dn = texel_directions(height, 2 * height).reshape(-1, 3)
     kernel = np.maximum(dn @ ds.T, 0.0) * om[None, :]
     kernel /= kernel.sum(1, keepdims=True)      # = (1/π) Σ max(0, n·ω) Ω, exactly 1 once discretised
-    out = jnp.asarray(kernel, radiance.dtype) @ src.reshape(-1, 3)
+    out = jnp.matmul(jnp.asarray(kernel, radiance.dtype), src.reshape(-1, 3), precision=jax.lax.Precision.HIGHEST)
     return out.reshape(height, 2 * height, 3)
 
 

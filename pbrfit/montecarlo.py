@@ -136,7 +136,7 @@ def sample_cosine(u: Float[Array, "*b 2"]) -> Float[Array, "*b 3"]:
 
 def luminance(rgb: Float[Array, "*b 3"]) -> Float[Array, "*b"]:
     """Rec. 709 luminance of linear RGB."""
-    return rgb @ jnp.asarray(LUMINANCE, rgb.dtype)
+    return jnp.sum(rgb * jnp.asarray(LUMINANCE, rgb.dtype), axis=-1)
 
 
 # --- environment sampling ----------------------------------------------------------------------

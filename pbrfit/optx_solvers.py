@@ -22,6 +22,7 @@ told not to throw (a breakdown ends the solve, reported in its result).
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 from .parameters import from_sine, to_sine
@@ -82,9 +83,12 @@ def optx_solve(x0, problem: Problem, solver, least_squares: bool, max_steps: int
         r, s = res(z, args)
         return 0.5 * (jnp.sum(r * r) + jnp.sum(s * s))
 
-    if least_squares:
-        sol = optx.least_squares(res, solver, z0, max_steps=max_steps, throw=False)
-    else:
-        sol = optx.minimise(loss, solver, z0, max_steps=max_steps, throw=False)
+    # optimistix, lineax and optax contract at JAX's default precision, which is TF32 on GPUs;
+    # the fit's float32 contractions all run at full precision (`pbrfit.solvers`).
+    with jax.default_matmul_precision("highest"):
+        if least_squares:
+            sol = optx.least_squares(res, solver, z0, max_steps=max_steps, throw=False)
+        else:
+            sol = optx.minimise(loss, solver, z0, max_steps=max_steps, throw=False)
     x = _values(sol.value, x0, problem)
     return x, sol.stats["num_steps"], sol.result._value
