@@ -73,8 +73,9 @@ PREFILTER_MIN_HEIGHT = 8
 #: lobe from roughness 0.2 up with the default 128-row level 0.
 PREFILTER_ROUGHNESS_PER_OCTAVE = 0.2
 #: Source height for the cosine-convolved irradiance map: twice the map's, at least this. The
-#: clamped-cosine kernel is smooth, so a coarse source loses nothing but a sun's exact position.
-IRRADIANCE_SOURCE_MIN_HEIGHT = 32
+#: clamped-cosine kernel is smooth, but a sun box-filtered into a 32-row source put the map's
+#: texels 1.3% off under a 60° sun; from 64 rows they are within 1e-4.
+IRRADIANCE_SOURCE_MIN_HEIGHT = 64
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,7 +109,7 @@ class IBLSettings:
     prefilter_samples: int = 64
     prefilter_lod_bias: float = 1.0
     irradiance: str = "map"
-    irradiance_resolution: int = 16
+    irradiance_resolution: int = 32
     env_resolution: int = 256
     specular_direction: str = "dominant"
 
