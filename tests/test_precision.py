@@ -7,7 +7,6 @@ these tests read the lowered programs instead: every ``dot_general`` must ask fo
 Lowering traces without compiling, so they are cheap.
 """
 
-import math
 import re
 
 import jax
