@@ -39,35 +39,39 @@ _SRGB_ENCODED_CUTOFF = 0.04045
 _POW_FLOOR = 1e-8
 
 
+def _decode(x, xp):
+    """sRGB decode with the array module `xp` (`jax.numpy` or `numpy`), keeping x's float dtype."""
+    hi = xp.power((xp.maximum(x, _SRGB_ENCODED_CUTOFF) + 0.055) / 1.055, 2.4)
+    return xp.where(x <= _SRGB_ENCODED_CUTOFF, x / 12.92, hi)
+
+
+def _encode(x, xp):
+    """sRGB encode with the array module `xp` (`jax.numpy` or `numpy`), keeping x's float dtype."""
+    hi = 1.055 * xp.power(xp.maximum(x, _SRGB_LINEAR_CUTOFF), 1.0 / 2.4) - 0.055
+    return xp.where(x <= _SRGB_LINEAR_CUTOFF, 12.92 * x, hi)
+
+
 @jax.jit  # one fused kernel when called eagerly (output encoding, decoding frames)
 def srgb_to_linear(x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     """Decode sRGB to linear (IEC 61966-2-1): x / 12.92 below 0.04045, else ((x + 0.055)/1.055)^2.4."""
-    x = jnp.asarray(x)
-    hi = jnp.power((jnp.maximum(x, _SRGB_ENCODED_CUTOFF) + 0.055) / 1.055, 2.4)
-    return jnp.where(x <= _SRGB_ENCODED_CUTOFF, x / 12.92, hi)
+    return _decode(jnp.asarray(x), jnp)
 
 
 @jax.jit
 def linear_to_srgb(x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     """Encode linear to sRGB (IEC 61966-2-1): 12.92 x below 0.0031308, else 1.055 x^(1/2.4) - 0.055."""
-    x = jnp.asarray(x)
-    hi = 1.055 * jnp.power(jnp.maximum(x, _SRGB_LINEAR_CUTOFF), 1.0 / 2.4) - 0.055
-    return jnp.where(x <= _SRGB_LINEAR_CUTOFF, 12.92 * x, hi)
+    return _encode(jnp.asarray(x), jnp)
 
 
 def srgb_to_linear_host(x) -> np.ndarray:
     """`srgb_to_linear` in numpy (float32), for host work on files (decoding frames, writing
     PNGs): no XLA kernel compiled per image shape, no device round trip."""
-    x = np.asarray(x, np.float32)
-    hi = np.power((np.maximum(x, np.float32(_SRGB_ENCODED_CUTOFF)) + np.float32(0.055)) / np.float32(1.055), np.float32(2.4))
-    return np.where(x <= _SRGB_ENCODED_CUTOFF, x / np.float32(12.92), hi).astype(np.float32)
+    return np.asarray(_decode(np.asarray(x, np.float32), np), np.float32)
 
 
 def linear_to_srgb_host(x) -> np.ndarray:
     """`linear_to_srgb` in numpy (float32), for host work on files (see `srgb_to_linear_host`)."""
-    x = np.asarray(x, np.float32)
-    hi = np.float32(1.055) * np.power(np.maximum(x, np.float32(_SRGB_LINEAR_CUTOFF)), np.float32(1.0 / 2.4)) - np.float32(0.055)
-    return np.where(x <= _SRGB_LINEAR_CUTOFF, np.float32(12.92) * x, hi).astype(np.float32)
+    return np.asarray(_encode(np.asarray(x, np.float32), np), np.float32)
 
 
 def apply_exposure(x: Float[ArrayLike, "..."], ev) -> Float[Array, "..."]:
