@@ -46,6 +46,7 @@ __all__ = [
     "sample_environment",
     "environment_pdf",
     "monte_carlo_radiance",
+    "default_lut",
 ]
 
 #: Rec. 709 / sRGB luminance weights (linear RGB).
@@ -201,9 +202,11 @@ def environment_pdf(sampler: EnvironmentSampler, d_env: Float[Array, "*b 3"]) ->
 # --- the reference integrator ------------------------------------------------------------------
 
 @functools.lru_cache(maxsize=None)
-def _default_lut():
+def default_lut(model: Model = Model()) -> np.ndarray:
+    """The (scale, bias) LUT multiple-scattering compensation uses by default: 64², 512 samples,
+    of `model`'s own specular lobe (so the compensation restores that lobe's lost energy)."""
     from .brdf_lut import brdf_lut
-    return np.asarray(brdf_lut(64, 512))
+    return np.asarray(brdf_lut(64, 512, model.replace(ibl=None)))
 
 
 def _as_column(x, like):
@@ -307,7 +310,7 @@ def monte_carlo_radiance(env: Environment, n: Float[Array, "P 3"], v: Float[Arra
     ``samples`` steps, each one BRDF sample and one environment sample (2 × samples evaluations of
     `brdf.evaluate`), combined by the balance heuristic. metallic and roughness may be (P, 1) or
     (P,). With ``model.multiscatter`` the compensation uses ``dfg`` (split-sum scale and bias at
-    (n·v, roughness)), by default from a 64² LUT with 512 samples. Zero where n·v <= 0, like
+    (n·v, roughness)), by default `default_lut(model)`. Zero where n·v <= 0, like
     `brdf.evaluate`. Differentiable w.r.t. the material and the environment's pixels (the sampled
     directions and densities are held fixed, which keeps the gradient estimate unbiased); the
     radiance includes no occlusion. Jitted; ``key`` defaults to ``PRNGKey(0)``.
@@ -320,7 +323,7 @@ def monte_carlo_radiance(env: Environment, n: Float[Array, "P 3"], v: Float[Arra
     if model.multiscatter and dfg is None:
         from .brdf_lut import lookup_brdf_lut
         nv = jnp.clip(dot3(n, v), 0.0, 1.0)
-        dfg = lookup_brdf_lut(jnp.asarray(_default_lut(), n.dtype), nv, roughness[..., 0])
+        dfg = lookup_brdf_lut(jnp.asarray(default_lut(model), n.dtype), nv, roughness[..., 0])
     samples = int(samples)
     batch = _batch(samples, int(np.prod(n.shape[:-1])))
     return _mc(env, n, jnp.asarray(v, n.dtype), base_color, metallic, roughness, dfg, model, samples, batch, key)
