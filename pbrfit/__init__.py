@@ -44,6 +44,7 @@ _LAZY = {
     "render_capture": ("views", "render_capture"),
     "fit": ("fit", "fit"),
     "FitResult": ("fit", "FitResult"),
+    "PixelIBLSettings": ("pixel_ibl", "PixelIBLSettings"),
     "read_material": ("io", "read_material"),
     "write_material": ("io", "write_material"),
 }
@@ -55,7 +56,7 @@ def __getattr__(name):
     if name in _LAZY:
         module, attr = _LAZY[name]
         return getattr(importlib.import_module(f".{module}", __name__), attr)
-    if name in ("lights", "textures", "render", "ibl", "environment", "montecarlo", "scene", "gbuffer",
+    if name in ("lights", "textures", "render", "ibl", "pixel_ibl", "environment", "montecarlo", "scene", "gbuffer",
                 "io", "views", "fit", "outputs", "model"):
         return importlib.import_module(f".{name}", __name__)
     raise AttributeError(f"module 'pbrfit' has no attribute {name!r}")

@@ -25,8 +25,10 @@ GEOMETRIES = ("smith_ggx_correlated", "smith_ggx_separable", "schlick_ggx_direct
 FRESNELS = ("schlick", "dielectric")
 #: Diffuse lobes: Lambert (glTF), Burley (Disney 2012), or none.
 DIFFUSES = ("lambert", "burley", "none")
-#: Environment-light integrators: split sum (Karis 2013), Monte Carlo (ground truth), or none.
-IBLS = (None, "split_sum", "monte_carlo")
+#: Environment-light integrators: split sum (Karis 2013); per-pixel lobe integrals tabulated over
+#: roughness for fixed geometry (`pbrfit.pixel_ibl`, the fit's exact option); Monte Carlo (the
+#: reference integrator, `pbrfit.montecarlo`); or none.
+IBLS = (None, "split_sum", "per_pixel", "monte_carlo")
 
 
 @dataclasses.dataclass(frozen=True)

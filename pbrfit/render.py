@@ -9,6 +9,8 @@ mapping, exposure, tone mapping and encoding, and scatters the pixels back into 
 
 from __future__ import annotations
 
+import dataclasses
+
 from typing import Optional
 
 import equinox as eqx
@@ -166,20 +168,27 @@ def shade(
     occlusion: Optional[Float[Array, "P 1"]] = None,
     emissive: Optional[Float[Array, "P 3"]] = None,
 ) -> Float[Array, "P 3"]:
-    """Linear outgoing radiance at each point: punctual lights + environment (split sum) + emission.
+    """Linear outgoing radiance at each point: punctual lights + environment + emission.
 
-    `ibl` is an `pbrfit.ibl.IBLTables` (needed when ``model.ibl == "split_sum"`` or
-    ``model.multiscatter``). Occlusion scales indirect (environment) light only. The Monte Carlo
-    integrator is not a shading mode here: it is the reference `pbrfit.ibl.monte_carlo_radiance`.
+    `ibl` is an `pbrfit.ibl.IBLTables` when ``model.ibl == "split_sum"`` (or with
+    ``model.multiscatter``, for the DFG LUT), or the points' `pbrfit.pixel_ibl.PixelIBL` (one row
+    per point) when ``model.ibl == "per_pixel"``. Occlusion scales indirect (environment) light
+    only. The Monte Carlo integrator is not a shading mode here: it is the reference
+    `pbrfit.montecarlo.monte_carlo_radiance`.
     """
     dfg = None
     if model.multiscatter:
         if ibl is None:
             raise ValueError("Model(multiscatter=True) needs IBL tables (for the DFG LUT)")
-        from .brdf_lut import lookup_brdf_lut
+        if model.ibl == "per_pixel":
+            from .pixel_ibl import interpolate_lobes, pixel_dfg
 
-        n_dot_v = jnp.clip(jnp.sum(normal * view, axis=-1), 0.0, 1.0)
-        dfg = lookup_brdf_lut(ibl.lut, n_dot_v, roughness[..., 0])
+            dfg = pixel_dfg(ibl, interpolate_lobes(ibl.table, roughness[..., 0]))
+        else:
+            from .brdf_lut import lookup_brdf_lut
+
+            n_dot_v = jnp.clip(jnp.sum(normal * view, axis=-1), 0.0, 1.0)
+            dfg = lookup_brdf_lut(ibl.lut, n_dot_v, roughness[..., 0])
     out = shade_punctual(normal, view, light_l, light_radiance, base_color, metallic, roughness, model, dfg)
     if model.ibl == "split_sum":
         if ibl is None:
@@ -187,6 +196,13 @@ def shade(
         from .ibl import shade_ibl
 
         out = out + shade_ibl(ibl, normal, view, base_color, metallic, roughness, model, occlusion)
+    elif model.ibl == "per_pixel":
+        if ibl is None:
+            raise ValueError("Model(ibl='per_pixel') needs the points' lobe integrals; build them with pbrfit.pixel_ibl.pixel_ibl")
+        from .pixel_ibl import shade_pixel_ibl
+
+        env = shade_pixel_ibl(ibl, base_color, metallic, roughness, model)
+        out = out + (env if occlusion is None else env * occlusion)
     elif model.ibl == "monte_carlo":
         raise ValueError("Model(ibl='monte_carlo') is the reference integrator: use pbrfit.ibl.monte_carlo_radiance")
     if emissive is not None:
@@ -235,18 +251,24 @@ def radiance_view(
     normal_convention: str = "opengl",
     chunk: int = RENDER_CHUNK,
 ) -> Float[Array, "P 3"]:
-    """Linear radiance of every shaded pixel of a view, in chunks of at most `chunk` pixels."""
+    """Linear radiance of every shaded pixel of a view, in chunks of at most `chunk` pixels
+    (per-pixel IBL integrals, ``model.ibl == "per_pixel"``, are the view's pixels' rows)."""
     count = view.num_pixels
     if count == 0:
         return jnp.zeros((0, 3), jnp.float32)
+    per_pixel = model.ibl == "per_pixel" and ibl is not None
     pieces = []
     for start in range(0, count, chunk):
         part = _slice(view, start, min(start + chunk, count))
+        rows = dataclasses.replace(ibl, table=ibl.table[start:start + chunk]) if per_pixel else ibl
         n = part.num_pixels
         size = chunk if count > chunk else n  # pad the tail so every chunk reuses one compilation
         if n < size:
             part = _pad(part, size)
-        pieces.append(_radiance_chunk_jit(part, material, model, ibl, wrap, normal_convention)[:n])
+            if per_pixel:
+                rows = dataclasses.replace(rows, table=jnp.concatenate(
+                    [rows.table, jnp.zeros((size - n,) + rows.table.shape[1:], rows.table.dtype)]))
+        pieces.append(_radiance_chunk_jit(part, material, model, rows, wrap, normal_convention)[:n])
     return jnp.concatenate(pieces, axis=0)
 
 

@@ -7,9 +7,9 @@ are small next to the per-pixel ones (P × 3 × 5 Jacobians, with P in the milli
 real capture). So the scheme is data parallel over pixels:
 
 - every per-pixel array of a `Problem` (the `Observations` fields, the (P, 4) texel `index`
-  and `weight`) is split along its leading axis over a one-axis device mesh named
-  ``"pixels"`` (`PartitionSpec("pixels")`);
-- everything else (free mask, smoothness pairs, scalars, IBL tables) is replicated.
+  and `weight`, per-pixel IBL integrals) is split along its leading axis over a one-axis
+  device mesh named ``"pixels"`` (`PartitionSpec("pixels")`);
+- everything else (free mask, smoothness pairs, scalars, split-sum tables) is replicated.
 
 Nothing in the solver changes: under `jax.jit`, XLA partitions the per-pixel work across
 devices, and each texel-space `segment_sum` becomes a per-device partial sum followed by an
@@ -158,6 +158,9 @@ def shard_problem(problem: Problem, mesh: Mesh) -> Problem:
     if padded_size(index.shape[0], n) != index.shape[0]:
         index, weight = _padded_texel_rows(index, weight, n)
     changes = dict(obs=obs, index=jax.device_put(index, rows), weight=jax.device_put(weight, rows))
+    if problem.model.ibl == "per_pixel":  # per-pixel integrals go with their pixels (zero for padding)
+        table = _append(problem.ibl.table, padded_size(problem.ibl.num_pixels, n) - problem.ibl.num_pixels, 0.0)
+        changes["ibl"] = dataclasses.replace(problem.ibl, table=jax.device_put(table, rows))
     for field in dataclasses.fields(problem):
         if field.name not in changes and not field.metadata.get("static", False):
             changes[field.name] = _put(getattr(problem, field.name), whole)

@@ -40,6 +40,7 @@ multiply float32 in TF32 (10-bit mantissa), too coarse for the normal equations.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable, Optional
 
 import equinox as eqx
@@ -81,7 +82,8 @@ class Problem(eqx.Module):
         pairs: (E, 2) neighbouring texels for the smoothness prior; pair_weight (E,) 0 or 1.
         smooth: weight of the smoothness prior (0 = off).
         loss_scale: the robust loss's scale c, in image units.
-        ibl: split-sum tables when the model has an environment, else None.
+        ibl: the environment's split-sum tables (``model.ibl == "split_sum"``), the pixels'
+            `pbrfit.pixel_ibl.PixelIBL` (``"per_pixel"``, one row per pixel), or None.
         model, loss: static configuration.
     """
 
@@ -130,19 +132,23 @@ def shading_normal(m: Float[Array, "*P K"], normal: Float[Array, "*P 3"], tangen
     return apply_normal_map(normal, tangent, normal_from_slopes(m[..., 5:7]))
 
 
-def _pixel_residual(m, normal, tangent, view, light_l, light_radiance, exposure, target, *, problem: Problem):
-    """Residual (3,) of one pixel from its sampled (K,) material values."""
+def _pixel_residual(m, normal, tangent, view, light_l, light_radiance, exposure, target, *lobes, problem: Problem):
+    """Residual (3,) of one pixel from its sampled (K,) material values (``lobes``: the pixel's
+    row of per-pixel IBL integrals, when the model uses them)."""
     obs = problem.obs
+    ibl = dataclasses.replace(problem.ibl, table=lobes[0][None]) if lobes else problem.ibl
     rad = shade(
         shading_normal(m, normal, tangent)[None], view[None], light_l[None], light_radiance[None],
-        m[None, 0:3], m[None, 3:4], m[None, 4:5], problem.model, problem.ibl,
+        m[None, 0:3], m[None, 3:4], m[None, 4:5], problem.model, ibl,
     )[0]
     value = encode(rad, exposure, obs.tonemap, obs.color_space)
     return robust_residual(value - target, problem.loss, problem.loss_scale)
 
 
-def _pixel_args(obs: Observations):
-    return (obs.normal, obs.tangent, obs.view, obs.light_l, obs.light_radiance, obs.exposure, obs.target)
+def _pixel_args(problem: Problem):
+    obs = problem.obs
+    args = (obs.normal, obs.tangent, obs.view, obs.light_l, obs.light_radiance, obs.exposure, obs.target)
+    return args + ((problem.ibl.table,) if problem.model.ibl == "per_pixel" else ())
 
 
 def sample_texels(x: Float[Array, "T K"], problem: Problem) -> Float[Array, "P K"]:
@@ -154,7 +160,7 @@ def pixel_residuals(x: Float[Array, "T K"], problem: Problem) -> Float[Array, "P
     """Every pixel's (transformed) residual at texel values x."""
     m = sample_texels(x, problem)
     f = jax.vmap(lambda mm, *a: _pixel_residual(mm, *a, problem=problem))
-    return f(m, *_pixel_args(problem.obs))
+    return f(m, *_pixel_args(problem))
 
 
 def _smooth_residuals(x, problem: Problem):
@@ -183,7 +189,7 @@ def linearize(x: Float[Array, "T K"], problem: Problem):
         jac, val = jax.jacfwd(lambda v: (f(v), f(v)), has_aux=True)(mm)
         return val, jac
 
-    r, jac = jax.vmap(one)(m, *_pixel_args(problem.obs))
+    r, jac = jax.vmap(one)(m, *_pixel_args(problem))
     s = _smooth_residuals(x, problem)
     loss = 0.5 * (jnp.sum(r * r) + jnp.sum(s * s))
     return r, jac, loss

@@ -7,6 +7,7 @@ these tests read the lowered programs instead: every ``dot_general`` must ask fo
 Lowering traces without compiling, so they are cheap.
 """
 
+import dataclasses
 import re
 
 import jax
@@ -24,6 +25,7 @@ from pbrfit.model import Model
 from pbrfit.montecarlo import monte_carlo_radiance
 from pbrfit.observations import neighbour_pairs, observations_from_views, texel_layout
 from pbrfit.optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
+from pbrfit.pixel_ibl import PixelIBLSettings, _integrate, lobes_for, pixel_ibl
 from pbrfit.render import ViewInputs, light_arrays, radiance_view
 from pbrfit.solvers import Problem, structured_lm
 
@@ -87,6 +89,9 @@ def test_rendering():
     for model in (Model(), Model(ibl="split_sum", multiscatter=True, diffuse="burley")):
         _check(lambda v: radiance_view(v, material, model, tables if model.ibl else None), view)
     env = procedural_sky(16)
+    per_pixel = Model(ibl="per_pixel", multiscatter=True)
+    table = pixel_ibl(env, np.asarray(view.normal), np.asarray(view.view), per_pixel, PixelIBLSettings(levels=3, samples=4))
+    _check(lambda t: radiance_view(view, material, per_pixel, t), table)
     n = jnp.tile(jnp.array([[0.0, 1.0, 0.0]]), (4, 1))
     _check(lambda nn: monte_carlo_radiance(env, nn, nn, jnp.full((4, 3), 0.5), jnp.zeros((4, 1)),
                                            jnp.full((4, 1), 0.5), samples=4, key=jax.random.PRNGKey(0)), n)
@@ -102,8 +107,22 @@ def _problem():
                    jnp.ones(len(pairs)), jnp.asarray(0.0), jnp.asarray(0.05), None, Model(), "l2")
 
 
-def test_fitting():
+def test_per_pixel_integrals():
+    env = procedural_sky(16)
+    n = jnp.tile(jnp.array([[0.0, 1.0, 0.0]]), (4, 1))
+    for model in (Model(), Model(fresnel="dielectric", diffuse="burley", multiscatter=True)):
+        _check(lambda nn: _integrate(env, jnp.zeros((64, 64, 2)), nn, nn, jnp.uint32(0), jnp.uint32(0), model=model,
+                                     lobes=lobes_for(model), levels=3, samples=4, batch=2), n)
+
+
+@pytest.mark.parametrize("per_pixel", [False, True])
+def test_fitting(per_pixel):
     problem = _problem()
+    if per_pixel:
+        model = Model(ibl="per_pixel")
+        table = pixel_ibl(procedural_sky(16), np.asarray(problem.obs.normal), np.asarray(problem.obs.view), model,
+                          PixelIBLSettings(levels=3, samples=4))
+        problem = dataclasses.replace(problem, ibl=table, model=model)
     x0 = jnp.full((16, 5), 0.5)
     _check(structured_lm, x0, problem, jnp.asarray(3), 1e-6, 1e-5)
     _check(grid_initialise, x0, problem)

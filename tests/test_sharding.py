@@ -254,6 +254,24 @@ def _multi_device_report() -> dict:
         fit_sigma_diff=float(np.max(np.abs(one.uncertainty - many.uncertainty))),
         fit_render_diff=max(float(np.max(np.abs(a - b))) for a, b in zip(one.images, many.images)),
     )
+    # Per-pixel IBL integrals travel with their pixels.
+    from pbrfit.environment import procedural_sky
+    from pbrfit.pixel_ibl import PixelIBLSettings, pixel_ibl
+
+    model = Model(ibl="per_pixel")
+    table = pixel_ibl(procedural_sky(16), np.asarray(problem.obs.normal), np.asarray(problem.obs.view), model,
+                      PixelIBLSettings(levels=3, samples=8))
+    table_sh = shard_problem(dataclasses.replace(problem, ibl=table, model=model), mesh).ibl.table
+    one = fit_observations(problem.obs, model=model, ibl=table, resolution=MAP, max_steps=10)
+    many = fit_observations(problem.obs, model=model, ibl=table, resolution=MAP, max_steps=10, devices=jax.devices())
+    out.update(
+        table_shard_rows=sorted(int(s.data.shape[0]) for s in table_sh.addressable_shards),
+        table_padding=float(jnp.max(jnp.abs(table_sh[real:]))),
+        pixel_ibl_map_diff=max(float(np.max(np.abs(np.asarray(getattr(one.material, n))
+                                                    - np.asarray(getattr(many.material, n)))))
+                               for n in ("base_color", "metallic", "roughness")),
+        pixel_ibl_loss=[one.report["final_loss"], many.report["final_loss"]],
+    )
     return out
 
 
@@ -281,6 +299,9 @@ def test_structured_lm_sharded_over_four_cpu_devices():
     assert rep["search_diff"] <= 1e-5, rep
     assert rep["fit_devices"] == DEVICES, rep
     assert rep["fit_map_diff"] <= 1e-4 and rep["fit_render_diff"] <= 1e-4 and rep["fit_sigma_diff"] <= 1e-4, rep
+    assert rep["table_shard_rows"] == [251] * DEVICES and rep["table_padding"] == 0.0, rep
+    assert rep["pixel_ibl_map_diff"] <= 1e-4, rep
+    np.testing.assert_allclose(rep["pixel_ibl_loss"][1], rep["pixel_ibl_loss"][0], rtol=1e-4)
 
 
 if __name__ == "__main__":
