@@ -125,6 +125,10 @@ def _add_synth(sub) -> None:
     p.add_argument("--format", choices=sorted(IMAGE_FORMATS), help="exr (linear float), png16 or png8 (sRGB)")
     p.add_argument("--mesh", help="mesh-env: a mesh file with texture coordinates")
     p.add_argument("--shape", choices=("torus", "box", "sphere"), help="mesh-env: built-in shape")
+    p.add_argument("--ibl", choices=("split_sum", "monte_carlo"), default="split_sum",
+                   help="environment light: split_sum (default; pbrfit's renderer) or monte_carlo (the reference "
+                        "integrator: ground truth, as a path tracer renders it)")
+    p.add_argument("--ibl-samples", type=int, default=1024, help="monte_carlo: sample steps per pixel sample (default 1024)")
     p.add_argument("--quiet", action="store_true", help="print nothing on success")
 
 
@@ -136,7 +140,7 @@ def _cmd_synth(args) -> int:
 
     from .io import check_output_dir
 
-    for name, low in (("size", 1), ("views", 1), ("supersample", 1), ("texture_size", 1)):
+    for name, low in (("size", 1), ("views", 1), ("supersample", 1), ("texture_size", 1), ("ibl_samples", 1)):
         value = getattr(args, name)
         if value is not None and value < low:
             raise CaptureError(f"--{name.replace('_', '-')}: must be at least {low}, got {value}")
@@ -150,6 +154,8 @@ def _cmd_synth(args) -> int:
         mesh=args.mesh, shape=args.shape,
     )  # fmt: skip
     scene = make_scene(args.preset, args.seed, **overrides)
+    if args.ibl == "monte_carlo" and scene.model.ibl is not None:
+        scene = scene.replace(model=scene.model.replace(ibl="monte_carlo"), mc_samples=args.ibl_samples)
     result = synthesize(scene, out)
     if not args.quiet:
         h, w = scene.truth.shape
@@ -167,7 +173,8 @@ _FIT_NAMES = _MAP_NAMES + ("normal",)
 
 
 def _add_fit(sub) -> None:
-    from .fit import DEFAULT_SOLVER, SOLVERS
+    from .fit import DEFAULT_SOLVER, IBL_MODES, SOLVERS
+    from .pixel_ibl import PixelIBLSettings
     from .solvers import LOSSES
 
     p = sub.add_parser("fit", help="fit base color, metallic and roughness maps to a capture")
@@ -193,6 +200,13 @@ def _add_fit(sub) -> None:
     p.add_argument("--loss", choices=LOSSES, default="l2", help="robust loss (default l2: off)")
     p.add_argument("--smooth", type=float, default=0.0, help="weight of the smoothness prior (default 0: off)")
     p.add_argument("--coarse-to-fine", action="store_true", help="solve a uniform material and coarser maps first")
+    p.add_argument("--ibl", choices=IBL_MODES, default=IBL_MODES[0],
+                   help="environment light: split_sum (default; the renderer's tables) or per_pixel "
+                        "(each pixel's integrals by Monte Carlo before the solve: no split-sum error, slower setup)")
+    p.add_argument("--ibl-samples", type=int, default=PixelIBLSettings.samples,
+                   help=f"per_pixel: sample steps per pixel (default {PixelIBLSettings.samples})")
+    p.add_argument("--ibl-levels", type=int, default=PixelIBLSettings.levels,
+                   help=f"per_pixel: roughness levels tabulated (default {PixelIBLSettings.levels})")
     p.add_argument("--no-search", action="store_true",
                    help="skip the per-texel re-search of metallic and roughness midway through the solve")
     p.add_argument("--devices", type=int,
@@ -207,6 +221,7 @@ def _fit_options(args) -> dict:
     import math
 
     from .io import read_map
+    from .pixel_ibl import PixelIBLSettings
 
     explicit = args.fit is not None
     free = [m.strip() for m in (args.fit if explicit else ",".join(_MAP_NAMES)).split(",") if m.strip()]
@@ -250,6 +265,12 @@ def _fit_options(args) -> dict:
         value = getattr(args, name)
         if not (math.isfinite(value) and value >= 0):
             raise CaptureError(f"--{name}: must be a finite number >= 0, got {value}")
+    if "normal" in free and args.ibl == "per_pixel":
+        raise CaptureError("--ibl per_pixel: fitted normals need --ibl split_sum (per-pixel integrals hold the normals fixed)")
+    try:
+        pixel_ibl_settings = PixelIBLSettings(levels=args.ibl_levels, samples=args.ibl_samples)
+    except ValueError:
+        raise CaptureError(f"--ibl-levels must be >= 2 and --ibl-samples >= 1, got {args.ibl_levels} and {args.ibl_samples}")
     devices = None
     if args.devices is not None:
         import jax
@@ -261,7 +282,8 @@ def _fit_options(args) -> dict:
     return dict(
         fit=tuple(free), fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
         max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, loss=args.loss, smooth=args.smooth,
-        coarse_to_fine=args.coarse_to_fine, search=not args.no_search, devices=devices,
+        coarse_to_fine=args.coarse_to_fine, search=not args.no_search, devices=devices, ibl=args.ibl,
+        pixel_ibl_settings=pixel_ibl_settings,
     )
 
 
@@ -336,8 +358,9 @@ def run_fit(capture, out, options: dict, cache_dir=None, quiet: bool = False):
 def _summary(result, errors) -> str:
     r = result.report
     h, w = r["resolution"]
+    extra = f", per-pixel IBL {r['ibl']['seconds']:.1f} s" if r.get("ibl", {}).get("mode") == "per_pixel" else ""
     parts = [f"fit {h}x{w} maps with {r['solver']}: {r['steps']} steps, loss {r['final_loss']:.3e}",
-             f"{r['wall_time']:.1f} s (compile {r['times'].get('compile', 0.0):.1f} s)"]
+             f"{r['wall_time']:.1f} s (compile {r['times'].get('compile', 0.0):.1f} s{extra})"]
     if errors:
         parts.append("RMSE " + ", ".join(f"{k} {v:.4f}" for k, v in errors.items()))
     return "; ".join(parts)

@@ -35,6 +35,7 @@ from .model import Model
 from .observations import (Observations, TexelLayout, coverage_counts, neighbour_pairs, observations_from_capture,
                            texel_layout, uniform_layout)
 from .optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
+from .pixel_ibl import PixelIBLSettings, pixel_ibl
 from .parameters import CHANNELS, FIT_GROUPS, NORMAL_CHANNELS, channel_mask, normal_from_slopes, prior
 from .sharding import pixel_mesh, shard_problem
 from .solvers import LOSSES, Problem, linearize, normal_blocks, objective, pixel_residuals, structured_lm
@@ -43,9 +44,11 @@ from .transfer import to_device
 from .uncertainty import block_standard_errors, residual_variance
 
 __all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "model_for_capture",
-           "SOLVERS", "DEFAULT_SOLVER", "schedule"]
+           "SOLVERS", "DEFAULT_SOLVER", "IBL_MODES", "schedule"]
 
 DEFAULT_SOLVER = "structured"
+#: What `fit` may integrate a capture's environment light with (``ibl=``); the first is the default.
+IBL_MODES = ("split_sum", "per_pixel")
 SOLVERS = (DEFAULT_SOLVER,) + OPTX_SOLVERS
 #: Default step limits: per coarse level, and for the final level.
 COARSE_STEPS = 20
@@ -188,6 +191,11 @@ def _layout(obs: Observations, shape, wrap: str) -> TexelLayout:
     return uniform_layout(obs) if tuple(shape) == (1, 1) else texel_layout(obs, shape, wrap)
 
 
+def _check_normals(model: Model, fit: Sequence[str]) -> None:
+    if model.ibl == "per_pixel" and "normal" in fit:
+        raise ValueError("fitting normals needs ibl='split_sum': per-pixel IBL integrals hold each pixel's normal fixed")
+
+
 def fit_observations(
     obs: Observations,
     *,
@@ -224,6 +232,7 @@ def fit_observations(
         raise ValueError(f"init must be 'grid' or 'prior', got {init!r}")
     if maps not in ("texture", "none"):
         raise ValueError(f"maps must be 'texture' or 'none', got {maps!r}")
+    _check_normals(model, fit)
     fixed = dict(fixed or {})
     channels = channel_mask(fit)
     k = len(channels)
@@ -416,10 +425,16 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     return FitResult(material, sigma, coverage, report, images, targets, masks)
 
 
-def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, **kwargs) -> FitResult:
+def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, ibl: Optional[str] = None,
+        pixel_ibl_settings: PixelIBLSettings = PixelIBLSettings(), **kwargs) -> FitResult:
     """Fit material maps to a `pbrfit.scene.Capture`.
 
     Keyword arguments (all optional):
+        ibl: how the capture's environment light is integrated, ``"split_sum"`` (default: Karis
+            2013, the renderer's tables) or ``"per_pixel"`` (`pbrfit.pixel_ibl`: each pixel's
+            lobe integrals by Monte Carlo on a roughness grid, once before the solve, with
+            ``pixel_ibl_settings``; no split-sum error, not with fitted normals). Ignored
+            without an environment.
         resolution: map size N (or (H, W)); default `default_resolution(capture)`.
         fit: which maps are free, some of "base_color", "metallic", "roughness", "normal" (a
             tangent-space normal map, `pbrfit.parameters`; needs the mesh's tangents: uv).
@@ -443,9 +458,26 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, *
     t0 = time.perf_counter()
     model = model_for_capture(capture, kwargs.get("fit", ("base_color", "metallic", "roughness")),
                               kwargs.get("fixed")) if model is None else model
-    ibl = _ibl_for_capture(capture, model)
+    if ibl not in (None,) + IBL_MODES:
+        raise ValueError(f"ibl must be one of {', '.join(IBL_MODES)}, got {ibl!r}")
+    if ibl is not None and model.ibl is not None:
+        model = model.replace(ibl=ibl)
+    _check_normals(model, kwargs.get("fit", ()))
     obs = observations_from_capture(capture, cache_dir=cache_dir, views=views)
-    return fit_observations(obs, model=model, ibl=ibl, setup_time=time.perf_counter() - t0, **kwargs)
+    t_ibl = time.perf_counter()
+    if model.ibl == "per_pixel":
+        from .views import capture_environment
+
+        tables = pixel_ibl(capture_environment(capture), np.asarray(obs.normal), np.asarray(obs.view), model,
+                           pixel_ibl_settings)
+    else:
+        tables = _ibl_for_capture(capture, model)
+    t_ibl = time.perf_counter() - t_ibl
+    result = fit_observations(obs, model=model, ibl=tables, setup_time=time.perf_counter() - t0, **kwargs)
+    if model.ibl is not None:
+        result.report["ibl"] = dict(mode=model.ibl, seconds=t_ibl, **(
+            dataclasses.asdict(pixel_ibl_settings) if model.ibl == "per_pixel" else {}))
+    return result
 
 
 def map_rmse(truth: Material, result, coverage: Optional[np.ndarray] = None) -> dict:

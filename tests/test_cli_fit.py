@@ -128,6 +128,9 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--resolution", "abc"], "argument --resolution: invalid int value: 'abc'"),
         (["--solver", "bogus"], "argument --solver: invalid choice: 'bogus'"),
         (["--cache", "__FILE__"], "exists and is not a folder"),
+        (["--ibl", "per_pixel", "--fit", "base_color,normal"], "--ibl per_pixel: fitted normals need --ibl split_sum"),
+        (["--ibl", "per_pixel", "--ibl-samples", "0"], "--ibl-samples"),
+        (["--ibl", "exact"], "argument --ibl: invalid choice: 'exact'"),
     ],
 )
 def test_bad_fit_options_exit_2_and_write_nothing(capture, tmp_path, capsys, extra, message):
@@ -235,3 +238,20 @@ def test_uniform_fit_of_a_mesh_without_uvs_and_a_map_held_from_a_folder(capture,
     # texture maps still need texture coordinates: a one-line error before any work
     assert main(["fit", str(cap), "--out", str(out), "--quiet"]) == 2
     assert not out.exists()
+
+
+def test_per_pixel_ibl_fit_of_a_monte_carlo_capture(tmp_path, monkeypatch, capsys):
+    """A capture whose environment light was rendered by the Monte Carlo reference, fitted with
+    per-pixel integrals: the options reach the fit and the report says how it was lit."""
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    cap, out = tmp_path / "cap", tmp_path / "out"
+    assert main(["synth", "sphere-env", "--out", str(cap), "--size", "24", "--views", "3", "--texture-size", "4",
+                 "--ibl", "monte_carlo", "--ibl-samples", "64", "--quiet"]) == 0
+    synth = json.loads((cap / "truth" / "synth.json").read_text())
+    assert synth["model"]["ibl"] == "monte_carlo" and "64 samples" in synth["ibl_settings"]
+    assert main(["fit", str(cap), "--out", str(out), "--maps", "none", "--ibl", "per_pixel", "--ibl-samples", "32",
+                 "--ibl-levels", "5", "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["model"]["ibl"] == "per_pixel"
+    assert report["ibl"]["mode"] == "per_pixel" and report["ibl"]["samples"] == 32 and report["ibl"]["levels"] == 5
+    assert report["ibl"]["seconds"] > 0 and len(report["psnr"]) == 3 and all(np.isfinite(report["psnr"]))
