@@ -77,7 +77,11 @@ class Scene:
         supersample: k: rendered at k x the size, box-filtered down.
         noise: noise strength (std at a display value of 1); 0 = none.
         noise_model: ``"gaussian"``, ``"relative"`` or ``"poisson_gaussian"`` (`data_synth.noise`).
-        model: the `pbrfit.model.Model` that renders the images.
+        model: the `pbrfit.model.Model` that renders the images. With ``ibl="monte_carlo"`` the
+            environment light is rendered by the reference integrator
+            (`pbrfit.montecarlo.monte_carlo_radiance`, ``mc_samples`` steps per pixel sample)
+            rather than the split sum: ground truth, as a path tracer would render it.
+        mc_samples: see ``model``.
         params: the preset's parameters, for ``truth/synth.json``.
     """
 
@@ -101,6 +105,7 @@ class Scene:
     noise: float = 0.0
     noise_model: str = "gaussian"
     model: Any = None
+    mc_samples: int = 1024
     params: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
@@ -117,6 +122,8 @@ class Scene:
         if self.model is None:
             ibl = "split_sum" if self.environment is not None else None
             object.__setattr__(self, "model", Model(ibl=ibl))
+        if int(self.mc_samples) < 1:
+            raise ValueError(f"mc_samples must be >= 1, got {self.mc_samples}")
         if int(self.supersample) < 1:
             raise ValueError(f"supersample must be >= 1, got {self.supersample}")
 

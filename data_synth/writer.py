@@ -17,7 +17,9 @@ the mesh is read back from ``mesh.glb`` with `pbrfit.mesh.load_mesh`, the enviro
 ``env.exr`` with `pbrfit.environment.load_environment`, the split-sum tables come from
 `pbrfit.ibl.build_ibl` with default `IBLSettings`, G-buffers from `pbrfit.gbuffer.compute_gbuffer`
 (with each frame's lights in capture order: global lights, then the flash), and shading from
-`pbrfit.render.radiance_view`. Each view is rendered at ``supersample`` times the size; where the
+`pbrfit.render.radiance_view` (with ``scene.model.ibl == "monte_carlo"``, the environment's share
+comes from `pbrfit.montecarlo.monte_carlo_radiance` instead: ground truth, as a path tracer would
+render it). Each view is rendered at ``supersample`` times the size; where the
 mesh is not hit the environment (or black) shows. The radiance is box-filtered down, exposed,
 tone mapped and encoded (`pbrfit.color.encode`); noise is added to those display values and
 only then are they quantised to the file's bit depth.
@@ -92,7 +94,8 @@ def render_scene(scene: Scene, mesh, environment=None, ibl=None, progress: Optio
 
     `mesh`: a `trimesh.Trimesh` with glTF-oriented uv (as `pbrfit.mesh.load_mesh` returns);
     `environment`: a `pbrfit.environment.Environment` or None; `ibl`: its split-sum tables when
-    ``scene.model.ibl == "split_sum"``.
+    ``scene.model.ibl == "split_sum"`` (or ``model.multiscatter``); with ``"monte_carlo"`` the
+    environment light is integrated per pixel sample by the reference (`Scene.mc_samples`).
     """
     import jax
     import jax.numpy as jnp
@@ -129,7 +132,13 @@ def render_scene(scene: Scene, mesh, environment=None, ibl=None, progress: Optio
     if 0 < total < SHADE_CHUNK:  # pad to a power of two: small captures share compilations
         size = 1 << (total - 1).bit_length()
         batch = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], size - total, axis=0)]), batch)
-    radiance = np.asarray(radiance_view(batch, material, scene.model, ibl, chunk=SHADE_CHUNK), np.float32)[:total]
+    if scene.model.ibl == "monte_carlo":  # punctual light as usual, the environment by the reference integrator
+        radiance = radiance_view(batch, material, scene.model.replace(ibl=None), ibl, chunk=SHADE_CHUNK)
+        radiance = np.asarray(radiance, np.float32) + _monte_carlo_environment(
+            batch, material, scene.model, environment, int(scene.mc_samples), progress)
+        radiance = radiance[:total]
+    else:
+        radiance = np.asarray(radiance_view(batch, material, scene.model, ibl, chunk=SHADE_CHUNK), np.float32)[:total]
     if progress:
         progress("shaded")
     out_images, out_masks = [], []
@@ -145,6 +154,37 @@ def render_scene(scene: Scene, mesh, environment=None, ibl=None, progress: Optio
         out_images.append(display)
         out_masks.append(coverage >= 1.0)
     return out_images, out_masks
+
+
+def _monte_carlo_environment(batch, material, model, environment, samples: int, progress=None) -> np.ndarray:
+    """(P, 3) environment light reflected at the batch's points by the Monte Carlo reference, in
+    chunks of `SHADE_CHUNK` points (each point its own random stream, so chunking changes nothing)."""
+    import jax
+    import jax.numpy as jnp
+
+    from pbrfit.material import apply_normal_map, material_at
+    from pbrfit.montecarlo import monte_carlo_radiance
+
+    out = []
+    total = batch.num_pixels
+    for start in range(0, total, SHADE_CHUNK):
+        view = jax.tree_util.tree_map(lambda a: a[start:start + SHADE_CHUNK], batch)
+        n = view.normal.shape[0]
+        if n < SHADE_CHUNK and total > SHADE_CHUNK:  # pad the tail: one compilation
+            view = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], SHADE_CHUNK - n, 0)]), view)
+        sample = material_at(material, view.uv, "repeat")
+        normal = view.normal
+        if sample.normal is not None:
+            normal = apply_normal_map(normal, view.tangent, sample.normal, "opengl")
+        rad = monte_carlo_radiance(environment, normal, view.view, jnp.clip(sample.base_color, 0.0, 1.0),
+                                   jnp.clip(sample.metallic, 0.0, 1.0), jnp.clip(sample.roughness, 0.0, 1.0),
+                                   model, samples=samples, key=jax.random.PRNGKey(start))
+        if sample.occlusion is not None:
+            rad = rad * sample.occlusion
+        out.append(np.asarray(rad, np.float32)[:n])
+        if progress:
+            progress(f"environment (Monte Carlo) {min(start + SHADE_CHUNK, total)}/{total}")
+    return np.concatenate(out) if out else np.zeros((0, 3), np.float32)
 
 
 def capture_json(scene: Scene, image_paths, mask_paths, has_env: bool) -> dict:
@@ -216,7 +256,9 @@ def _synth_json(scene: Scene, seconds: float) -> dict:
         "seed": scene.seed,
         "params": {k: plain(v) for k, v in scene.params.items()},
         "model": scene.model.describe(),
-        "ibl_settings": "pbrfit.ibl.IBLSettings() defaults" if scene.model.ibl == "split_sum" else None,
+        "ibl_settings": {"split_sum": "pbrfit.ibl.IBLSettings() defaults",
+                         "monte_carlo": f"pbrfit.montecarlo.monte_carlo_radiance, {int(scene.mc_samples)} samples"
+                         }.get(scene.model.ibl),
         "image_format": scene.image_format,
         "color_space": scene.color_space,
         "tonemap": scene.tonemap,
