@@ -1,4 +1,4 @@
-"""Split-sum image-based lighting: accuracy against Monte Carlo, and its cost, per knob setting.
+"""Image-based lighting: split sum and per-pixel integrals against Monte Carlo, and their cost, per knob setting.
 
 Spheres of every roughness × metallic in a grid, seen orthographically from two sides of a sky
 with a sun (front-lit and back-lit, so the sun's highlight and the grazing rim both appear), are
@@ -6,7 +6,9 @@ shaded by the split sum at several `IBLSettings` and by `monte_carlo_radiance` a
 count, the reference. Reported per setting: build time (once per environment), shading time,
 relative RMS error over all pixels, and relative mean absolute error per n·v band (grazing is
 where the split sum's N = V = R assumption fails). Monte Carlo itself at lower sample counts is
-on the same chart, for the trade the split sum makes.
+on the same chart, for the trade the split sum makes, and so are the per-pixel lobe integrals
+of `pbrfit.pixel_ibl` (what ``pbrfit fit --ibl per_pixel`` uses) at several `PixelIBLSettings`:
+their "build" is the precomputation for every point, their shading the lookup.
 
     python experiments/ibl_accuracy.py [--env sky.exr] [--quick]
 
@@ -37,6 +39,7 @@ from pbrfit.environment import load_environment, procedural_sky  # noqa: E402
 from pbrfit.ibl import IBLSettings, build_ibl, shade_ibl  # noqa: E402
 from pbrfit.model import Model  # noqa: E402
 from pbrfit.montecarlo import monte_carlo_radiance  # noqa: E402
+from pbrfit.pixel_ibl import PixelIBLSettings, pixel_ibl, shade_pixel_ibl  # noqa: E402
 
 ROUGHNESS = (0.05, 0.15, 0.3, 0.5, 0.75, 1.0)
 METALLIC = (0.0, 1.0)
@@ -64,6 +67,10 @@ SETTINGS = {
     "high": IBLSettings(lut_size=64, lut_samples=1024, prefilter_levels=9, prefilter_resolution=256,
                         prefilter_samples=256, irradiance="map", irradiance_resolution=32, env_resolution=256),
 }
+
+
+PIXEL_SETTINGS = {f"{levels} levels, {samples} samples": PixelIBLSettings(levels=levels, samples=samples)
+                  for levels, samples in ((9, 32), (9, 128), (17, 32), (17, 128), (17, 512), (33, 128))}
 
 
 def sphere_points(res: int):
@@ -153,6 +160,12 @@ def plot(results, path: Path):
             ax.scatter(t, e, marker=marker, color="C3" if name == "default" else "C0", zorder=3)
             if env_name == "sun":
                 ax.annotate(name, (t, e), fontsize=6.5, xytext=(4, 2), textcoords="offset points")
+        for name, r in res.get("per_pixel", {}).items():
+            t = r["build_s"] + r["shade_s"]
+            e = r["error"]["rel_mae"]
+            ax.scatter(t, e, marker=marker, color="C4", zorder=3)
+            if env_name == "sun":
+                ax.annotate(name, (t, e), fontsize=6.5, xytext=(4, 2), textcoords="offset points", color="C4")
         mc = res["monte_carlo"]
         ax.plot([m["time_s"] for m in mc], [m["error"]["rel_mae"] for m in mc], marker=marker, ls=ls, color="C2",
                 label=f"Monte Carlo ({env_name})")
@@ -167,7 +180,8 @@ def plot(results, path: Path):
                         label=f"{name} ({env_name})", color={"default": "C3", "fast": "C0", "high": "C1"}[name])
     ax.scatter([], [], marker="o", color="C0", label="split sum, sky with sun (red: default)")
     ax.scatter([], [], marker="^", color="C0", label="split sum, overcast sky")
-    ax.set(xscale="log", yscale="log", xlabel="seconds, warm (split sum: build + shade; Monte Carlo: render)",
+    ax.scatter([], [], marker="o", color="C4", label="per-pixel integrals (precompute + shade)")
+    ax.set(xscale="log", yscale="log", xlabel="seconds, warm (split sum: build + shade; per pixel: integrate + shade; Monte Carlo: render)",
            ylabel="relative mean absolute error vs reference",
            title=f'{results["points"]} sphere points, {len(ROUGHNESS)} roughness × {len(METALLIC)} metallic')
     ax.legend(fontsize=7, loc="lower left")
@@ -178,7 +192,7 @@ def plot(results, path: Path):
     fig.savefig(path, dpi=110)
 
 
-def run_environment(env, scene, settings, ref_spp, mc_spp, model):
+def run_environment(env, scene, settings, ref_spp, mc_spp, model, pixel_settings):
     pts = (scene["n"], scene["v"], scene["base"], scene["metallic"], scene["roughness"])
     t0 = time.perf_counter()
     # Reference: two independent runs, so its own noise is measured.
@@ -197,12 +211,23 @@ def run_environment(env, scene, settings, ref_spp, mc_spp, model):
         e = split[name]["error"]
         print(f"  {name:31s} build {build_s:7.3f} s  shade {shade_s:7.4f} s  rel MAE {e['rel_mae']:.4f}"
               f"  by n·v {[round(x, 4) for x in e['rel_mae_by_n_dot_v'].values()]}")
+    per_pixel = {}
+    for name, s in pixel_settings.items():
+        tables, build_s = timed(lambda: pixel_ibl(env, np.asarray(pts[0]), np.asarray(pts[1]), model, s).table)
+        tables = pixel_ibl(env, np.asarray(pts[0]), np.asarray(pts[1]), model, s)
+        img, shade_s = timed(lambda: shade_pixel_ibl(tables, *pts[2:], model), repeats=3)
+        per_pixel[name] = dict(settings=dataclasses.asdict(s), build_s=build_s, shade_s=shade_s,
+                               error=errors(np.asarray(img), ref, scene))
+        e = per_pixel[name]["error"]
+        print(f"  per-pixel {name:21s} build {build_s:7.3f} s  shade {shade_s:7.4f} s  rel MAE {e['rel_mae']:.4f}"
+              f"  by n·v {[round(x, 4) for x in e['rel_mae_by_n_dot_v'].values()]}")
     mc = []
     for spp in mc_spp:
         est, sec = timed(lambda: monte_carlo_radiance(env, *pts, model, spp, jax.random.PRNGKey(7)))
         mc.append(dict(samples=2 * spp, time_s=sec, error=errors(np.asarray(est), ref, scene)))
         print(f"  Monte Carlo {2 * spp:5d} samples {sec:7.3f} s  rel MAE {mc[-1]['error']['rel_mae']:.4f}")
-    return dict(reference=dict(samples_per_point=4 * ref_spp, noise_rel_mae=noise), split_sum=split, monte_carlo=mc)
+    return dict(reference=dict(samples_per_point=4 * ref_spp, noise_rel_mae=noise), split_sum=split,
+                per_pixel=per_pixel, monte_carlo=mc)
 
 
 def main(argv=None):
@@ -223,8 +248,9 @@ def main(argv=None):
     out = {}
     for name, env in envs.items():
         print(f"environment: {name}")
+        pixel_settings = {"9 levels, 32 samples": PIXEL_SETTINGS["9 levels, 32 samples"]} if args.quick else PIXEL_SETTINGS
         out[name] = run_environment(env, scene, settings, 128 if args.quick else 1024,
-                                    (8, 32) if args.quick else (8, 32, 128), model)
+                                    (8, 32) if args.quick else (8, 32, 128), model, pixel_settings)
     results = dict(
         description=__doc__.splitlines()[0],
         environments_used=(str(args.env) if args.env else
