@@ -211,8 +211,8 @@ def _add_fit(sub) -> None:
                    help="skip the per-texel re-search of metallic and roughness midway through the solve")
     p.add_argument("--devices", type=int,
                    help="split the pixels over this many JAX devices (default: one device)")
-    p.add_argument("--cache", help="G-buffer cache folder (default $PBRFIT_CACHE or ~/.cache/pbrfit)")
-    p.add_argument("--no-cache", action="store_true", help="do not read or write the G-buffer cache")
+    p.add_argument("--cache", help="G-buffer and per-pixel IBL cache folder (default $PBRFIT_CACHE or ~/.cache/pbrfit)")
+    p.add_argument("--no-cache", action="store_true", help="do not read or write the cache")
     p.add_argument("--quiet", action="store_true", help="no progress bar; only errors")
 
 

@@ -433,8 +433,8 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
         ibl: how the capture's environment light is integrated, ``"split_sum"`` (default: Karis
             2013, the renderer's tables) or ``"per_pixel"`` (`pbrfit.pixel_ibl`: each pixel's
             lobe integrals by Monte Carlo on a roughness grid, once before the solve, with
-            ``pixel_ibl_settings``; no split-sum error, not with fitted normals). Ignored
-            without an environment.
+            ``pixel_ibl_settings``, cached in ``cache_dir`` like the G-buffers; no split-sum
+            error, not with fitted normals). Ignored without an environment.
         resolution: map size N (or (H, W)); default `default_resolution(capture)`.
         fit: which maps are free, some of "base_color", "metallic", "roughness", "normal" (a
             tangent-space normal map, `pbrfit.parameters`; needs the mesh's tangents: uv).
@@ -469,7 +469,7 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
         from .views import capture_environment
 
         tables = pixel_ibl(capture_environment(capture), np.asarray(obs.normal), np.asarray(obs.view), model,
-                           pixel_ibl_settings)
+                           pixel_ibl_settings, cache_dir=cache_dir)
     else:
         tables = _ibl_for_capture(capture, model)
     t_ibl = time.perf_counter() - t_ibl

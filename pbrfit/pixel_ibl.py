@@ -49,7 +49,11 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import math
+import os
+import tempfile
+from pathlib import Path
 from typing import Optional
 
 import equinox as eqx
@@ -320,19 +324,63 @@ def _batch(samples: int, elements: int) -> int:
     return b
 
 
+#: Bump when the integrals change, so that cached tables of an older release are not read.
+_CACHE_VERSION = "pixel-ibl-1"
+
+
+def _cache_key(env: Environment, n: np.ndarray, v: np.ndarray, model: Model, settings: PixelIBLSettings) -> str:
+    h = hashlib.sha256(_CACHE_VERSION.encode())
+    h.update(repr((dataclasses.asdict(model.replace(ibl=None)), dataclasses.asdict(settings), env.world_up,
+                   float(env.rotation_deg))).encode())
+    for a in (np.asarray(env.radiance, np.float32), n, v):
+        h.update(repr(a.shape).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()[:32]
+
+
+def _load_cached(path: Path, shape: tuple) -> Optional[np.ndarray]:
+    try:
+        table = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError):  # missing or damaged: recompute
+        return None
+    return table if table.shape == shape and table.dtype == np.float32 else None
+
+
+def _save_cached(path: Path, table: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".npy")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.save(f, table)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
 def pixel_ibl(env: Environment, n: Float[Array, "P 3"], v: Float[Array, "P 3"], model: Model = Model(),
-              settings: PixelIBLSettings = PixelIBLSettings(), chunk: Optional[int] = None) -> PixelIBL:
+              settings: PixelIBLSettings = PixelIBLSettings(), chunk: Optional[int] = None,
+              cache_dir: Optional[os.PathLike] = None) -> PixelIBL:
     """The lobe integrals of `lobes_for(model)` for points with unit normals n and view directions v.
 
     Pixels are integrated in chunks of ``chunk`` (default `PIXEL_CHUNK` for the default backend;
     one compilation, the last chunk padded), each pixel with its own quasi-random sequence, so
-    the chunking changes only float rounding.
+    the chunking changes only float rounding. With ``cache_dir`` the table is read from / written
+    to ``cache_dir/pixel-ibl-<hash>.npy``, the hash covering the environment (radiance and
+    orientation), n, v, the model's lobes and ``settings``.
     """
     lobes = lobes_for(model)
     n = np.asarray(n, np.float32)
     v = np.asarray(v, np.float32)
     total = n.shape[0]
     levels, samples = int(settings.levels), int(settings.samples)
+    path = None
+    if cache_dir is not None:
+        path = Path(cache_dir) / f"pixel-ibl-{_cache_key(env, n, v, model, settings)}.npy"
+        cached = _load_cached(path, (total, levels, len(lobes), 3))
+        if cached is not None:
+            return PixelIBL(jnp.asarray(cached), lobes)
     if chunk is None:
         chunk = PIXEL_CHUNK["cpu" if jax.default_backend() == "cpu" else "accelerator"]
     size = max(1, min(int(chunk), total))
@@ -352,6 +400,8 @@ def pixel_ibl(env: Environment, n: Float[Array, "P 3"], v: Float[Array, "P 3"], 
                           batch=batch)
         out.append(np.asarray(part)[: size - pad])
     table = np.concatenate(out) if out else np.zeros((0, levels, len(lobes), 3), np.float32)
+    if path is not None:
+        _save_cached(path, table.astype(np.float32))
     return PixelIBL(jnp.asarray(table), lobes)
 
 

@@ -255,3 +255,4 @@ def test_per_pixel_ibl_fit_of_a_monte_carlo_capture(tmp_path, monkeypatch, capsy
     assert report["model"]["ibl"] == "per_pixel"
     assert report["ibl"]["mode"] == "per_pixel" and report["ibl"]["samples"] == 32 and report["ibl"]["levels"] == 5
     assert report["ibl"]["seconds"] > 0 and len(report["psnr"]) == 3 and all(np.isfinite(report["psnr"]))
+    assert len(list((tmp_path / "cache").glob("pixel-ibl-*.npy"))) == 1  # cached with the G-buffers

@@ -83,6 +83,31 @@ def test_chunks_do_not_change_the_integrals():
     assert np.max(np.abs(c - b) / scale) > 5e-2
 
 
+def test_tables_are_cached_by_everything_they_depend_on(tmp_path, monkeypatch):
+    import pbrfit.pixel_ibl as module
+
+    n, v = _points(10)
+    settings = PixelIBLSettings(levels=3, samples=8)
+    first = pixel_ibl(SKY, n, v, Model(), settings, cache_dir=tmp_path)
+    assert len(list(tmp_path.glob("pixel-ibl-*.npy"))) == 1
+
+    def fail(*args, **kwargs):
+        raise AssertionError("integrated again")
+
+    monkeypatch.setattr(module, "_integrate", fail)
+    again = pixel_ibl(SKY, n, v, Model(), settings, cache_dir=tmp_path)
+    np.testing.assert_array_equal(np.asarray(again.table), np.asarray(first.table))
+    for changed in (dict(settings=PixelIBLSettings(levels=3, samples=16)), dict(model=Model(fresnel="dielectric")),
+                    dict(v=np.roll(v, 1, axis=0)), dict(env=procedural_sky(64, sun_elevation_deg=20.0))):
+        args = dict(env=SKY, n=n, v=v, model=Model(), settings=settings, cache_dir=tmp_path)
+        args.update(changed)
+        with pytest.raises(AssertionError, match="integrated again"):
+            pixel_ibl(**args)
+    next(tmp_path.glob("pixel-ibl-*.npy")).write_bytes(b"damaged")  # a damaged file is recomputed
+    with pytest.raises(AssertionError, match="integrated again"):
+        pixel_ibl(SKY, n, v, Model(), settings, cache_dir=tmp_path)
+
+
 def test_spline_is_exact_on_levels_and_on_quadratic_tables():
     levels = 9
     r = np.linspace(0.0, 1.0, levels)
