@@ -270,7 +270,8 @@ def _fit_options(args) -> dict:
     try:
         pixel_ibl_settings = PixelIBLSettings(levels=args.ibl_levels, samples=args.ibl_samples)
     except ValueError:
-        raise CaptureError(f"--ibl-levels must be >= 2 and --ibl-samples >= 1, got {args.ibl_levels} and {args.ibl_samples}")
+        raise CaptureError(f"--ibl-levels must be >= 2 and --ibl-samples >= 1, "
+                           f"got {args.ibl_levels} and {args.ibl_samples}") from None
     devices = None
     if args.devices is not None:
         import jax

@@ -10,7 +10,6 @@ mapping, exposure, tone mapping and encoding, and scatters the pixels back into 
 from __future__ import annotations
 
 import dataclasses
-
 from typing import Optional
 
 import equinox as eqx
@@ -198,13 +197,14 @@ def shade(
         out = out + shade_ibl(ibl, normal, view, base_color, metallic, roughness, model, occlusion)
     elif model.ibl == "per_pixel":
         if ibl is None:
-            raise ValueError("Model(ibl='per_pixel') needs the points' lobe integrals; build them with pbrfit.pixel_ibl.pixel_ibl")
+            raise ValueError("Model(ibl='per_pixel') needs the points' lobe integrals; "
+                             "build them with pbrfit.pixel_ibl.pixel_ibl")
         from .pixel_ibl import shade_pixel_ibl
 
         env = shade_pixel_ibl(ibl, base_color, metallic, roughness, model)
         out = out + (env if occlusion is None else env * occlusion)
     elif model.ibl == "monte_carlo":
-        raise ValueError("Model(ibl='monte_carlo') is the reference integrator: use pbrfit.ibl.monte_carlo_radiance")
+        raise ValueError("Model(ibl='monte_carlo') is the reference integrator: use pbrfit.montecarlo.monte_carlo_radiance")
     if emissive is not None:
         out = out + emissive
     return out
