@@ -289,7 +289,8 @@ def _fit_options(args) -> dict:
 
 
 class _Progress:
-    """A live line (rich) with level, step, loss and elapsed time; also keeps the loss history."""
+    """A live line (rich) with level, step, loss and elapsed time (before the solve, the per-pixel IBL
+    integrals' progress); also keeps the loss history."""
 
     def __init__(self, enabled: bool):
         import time
@@ -307,6 +308,10 @@ class _Progress:
             self._live.start()
 
     def __call__(self, info: dict) -> None:
+        if info.get("stage") == "ibl":  # the per-pixel integrals before the solve: no loss yet
+            if self._live is not None:
+                self._live.update(self._task, description=f"per-pixel IBL {info['done']:,} / {info['total']:,} pixels")
+            return
         self.history.append(dict(info, time=self._clock() - self._start))
         if self._live is not None:
             h, w = info["resolution"]

@@ -452,7 +452,8 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
         devices: a sequence of JAX devices to split the pixels over (`pbrfit.sharding`); default
             None: the default device.
         model: override the `Model` (default `model_for_capture`: the one that rendered the images).
-        progress: called with {level, resolution, step, loss} after each step (a host callback;
+        progress: called with {stage: "ibl", done, total} (pixels) while per-pixel IBL integrals
+            are computed, then with {level, resolution, step, loss} after each step (a host callback;
             leave None for a solve with no host round-trips).
     """
     t0 = time.perf_counter()
@@ -468,8 +469,10 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     if model.ibl == "per_pixel":
         from .views import capture_environment
 
+        report = kwargs.get("progress")
         tables = pixel_ibl(capture_environment(capture), np.asarray(obs.normal), np.asarray(obs.view), model,
-                           pixel_ibl_settings, cache_dir=cache_dir)
+                           pixel_ibl_settings, cache_dir=cache_dir, progress=None if report is None else (
+                               lambda done, total: report(dict(stage="ibl", done=done, total=total))))
     else:
         tables = _ibl_for_capture(capture, model)
     t_ibl = time.perf_counter() - t_ibl

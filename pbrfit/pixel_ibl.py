@@ -54,7 +54,7 @@ import math
 import os
 import tempfile
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import equinox as eqx
 import jax
@@ -361,14 +361,16 @@ def _save_cached(path: Path, table: np.ndarray) -> None:
 
 def pixel_ibl(env: Environment, n: Float[Array, "P 3"], v: Float[Array, "P 3"], model: Model = Model(),
               settings: PixelIBLSettings = PixelIBLSettings(), chunk: Optional[int] = None,
-              cache_dir: Optional[os.PathLike] = None) -> PixelIBL:
+              cache_dir: Optional[os.PathLike] = None,
+              progress: Optional[Callable[[int, int], None]] = None) -> PixelIBL:
     """The lobe integrals of `lobes_for(model)` for points with unit normals n and view directions v.
 
     Pixels are integrated in chunks of ``chunk`` (default `PIXEL_CHUNK` for the default backend;
     one compilation, the last chunk padded), each pixel with its own quasi-random sequence, so
     the chunking changes only float rounding. With ``cache_dir`` the table is read from / written
     to ``cache_dir/pixel-ibl-<hash>.npy``, the hash covering the environment (radiance and
-    orientation), n, v, the model's lobes and ``settings``.
+    orientation), n, v, the model's lobes and ``settings``. ``progress`` is called with (pixels
+    done, pixels in all) after each chunk.
     """
     lobes = lobes_for(model)
     n = np.asarray(n, np.float32)
@@ -399,6 +401,8 @@ def pixel_ibl(env: Environment, n: Float[Array, "P 3"], v: Float[Array, "P 3"], 
                           jnp.uint32(start), seed, model=model, lobes=lobes, levels=levels, samples=samples,
                           batch=batch)
         out.append(np.asarray(part)[: size - pad])
+        if progress is not None:
+            progress(start + size - pad, total)
     table = np.concatenate(out) if out else np.zeros((0, levels, len(lobes), 3), np.float32)
     if path is not None:
         _save_cached(path, table.astype(np.float32))

@@ -71,6 +71,14 @@ def test_lambert_under_a_white_sky_is_one():
     np.testing.assert_allclose(np.asarray(ibl.table), 1.0, atol=0.01)
 
 
+def test_progress_counts_pixels():
+    n, v = _points(20)
+    calls = []
+    pixel_ibl(SKY, n, v, Model(), PixelIBLSettings(levels=3, samples=16), chunk=7,
+              progress=lambda done, total: calls.append((done, total)))
+    assert calls == [(7, 20), (14, 20), (20, 20)]
+
+
 def test_chunks_do_not_change_the_integrals():
     """Each pixel draws its own samples: chunking moves only float rounding (which a sample
     grazing the sun's edge can amplify to a few 1e-3), while another seed moves the estimate."""
