@@ -383,6 +383,9 @@ def _cmd_fit(args) -> int:
     check_output_dir(out, "fit")
     capture = load_capture(args.capture, require_uv=options["maps"] == "texture" or "normal" in options["fit"])
     check_not_inside(capture.root, out, "capture being fitted")
+    if args.ibl == "per_pixel" and capture.environment is None:
+        print(f"pbrfit: warning: --ibl per_pixel: {capture.root} has no environment; nothing to integrate",
+              file=sys.stderr)
     result, errors = run_fit(capture, out, options, _cache_dir(args), args.quiet)
     if not args.quiet:
         print(_summary(result, errors))

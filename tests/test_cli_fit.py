@@ -256,3 +256,13 @@ def test_per_pixel_ibl_fit_of_a_monte_carlo_capture(tmp_path, monkeypatch, capsy
     assert report["ibl"]["mode"] == "per_pixel" and report["ibl"]["samples"] == 32 and report["ibl"]["levels"] == 5
     assert report["ibl"]["seconds"] > 0 and len(report["psnr"]) == 3 and all(np.isfinite(report["psnr"]))
     assert len(list((tmp_path / "cache").glob("pixel-ibl-*.npy"))) == 1  # cached with the G-buffers
+
+
+def test_per_pixel_ibl_without_an_environment_warns_and_fits(capture, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "out"
+    assert main(["fit", str(capture), "--out", str(out), "--maps", "none", "--ibl", "per_pixel", "--quiet"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--ibl per_pixel" in err[0] and "has no environment" in err[0]
+    report = json.loads((out / "report.json").read_text())
+    assert report["model"]["ibl"] is None and "ibl" not in report
