@@ -69,8 +69,8 @@ from . import brdf
 from .environment import (Environment, direction_to_uv, dot3, from_environment_frame, sample_equirect,
                           to_environment_frame)
 from .model import Model
-from .montecarlo import (_hash32, _uniforms, default_lut, environment_sampler, ggx_vndf_pdf,
-                         sample_cosine, sample_environment, sample_ggx_vndf, tangent_frame)
+from .montecarlo import (_batch, _hash32, _uniforms, default_lut, environment_pdf, environment_sampler,
+                         ggx_vndf_pdf, sample_cosine, sample_environment, sample_ggx_vndf, tangent_frame)
 
 __all__ = ["PixelIBLSettings", "PixelIBL", "LOBES", "lobes_for", "pixel_ibl", "interpolate_lobes",
            "shade_pixel_ibl", "pixel_dfg"]
@@ -83,8 +83,6 @@ _DIFFUSE = ("lambert", "lambert_s", "lambert_fd")
 #: accelerator: bounds memory; a GPU wants large calls (an H100 integrates 69,000 pixels in 0.34 s
 #: in chunks of 16,384, 1.8 s in chunks of 2,048).
 PIXEL_CHUNK = {"cpu": 2048, "accelerator": 16384}
-#: Pixel × level × sample elements evaluated together per step of the sample loop.
-BATCH_ELEMENTS = 1 << 16
 
 
 @dataclasses.dataclass(frozen=True)
@@ -167,12 +165,6 @@ def _dv(model: Model, nv, nl, nh, rough):
     return jnp.where((nv > 0) & (nl > 0), d * vis * nlc, 0.0)
 
 
-def _schlick_weight(vh):
-    m = 1.0 - jnp.clip(vh, 0.0, 1.0)
-    m2 = m * m
-    return m2 * m2 * m
-
-
 @functools.partial(jax.jit, static_argnames=("model", "lobes", "levels", "samples", "batch"))
 def _integrate(env, lut, n, v, first, seed, *, model, lobes, levels, samples, batch):
     radiance = env.radiance
@@ -188,16 +180,10 @@ def _integrate(env, lut, n, v, first, seed, *, model, lobes, levels, samples, ba
     diff = [k for k in lobes if k in _DIFFUSE]
     burley = "burley" in lobes
 
-    texel_pdf = sampler.texel_pdf
-    he, we = texel_pdf.shape
-
     def light(l):
-        """Radiance arriving along world directions l and their environment density (one uv for both;
-        the density is `environment_pdf`'s: that of the texel holding the direction)."""
-        uv = direction_to_uv(to_environment_frame(l, env.world_up, env.rotation_deg))
-        i = jnp.clip(jnp.floor(uv[..., 1] * he).astype(jnp.int32), 0, he - 1)
-        j = jnp.clip(jnp.floor(uv[..., 0] * we).astype(jnp.int32), 0, we - 1)
-        return sample_equirect(radiance, uv), texel_pdf[i, j]
+        """Radiance arriving along world directions l and the environment technique's density there."""
+        d = to_environment_frame(l, env.world_up, env.rotation_deg)
+        return sample_equirect(radiance, direction_to_uv(d)), environment_pdf(sampler, d)
 
     def cosines(l):
         """(n·l, n·h, v·h) for directions l of shape (B, P, [R,] 3)."""
@@ -212,7 +198,7 @@ def _integrate(env, lut, n, v, first, seed, *, model, lobes, levels, samples, ba
         """(B, P, R, Ks) specular lobe values at every level from the cosines of directions,
         (B, P, R) or (B, P, 1) (one direction for all levels)."""
         dv = _dv(model, nv[:, None], nl, nh, rough)
-        s = _schlick_weight(vh)
+        s = brdf.f_schlick(vh, 0.0)
         out = {"dv": dv, "dv_s": dv * s}
         if "dv_fd" in spec:
             out["dv_fd"] = dv * brdf.f_dielectric(vh, model.ior)
@@ -223,7 +209,7 @@ def _integrate(env, lut, n, v, first, seed, *, model, lobes, levels, samples, ba
         nl, _, vh = cosines(l)
         lit = (nv > 0) & (nl > 0)
         cos = jnp.where(lit, jnp.clip(nl, 0.0, 1.0), 0.0) / math.pi
-        s = _schlick_weight(vh)
+        s = brdf.f_schlick(vh, 0.0)
         vals = {"lambert": cos, "lambert_s": cos * (1.0 - s)}
         if "lambert_fd" in diff:
             vals["lambert_fd"] = cos * (1.0 - brdf.f_dielectric(vh, model.ior))
@@ -236,13 +222,13 @@ def _integrate(env, lut, n, v, first, seed, *, model, lobes, levels, samples, ba
         return lam, bur
 
     pixels = first + jnp.arange(n.shape[0], dtype=jnp.uint32)
-    key = _hash32(seed ^ _hash32(pixels))
+    shift = _uniforms(_hash32(seed ^ _hash32(pixels)), jnp.zeros((1,), jnp.uint32), 7, jnp.float32)[0]  # (P, 7)
     safe = lambda x: jnp.where(x > 0, x, 1.0)  # noqa: E731
     zeros_r = jnp.zeros(n.shape[:1] + (levels, 3), dtype)
 
     def step(acc, k):
         spec_acc, diff_acc, bur_acc = acc
-        u = _lattice(key, k * batch + jnp.arange(batch, dtype=jnp.uint32), dtype)   # (B, P, 7)
+        u = _lattice(shift, k * batch + jnp.arange(batch, dtype=jnp.uint32), dtype)   # (B, P, 7)
         d_e, pe_e = sample_environment(sampler, u[..., 0:3])
         l_e = from_environment_frame(d_e, env.world_up, env.rotation_deg)                # (B, P, 3)
         L_e = sample_equirect(radiance, direction_to_uv(d_e))
@@ -307,24 +293,15 @@ def _golden(d: int) -> np.ndarray:
 _ALPHA7 = _golden(7)
 
 
-def _lattice(key, sample, dtype):
-    """(len(sample), *key.shape, 7) quasi-random points: the R_7 sequence, shifted per pixel by a
-    hashed offset (Cranley-Patterson rotation), so each pixel's estimate is unbiased and its
-    samples are spread evenly (error falling faster than 1/sqrt(samples) on smooth integrands)."""
-    shift = _uniforms(key, jnp.zeros((1,), jnp.uint32), 7, jnp.float32)[0]             # (P, 7)
+def _lattice(shift, sample, dtype):
+    """(len(sample), P, 7) quasi-random points: the R_7 sequence, shifted per pixel by ``shift``
+    (P, 7), uniform random (Cranley-Patterson rotation), so each pixel's estimate is unbiased and
+    its samples are spread evenly (error falling faster than 1/sqrt(samples) on smooth integrands)."""
     # k α mod 1 in exact integer arithmetic (24-bit fixed point), then shifted
     step = jnp.asarray(np.round(_ALPHA7 * (1 << 24)).astype(np.uint32))
     frac = ((sample[:, None] * step[None, :]) & jnp.uint32((1 << 24) - 1)).astype(jnp.float32) * (1.0 / (1 << 24))
     u = frac[:, None, :] + shift[None]
     return (u - jnp.floor(u)).astype(dtype)
-
-
-def _batch(samples: int, elements: int) -> int:
-    """Largest power-of-two divisor of ``samples`` with batch × elements <= BATCH_ELEMENTS (>= 1)."""
-    b = 1
-    while samples % (2 * b) == 0 and 2 * b * max(elements, 1) <= BATCH_ELEMENTS:
-        b *= 2
-    return b
 
 
 #: Bump when the integrals change, so that cached tables of an older release are not read.
@@ -389,7 +366,7 @@ def pixel_ibl(env: Environment, n: Float[Array, "P 3"], v: Float[Array, "P 3"], 
     if chunk is None:
         chunk = PIXEL_CHUNK["cpu" if jax.default_backend() == "cpu" else "accelerator"]
     size = max(1, min(int(chunk), total))
-    batch = _batch(samples, size * levels)
+    batch = _batch(samples, size * levels)  # elements per sample step bounded as in the reference integrator
     lut = jnp.asarray(default_lut(model), jnp.float32) if "dfg_scale" in lobes else jnp.zeros((1, 1, 2), jnp.float32)
     env = dataclasses.replace(env, radiance=jnp.asarray(env.radiance, jnp.float32))
     seed = jnp.uint32(int(settings.seed) & 0xFFFFFFFF)
