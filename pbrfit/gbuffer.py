@@ -38,7 +38,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import os
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import Sequence
@@ -48,6 +47,7 @@ import trimesh
 from jaxtyping import Bool, Float, Int
 
 from .errors import CaptureError
+from .io import atomic_path
 from .raycast import NORM_FLOOR, PARALLEL_EPS, cast, has_embree, make_first_hit
 
 __all__ = [
@@ -291,16 +291,8 @@ def _load_cached(path: Path) -> GBuffer | None:
 
 
 def _save_cached(path: Path, gbuffer: GBuffer) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".npz")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **gbuffer._arrays())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **gbuffer._arrays())
 
 
 # ----------------------------------------------------------------------------------- compute

@@ -55,7 +55,6 @@ import functools
 import hashlib
 import math
 import os
-import tempfile
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -68,6 +67,7 @@ from jaxtyping import Array, Float
 from . import brdf
 from .environment import (Environment, direction_to_uv, dot3, from_environment_frame, sample_equirect,
                           to_environment_frame)
+from .io import atomic_path
 from .model import Model
 from .montecarlo import (_batch, _hash32, _uniforms, default_lut, environment_pdf, environment_sampler,
                          ggx_vndf_pdf, sample_cosine, sample_environment, sample_ggx_vndf, tangent_frame)
@@ -327,16 +327,8 @@ def _load_cached(path: Path, shape: tuple) -> Optional[np.ndarray]:
 
 
 def _save_cached(path: Path, table: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".npy")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.save(f, table)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.save(f, table)
 
 
 def pixel_ibl(env: Environment, n: Float[Array, "P 3"], v: Float[Array, "P 3"], model: Model = Model(),

@@ -341,7 +341,7 @@ def test_cache_round_trip_and_invalidation(tmp_path, monkeypatch):
     files[0].write_bytes(b"not an npz")  # a damaged entry is recomputed and replaced
     g4 = compute_gbuffer(mesh, SHADOW_CAM, SHADOW_LIGHTS, cache_dir=tmp_path)
     np.testing.assert_array_equal(g4.position, g1.position)
-    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".tmp")]
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary file left
 
 
 def test_real_light_objects_when_available():
