@@ -163,8 +163,8 @@ def _monte_carlo_environment(batch, material, model, environment, samples: int, 
     import jax
     import jax.numpy as jnp
 
-    from pbrfit.material import apply_normal_map, material_at
     from pbrfit.montecarlo import monte_carlo_radiance
+    from pbrfit.render import shading_inputs
 
     out = []
     total = batch.num_pixels
@@ -173,15 +173,11 @@ def _monte_carlo_environment(batch, material, model, environment, samples: int, 
         n = view.normal.shape[0]
         if n < SHADE_CHUNK and total > SHADE_CHUNK:  # pad the tail: one compilation
             view = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], SHADE_CHUNK - n, 0)]), view)
-        sample = material_at(material, view.uv, "repeat")
-        normal = view.normal
-        if sample.normal is not None:
-            normal = apply_normal_map(normal, view.tangent, sample.normal, "opengl")
-        rad = monte_carlo_radiance(environment, normal, view.view, jnp.clip(sample.base_color, 0.0, 1.0),
-                                   jnp.clip(sample.metallic, 0.0, 1.0), jnp.clip(sample.roughness, 0.0, 1.0),
-                                   model, samples=samples, key=jax.random.PRNGKey(start))
-        if sample.occlusion is not None:
-            rad = rad * sample.occlusion
+        normal, base_color, metallic, roughness, occlusion, _ = shading_inputs(view, material)  # as radiance_view
+        rad = monte_carlo_radiance(environment, normal, view.view, base_color, metallic, roughness, model,
+                                   samples=samples, key=jax.random.PRNGKey(start))
+        if occlusion is not None:  # occlusion scales environment light (`pbrfit.render.shade`)
+            rad = rad * occlusion
         out.append(np.asarray(rad, np.float32)[:n])
         if progress:
             progress(f"environment (Monte Carlo) {min(start + SHADE_CHUNK, total)}/{total}")

@@ -31,6 +31,7 @@ __all__ = [
     "shade_punctual",
     "shade",
     "radiance_view",
+    "shading_inputs",
     "render_view",
     "RENDER_CHUNK",
 ]
@@ -210,24 +211,24 @@ def shade(
     return out
 
 
-def _radiance_chunk(view: ViewInputs, material: Material, model: Model, ibl, wrap: str, normal_convention: str):
+def shading_inputs(view: ViewInputs, material: Material, wrap: str = "repeat", normal_convention: str = "opengl"):
+    """What a view's pixels shade with: (normal, base_color, metallic, roughness, occlusion,
+    emissive), the material sampled at their uv (channels clipped to [0, 1]) and its normal map,
+    if any, applied. occlusion and emissive are None when the material has none."""
     sample = material_at(material, view.uv, wrap)
     normal = view.normal
     if sample.normal is not None:
         normal = apply_normal_map(normal, view.tangent, sample.normal, normal_convention)
-    return shade(
-        normal,
-        view.view,
-        view.light_l,
-        view.light_radiance,
-        jnp.clip(sample.base_color, 0.0, 1.0),
-        jnp.clip(sample.metallic, 0.0, 1.0),
-        jnp.clip(sample.roughness, 0.0, 1.0),
-        model,
-        ibl,
-        sample.occlusion,
-        sample.emissive,
-    )
+    unit = lambda x: jnp.clip(x, 0.0, 1.0)  # noqa: E731
+    return (normal, unit(sample.base_color), unit(sample.metallic), unit(sample.roughness), sample.occlusion,
+            sample.emissive)
+
+
+def _radiance_chunk(view: ViewInputs, material: Material, model: Model, ibl, wrap: str, normal_convention: str):
+    normal, base_color, metallic, roughness, occlusion, emissive = shading_inputs(view, material, wrap,
+                                                                                  normal_convention)
+    return shade(normal, view.view, view.light_l, view.light_radiance, base_color, metallic, roughness, model, ibl,
+                 occlusion, emissive)
 
 
 _radiance_chunk_jit = jax.jit(_radiance_chunk, static_argnames=("model", "wrap", "normal_convention"))
