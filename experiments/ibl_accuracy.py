@@ -214,8 +214,7 @@ def run_environment(env, scene, settings, ref_spp, mc_spp, model, pixel_settings
               f"  by n·v {[round(x, 4) for x in e['rel_mae_by_n_dot_v'].values()]}")
     per_pixel = {}
     for name, s in pixel_settings.items():
-        tables, build_s = timed(lambda: pixel_ibl(env, np.asarray(pts[0]), np.asarray(pts[1]), model, s).table)
-        tables = pixel_ibl(env, np.asarray(pts[0]), np.asarray(pts[1]), model, s)
+        tables, build_s = timed(lambda: pixel_ibl(env, np.asarray(pts[0]), np.asarray(pts[1]), model, s))
         img, shade_s = timed(lambda: shade_pixel_ibl(tables, *pts[2:], model), repeats=3)
         per_pixel[name] = dict(settings=dataclasses.asdict(s), build_s=build_s, shade_s=shade_s,
                                error=errors(np.asarray(img), ref, scene))
