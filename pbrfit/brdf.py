@@ -50,6 +50,7 @@ __all__ = [
     "specular_f0",
     "diffuse_color",
     "energy_compensation",
+    "specular_dv",
     "evaluate_cosines",
     "evaluate",
     "FLOORS",
@@ -338,6 +339,15 @@ def _geometry(model: Model, n_dot_v, n_dot_l, roughness, alpha):
     return v_schlick_ggx(n_dot_v, n_dot_l, k_ibl(alpha))
 
 
+def specular_dv(model: Model, n_dot_v, n_dot_l, n_dot_h, roughness):
+    """D V of the model's specular lobe (the microfacet BRDF without Fresnel), at cosines n·v,
+    n·l already clipped to [0, 1] and perceptual roughness; D = `d_ggx` or `d_beckmann`, V as
+    `model.geometry` (see `evaluate_cosines`)."""
+    alpha = alpha_from_roughness(roughness)
+    d = d_ggx(n_dot_h, alpha) if model.distribution == "ggx" else d_beckmann(n_dot_h, alpha)
+    return d * _geometry(model, n_dot_v, n_dot_l, roughness, alpha)
+
+
 def _fresnel(model: Model, v_dot_h, base_color, metallic, f0):
     vh = v_dot_h[..., None]
     if model.fresnel == "schlick":
@@ -391,13 +401,7 @@ def evaluate_cosines(
     out = jnp.zeros(jnp.broadcast_shapes(jnp.shape(f0), jnp.shape(nv) + (1,)), dtype=f0.dtype)
 
     if model.specular:
-        alpha = alpha_from_roughness(rough)
-        if model.distribution == "ggx":
-            d = d_ggx(n_dot_h, alpha)
-        else:
-            d = d_beckmann(n_dot_h, alpha)
-        vis = _geometry(model, nv, nl, rough, alpha)
-        spec = fresnel * (d * vis)[..., None]
+        spec = fresnel * specular_dv(model, nv, nl, n_dot_h, rough)[..., None]
         if model.multiscatter:
             if dfg is None:
                 raise ValueError("Model(multiscatter=True) needs dfg (split-sum scale, bias at n·v, roughness)")

@@ -148,6 +148,8 @@ def _scalar_terms() -> list:
               skip=_half_vector_skip),
         _Spec("safe_normalize", lambda x: _weighted(brdf.safe_normalize(x)), ("x", "y", "z"),
               _grid((-0.7, 0.2, 1.5), (-0.3, 0.4), (0.1, 0.9)), ((), (), ())),
+        _Spec("specular_dv", lambda x: brdf.specular_dv(Model(), x[0], x[1], x[2], x[3]), ("n·v", "n·l", "n·h", "roughness"),
+              _grid(cos3, cos3, cos3, r), (ck, ck, ck, rk)),
         _Spec("specular_f0", lambda x: _weighted(brdf.specular_f0(x[0] * jnp.asarray(_TINT), x[1])),
               ("base_color", "metallic"), _grid((0.2, 0.8), (0.0, 0.4, 1.0)), ((), ())),
         _Spec("diffuse_color", lambda x: _weighted(brdf.diffuse_color(x[0] * jnp.asarray(_TINT), x[1])),

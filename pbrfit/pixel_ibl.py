@@ -158,11 +158,8 @@ def lobes_for(model: Model) -> tuple[str, ...]:
 
 def _dv(model: Model, nv, nl, nh, rough):
     """D V (n·l) of the model's specular lobe (zero unless n·v > 0 and n·l > 0)."""
-    alpha = brdf.alpha_from_roughness(rough)
-    d = brdf.d_ggx(nh, alpha) if model.distribution == "ggx" else brdf.d_beckmann(nh, alpha)
     nvc, nlc = jnp.clip(nv, 0.0, 1.0), jnp.clip(nl, 0.0, 1.0)
-    vis = brdf._geometry(model, nvc, nlc, rough, alpha)
-    return jnp.where((nv > 0) & (nl > 0), d * vis * nlc, 0.0)
+    return jnp.where((nv > 0) & (nl > 0), brdf.specular_dv(model, nvc, nlc, nh, rough) * nlc, 0.0)
 
 
 @functools.partial(jax.jit, static_argnames=("model", "lobes", "levels", "samples", "batch"))

@@ -643,6 +643,8 @@ CHECK_GRADS_TERMS = {
     "specular_f0": (lambda b, m: brdf.specular_f0(b, m), (_C, _R)),
     "diffuse_color": (lambda b, m: brdf.diffuse_color(b, m), (_C, _R)),
     "energy_compensation": (brdf.energy_compensation, (_C[:, None], np.stack([_C * 0.8, _A * 0.05], -1))),
+    "specular_dv": (lambda nv, nl, nh, r: brdf.specular_dv(Model(), nv, nl, nh, r),
+                    (_C, _C[::-1], np.array([0.5, 0.8, 0.9, 0.95]), _R)),
     "evaluate_cosines": (
         lambda nv, nl, nh, vh, b, m, r: brdf.evaluate_cosines(nv, nl, nh, vh, b, m, r),
         (_C, _C[::-1], np.array([0.5, 0.8, 0.9, 0.95]), _C, np.stack([_C, _R, _A], -1), _R[:, None], _R[::-1, None]),
@@ -671,3 +673,21 @@ def test_check_grads_float64(name, x64):
     # are checked entry by entry, per Model variant, by `pbrfit.gradcheck`).
     order = 1 if name in ("evaluate", "evaluate_cosines") else 2
     jax.test_util.check_grads(fn, args, order=order, modes=("rev",), eps=1e-4, atol=1e-4, rtol=1e-4)
+
+
+def test_specular_dv_is_d_times_v_of_the_model():
+    """specular_dv against D and V written out (glTF B.3.2 for GGX / correlated Smith; Beckmann
+    with Karis's Schlick-GGX k = (r + 1)^2 / 8), at interior cosines."""
+    nv, nl, nh, r = 0.7, 0.45, 0.9, 0.5
+    a = r * r
+    d_ggx = a * a / (np.pi * ((nh * nh) * (a * a - 1.0) + 1.0) ** 2)
+    v_corr = 0.5 / (nl * np.sqrt(nv * nv * (1 - a * a) + a * a) + nv * np.sqrt(nl * nl * (1 - a * a) + a * a))
+    got = brdf.specular_dv(Model(), jnp.float32(nv), jnp.float32(nl), jnp.float32(nh), jnp.float32(r))
+    np.testing.assert_allclose(float(got), d_ggx * v_corr, rtol=1e-5)
+    tan2 = (1.0 - nh * nh) / (nh * nh)
+    d_beck = np.exp(-tan2 / (a * a)) / (np.pi * a * a * nh ** 4)
+    k = (r + 1.0) ** 2 / 8.0
+    v_schlick = 1.0 / ((nv * (1 - k) + k) * (nl * (1 - k) + k)) / 4.0
+    model = Model(distribution="beckmann", geometry="schlick_ggx_direct")
+    got = brdf.specular_dv(model, jnp.float32(nv), jnp.float32(nl), jnp.float32(nh), jnp.float32(r))
+    np.testing.assert_allclose(float(got), d_beck * v_schlick, rtol=1e-5)
