@@ -28,8 +28,8 @@ Rules pinned here (tests in ``tests/test_scene.py``):
 * Color space: ``images.color_space`` when given, else by file: EXR and HDR linear, PNG and
   JPEG sRGB, other files sRGB when 8-bit integer, linear otherwise (16-bit TIFF), frame by
   frame. sRGB files are decoded to linear with `pbrfit.color.srgb_to_linear_host`.
-  ``Capture.color_space`` is the space a fit takes residuals in: the frames' common one, or linear when they mix (the
-  sRGB frames are then compared after decoding).
+  ``Capture.color_space`` is the space a fit takes residuals in: the frames' common one, or
+  linear when they mix (the sRGB frames are then compared after decoding).
 * Exposure: a frame's effective EV is ``images.exposure + frames[].exposure`` (both default 0).
 * Masks: ``mask_path`` (nonzero in its first channel, and in its alpha when it has one = use),
   else the image's alpha channel (nonzero = use), else every pixel (and a fit leaves out the
