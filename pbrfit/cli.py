@@ -173,7 +173,7 @@ _FIT_NAMES = _MAP_NAMES + ("normal",)
 
 
 def _add_fit(sub) -> None:
-    from .fit import DEFAULT_SOLVER, IBL_MODES, SOLVERS
+    from .fit import CONTINUATION, DEFAULT_SOLVER, IBL_MODES, SOLVERS
     from .pixel_ibl import PixelIBLSettings
     from .solvers import LOSSES
 
@@ -209,6 +209,9 @@ def _add_fit(sub) -> None:
                    help=f"per_pixel: roughness levels tabulated (default {PixelIBLSettings.levels})")
     p.add_argument("--no-search", action="store_true",
                    help="skip the per-texel re-search of metallic and roughness midway through the solve")
+    p.add_argument("--continuation", default=",".join(str(w) for w in CONTINUATION), metavar="W[,W...]",
+                   help="weights of the smoothness prior over the first steps, relative to the data's curvature, "
+                        "released before the end (default %(default)s; 'none' turns it off)")
     p.add_argument("--devices", type=int,
                    help="split the pixels over this many JAX devices (default: one device)")
     p.add_argument("--cache", help="G-buffer and per-pixel IBL cache folder (default $PBRFIT_CACHE or ~/.cache/pbrfit)")
@@ -265,6 +268,7 @@ def _fit_options(args) -> dict:
         value = getattr(args, name)
         if not (math.isfinite(value) and value >= 0):
             raise CaptureError(f"--{name}: must be a finite number >= 0, got {value}")
+    continuation = _continuation(args.continuation)
     if "normal" in free and args.ibl == "per_pixel":
         raise CaptureError("--ibl per_pixel: fitted normals need --ibl split_sum (per-pixel integrals hold the normals fixed)")
     try:
@@ -284,8 +288,23 @@ def _fit_options(args) -> dict:
         fit=tuple(free), fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
         max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, loss=args.loss, smooth=args.smooth,
         coarse_to_fine=args.coarse_to_fine, search=not args.no_search, devices=devices, ibl=args.ibl,
-        pixel_ibl_settings=pixel_ibl_settings,
+        pixel_ibl_settings=pixel_ibl_settings, continuation=continuation,
     )
+
+
+def _continuation(text: str) -> tuple:
+    """--continuation: 'none' or comma-separated finite weights >= 0."""
+    import math
+
+    if text.strip().lower() in ("none", "off", ""):
+        return ()
+    try:
+        weights = tuple(float(w) for w in text.split(","))
+    except ValueError:
+        weights = ()
+    if not weights or not all(math.isfinite(w) and w >= 0 for w in weights):
+        raise CaptureError(f"--continuation: expected 'none' or comma-separated weights >= 0, got {text!r}")
+    return weights
 
 
 class _Progress:

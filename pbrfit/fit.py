@@ -6,10 +6,11 @@ solver chosen by ``solver=``:
 
 - ``"structured"`` (default): projected Levenberg-Marquardt on the exact image-space objective
   with per-pixel forward-mode Jacobians, block-sparse normal equations and block-Jacobi CG
-  (`pbrfit.solvers`), started by a per-texel grid search and, midway, re-searching each texel's
-  metallic and roughness with its neighbours fixed (`pbrfit.initialisation`); optionally coarse
-  to fine (a uniform material first, then maps of growing resolution). `experiments/solvers.md`
-  has the numbers that chose it.
+  (`pbrfit.solvers`), started by a per-texel grid search, then a continuation (the first steps
+  under a smoothness prior of falling weight, released before the end), midway re-searching each
+  texel's metallic and roughness with its neighbours fixed (`pbrfit.initialisation`); optionally
+  coarse to fine (a uniform material first, then maps of growing resolution).
+  `experiments/solvers.md` has the numbers that chose it.
 - ``"lm"``, ``"gn"``, ``"dogleg"``, ``"bfgs"``, ``"lbfgs"``, ``"ncg"``, ``"adam"``: optimistix
   solvers on the same objective (`pbrfit.optx_solvers`), run through the same schedule.
 
@@ -25,6 +26,7 @@ import math
 import time
 from typing import Callable, Mapping, Optional, Sequence
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -44,7 +46,7 @@ from .transfer import to_device
 from .uncertainty import block_standard_errors, residual_variance
 
 __all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "model_for_capture",
-           "SOLVERS", "DEFAULT_SOLVER", "IBL_MODES", "schedule"]
+           "SOLVERS", "DEFAULT_SOLVER", "IBL_MODES", "CONTINUATION", "continuation_scale", "schedule"]
 
 DEFAULT_SOLVER = "structured"
 #: What `fit` may integrate a capture's environment light with (``ibl=``); the first is the default.
@@ -58,6 +60,15 @@ MAX_STEPS = 40
 #: (experiments/solvers.md).
 SEARCH_AFTER = 15
 SEARCH_ROUNDS = 1
+#: Continuation (graduated smoothing; A. Blake & A. Zisserman, "Visual Reconstruction", MIT
+#: Press 1987, ch. 7): the final level's first `SEARCH_AFTER` steps are split evenly over these
+#: weights of a smoothness prior, and the steps after them run on the objective as asked (no
+#: prior unless ``smooth`` is set). The prior pulls texels that few pixels pin down, and patches
+#: that the grid start put in a wrong roughness basin, towards their neighbours' basin; released,
+#: each texel settles in the minimum of its own data there. Weights are relative to the data's
+#: mean curvature in base colour per texel at the start (`continuation_scale`), so they do not
+#: depend on the images' brightness. `experiments/solvers.md` has the numbers that chose them.
+CONTINUATION = (0.0035, 0.00035)
 #: Default scale of the robust losses, in image units (a few times a typical noise level).
 LOSS_SCALE = 0.05
 #: Each coarse-to-fine level is this factor finer than the one before (see experiments/solvers.md).
@@ -216,6 +227,7 @@ def fit_observations(
     coarse_to_fine: bool = False,
     init: str = "grid",
     search: bool = True,
+    continuation: Optional[Sequence[float]] = CONTINUATION,
     devices=None,
     level_factor: int = LEVEL_FACTOR,
     wrap: str = "repeat",
@@ -251,8 +263,12 @@ def fit_observations(
     e_final = pairs_final.shape[0]
 
     mesh = None if devices is None else pixel_mesh(devices)
+    continuation = tuple(float(w) for w in (continuation or ()))
+    if any(not (math.isfinite(w) and w >= 0) for w in continuation):
+        raise ValueError(f"continuation weights must be finite and >= 0, got {continuation}")
     x = None
     history = []
+    annealed = None
     clock = dict(compile=0.0, solve=0.0)
     where = dict(level=0, resolution=levels[0])
     cb = None if progress is None else (
@@ -273,9 +289,15 @@ def fit_observations(
             up = _upsample(x, shape).reshape(t, k)
             x0[:t] = np.where(channels[None, :] > 0, up, x0[:t])
         x0[:t] = np.where(seen[:t, None], x0[:t], fixed_x[:t])
+        last = level == len(levels) - 1
+        steps = max_steps if last else min(coarse_steps, max_steps)
+        head = min(SEARCH_AFTER, steps)
+        maps_level = shape != (1, 1)
+        searching = last and search and maps_level and np.any(channels[3:] > 0) and head < steps
+        annealing = last and maps_level and any(w > 0 for w in continuation) and head < steps
         pairs = np.zeros((e_final, 2), np.int32)
         pw = np.zeros(e_final, np.float32)
-        if shape != (1, 1) and smooth > 0:
+        if maps_level and (smooth > 0 or annealing):
             p = neighbour_pairs(shape)
             pairs[: len(p)] = p
             pw[: len(p)] = (seen[p[:, 0]] & seen[p[:, 1]]).astype(np.float32)
@@ -285,26 +307,65 @@ def fit_observations(
             problem = shard_problem(problem, mesh)
         if level == 0 and init == "grid":
             x0 = np.asarray(_timed(grid_initialise, clock, "init", to_device(x0, np.float32), problem))
-        last = level == len(levels) - 1
-        steps = max_steps if last else min(coarse_steps, max_steps)
-        searching = last and search and shape != (1, 1) and np.any(channels[3:] > 0)
-        first = min(SEARCH_AFTER, steps) if searching else steps
-        xs, info = runner(to_device(x0, np.float32), problem, first, int(np.sum(free)))
-        if searching and first < steps:
+        num_free = int(np.sum(free))
+        xs, info = to_device(x0, np.float32), None
+        if annealing:
+            scale = continuation_scale(runner.jacobian(xs, problem, num_free), problem)
+            weights = [w * scale for w in continuation]
+            for w, n in zip(weights, (len(a) for a in np.array_split(np.arange(head), len(weights)))):
+                if n > 0:
+                    xs, info = _merge(info, runner(to_device(xs, np.float32), with_smooth(problem, smooth + w), n,
+                                                   num_free))
+            annealed = dict(relative=list(continuation), weights=weights, curvature=scale, steps=head)
+        elif searching:
+            xs, info = _merge(info, runner(xs, problem, head, num_free))
+        if searching:
             xn = np.asarray(_timed(coordinate_search, clock, "search", to_device(xs, np.float32), problem,
                                    to_device(parity_classes(shape)), SEARCH_ROUNDS, bool(channels[3] > 0)))
-            moved = int(np.sum(np.any(xn[:t] != xs[:t], axis=1)))
-            xs, more = runner(to_device(xn, np.float32), problem, steps - first, int(np.sum(free)))
-            for count in ("steps", "accepted", "cg_iterations"):  # counts add up; the rest is the last run's
-                if count in info:
-                    more[count] += info[count]
-            info = dict(more, search_moved=moved)
+            info["search_moved"] = int(np.sum(np.any(xn[:t] != np.asarray(xs)[:t], axis=1)))
+            xs = xn
+        done = head if (annealing or searching) else 0
+        xs, info = _merge(info, runner(to_device(xs, np.float32), problem, steps - done, num_free))
         history.append(dict(resolution=list(shape), **info))
         x = xs[:t].reshape(shape + (k,))
 
     t_post = time.perf_counter()
-    return _finish(obs, problem, x, final, channels, seen[:t_final], model, solver, history, loss, smooth,
-                   dict(setup=setup_time, **clock), t_post, t_start, runner.linearization)
+    result = _finish(obs, problem, x, final, channels, seen[:t_final], model, solver, history, loss, smooth,
+                     dict(setup=setup_time, **clock), t_post, t_start, runner.linearization)
+    result.report["continuation"] = annealed
+    return result
+
+
+def continuation_scale(jac, problem: Problem) -> float:
+    """The data's mean curvature per fitted texel and channel, in base colour where it is fitted:
+    the mean diagonal of the per-texel blocks of JᵀJ (`pbrfit.solvers.normal_blocks`) over the
+    free base-colour channels (else over all free channels); 1 where nothing is free."""
+    diag = np.diagonal(np.asarray(jax.jit(normal_blocks)(jac, problem)), axis1=1, axis2=2)
+    free = np.asarray(problem.free) > 0
+    use = free[:, :3] if free[:, :3].any() else free
+    values = (diag[:, :3] if free[:, :3].any() else diag)[use]
+    scale = float(np.mean(values)) if values.size else 1.0
+    return scale if math.isfinite(scale) and scale > 0 else 1.0
+
+
+def with_smooth(problem: Problem, weight: float) -> Problem:
+    """`problem` with the smoothness prior's weight set to `weight` (placed like the old one)."""
+    value = np.asarray(weight, np.float32)
+    old = problem.smooth
+    new = jax.device_put(value, old.sharding) if hasattr(old, "sharding") else to_device(value)
+    return eqx.tree_at(lambda p: p.smooth, problem, new)
+
+
+def _merge(info: Optional[dict], run) -> tuple:
+    """(x, info) of a solver run, its counts added to those of the runs before it on this level."""
+    x, more = run
+    if info is not None:
+        for count in ("steps", "accepted", "cg_iterations"):  # counts add up; the rest is the last run's
+            if count in info:
+                more[count] += info[count]
+        if "search_moved" in info:
+            more["search_moved"] = info["search_moved"]
+    return x, more
 
 
 def _compile(fn, clock: dict, *args, **kwargs):
@@ -354,6 +415,13 @@ class _Runner:
             info = dict(steps=int(out[1]), result=int(out[2]), method=type(opt).__name__)
             self.linearization = None
         return x, info
+
+    def jacobian(self, x, problem, num_free):
+        """Per-pixel Jacobians (P, 3, K) at x (the structured solver's step 0: compiled already)."""
+        if self.solver == DEFAULT_SOLVER:
+            self(x, problem, 0, num_free)
+            return self.linearization[1]
+        return jax.jit(linearize)(x, problem)[1]
 
 
 def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss, smooth, times, t_post, t_start,
@@ -449,6 +517,11 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
         search: after `SEARCH_AFTER` steps of the final level, re-search each texel's metallic and
             roughness with its neighbours fixed (`pbrfit.initialisation.coordinate_search`), then
             finish the steps: repairs texels left in a wrong roughness basin (default on).
+        continuation: weights of a smoothness prior for the final level's first `SEARCH_AFTER`
+            steps, split evenly, relative to the data's curvature (`continuation_scale`); the
+            steps after them solve the objective as asked, so the prior only chooses basins, and
+            the result is a minimum of the unregularised objective (default `CONTINUATION`;
+            () = off). The report's "continuation" entry gives the absolute weights used.
         devices: a sequence of JAX devices to split the pixels over (`pbrfit.sharding`); default
             None: the default device.
         model: override the `Model` (default `model_for_capture`: the one that rendered the images).

@@ -122,6 +122,8 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--devices", "99"], "--devices"),
         (["--devices", "0"], "--devices"),
         (["--smooth", "nan"], "--smooth"),
+        (["--continuation", "abc"], "--continuation"),
+        (["--continuation", "0.01,-1"], "--continuation"),
         (["--rtol", "-1"], "--rtol"),
         (["--atol", "inf"], "--atol"),
         (["--metallic", "0.5", "--fit", "metallic,roughness"], "--fit: lists metallic, which --metallic holds fixed"),
@@ -141,6 +143,19 @@ def test_bad_fit_options_exit_2_and_write_nothing(capture, tmp_path, capsys, ext
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(("pbrfit: error: ", "pbrfit fit: error: ")) and message in err[0]
     assert not out.exists()
+
+
+def test_fit_continuation_option(capture, tmp_path, monkeypatch):
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    reports = {}
+    for value in ("0.01,0.001", "none"):
+        out = tmp_path / value
+        assert main(["fit", str(capture), "--out", str(out), "--resolution", "8", "--max-steps", "20",
+                     "--continuation", value, "--quiet"]) == 0
+        reports[value] = json.loads((out / "report.json").read_text())
+    cont = reports["0.01,0.001"]["continuation"]
+    assert cont["relative"] == [0.01, 0.001] and len(cont["weights"]) == 2
+    assert reports["none"]["continuation"] is None
 
 
 def test_fit_missing_capture_exits_2(tmp_path, capsys):

@@ -4,6 +4,7 @@ Geometry is analytic (no ray casting, no files), so these test the fit alone. Sh
 between tests so the solver compiles once per configuration.
 """
 
+import dataclasses
 import math
 
 import jax
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 
 from pbrfit.color import encode
-from pbrfit.fit import SOLVERS, default_resolution, fit_observations, map_rmse, schedule
+from pbrfit.fit import SEARCH_AFTER, SOLVERS, default_resolution, fit_observations, map_rmse, schedule
 from pbrfit.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, parity_classes
 from pbrfit.lights import point_light
 from pbrfit.material import Material
@@ -261,6 +262,40 @@ def test_fit_reports_the_search():
     assert "search_moved" in res.report["levels"][-1] and "search" in res.report["times"]
     off = fit_observations(obs, resolution=8, max_steps=40, search=False)
     assert "search_moved" not in off.report["levels"][-1]
+
+
+def test_continuation_is_reported_scales_with_the_data_and_is_released():
+    """The prior's weights are relative to the data's curvature (the same fit on images and lights
+    four times brighter gives the same maps and 16 times the weights); it acts on the first steps
+    only: with a huge weight and one step left the maps are still smoothed, with the default
+    number of steps the fit is exact again."""
+    truth = _checker()
+    images = _images(VIEWS, truth)
+    obs = observations_from_views(VIEWS, images)
+    res = fit_observations(obs, resolution=8, max_steps=40, continuation=(0.01, 0.001))
+    cont = res.report["continuation"]
+    assert cont["relative"] == [0.01, 0.001] and cont["steps"] == SEARCH_AFTER and cont["curvature"] > 0
+    np.testing.assert_allclose(cont["weights"], [0.01 * cont["curvature"], 0.001 * cont["curvature"]], rtol=1e-6)
+    err = map_rmse(truth, res)
+    assert max(err.values()) < 1e-3, err
+
+    bright_views = [dataclasses.replace(v, light_radiance=4.0 * v.light_radiance) for v in VIEWS]
+    bright = fit_observations(observations_from_views(bright_views, [4.0 * i for i in images]), resolution=8,
+                              max_steps=40, continuation=(0.01, 0.001))
+    np.testing.assert_allclose(bright.report["continuation"]["curvature"], 16.0 * cont["curvature"], rtol=1e-3)
+    for name in ("base_color", "metallic", "roughness"):
+        np.testing.assert_allclose(np.asarray(getattr(bright.material, name)), np.asarray(getattr(res.material, name)),
+                                   atol=1e-3)
+
+    off = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + 1, search=False, continuation=())
+    held = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + 1, search=False, continuation=(10.0,))
+    assert off.report["continuation"] is None
+    # one released step from a prior ten times the data: the checker's edges are still blurred
+    assert map_rmse(truth, off)["base_color"] < 1e-5 < 1e-3 < map_rmse(truth, held)["base_color"]
+    released = fit_observations(obs, resolution=8, max_steps=60, search=False, continuation=(10.0,))
+    assert max(map_rmse(truth, released).values()) < 1e-3
+    with pytest.raises(ValueError, match="continuation"):
+        fit_observations(obs, resolution=8, continuation=(-1.0,))
 
 
 def test_schedule_levels():
