@@ -11,8 +11,9 @@ puts RMSE against run time, compile excluded; the JSON keeps the whole wall time
 the RMSE over well-observed texels (``rmse_well``, coverage >= `WELL_OBSERVED` pixel samples) and
 the fraction of texels whose error is within the fit's reported 2σ (``within_2sigma``).
 
-The optimistix solvers start from the grid start, without the midway coordinate search
-(``search=False``), so they compare with "structured (grid, no search)".
+The optimistix solvers start from the grid start, without the continuation and the midway
+coordinate search (``continuation=(), search=False``), so they compare with "structured (grid,
+no search)".
 
     python experiments/solvers.py [--scenes peer-plane plane-flash] [--configs NAME ...] [--merge]
 
@@ -36,22 +37,26 @@ import numpy as np
 
 import pbrfit  # noqa: F401  (sets the XLA flags pbrfit needs before JAX starts)
 
-GRID = dict(solver="structured", init="grid", search=False)
+GRID = dict(solver="structured", init="grid", search=False, continuation=())
+DEFAULT = "structured (default: grid + continuation + search)"
+NO_CONTINUATION = "structured (grid + search, no continuation)"
 CONFIGS = {
     # name: fit_observations keyword arguments
-    "structured (default: grid + search)": dict(solver="structured"),
+    DEFAULT: dict(solver="structured"),
     "structured (default, 100 steps)": dict(solver="structured", max_steps=100),
+    NO_CONTINUATION: dict(solver="structured", continuation=()),
+    "structured (grid + continuation, no search)": dict(solver="structured", search=False),
     "structured (grid, no search)": dict(GRID),
-    "structured (prior init)": dict(solver="structured", init="prior", search=False),
-    "structured (coarse-to-fine)": dict(solver="structured", init="prior", coarse_to_fine=True, search=False),
-    "structured (grid + search + coarse-to-fine)": dict(solver="structured", coarse_to_fine=True),
+    "structured (prior init)": dict(GRID, init="prior"),
+    "structured (coarse-to-fine)": dict(GRID, init="prior", coarse_to_fine=True),
+    "structured (default + coarse-to-fine)": dict(solver="structured", coarse_to_fine=True),
     "lm (optimistix)": dict(GRID, solver="lm", max_steps=20),
     "gn (optimistix)": dict(GRID, solver="gn", max_steps=20),
     "dogleg (optimistix)": dict(GRID, solver="dogleg", max_steps=20),
     "lbfgs (optimistix)": dict(GRID, solver="lbfgs", max_steps=400),
     "ncg (optimistix)": dict(GRID, solver="ncg", max_steps=400),
     "adam (optimistix)": dict(GRID, solver="adam", max_steps=300),
-    # the noisy scene only: the default with the smoothness prior
+    # the noisy scene only: the default with the smoothness prior kept to the end
     "structured (default, smooth=0.003)": dict(solver="structured", smooth=0.003),
     "structured (default, smooth=0.03)": dict(solver="structured", smooth=0.03),
 }
@@ -69,19 +74,19 @@ SCENES = {
     "sphere-env": ("sphere-env", {}, COMPARISON),
     "spheres-grid": ("spheres-grid", {}, COMPARISON),
     "peer-plane-noisy": ("peer-plane", dict(noise=0.01),
-                         ["structured (default: grid + search)", "structured (grid, no search)",
+                         [DEFAULT, NO_CONTINUATION, "structured (grid, no search)",
                           "structured (default, smooth=0.003)", "structured (default, smooth=0.03)", ORACLE]),
     # plane-flash with a third of the noise: three times the signal-to-noise
     "plane-flash-quiet": ("plane-flash", dict(noise=0.01 / 3),
-                          ["structured (default: grid + search)", "structured (grid, no search)", ORACLE]),
+                          [DEFAULT, NO_CONTINUATION, "structured (grid, no search)", ORACLE]),
     # the same noise with lights π times brighter (intensity 6π): three times the signal-to-noise
     "peer-plane-noisy-bright": ("peer-plane", dict(noise=0.01, light_intensity=6.0 * math.pi),
-                                ["structured (default: grid + search)", "structured (grid, no search)", ORACLE]),
+                                [DEFAULT, NO_CONTINUATION, "structured (grid, no search)", ORACLE]),
     # "1% noise" read as 1% of each value (std proportional to the signal) rather than 1% of a value of 1
     "peer-plane-noisy-relative": ("peer-plane", dict(noise=0.01, noise_model="relative"),
-                                  ["structured (default: grid + search)", ORACLE]),
+                                  [DEFAULT, NO_CONTINUATION, ORACLE]),
     "plane-flash-relative": ("plane-flash", dict(noise=0.01, noise_model="relative"),
-                             ["structured (default: grid + search)", ORACLE]),
+                             [DEFAULT, NO_CONTINUATION, ORACLE]),
 }
 
 
@@ -223,12 +228,14 @@ def run(scenes, configs):
 
 
 SHORT = {
-    "structured (default: grid + search)": "default",
+    DEFAULT: "default",
     "structured (default, 100 steps)": "default (100 steps)",
+    NO_CONTINUATION: "no continuation",
+    "structured (grid + continuation, no search)": "continuation, no search",
     "structured (grid, no search)": "no search",
     "structured (prior init)": "prior init",
     "structured (coarse-to-fine)": "c2f",
-    "structured (grid + search + coarse-to-fine)": "grid+c2f",
+    "structured (default + coarse-to-fine)": "default+c2f",
     "lm (optimistix)": "lm",
     "gn (optimistix)": "gn",
     "dogleg (optimistix)": "dogleg",

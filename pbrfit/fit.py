@@ -518,10 +518,11 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             roughness with its neighbours fixed (`pbrfit.initialisation.coordinate_search`), then
             finish the steps: repairs texels left in a wrong roughness basin (default on).
         continuation: weights of a smoothness prior for the final level's first `SEARCH_AFTER`
-            steps, split evenly, relative to the data's curvature (`continuation_scale`); the
-            steps after them solve the objective as asked, so the prior only chooses basins, and
-            the result is a minimum of the unregularised objective (default `CONTINUATION`;
-            () = off). The report's "continuation" entry gives the absolute weights used.
+            steps (added to ``smooth``), split evenly, relative to the data's curvature
+            (`continuation_scale`); the steps after them solve the objective as asked, so the
+            prior only chooses basins and the result is a minimum of the objective without it
+            (default `CONTINUATION`; () = off). The report's "continuation" entry gives the
+            absolute weights used.
         devices: a sequence of JAX devices to split the pixels over (`pbrfit.sharding`); default
             None: the default device.
         model: override the `Model` (default `model_for_capture`: the one that rendered the images).
