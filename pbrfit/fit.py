@@ -46,7 +46,7 @@ from .transfer import to_device
 from .uncertainty import block_standard_errors, residual_variance
 
 __all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "model_for_capture",
-           "SOLVERS", "DEFAULT_SOLVER", "IBL_MODES", "CONTINUATION", "continuation_scale", "schedule"]
+           "SOLVERS", "DEFAULT_SOLVER", "IBL_MODES", "CONTINUATION", "SETTLE_STEPS", "continuation_scale", "schedule"]
 
 DEFAULT_SOLVER = "structured"
 #: What `fit` may integrate a capture's environment light with (``ibl=``); the first is the default.
@@ -62,13 +62,16 @@ SEARCH_AFTER = 15
 SEARCH_ROUNDS = 1
 #: Continuation (graduated smoothing; A. Blake & A. Zisserman, "Visual Reconstruction", MIT
 #: Press 1987, ch. 7): the final level's first `SEARCH_AFTER` steps are split evenly over these
-#: weights of a smoothness prior, and the steps after them run on the objective as asked (no
-#: prior unless ``smooth`` is set). The prior pulls texels that few pixels pin down, and patches
-#: that the grid start put in a wrong roughness basin, towards their neighbours' basin; released,
-#: each texel settles in the minimum of its own data there. Weights are relative to the data's
-#: mean curvature in base colour per texel at the start (`continuation_scale`), so they do not
-#: depend on the images' brightness. `experiments/solvers.md` has the numbers that chose them.
+#: weights of a smoothness prior; after the search, `SETTLE_STEPS` more run under the last
+#: weight (the search moves texels few pixels see into minima of those few pixels), and the
+#: steps after them run on the objective as asked (no prior unless ``smooth`` is set). The prior
+#: pulls texels that few pixels pin down, and patches that the grid start put in a wrong
+#: roughness basin, towards their neighbours' basin; released, each texel settles in the minimum
+#: of its own data there. Weights are relative to the data's mean curvature in base colour per
+#: texel at the start (`continuation_scale`), so they do not depend on the images' brightness.
+#: `experiments/solvers.md` has the numbers that chose them.
 CONTINUATION = (0.0035, 0.00035)
+SETTLE_STEPS = 5
 #: Default scale of the robust losses, in image units (a few times a typical noise level).
 LOSS_SCALE = 0.05
 #: Each coarse-to-fine level is this factor finer than the one before (see experiments/solvers.md).
@@ -316,15 +319,20 @@ def fit_observations(
                 if n > 0:
                     xs, info = _merge(info, runner(to_device(xs, np.float32), with_smooth(problem, smooth + w), n,
                                                    num_free))
-            annealed = dict(relative=list(continuation), weights=weights, curvature=scale, steps=head)
+            annealed = dict(relative=list(continuation), weights=weights, curvature=scale, steps=head, settle_steps=0)
         elif searching:
             xs, info = _merge(info, runner(xs, problem, head, num_free))
+        done = head if (annealing or searching) else 0
         if searching:
             xn = np.asarray(_timed(coordinate_search, clock, "search", to_device(xs, np.float32), problem,
                                    to_device(parity_classes(shape)), SEARCH_ROUNDS, bool(channels[3] > 0)))
             info["search_moved"] = int(np.sum(np.any(xn[:t] != np.asarray(xs)[:t], axis=1)))
             xs = xn
-        done = head if (annealing or searching) else 0
+            if annealing and weights[-1] > 0 and steps - done > SETTLE_STEPS:
+                xs, info = _merge(info, runner(to_device(xs, np.float32), with_smooth(problem, smooth + weights[-1]),
+                                               SETTLE_STEPS, num_free))
+                done += SETTLE_STEPS
+                annealed["settle_steps"] = SETTLE_STEPS
         xs, info = _merge(info, runner(to_device(xs, np.float32), problem, steps - done, num_free))
         history.append(dict(resolution=list(shape), **info))
         x = xs[:t].reshape(shape + (k,))
@@ -519,10 +527,10 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             finish the steps: repairs texels left in a wrong roughness basin (default on).
         continuation: weights of a smoothness prior for the final level's first `SEARCH_AFTER`
             steps (added to ``smooth``), split evenly, relative to the data's curvature
-            (`continuation_scale`); the steps after them solve the objective as asked, so the
-            prior only chooses basins and the result is a minimum of the objective without it
-            (default `CONTINUATION`; () = off). The report's "continuation" entry gives the
-            absolute weights used.
+            (`continuation_scale`), and the last one for `SETTLE_STEPS` after the search; the
+            steps after them solve the objective as asked, so the prior only chooses basins and
+            the result is a minimum of the objective without it (default `CONTINUATION`; () =
+            off). The report's "continuation" entry gives the absolute weights used.
         devices: a sequence of JAX devices to split the pixels over (`pbrfit.sharding`); default
             None: the default device.
         model: override the `Model` (default `model_for_capture`: the one that rendered the images).

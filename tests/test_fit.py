@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from pbrfit.color import encode
-from pbrfit.fit import SEARCH_AFTER, SOLVERS, default_resolution, fit_observations, map_rmse, schedule
+from pbrfit.fit import SEARCH_AFTER, SETTLE_STEPS, SOLVERS, default_resolution, fit_observations, map_rmse, schedule
 from pbrfit.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, parity_classes
 from pbrfit.lights import point_light
 from pbrfit.material import Material
@@ -275,6 +275,7 @@ def test_continuation_is_reported_scales_with_the_data_and_is_released():
     res = fit_observations(obs, resolution=8, max_steps=40, continuation=(0.01, 0.001))
     cont = res.report["continuation"]
     assert cont["relative"] == [0.01, 0.001] and cont["steps"] == SEARCH_AFTER and cont["curvature"] > 0
+    assert cont["settle_steps"] == SETTLE_STEPS  # after the search, under the last weight
     np.testing.assert_allclose(cont["weights"], [0.01 * cont["curvature"], 0.001 * cont["curvature"]], rtol=1e-6)
     err = map_rmse(truth, res)
     assert max(err.values()) < 1e-3, err
