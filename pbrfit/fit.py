@@ -46,7 +46,7 @@ from .transfer import to_device
 from .uncertainty import block_standard_errors, residual_variance
 
 __all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "model_for_capture",
-           "SOLVERS", "DEFAULT_SOLVER", "IBL_MODES", "CONTINUATION", "SETTLE_STEPS", "continuation_scale", "schedule"]
+           "SOLVERS", "DEFAULT_SOLVER", "IBL_MODES", "CONTINUATION", "SETTLE_STEPS", "RELEASED_STEPS", "continuation_scale", "schedule"]
 
 DEFAULT_SOLVER = "structured"
 #: What `fit` may integrate a capture's environment light with (``ibl=``); the first is the default.
@@ -67,11 +67,16 @@ SEARCH_ROUNDS = 1
 #: steps after them run on the objective as asked (no prior unless ``smooth`` is set). The prior
 #: pulls texels that few pixels pin down, and patches that the grid start put in a wrong
 #: roughness basin, towards their neighbours' basin; released, each texel settles in the minimum
-#: of its own data there. Weights are relative to the data's mean curvature in base colour per
-#: texel at the start (`continuation_scale`), so they do not depend on the images' brightness.
-#: `experiments/solvers.md` has the numbers that chose them.
+#: of its own data there. Weights are relative to the data's mean curvature per texel at the
+#: start (`continuation_scale`), so they do not depend on the images' brightness (exactly so for
+#: linear images).
+#: `experiments/solvers.md` has the numbers that chose them. The structured solver only (the
+#: optimistix ones would compile once per phase), and only where at least `RELEASED_STEPS` steps
+#: are left without the prior: with fewer (``max_steps`` under 25) there is no continuation, and
+#: with fewer after the settling steps (under 30) no settling.
 CONTINUATION = (0.0035, 0.00035)
 SETTLE_STEPS = 5
+RELEASED_STEPS = 10
 #: Default scale of the robust losses, in image units (a few times a typical noise level).
 LOSS_SCALE = 0.05
 #: Each coarse-to-fine level is this factor finer than the one before (see experiments/solvers.md).
@@ -266,7 +271,7 @@ def fit_observations(
     e_final = pairs_final.shape[0]
 
     mesh = None if devices is None else pixel_mesh(devices)
-    continuation = tuple(float(w) for w in (continuation or ()))
+    continuation = () if continuation is None else tuple(float(w) for w in np.ravel(continuation))
     if any(not (math.isfinite(w) and w >= 0) for w in continuation):
         raise ValueError(f"continuation weights must be finite and >= 0, got {continuation}")
     x = None
@@ -297,7 +302,8 @@ def fit_observations(
         head = min(SEARCH_AFTER, steps)
         maps_level = shape != (1, 1)
         searching = last and search and maps_level and np.any(channels[3:] > 0) and head < steps
-        annealing = last and maps_level and any(w > 0 for w in continuation) and head < steps
+        annealing = (last and maps_level and solver == DEFAULT_SOLVER and any(w > 0 for w in continuation)
+                     and steps - head >= RELEASED_STEPS)
         pairs = np.zeros((e_final, 2), np.int32)
         pw = np.zeros(e_final, np.float32)
         if maps_level and (smooth > 0 or annealing):
@@ -313,7 +319,9 @@ def fit_observations(
         num_free = int(np.sum(free))
         xs, info = to_device(x0, np.float32), None
         if annealing:
+            t0 = time.perf_counter()
             scale = continuation_scale(runner.jacobian(xs, problem, num_free), problem)
+            clock["init"] = clock.get("init", 0.0) + time.perf_counter() - t0
             weights = [w * scale for w in continuation]
             for w, n in zip(weights, (len(a) for a in np.array_split(np.arange(head), len(weights)))):
                 if n > 0:
@@ -328,7 +336,7 @@ def fit_observations(
                                    to_device(parity_classes(shape)), SEARCH_ROUNDS, bool(channels[3] > 0)))
             info["search_moved"] = int(np.sum(np.any(xn[:t] != np.asarray(xs)[:t], axis=1)))
             xs = xn
-            if annealing and weights[-1] > 0 and steps - done > SETTLE_STEPS:
+            if annealing and weights[-1] > 0 and steps - done - SETTLE_STEPS >= RELEASED_STEPS:
                 xs, info = _merge(info, runner(to_device(xs, np.float32), with_smooth(problem, smooth + weights[-1]),
                                                SETTLE_STEPS, num_free))
                 done += SETTLE_STEPS
@@ -347,7 +355,8 @@ def fit_observations(
 def continuation_scale(jac, problem: Problem) -> float:
     """The data's mean curvature per fitted texel and channel, in base colour where it is fitted:
     the mean diagonal of the per-texel blocks of JᵀJ (`pbrfit.solvers.normal_blocks`) over the
-    free base-colour channels (else over all free channels); 1 where nothing is free."""
+    free base-colour channels (else over all free channels); 1 where nothing is free or the
+    mean is not a positive number."""
     diag = np.diagonal(np.asarray(jax.jit(normal_blocks)(jac, problem)), axis1=1, axis2=2)
     free = np.asarray(problem.free) > 0
     use = free[:, :3] if free[:, :3].any() else free
@@ -425,11 +434,10 @@ class _Runner:
         return x, info
 
     def jacobian(self, x, problem, num_free):
-        """Per-pixel Jacobians (P, 3, K) at x (the structured solver's step 0: compiled already)."""
-        if self.solver == DEFAULT_SOLVER:
-            self(x, problem, 0, num_free)
-            return self.linearization[1]
-        return jax.jit(linearize)(x, problem)[1]
+        """Per-pixel Jacobians (P, 3, K) at x: the structured solver's step 0, which only
+        linearises (compiled already for the solve)."""
+        self(x, problem, 0, num_free)
+        return self.linearization[1]
 
 
 def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss, smooth, times, t_post, t_start,
@@ -528,9 +536,10 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
         continuation: weights of a smoothness prior for the final level's first `SEARCH_AFTER`
             steps (added to ``smooth``), split evenly, relative to the data's curvature
             (`continuation_scale`), and the last one for `SETTLE_STEPS` after the search; the
-            steps after them solve the objective as asked, so the prior only chooses basins and
-            the result is a minimum of the objective without it (default `CONTINUATION`; () =
-            off). The report's "continuation" entry gives the absolute weights used.
+            steps after them (at least `RELEASED_STEPS`, else no continuation) solve the
+            objective as asked, so the prior only chooses basins (default `CONTINUATION`; () =
+            off; structured solver only). The report's "continuation" entry gives the absolute
+            weights and the step budgets used (None: none ran).
         devices: a sequence of JAX devices to split the pixels over (`pbrfit.sharding`); default
             None: the default device.
         model: override the `Model` (default `model_for_capture`: the one that rendered the images).

@@ -150,7 +150,7 @@ def test_fit_continuation_option(capture, tmp_path, monkeypatch):
     reports = {}
     for value in ("0.01,0.001", "none"):
         out = tmp_path / value
-        assert main(["fit", str(capture), "--out", str(out), "--resolution", "8", "--max-steps", "20",
+        assert main(["fit", str(capture), "--out", str(out), "--resolution", "8", "--max-steps", "26",
                      "--continuation", value, "--quiet"]) == 0
         reports[value] = json.loads((out / "report.json").read_text())
     cont = reports["0.01,0.001"]["continuation"]

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from pbrfit.color import encode
-from pbrfit.fit import SEARCH_AFTER, SETTLE_STEPS, SOLVERS, default_resolution, fit_observations, map_rmse, schedule
+import pbrfit.fit
+from pbrfit.fit import RELEASED_STEPS, SEARCH_AFTER, SETTLE_STEPS, SOLVERS, default_resolution, fit_observations, map_rmse, schedule
 from pbrfit.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, parity_classes
 from pbrfit.lights import point_light
 from pbrfit.material import Material
@@ -264,11 +265,11 @@ def test_fit_reports_the_search():
     assert "search_moved" not in off.report["levels"][-1]
 
 
-def test_continuation_is_reported_scales_with_the_data_and_is_released():
+def test_continuation_is_reported_scales_with_the_data_and_is_released(monkeypatch):
     """The prior's weights are relative to the data's curvature (the same fit on images and lights
     four times brighter gives the same maps and 16 times the weights); it acts on the first steps
-    only: with a huge weight and one step left the maps are still smoothed, with the default
-    number of steps the fit is exact again."""
+    only: with a huge weight and one step left the maps are still smoothed, with 45 steps left
+    the fit is exact again; with fewer than `RELEASED_STEPS` left there is none."""
     truth = _checker()
     images = _images(VIEWS, truth)
     obs = observations_from_views(VIEWS, images)
@@ -288,9 +289,12 @@ def test_continuation_is_reported_scales_with_the_data_and_is_released():
         np.testing.assert_allclose(np.asarray(getattr(bright.material, name)), np.asarray(getattr(res.material, name)),
                                    atol=1e-3)
 
+    short = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + RELEASED_STEPS - 1, continuation=(0.01,))
+    assert short.report["continuation"] is None
     off = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + 1, search=False, continuation=())
+    monkeypatch.setattr(pbrfit.fit, "RELEASED_STEPS", 1)
     held = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + 1, search=False, continuation=(10.0,))
-    assert off.report["continuation"] is None
+    assert off.report["continuation"] is None and held.report["continuation"]["steps"] == SEARCH_AFTER
     # one released step from a prior ten times the data: the checker's edges are still blurred
     assert map_rmse(truth, off)["base_color"] < 1e-5 < 1e-3 < map_rmse(truth, held)["base_color"]
     released = fit_observations(obs, resolution=8, max_steps=60, search=False, continuation=(10.0,))
