@@ -26,7 +26,6 @@ import math
 import time
 from typing import Callable, Mapping, Optional, Sequence
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -360,18 +359,15 @@ def continuation_scale(jac, problem: Problem) -> float:
     mean is not a positive number."""
     diag = np.diagonal(np.asarray(jax.jit(normal_blocks)(jac, problem)), axis1=1, axis2=2)
     free = np.asarray(problem.free) > 0
-    use = free[:, :3] if free[:, :3].any() else free
-    values = (diag[:, :3] if free[:, :3].any() else diag)[use]
+    cols = slice(0, 3) if free[:, :3].any() else slice(None)
+    values = diag[:, cols][free[:, cols]]
     scale = float(np.mean(values)) if values.size else 1.0
     return scale if math.isfinite(scale) and scale > 0 else 1.0
 
 
 def with_smooth(problem: Problem, weight: float) -> Problem:
     """`problem` with the smoothness prior's weight set to `weight` (placed like the old one)."""
-    value = np.asarray(weight, np.float32)
-    old = problem.smooth
-    new = jax.device_put(value, old.sharding) if hasattr(old, "sharding") else to_device(value)
-    return eqx.tree_at(lambda p: p.smooth, problem, new)
+    return dataclasses.replace(problem, smooth=jax.device_put(np.float32(weight), problem.smooth.sharding))
 
 
 def _merge(info: Optional[dict], run) -> tuple:
