@@ -207,6 +207,9 @@ def _add_fit(sub) -> None:
                    help=f"per_pixel: sample steps per pixel (default {PixelIBLSettings.samples})")
     p.add_argument("--ibl-levels", type=int, default=PixelIBLSettings.levels,
                    help=f"per_pixel: roughness levels tabulated (default {PixelIBLSettings.levels})")
+    p.add_argument("--pixel-samples", type=int, default=1, metavar="N",
+                   help="shade N x N samples per pixel and fit their mean: the pixel footprint of an antialiased or "
+                        "supersampled capture (default 1: pixel centres; cost grows as N^2)")
     p.add_argument("--no-search", action="store_true",
                    help="skip the per-texel re-search of metallic and roughness midway through the solve")
     p.add_argument("--continuation", default=",".join(str(w) for w in CONTINUATION), metavar="W[,W...]",
@@ -224,6 +227,7 @@ def _fit_options(args) -> dict:
     import math
 
     from .io import read_map
+    from .observations import MAX_PIXEL_SAMPLES
     from .pixel_ibl import PixelIBLSettings
 
     explicit = args.fit is not None
@@ -269,6 +273,8 @@ def _fit_options(args) -> dict:
         if not (math.isfinite(value) and value >= 0):
             raise CaptureError(f"--{name}: must be a finite number >= 0, got {value}")
     continuation = _continuation(args.continuation)
+    if not 1 <= args.pixel_samples <= MAX_PIXEL_SAMPLES:
+        raise CaptureError(f"--pixel-samples: expected 1 to {MAX_PIXEL_SAMPLES}, got {args.pixel_samples}")
     if "normal" in free and args.ibl == "per_pixel":
         raise CaptureError("--ibl per_pixel: fitted normals need --ibl split_sum (per-pixel integrals hold the normals fixed)")
     try:
@@ -288,7 +294,7 @@ def _fit_options(args) -> dict:
         fit=tuple(free), fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
         max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, loss=args.loss, smooth=args.smooth,
         coarse_to_fine=args.coarse_to_fine, search=not args.no_search, devices=devices, ibl=args.ibl,
-        pixel_ibl_settings=pixel_ibl_settings, continuation=continuation,
+        pixel_ibl_settings=pixel_ibl_settings, continuation=continuation, pixel_samples=args.pixel_samples,
     )
 
 

@@ -136,9 +136,9 @@ def _ibl_for_capture(capture, model: Model):
 
 def _median_footprint(obs: Observations) -> float:
     """Median side (in uv units) of one pixel's footprint on the texture, over all views."""
-    uv = np.asarray(obs.uv)
-    vidx = np.asarray(obs.view_index)
-    pix = np.asarray(obs.pixel)
+    uv = np.asarray(obs.pixel_rows(obs.uv))  # one sample per pixel: the pixel grid's spacing
+    vidx = np.asarray(obs.pixel_rows(obs.view_index))
+    pix = np.asarray(obs.pixel_rows(obs.pixel))
     sides = []
     for view, (h, w) in enumerate(obs.shapes):
         sel = vidx == view
@@ -459,9 +459,10 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     else:
         plain = dataclasses.replace(problem, loss="l2")
         resid = np.asarray(jax.jit(pixel_residuals)(xj, plain))[: obs.num_pixels]
-    values = resid + np.asarray(obs.target)
-    vidx = np.asarray(obs.view_index)
-    pix = np.asarray(obs.pixel)
+    target = np.asarray(obs.pixel_rows(obs.target))
+    values = resid + target
+    vidx = np.asarray(obs.pixel_rows(obs.view_index))
+    pix = np.asarray(obs.pixel_rows(obs.pixel))
     images, targets, masks, psnr = [], [], [], []
     for view, (h, w) in enumerate(obs.shapes):
         sel = vidx == view
@@ -469,7 +470,7 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
         tgt = np.zeros((h * w, 3), np.float32)
         msk = np.zeros(h * w, bool)
         img[pix[sel]] = values[sel]
-        tgt[pix[sel]] = np.asarray(obs.target)[sel]
+        tgt[pix[sel]] = target[sel]
         msk[pix[sel]] = True
         images.append(img.reshape(h, w, 3))
         targets.append(tgt.reshape(h, w, 3))
@@ -492,6 +493,7 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
         final_loss=float(energy),
         residual_sigma=math.sqrt(sigma2),
         pixels=int(obs.num_pixels),
+        pixel_samples=int(round(math.sqrt(obs.samples))),
         observed_texels=int(np.sum(coverage > 0)),
         psnr=psnr,
         times={name: float(v) for name, v in times.items()},
@@ -507,10 +509,13 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
 
 
 def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, ibl: Optional[str] = None,
-        pixel_ibl_settings: PixelIBLSettings = PixelIBLSettings(), **kwargs) -> FitResult:
+        pixel_ibl_settings: PixelIBLSettings = PixelIBLSettings(), pixel_samples: int = 1, **kwargs) -> FitResult:
     """Fit material maps to a `pbrfit.scene.Capture`.
 
     Keyword arguments (all optional):
+        pixel_samples: n: shade n × n samples per pixel and compare their mean radiance with the
+            pixel (`pbrfit.observations`, pixel footprints): the model of an antialiased or
+            supersampled capture, at about n² times the cost of pixel centres (1, the default).
         ibl: how the capture's environment light is integrated, ``"split_sum"`` (default: Karis
             2013, the renderer's tables) or ``"per_pixel"`` (`pbrfit.pixel_ibl`: each pixel's
             lobe integrals by Monte Carlo on a roughness grid, once before the solve, with
@@ -552,7 +557,7 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     if ibl is not None and model.ibl is not None:
         model = model.replace(ibl=ibl)
     _check_normals(model, kwargs.get("fit", ()))
-    obs = observations_from_capture(capture, cache_dir=cache_dir, views=views)
+    obs = observations_from_capture(capture, cache_dir=cache_dir, views=views, pixel_samples=pixel_samples)
     t_ibl = time.perf_counter()
     if model.ibl == "per_pixel":
         from .views import capture_environment

@@ -26,6 +26,10 @@ its neighbours held at their current values*: the exact conditional objective, t
 1986). A texel moves only if its pixels' exact residual drops. The search also tries blended
 metallic values near the texel's roughness (`BLEND_METALLIC_CANDIDATES`), which the grid start
 cannot represent; their base colour comes from the radiance linearised at the current one.
+
+With several samples per pixel (`pbrfit.observations`, pixel footprints) both score each sample
+against its pixel's value, as if it were a pixel of its own (cheap, and only a start); the
+search still keeps a move only where the exact objective, the pixels' mean radiance, drops.
 """
 
 from __future__ import annotations
@@ -39,8 +43,8 @@ from .color import encode, srgb_to_linear
 from .brdf import MIN_ROUGHNESS
 from .parameters import LOWER, UPPER
 from .render import shade
-from .solvers import (Problem, _scatter, _smooth_residuals, objective, pixel_residuals, robust_residual, sample_texels,
-                      shading_normal)
+from .solvers import (Problem, _scatter, _smooth_residuals, _to_rows, objective, pixel_residuals, robust_residual,
+                      sample_texels, shading_normal)
 
 __all__ = ["ROUGHNESS_CANDIDATES", "METALLIC_CANDIDATES", "BLEND_METALLIC_CANDIDATES", "grid_initialise", "coordinate_search", "parity_classes"]
 
@@ -176,12 +180,15 @@ def _energies(x, problem: Problem):
 
     A texel's local energy is the part of the objective that depends on it: the squared
     (robust) residuals of the pixels that read it plus its smoothness-prior pairs. Exact for
-    texels that share no pixel and no pair (one parity class)."""
+    texels that share no pixel and no pair (one parity class; with several samples per pixel,
+    texels two apart can share a pixel, and `coordinate_search` checks the whole objective)."""
     r = pixel_residuals(x, problem)
     s = _smooth_residuals(x, problem)
     err = jnp.sum(r * r, axis=1)
     pair = jnp.sum(s * s, axis=1)
-    return _texel_scores(err, problem) + _pair_scores(pair, problem), 0.5 * (jnp.sum(err) + jnp.sum(pair))
+    # with several samples per pixel, a pixel's error counts once per sample reading the texel
+    local = _texel_scores(_to_rows(err, problem), problem)
+    return local + _pair_scores(pair, problem), 0.5 * (jnp.sum(err) + jnp.sum(pair))
 
 
 def _local_energy(x, problem: Problem):

@@ -8,6 +8,14 @@ for LDR images, no channel sits at the file's maximum code (a clipped highlight 
 difference between the image value and the rendered value *in the image's own space*: radiance
 × 2^exposure, tone mapped, and sRGB-encoded for sRGB files (`pbrfit.color.encode`).
 
+Pixel footprints. A camera pixel integrates the radiance over its area; a renderer that
+antialiases (supersampling, a reconstruction filter) writes that average, not the radiance at
+the pixel's centre. With ``pixel_samples`` n > 1 each usable pixel becomes n × n *sample rows*
+(`pixel_offsets`: the centres of an n × n grid of sub-pixels, a box filter, which is exactly an
+n × n supersampled capture), consecutive in every per-pixel field (``samples`` = n², the pixel's
+target repeated), and the objective compares the *mean linear radiance* of a pixel's samples with
+its value (`pbrfit.solvers`). A pixel is usable only where every sample hits the mesh.
+
 A `TexelLayout` says which texels each pixel reads at one map resolution: the four bilinear
 texels and weights of `pbrfit.textures.bilinear_weights` (the exact sparsity of the problem),
 or a single texel of weight 1 for a uniform material.
@@ -15,6 +23,8 @@ or a single texel of weight 1 for a uniform material.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from typing import Optional, Sequence
 
 import equinox as eqx
@@ -28,17 +38,21 @@ from .textures import bilinear_weights
 from .transfer import to_device
 
 __all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "observations_from_views", "observations_from_capture",
-           "texel_layout", "uniform_layout", "coverage_counts", "neighbour_pairs"]
+           "pixel_offsets", "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout", "coverage_counts", "neighbour_pairs"]
 
 
-#: The per-pixel fields of `Observations` (leading axis P).
+#: Largest n of n × n samples per pixel (`observations_from_capture`).
+MAX_PIXEL_SAMPLES = 8
+#: The per-pixel fields of `Observations` (leading axis: rows, P × samples).
 PIXEL_FIELDS = ("normal", "tangent", "view", "light_l", "light_radiance", "uv", "exposure", "target", "view_index",
                 "pixel")
 
 
 class Observations(eqx.Module):
     """Usable pixels of all views, concatenated (P pixels, L lights; views with fewer lights are
-    padded with lights of zero radiance).
+    padded with lights of zero radiance). Every per-pixel field has one row per pixel sample:
+    R = P × ``samples`` rows, a pixel's samples consecutive (module docstring); with
+    ``samples`` = 1 (the default) a row is a pixel, shaded at its centre.
 
     Attributes:
         normal, view: (P, 3) unit shading normal and surface-to-camera direction.
@@ -52,6 +66,7 @@ class Observations(eqx.Module):
         pixel: (P,) flat pixel index in its view.
         shapes: (H, W) of each view (static).
         tonemap, color_space: how radiance becomes image values (static).
+        samples: rows per pixel (static).
     """
 
     normal: Float[Array, "P 3"]
@@ -67,10 +82,20 @@ class Observations(eqx.Module):
     shapes: tuple = eqx.field(static=True)
     tonemap: str = eqx.field(static=True, default="none")
     color_space: str = eqx.field(static=True, default="linear")
+    samples: int = eqx.field(static=True, default=1)
+
+    @property
+    def num_rows(self) -> int:
+        """Rows of the per-pixel fields: pixels × samples."""
+        return int(self.target.shape[0])
 
     @property
     def num_pixels(self) -> int:
-        return int(self.target.shape[0])
+        return self.num_rows // self.samples
+
+    def pixel_rows(self, a):
+        """The first sample's row of each pixel of a per-row array (P, ...)."""
+        return a[:: self.samples]
 
     @property
     def num_views(self) -> int:
@@ -160,7 +185,51 @@ def observations_from_views(
     )
 
 
-def observations_from_capture(capture, cache_dir=None, views=None) -> Observations:
+def pixel_offsets(n: int) -> np.ndarray:
+    """(n², 2) sample positions (x right, y down) inside a pixel, in pixel units from its corner:
+    the centres of an n × n grid of sub-pixels, row by row (n = 1: the pixel centre)."""
+    c = (np.arange(n, dtype=np.float64) + 0.5) / n
+    yy, xx = np.meshgrid(c, c, indexing="ij")
+    return np.stack([xx.ravel(), yy.ravel()], -1)
+
+
+def _sample_views(capture, cache_dir, n: int) -> list:
+    """Per frame, the `ViewInputs` of each of the n × n samples (`pixel_offsets`), kept to the
+    pixels that every sample sees (each sample's silhouettes and masks applied)."""
+    from .views import capture_gbuffers, capture_views
+
+    per_sample = []
+    for ox, oy in pixel_offsets(n):
+        # a ray through pixel centre j + 0.5 of a camera whose principal point moved by
+        # 0.5 - offset passes through j + offset of the original camera
+        shifted = dataclasses.replace(capture, frames=[dataclasses.replace(f, camera=dataclasses.replace(
+            f.camera, cx=f.camera.cx + 0.5 - ox, cy=f.camera.cy + 0.5 - oy)) for f in capture.frames])
+        per_sample.append(capture_views(shifted, capture_gbuffers(shifted, cache_dir)))
+    out = []
+    for k in range(len(capture.frames)):
+        common = functools.reduce(np.intersect1d, [np.asarray(v[k].pixel) for v in per_sample])
+        out.append([_view_rows(v[k], common) for v in per_sample])
+    return out
+
+
+def _view_rows(view, pixels: np.ndarray):
+    """`view` kept to `pixels` (sorted flat indices it holds)."""
+    rows = np.searchsorted(np.asarray(view.pixel), pixels)
+    return type(view)(**{f: (getattr(view, f) if f == "shape" else to_device(np.asarray(getattr(view, f))[rows]))
+                         for f in ("pixel", "uv", "normal", "tangent", "view", "light_l", "light_radiance", "shape")})
+
+
+def _interleave(parts: Sequence[Observations]) -> Observations:
+    """Sample observations of the same pixels (same order) as consecutive rows of one."""
+    n = len(parts)
+    fields = {}
+    for name in PIXEL_FIELDS:
+        a = np.stack([np.asarray(getattr(o, name)) for o in parts], axis=1)
+        fields[name] = to_device(a.reshape((-1,) + a.shape[2:]))
+    return dataclasses.replace(parts[0], samples=n, **fields)
+
+
+def observations_from_capture(capture, cache_dir=None, views=None, pixel_samples: int = 1) -> Observations:
     """Ray-cast every frame of a `pbrfit.scene.Capture` once and gather its usable pixels.
 
     Masked pixels, pixels the mesh misses and saturated LDR pixels (`Frame.saturated`) are left
@@ -168,7 +237,19 @@ def observations_from_capture(capture, cache_dir=None, views=None) -> Observatio
     A capture that leaves no usable pixel, or whose pixels no light reaches (no environment,
     every punctual light off or pointing away), is `CaptureError`: nothing could be fitted; so
     is a NaN or inf pixel on the mesh (`pbrfit.scene.Frame.nonfinite`).
+
+    `pixel_samples` n > 1 ray-casts each frame n × n times, at the `pixel_offsets` (module
+    docstring: pixel footprints), and keeps the pixels every sample sees.
     """
+    n = int(pixel_samples)
+    if n != pixel_samples or not 1 <= n <= MAX_PIXEL_SAMPLES:
+        raise ValueError(f"pixel_samples must be an integer from 1 to {MAX_PIXEL_SAMPLES}, got {pixel_samples!r}")
+    if n > 1:
+        if views is not None:
+            raise ValueError("precomputed views hold pixel centres only: pass views=None with pixel_samples > 1")
+        per_frame = _sample_views(capture, cache_dir, n)
+        return _interleave([observations_from_capture(capture, views=[v[s] for v in per_frame])
+                            for s in range(n * n)])
     from .color import linear_to_srgb_host
     from .views import capture_gbuffers, capture_views
 
@@ -209,21 +290,22 @@ def observations_from_capture(capture, cache_dir=None, views=None) -> Observatio
 
 
 def texel_layout(obs: Observations, shape: tuple[int, int], wrap: str = "repeat") -> TexelLayout:
-    """The four bilinear texels (and weights) each pixel reads from (H, W) maps."""
+    """The four bilinear texels (and weights) each pixel (sample row) reads from (H, W) maps."""
     index, weight = bilinear_weights(obs.uv, tuple(shape), wrap)
     return TexelLayout(index.astype(jnp.int32), weight.astype(jnp.float32), tuple(int(s) for s in shape))
 
 
 def uniform_layout(obs: Observations) -> TexelLayout:
     """Every pixel reads the one texel of a uniform material."""
-    p = obs.num_pixels
+    p = obs.num_rows
     index = jnp.zeros((p, 4), jnp.int32)
     weight = jnp.zeros((p, 4), jnp.float32).at[:, 0].set(1.0)
     return TexelLayout(index, weight, (1, 1))
 
 
 def coverage_counts(layout: TexelLayout) -> np.ndarray:
-    """(H, W) int32: how many pixel observations read each texel with nonzero weight."""
+    """(H, W) int32: how many pixel observations read each texel with nonzero weight (pixel
+    samples, with several per pixel)."""
     idx = np.asarray(layout.index).reshape(-1)
     w = np.asarray(layout.weight).reshape(-1)
     counts = np.bincount(idx[w > 0], minlength=layout.num_texels)

@@ -16,8 +16,9 @@ devices, and each texel-space `segment_sum` becomes a per-device partial sum fol
 all-reduce, so every device holds the full (replicated) texel-space state of the
 Levenberg-Marquardt loop and its conjugate gradients.
 
-Padding. A mesh of n devices needs P to be a multiple of n. `pad_observations` appends inert
-pixels: normal +z, view -z (so n·v = -1 < 0, where `pbrfit.render.shade` returns exactly 0 for
+Padding. A mesh of n devices needs P to be a multiple of n (the rows, a multiple of n × the
+samples per pixel, so that no pixel's samples straddle two devices). `pad_observations` appends
+inert pixels: normal +z, view -z (so n·v = -1 < 0, where `pbrfit.render.shade` returns exactly 0 for
 the punctual lights and the split-sum environment alike, through a `jnp.where` whose forward-
 mode tangent is exactly 0 too), lights of zero radiance along +x (n·l = 0, v·l = 0: no
 singular half vector even in the branch `where` discards), uv 0, exposure 0 and target 0.
@@ -82,7 +83,7 @@ def _append(a, extra: int, fill) -> np.ndarray:
 
 def _padded_pixel_fields(obs: Observations, multiple: int) -> dict:
     """The per-pixel fields of `obs` padded on the host (empty when no padding is needed)."""
-    extra = padded_size(obs.num_pixels, multiple) - obs.num_pixels
+    extra = padded_size(obs.num_rows, multiple * obs.samples) - obs.num_rows
     if extra == 0:
         return {}
     fills = dict(normal=PAD_NORMAL, tangent=PAD_TANGENT, view=PAD_VIEW, light_l=PAD_LIGHT, light_radiance=0.0, uv=0.0, exposure=0.0,
@@ -98,12 +99,13 @@ def _padded_texel_rows(index, weight, multiple: int) -> tuple[np.ndarray, np.nda
 def pad_observations(obs: Observations, multiple: int) -> tuple[Observations, int]:
     """Pad the pixel axis to a multiple of `multiple` with inert pixels (module docstring).
 
-    Returns the padded observations and the number of real pixels (the first rows). Padded
+    Returns the padded observations and the number of real rows (the first rows; pixels × samples
+    per pixel, padded to a multiple of `multiple` pixels). Padded
     pixels have zero residual and zero Jacobian in `pbrfit.solvers.pixel_residuals` and
     `linearize` for every model, environment, tone map, colour space and loss.
     """
     padded = _padded_pixel_fields(obs, multiple)
-    return dataclasses.replace(obs, **{k: jnp.asarray(v) for k, v in padded.items()}), obs.num_pixels
+    return dataclasses.replace(obs, **{k: jnp.asarray(v) for k, v in padded.items()}), obs.num_rows
 
 
 def pad_pixel_rows(
@@ -155,11 +157,12 @@ def shard_problem(problem: Problem, mesh: Mesh) -> Problem:
     pixel_fields.update(_padded_pixel_fields(obs, n))
     obs = dataclasses.replace(obs, **{k: jax.device_put(v, rows) for k, v in pixel_fields.items()})
     index, weight = problem.index, problem.weight
-    if padded_size(index.shape[0], n) != index.shape[0]:
-        index, weight = _padded_texel_rows(index, weight, n)
+    if padded_size(index.shape[0], n * obs.samples) != index.shape[0]:
+        index, weight = _padded_texel_rows(index, weight, n * obs.samples)
     changes = dict(obs=obs, index=jax.device_put(index, rows), weight=jax.device_put(weight, rows))
     if problem.model.ibl == "per_pixel":  # per-pixel integrals go with their pixels (zero for padding)
-        table = _append(problem.ibl.table, padded_size(problem.ibl.num_pixels, n) - problem.ibl.num_pixels, 0.0)
+        count = padded_size(problem.ibl.num_pixels, n * obs.samples)
+        table = _append(problem.ibl.table, count - problem.ibl.num_pixels, 0.0)
         changes["ibl"] = dataclasses.replace(problem.ibl, table=jax.device_put(table, rows))
     for field in dataclasses.fields(problem):
         if field.name not in changes and not field.metadata.get("static", False):

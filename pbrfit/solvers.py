@@ -6,7 +6,10 @@ channels (`pbrfit.parameters`), or 7 when tangent-space normals are fitted too:
     E(x) = 1/2 Σ_p ||ρ̃(encode(shade(m_p(x))) - target_p)||² + smooth/2 Σ_(a,b) ||x_a - x_b||²
 
 where m_p(x) = Σ_k w_pk x_(t_pk) is the bilinear sample of pixel p (four texels t_pk, weights
-w_pk) and ρ̃ the residual transform of the robust loss (identity for "l2").
+w_pk) and ρ̃ the residual transform of the robust loss (identity for "l2"). With S samples per
+pixel (`pbrfit.observations`, pixel footprints) shade(m_p(x)) becomes the mean linear radiance
+of the pixel's samples, 1/S Σ_s shade_s(m_ps(x)), each sample s with its own geometry and its
+own four texels.
 
 Structure. A pixel's residual (3 numbers) depends on its K sampled values only, so its Jacobian
 is J_p = ∂r_p/∂m_p (3 × K), computed exactly by forward mode (K tangents, `jax.jacfwd`, vmapped
@@ -14,7 +17,10 @@ over pixels). The full Jacobian is J_p w_pk in the columns of texel t_pk: the Ga
 JᵀJ = Σ_p Σ_kl w_pk w_pl [t_pk, t_pl] ⊗ J_pᵀJ_p is block-sparse (K × K blocks between texels that
 share a pixel), its diagonal blocks D_t = Σ w_pk² J_pᵀJ_p and the gradient g_t = Σ w_pk J_pᵀ r_p
 are segment sums, and a product JᵀJ v costs one gather, a K × K product per pixel and one
-scatter-add. The damped normal equations
+scatter-add. With S samples the Jacobian of pixel p is J_ps = ∂r_p/∂m_ps (3 × K) per sample;
+the products go through the pixel's residual space (JᵀJ v = Σ_s J_psᵀ Σ_s' J_ps' m_ps'(v)), and
+the diagonal blocks sum, per pixel, the Jacobians of all its taps that read the same texel
+before squaring (`normal_blocks`), so they stay exact where samples share texels. The damped normal equations
 
     (JᵀJ + λ diag(D) + smooth L) δ = -g
 
@@ -57,7 +63,7 @@ from .parameters import lower, normal_from_slopes, upper
 from .render import shade
 
 __all__ = ["Problem", "LOSSES", "shading_normal", "pixel_residuals", "residuals", "linearize", "objective", "structured_lm",
-           "normal_blocks", "LMStats"]
+           "normal_blocks", "gauss_newton_factors", "LMStats"]
 
 #: Robust losses, as residual transforms r -> r sqrt(ρ(r²)/r²) (so the objective stays a sum of squares).
 LOSSES = ("l2", "huber", "cauchy")
@@ -103,6 +109,15 @@ class Problem(eqx.Module):
     def num_texels(self) -> int:
         return int(self.free.shape[0])
 
+    @property
+    def samples(self) -> int:
+        """Rows (samples) per pixel."""
+        return self.obs.samples
+
+    @property
+    def num_pixels(self) -> int:
+        return int(self.index.shape[0]) // self.obs.samples
+
 
 def robust_residual(r, loss: str, scale):
     """r sqrt(ρ(r²)/r²): the residual whose square is the robust loss ρ(r²) (elementwise)."""
@@ -145,6 +160,33 @@ def _pixel_residual(m, normal, tangent, view, light_l, light_radiance, exposure,
     return robust_residual(value - target, problem.loss, problem.loss_scale)
 
 
+def _sample_radiance(m, normal, tangent, view, light_l, light_radiance, *lobes, problem: Problem):
+    """Linear radiance (3,) of one pixel sample from its sampled (K,) material values."""
+    ibl = dataclasses.replace(problem.ibl, table=lobes[0][None]) if lobes else problem.ibl
+    return shade(
+        shading_normal(m, normal, tangent)[None], view[None], light_l[None], light_radiance[None],
+        m[None, 0:3], m[None, 3:4], m[None, 4:5], problem.model, ibl,
+    )[0]
+
+
+def _value_residual(rad, exposure, target, problem: Problem):
+    """Residual (3,) of one pixel from its mean linear radiance (3,)."""
+    obs = problem.obs
+    value = encode(rad, exposure, obs.tonemap, obs.color_space)
+    return robust_residual(value - target, problem.loss, problem.loss_scale)
+
+
+def _sample_args(problem: Problem):
+    obs = problem.obs
+    args = (obs.normal, obs.tangent, obs.view, obs.light_l, obs.light_radiance)
+    return args + ((problem.ibl.table,) if problem.model.ibl == "per_pixel" else ())
+
+
+def _by_pixel(a, problem: Problem):
+    """(R, ...) rows -> (P, S, ...)."""
+    return a.reshape((problem.num_pixels, problem.samples) + a.shape[1:])
+
+
 def _pixel_args(problem: Problem):
     obs = problem.obs
     args = (obs.normal, obs.tangent, obs.view, obs.light_l, obs.light_radiance, obs.exposure, obs.target)
@@ -159,8 +201,14 @@ def sample_texels(x: Float[Array, "T K"], problem: Problem) -> Float[Array, "P K
 def pixel_residuals(x: Float[Array, "T K"], problem: Problem) -> Float[Array, "P 3"]:
     """Every pixel's (transformed) residual at texel values x."""
     m = sample_texels(x, problem)
-    f = jax.vmap(lambda mm, *a: _pixel_residual(mm, *a, problem=problem))
-    return f(m, *_pixel_args(problem))
+    if problem.samples == 1:
+        f = jax.vmap(lambda mm, *a: _pixel_residual(mm, *a, problem=problem))
+        return f(m, *_pixel_args(problem))
+    rad = jax.vmap(lambda mm, *a: _sample_radiance(mm, *a, problem=problem))(m, *_sample_args(problem))
+    obs = problem.obs
+    mean = jnp.mean(_by_pixel(rad, problem), axis=1)
+    f = jax.vmap(lambda rr, e, t: _value_residual(rr, e, t, problem))
+    return f(mean, obs.pixel_rows(obs.exposure), obs.pixel_rows(obs.target))
 
 
 def _smooth_residuals(x, problem: Problem):
@@ -181,7 +229,8 @@ def objective(x: Float[Array, "T K"], problem: Problem) -> Float[Array, ""]:
 
 
 def linearize(x: Float[Array, "T K"], problem: Problem):
-    """Residuals (P, 3), per-pixel Jacobians J_p = ∂r_p/∂m_p (P, 3, K) and E(x)."""
+    """Residuals (P, 3), per-pixel Jacobians J_p = ∂r_p/∂m_p (P, 3, K) (per sample row,
+    (R, 3, K), with several samples per pixel) and E(x)."""
     m = sample_texels(x, problem)
 
     def one(mm, *a):
@@ -189,10 +238,42 @@ def linearize(x: Float[Array, "T K"], problem: Problem):
         jac, val = jax.jacfwd(lambda v: (f(v), f(v)), has_aux=True)(mm)
         return val, jac
 
-    r, jac = jax.vmap(one)(m, *_pixel_args(problem))
+    if problem.samples == 1:
+        r, jac = jax.vmap(one)(m, *_pixel_args(problem))
+    else:
+        r, jac = _linearize_samples(m, problem)
     s = _smooth_residuals(x, problem)
     loss = 0.5 * (jnp.sum(r * r) + jnp.sum(s * s))
     return r, jac, loss
+
+
+def _linearize_samples(m, problem: Problem):
+    """Pixel residuals (P, 3) and per-sample Jacobians J_ps = ∂r_p/∂m_ps (R, 3, K): the chain
+    of each sample's radiance Jacobian (forward mode, K tangents) and the Jacobian of the
+    pixel's encoding and loss at the mean radiance (3 tangents), divided by S."""
+
+    def sample(mm, *a):
+        f = lambda v: _sample_radiance(v, *a, problem=problem)  # noqa: E731
+        jac, val = jax.jacfwd(lambda v: (f(v), f(v)), has_aux=True)(mm)
+        return val, jac
+
+    rad, jrad = jax.vmap(sample)(m, *_sample_args(problem))
+    mean = jnp.mean(_by_pixel(rad, problem), axis=1)
+
+    def pixel(rr, e, t):
+        f = lambda v: _value_residual(v, e, t, problem)  # noqa: E731
+        jac, val = jax.jacfwd(lambda v: (f(v), f(v)), has_aux=True)(rr)
+        return val, jac
+
+    obs = problem.obs
+    r, jenc = jax.vmap(pixel)(mean, obs.pixel_rows(obs.exposure), obs.pixel_rows(obs.target))
+    jac = jnp.einsum("pab,psbk->psak", jenc, _by_pixel(jrad, problem), precision=lax.Precision.HIGHEST)
+    return r, jac.reshape(jrad.shape) / problem.samples
+
+
+def _to_rows(a, problem: Problem):
+    """(P, ...) per pixel -> (R, ...) per sample row (repeated)."""
+    return a if problem.samples == 1 else jnp.repeat(a, problem.samples, axis=0)
 
 
 def _scatter(values, problem: Problem):
@@ -216,23 +297,48 @@ def _degree(problem: Problem):
         w, problem.pairs[:, 1], num_segments=t)
 
 
-def normal_blocks(jac: Float[Array, "P 3 K"], problem: Problem) -> Float[Array, "T K K"]:
-    """Diagonal K × K blocks of JᵀJ: D_t = Σ w_pk² J_pᵀ J_p (pixels only, no prior)."""
-    gp = jnp.einsum("pci,pcj->pij", jac, jac, precision=lax.Precision.HIGHEST)
-    w2 = problem.weight * problem.weight
-    return _scatter(w2[:, :, None, None] * gp[:, None], problem)
+def normal_blocks(jac: Float[Array, "R 3 K"], problem: Problem) -> Float[Array, "T K K"]:
+    """Diagonal K × K blocks of JᵀJ (pixels only, no prior): D_t = Σ w_pk² J_pᵀ J_p.
+
+    With S samples per pixel, a pixel's 4 S taps (sample s, bilinear tap k) have Jacobians
+    A_j = w_j J_ps; taps that read the same texel add up before squaring:
+    D_t = Σ_p (Σ_(j: t_j = t) A_j)ᵀ (Σ_(j: t_j = t) A_j), computed as Σ_j B_jᵀ B_j / c_j with
+    B_j the sum of the A_i of the c_j taps i that read t_j."""
+    if problem.samples == 1:
+        gp = jnp.einsum("pci,pcj->pij", jac, jac, precision=lax.Precision.HIGHEST)
+        w2 = problem.weight * problem.weight
+        return _scatter(w2[:, :, None, None] * gp[:, None], problem)
+    p, taps = problem.num_pixels, 4 * problem.samples
+    index = problem.index.reshape(p, taps)
+    a = (problem.weight[:, :, None, None] * jac[:, None]).reshape((p, taps) + jac.shape[1:])
+    same = (index[:, :, None] == index[:, None, :]).astype(jac.dtype)  # (P, taps, taps)
+    b = jnp.einsum("pji,picq->pjcq", same, a, precision=lax.Precision.HIGHEST)
+    bb = jnp.einsum("pjci,pjcq->pjiq", b, b, precision=lax.Precision.HIGHEST) / jnp.sum(same, -1)[..., None, None]
+    return jax.ops.segment_sum(bb.reshape((-1,) + bb.shape[2:]), index.reshape(-1), num_segments=problem.num_texels)
 
 
 def gradient(r, jac, x, problem: Problem) -> Float[Array, "T K"]:
     """g = Jᵀ r (+ smooth L x)."""
-    jr = jnp.einsum("pci,pc->pi", jac, r, precision=lax.Precision.HIGHEST)
+    jr = jnp.einsum("pci,pc->pi", jac, _to_rows(r, problem), precision=lax.Precision.HIGHEST)
     return _scatter(problem.weight[:, :, None] * jr[:, None, :], problem) + problem.smooth * _laplacian(x, problem)
 
 
+def gauss_newton_factors(jac: Float[Array, "R 3 K"], problem: Problem):
+    """What `gn_product` needs of the Jacobians: the per-pixel J_pᵀJ_p (P, K, K) with one
+    sample per pixel, else the per-sample Jacobians themselves."""
+    if problem.samples == 1:
+        return jnp.einsum("pci,pcj->pij", jac, jac, precision=lax.Precision.HIGHEST)
+    return jac
+
+
 def gn_product(gp, v, problem: Problem):
-    """(JᵀJ + smooth L) v from the per-pixel J_pᵀJ_p (matrix-free)."""
+    """(JᵀJ + smooth L) v from `gauss_newton_factors` (matrix-free)."""
     mv = sample_texels(v, problem)
-    y = jnp.einsum("pij,pj->pi", gp, mv, precision=lax.Precision.HIGHEST)
+    if problem.samples == 1:
+        y = jnp.einsum("pij,pj->pi", gp, mv, precision=lax.Precision.HIGHEST)
+    else:  # J v in the pixels' residual space, then back through each sample's Jacobian
+        jv = jnp.sum(_by_pixel(jnp.einsum("rcj,rj->rc", gp, mv, precision=lax.Precision.HIGHEST), problem), axis=1)
+        y = jnp.einsum("rci,rc->ri", gp, _to_rows(jv, problem), precision=lax.Precision.HIGHEST)
     return _scatter(problem.weight[:, :, None] * y[:, None, :], problem) + problem.smooth * _laplacian(v, problem)
 
 
@@ -297,18 +403,18 @@ def structured_lm(
 
     Stops after `max_steps` steps, or at an accepted step that lowers E by less than
     ``rtol · E`` or moves no value by more than `atol`. Returns (x, LMStats, residuals (P, 3),
-    per-pixel Jacobians (P, 3, K)) at the returned x.
+    per-row Jacobians (R, 3, K); R = P with one sample per pixel) at the returned x.
     """
     k = x0.shape[-1]
     lo, hi = jnp.asarray(lower(k)), jnp.asarray(upper(k))
     x0 = jnp.clip(x0, lo, hi)
-    p = problem.obs.num_pixels
+    p = problem.num_pixels
     eye = jnp.eye(k, dtype=x0.dtype)
     degree = _degree(problem)
     # Step 0 only linearises at x0 (no step is taken: every channel inactive), so the
     # linearisation is traced once, inside the loop.
     r0 = jnp.zeros((p, 3), x0.dtype)
-    j0 = jnp.zeros((p, 3, k), x0.dtype)
+    j0 = jnp.zeros((problem.index.shape[0], 3, k), x0.dtype)
     loss0 = jnp.asarray(jnp.inf, x0.dtype)
 
     def cond(c):
@@ -316,7 +422,7 @@ def structured_lm(
 
     def body(c):
         x, r, jac, loss, lam, nu = c["x"], c["r"], c["jac"], c["loss"], c["lam"], c["nu"]
-        gp = jnp.einsum("pci,pcj->pij", jac, jac, precision=lax.Precision.HIGHEST)
+        gp = gauss_newton_factors(jac, problem)
         g = gradient(r, jac, x, problem)
         blocks = normal_blocks(jac, problem) + problem.smooth * degree[:, None, None] * eye
         a = _active(x, g, problem.free) * (c["k"] > 0)
