@@ -240,8 +240,15 @@ def fit_observations(
     wrap: str = "repeat",
     progress: Optional[Callable] = None,
     setup_time: float = 0.0,
+    centres: Optional[Observations] = None,
+    centre_ibl=None,
 ) -> FitResult:
-    """Fit maps to prepared `Observations` (see `fit` for the arguments)."""
+    """Fit maps to prepared `Observations` (see `fit` for the arguments).
+
+    With several samples per pixel in `obs`, `centres` (optional) holds the same capture's
+    observations at pixel centres (and `centre_ibl` their IBL, when it is per pixel): the grid
+    start, the continuation's first steps and the coordinate search then run on them, at a
+    quarter of the cost or less, and only the settling and released steps on `obs`."""
     t_start = time.perf_counter()
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
@@ -313,26 +320,33 @@ def fit_observations(
                           to_device(smooth, np.float32), to_device(loss_scale, np.float32), ibl, model, loss)
         if mesh is not None:
             problem = shard_problem(problem, mesh)
+        early = problem  # the start, the continuation's steps and the search
+        if centres is not None and obs.samples > 1:
+            lay = _layout(centres, shape, wrap)
+            early = dataclasses.replace(problem, obs=centres, index=lay.index, weight=lay.weight,
+                                        ibl=centre_ibl if model.ibl == "per_pixel" else ibl)
+            if mesh is not None:
+                early = shard_problem(early, mesh)
         if level == 0 and init == "grid":
-            x0 = np.asarray(_timed(grid_initialise, clock, "init", to_device(x0, np.float32), problem))
+            x0 = np.asarray(_timed(grid_initialise, clock, "init", to_device(x0, np.float32), early))
         num_free = int(np.sum(free))
         xs, info = to_device(x0, np.float32), None
         if annealing:
-            jac = runner.jacobian(xs, problem, num_free)  # timed as compile and solve
+            jac = runner.jacobian(xs, early, num_free)  # timed as compile and solve
             t0 = time.perf_counter()
-            scale = continuation_scale(jac, problem)
+            scale = continuation_scale(jac, early)
             clock["init"] = clock.get("init", 0.0) + time.perf_counter() - t0
             weights = [w * scale for w in continuation]
             for w, n in zip(weights, (len(a) for a in np.array_split(np.arange(head), len(weights)))):
                 if n > 0:
-                    xs, info = _merge(info, runner(to_device(xs, np.float32), with_smooth(problem, smooth + w), n,
+                    xs, info = _merge(info, runner(to_device(xs, np.float32), with_smooth(early, smooth + w), n,
                                                    num_free))
             annealed = dict(relative=list(continuation), weights=weights, curvature=scale, steps=head, settle_steps=0)
         elif searching:
-            xs, info = _merge(info, runner(xs, problem, head, num_free))
+            xs, info = _merge(info, runner(xs, early, head, num_free))
         done = head if (annealing or searching) else 0
         if searching:
-            xn = np.asarray(_timed(coordinate_search, clock, "search", to_device(xs, np.float32), problem,
+            xn = np.asarray(_timed(coordinate_search, clock, "search", to_device(xs, np.float32), early,
                                    to_device(parity_classes(shape)), SEARCH_ROUNDS, bool(channels[3] > 0)))
             info["search_moved"] = int(np.sum(np.any(xn[:t] != np.asarray(xs)[:t], axis=1)))
             xs = xn
@@ -400,7 +414,8 @@ def _timed(fn, clock: dict, name: str, *args):
 
 
 class _Runner:
-    """Compiles a solver once per shape (ahead of time, so compile and solve are timed apart)."""
+    """Compiles a solver once per shape (ahead of time, so compile and solve are timed apart):
+    once per fit, or twice when the start runs on pixel centres (`fit_observations`)."""
 
     def __init__(self, solver, rtol, atol, progress, clock):
         self.solver, self.rtol, self.atol, self.progress, self.clock = solver, rtol, atol, progress, clock
@@ -408,13 +423,14 @@ class _Runner:
 
     def __call__(self, x0, problem, steps, num_free):
         structured = self.solver == DEFAULT_SOLVER
+        shape = (problem.obs.samples,) + tuple(problem.index.shape)
         if structured:
-            key, args = "structured", (x0, problem, to_device(steps, np.int32), self.rtol, self.atol)
+            key, args = ("structured", shape), (x0, problem, to_device(steps, np.int32), self.rtol, self.atol)
             kwargs = dict(progress=self.progress)
             fn = structured_lm
         else:
             opt, is_ls = make_solver(self.solver, self.rtol, self.atol, num_free)
-            key, args, kwargs, fn = (type(opt).__name__, steps), (x0, problem, opt, is_ls, steps), {}, optx_solve
+            key, args, kwargs, fn = (type(opt).__name__, steps, shape), (x0, problem, opt, is_ls, steps), {}, optx_solve
         if key not in self.compiled:
             self.compiled[key] = _compile(fn, self.clock, *args, **kwargs)
         t0 = time.perf_counter()
@@ -515,7 +531,9 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     Keyword arguments (all optional):
         pixel_samples: n: shade n × n samples per pixel and compare their mean radiance with the
             pixel (`pbrfit.observations`, pixel footprints): the model of an antialiased or
-            supersampled capture, at about n² times the cost of pixel centres (1, the default).
+            supersampled capture (1, the default: pixel centres). The grid start, the
+            continuation's first steps and the search run on pixel centres, the settling and
+            released steps on the samples (`fit_observations`).
         ibl: how the capture's environment light is integrated, ``"split_sum"`` (default: Karis
             2013, the renderer's tables) or ``"per_pixel"`` (`pbrfit.pixel_ibl`: each pixel's
             lobe integrals by Monte Carlo on a roughness grid, once before the solve, with
@@ -558,18 +576,27 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
         model = model.replace(ibl=ibl)
     _check_normals(model, kwargs.get("fit", ()))
     obs = observations_from_capture(capture, cache_dir=cache_dir, views=views, pixel_samples=pixel_samples)
+    centres = None if obs.samples == 1 else observations_from_capture(capture, cache_dir=cache_dir, views=views)
     t_ibl = time.perf_counter()
+    centre_tables = None
     if model.ibl == "per_pixel":
         from .views import capture_environment
 
         report = kwargs.get("progress")
-        tables = pixel_ibl(capture_environment(capture), np.asarray(obs.normal), np.asarray(obs.view), model,
-                           pixel_ibl_settings, cache_dir=cache_dir, progress=None if report is None else (
-                               lambda done, total: report(dict(stage="ibl", done=done, total=total))))
+        parts = [obs] if centres is None else [centres, obs]
+        rows = np.cumsum([0] + [o.num_rows for o in parts])
+        both = pixel_ibl(capture_environment(capture), np.concatenate([np.asarray(o.normal) for o in parts]),
+                         np.concatenate([np.asarray(o.view) for o in parts]), model, pixel_ibl_settings,
+                         cache_dir=cache_dir, progress=None if report is None else (
+                             lambda done, total: report(dict(stage="ibl", done=done, total=total))))
+        tables = dataclasses.replace(both, table=both.table[rows[-2]:])
+        if centres is not None:
+            centre_tables = dataclasses.replace(both, table=both.table[: rows[1]])
     else:
         tables = _ibl_for_capture(capture, model)
     t_ibl = time.perf_counter() - t_ibl
-    result = fit_observations(obs, model=model, ibl=tables, setup_time=time.perf_counter() - t0, **kwargs)
+    result = fit_observations(obs, model=model, ibl=tables, setup_time=time.perf_counter() - t0, centres=centres,
+                              centre_ibl=centre_tables, **kwargs)
     if model.ibl is not None:
         result.report["ibl"] = dict(mode=model.ibl, seconds=t_ibl, **(
             dataclasses.asdict(pixel_ibl_settings) if model.ibl == "per_pixel" else {}))

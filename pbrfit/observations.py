@@ -225,7 +225,7 @@ def _interleave(parts: Sequence[Observations]) -> Observations:
     fields = {}
     for name in PIXEL_FIELDS:
         a = np.stack([np.asarray(getattr(o, name)) for o in parts], axis=1)
-        fields[name] = to_device(a.reshape((-1,) + a.shape[2:]))
+        fields[name] = to_device(a.reshape((a.shape[0] * n,) + a.shape[2:]))  # (no -1: L may be 0)
     return dataclasses.replace(parts[0], samples=n, **fields)
 
 

@@ -302,8 +302,8 @@ def normal_blocks(jac: Float[Array, "R 3 K"], problem: Problem) -> Float[Array, 
 
     With S samples per pixel, a pixel's 4 S taps (sample s, bilinear tap k) have Jacobians
     A_j = w_j J_ps; taps that read the same texel add up before squaring:
-    D_t = Σ_p (Σ_(j: t_j = t) A_j)ᵀ (Σ_(j: t_j = t) A_j), computed as Σ_j B_jᵀ B_j / c_j with
-    B_j the sum of the A_i of the c_j taps i that read t_j."""
+    D_t = Σ_p (Σ_(j: t_j = t) A_j)ᵀ (Σ_(j: t_j = t) A_j) = Σ_p Σ_(j: t_j = t) A_jᵀ B_j with
+    B_j the sum of the A_i of the taps i that read t_j."""
     if problem.samples == 1:
         gp = jnp.einsum("pci,pcj->pij", jac, jac, precision=lax.Precision.HIGHEST)
         w2 = problem.weight * problem.weight
@@ -313,8 +313,8 @@ def normal_blocks(jac: Float[Array, "R 3 K"], problem: Problem) -> Float[Array, 
     a = (problem.weight[:, :, None, None] * jac[:, None]).reshape((p, taps) + jac.shape[1:])
     same = (index[:, :, None] == index[:, None, :]).astype(jac.dtype)  # (P, taps, taps)
     b = jnp.einsum("pji,picq->pjcq", same, a, precision=lax.Precision.HIGHEST)
-    bb = jnp.einsum("pjci,pjcq->pjiq", b, b, precision=lax.Precision.HIGHEST) / jnp.sum(same, -1)[..., None, None]
-    return jax.ops.segment_sum(bb.reshape((-1,) + bb.shape[2:]), index.reshape(-1), num_segments=problem.num_texels)
+    ab = jnp.einsum("pjci,pjcq->pjiq", a, b, precision=lax.Precision.HIGHEST)
+    return jax.ops.segment_sum(ab.reshape((-1,) + ab.shape[2:]), index.reshape(-1), num_segments=problem.num_texels)
 
 
 def gradient(r, jac, x, problem: Problem) -> Float[Array, "T K"]:
@@ -337,8 +337,9 @@ def gn_product(gp, v, problem: Problem):
     if problem.samples == 1:
         y = jnp.einsum("pij,pj->pi", gp, mv, precision=lax.Precision.HIGHEST)
     else:  # J v in the pixels' residual space, then back through each sample's Jacobian
-        jv = jnp.sum(_by_pixel(jnp.einsum("rcj,rj->rc", gp, mv, precision=lax.Precision.HIGHEST), problem), axis=1)
-        y = jnp.einsum("rci,rc->ri", gp, _to_rows(jv, problem), precision=lax.Precision.HIGHEST)
+        jac = _by_pixel(gp, problem)
+        jv = jnp.einsum("psci,psi->pc", jac, _by_pixel(mv, problem), precision=lax.Precision.HIGHEST)
+        y = jnp.einsum("psci,pc->psi", jac, jv, precision=lax.Precision.HIGHEST).reshape(mv.shape)
     return _scatter(problem.weight[:, :, None] * y[:, None, :], problem) + problem.smooth * _laplacian(v, problem)
 
 

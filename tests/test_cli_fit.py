@@ -124,6 +124,8 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--smooth", "nan"], "--smooth"),
         (["--continuation", "abc"], "--continuation"),
         (["--continuation", "0.01,-1"], "--continuation"),
+        (["--pixel-samples", "0"], "--pixel-samples: expected 1 to 8, got 0"),
+        (["--pixel-samples", "9"], "--pixel-samples"),
         (["--rtol", "-1"], "--rtol"),
         (["--atol", "inf"], "--atol"),
         (["--metallic", "0.5", "--fit", "metallic,roughness"], "--fit: lists metallic, which --metallic holds fixed"),
@@ -156,6 +158,15 @@ def test_fit_continuation_option(capture, tmp_path, monkeypatch):
     cont = reports["0.01,0.001"]["continuation"]
     assert cont["relative"] == [0.01, 0.001] and len(cont["weights"]) == 2
     assert reports["none"]["continuation"] is None
+
+
+def test_fit_pixel_samples_option(capture, tmp_path, monkeypatch):
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "out"
+    assert main(["fit", str(capture), "--out", str(out), "--maps", "none", "--pixel-samples", "2", "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["pixel_samples"] == 2 and report["resolution"] == [1, 1] and report["pixels"] > 0
+    assert all(np.isfinite(report["psnr"]))
 
 
 def test_fit_missing_capture_exits_2(tmp_path, capsys):

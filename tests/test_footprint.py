@@ -132,3 +132,22 @@ def test_supersampled_capture_fitted_exactly_with_pixel_samples(capture, capture
     # the per-view renders are per pixel: the images match the targets where the pixels are
     for img, tgt, msk in zip(footprint.images, footprint.targets, footprint.masks):
         assert msk.any() and np.abs(img[msk] - tgt[msk]).max() < 0.02
+
+
+def test_pixel_samples_with_per_pixel_ibl(tmp_path):
+    """Per-pixel IBL integrals are computed for the samples and for the pixel centres the
+    start runs on, in one pass, and each problem gets its own rows."""
+    from data_synth.presets import make_scene
+    from data_synth.writer import synthesize
+    from pbrfit.pixel_ibl import PixelIBLSettings
+
+    synthesize(make_scene("sphere-env", seed=1, size=24, views=2, texture_size=MAP[0], env_width=32), tmp_path / "cap")
+    capture = load_capture(tmp_path / "cap")
+    settings = PixelIBLSettings(samples=16, levels=4)
+    res = fit(capture, resolution=MAP[0], ibl="per_pixel", pixel_samples=2, max_steps=30, pixel_ibl_settings=settings)
+    assert res.report["pixel_samples"] == 2 and res.report["ibl"]["mode"] == "per_pixel"
+    assert np.isfinite(res.report["final_loss"]) and res.report["continuation"] is not None
+    # rows out of step with their integrals would leave the renders far from the images
+    centre = fit(capture, resolution=MAP[0], ibl="per_pixel", max_steps=30, pixel_ibl_settings=settings)
+    assert np.all(np.asarray(res.report["psnr"]) > np.asarray(centre.report["psnr"]) - 1.0), (
+        res.report["psnr"], centre.report["psnr"])
