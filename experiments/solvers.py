@@ -56,6 +56,8 @@ CONFIGS = {
     "lbfgs (optimistix)": dict(GRID, solver="lbfgs", max_steps=400),
     "ncg (optimistix)": dict(GRID, solver="ncg", max_steps=400),
     "adam (optimistix)": dict(GRID, solver="adam", max_steps=300),
+    # supersampled captures: the pixel footprint modelled by 2 x 2 samples per pixel
+    "structured (default, 2 × 2 pixel samples)": dict(solver="structured", pixel_samples=2),
     # the noisy scene only: the default with the smoothness prior kept to the end
     "structured (default, smooth=0.003)": dict(solver="structured", smooth=0.003),
     "structured (default, smooth=0.03)": dict(solver="structured", smooth=0.03),
@@ -65,12 +67,18 @@ CONFIGS = {
 #: perfect start would give; on noiseless ones, how far the data and model pin the maps down).
 #: Cheap: one solve.
 ORACLE = "oracle (start at the truth)"
+#: The oracle of the model with 2 x 2 samples per pixel.
+ORACLE_FOOTPRINT = "oracle, 2 × 2 pixel samples"
+FOOTPRINT = "structured (default, 2 × 2 pixel samples)"
 #: What the noiseless scenes run: every configuration but the smoothness priors, and the oracle.
-COMPARISON = [c for c in CONFIGS if "smooth=" not in c] + [ORACLE]
+COMPARISON = [c for c in CONFIGS if "smooth=" not in c and c != FOOTPRINT] + [ORACLE]
 #: name: (data_synth preset, make_scene overrides, configurations to run)
 SCENES = {
     "peer-plane": ("peer-plane", {}, COMPARISON),
-    "plane-flash": ("plane-flash", {}, COMPARISON),
+    "plane-flash": ("plane-flash", {}, COMPARISON + [FOOTPRINT, ORACLE_FOOTPRINT]),
+    # the flash capture without noise: what is left is the model's (pixel centres against the
+    # 2 x 2 supersampled images) and the solver's
+    "plane-flash-noiseless": ("plane-flash", dict(noise=0.0), [DEFAULT, FOOTPRINT, ORACLE, ORACLE_FOOTPRINT]),
     "sphere-env": ("sphere-env", {}, COMPARISON),
     "spheres-grid": ("spheres-grid", {}, COMPARISON),
     "peer-plane-noisy": ("peer-plane", dict(noise=0.01),
@@ -78,7 +86,7 @@ SCENES = {
                           "structured (default, smooth=0.003)", "structured (default, smooth=0.03)", ORACLE]),
     # plane-flash with a third of the noise: three times the signal-to-noise
     "plane-flash-quiet": ("plane-flash", dict(noise=0.01 / 3),
-                          [DEFAULT, NO_CONTINUATION, "structured (grid, no search)", ORACLE]),
+                          [DEFAULT, NO_CONTINUATION, "structured (grid, no search)", ORACLE, FOOTPRINT]),
     # the same noise with lights π times brighter (intensity 6π): three times the signal-to-noise
     "peer-plane-noisy-bright": ("peer-plane", dict(noise=0.01, light_intensity=6.0 * math.pi),
                                 [DEFAULT, NO_CONTINUATION, "structured (grid, no search)", ORACLE]),
@@ -86,7 +94,7 @@ SCENES = {
     "peer-plane-noisy-relative": ("peer-plane", dict(noise=0.01, noise_model="relative"),
                                   [DEFAULT, NO_CONTINUATION, ORACLE]),
     "plane-flash-relative": ("plane-flash", dict(noise=0.01, noise_model="relative"),
-                             [DEFAULT, NO_CONTINUATION, ORACLE]),
+                             [DEFAULT, NO_CONTINUATION, ORACLE, FOOTPRINT]),
 }
 
 
@@ -193,18 +201,31 @@ def run(scenes, configs):
                   f"synthesis {synth:.1f}s, setup {setup:.1f}s", flush=True)
             base = dict(scene=scene, preset=preset, overrides=overrides, resolution=list(resolution),
                         pixels=int(obs.num_pixels), setup=setup)
+            sampled = {1: obs}
+
+            def observations(n):  # with n x n samples per pixel, ray-cast on first use (in the row's wall time)
+                if n not in sampled:
+                    sampled[n] = observations_from_capture(capture, pixel_samples=n)
+                return sampled[n]
+
             for name in names:
                 t1 = time.perf_counter()
-                if name == ORACLE:
-                    material, coverage, times, steps = _oracle(obs, model, ibl, truth, resolution)
+                if name in (ORACLE, ORACLE_FOOTPRINT):
+                    n = 2 if name == ORACLE_FOOTPRINT else 1
+                    material, coverage, times, steps = _oracle(observations(n), model, ibl, truth, resolution)
                     wall = time.perf_counter() - t1
-                    row = dict(base, config=name, kwargs=dict(solver="structured", start="truth", search=False),
+                    row = dict(base, config=name, kwargs=dict(solver="structured", start="truth", search=False,
+                                                              pixel_samples=n),
                                **_metrics(truth, material, coverage), wall=wall, run=run_time(times),
                                compile=times["compile"], times=times, steps=steps)
                 else:
                     kwargs = dict(CONFIGS[name])
                     try:
-                        res = fit_observations(obs, model=model, ibl=ibl, resolution=resolution, **kwargs)
+                        n = kwargs.pop("pixel_samples", 1)
+                        if n > 1:  # as `pbrfit.fit.fit` does: start, continuation and search on pixel centres
+                            kwargs["centres"] = obs
+                        res = fit_observations(observations(n), model=model, ibl=ibl, resolution=resolution, **kwargs)
+                        kwargs = dict(CONFIGS[name])
                     except Exception as exc:  # a solver that fails is a result too
                         rows.append(dict(base, config=name, kwargs=kwargs,
                                          error=f"{type(exc).__name__}: {exc}"[:300]))
@@ -245,6 +266,8 @@ SHORT = {
     "structured (default, smooth=0.003)": "smooth 0.003",
     "structured (default, smooth=0.03)": "smooth 0.03",
     ORACLE: "oracle",
+    FOOTPRINT: "2 × 2 pixel samples",
+    ORACLE_FOOTPRINT: "oracle, 2 × 2 samples",
 }
 #: Sums of RMSE below this are drawn at it (a log axis has no 0).
 FLOOR = 1e-7
@@ -356,7 +379,8 @@ def plot(rows, path: Path):
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
-    parser.add_argument("--configs", nargs="+", default=list(CONFIGS) + [ORACLE], choices=list(CONFIGS) + [ORACLE])
+    parser.add_argument("--configs", nargs="+", default=list(CONFIGS) + [ORACLE, ORACLE_FOOTPRINT],
+                        choices=list(CONFIGS) + [ORACLE, ORACLE_FOOTPRINT])
     parser.add_argument("--out", default=str(Path(__file__).parent / "results"))
     parser.add_argument("--merge", action="store_true", help="keep the other rows already in solvers.json")
     parser.add_argument("--plot-only", action="store_true", help="redraw solvers.png from solvers.json")
