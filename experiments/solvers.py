@@ -166,7 +166,7 @@ def _oracle(obs, model, ibl, truth, resolution, max_steps=40):
     t2 = time.perf_counter()
     material = Material(base_color=jnp.asarray(x[..., 0:3]), metallic=jnp.asarray(x[..., 3:4]),
                         roughness=jnp.asarray(x[..., 4:5]))
-    coverage = coverage_counts(layout)
+    coverage = coverage_counts(layout, obs.samples)
     return material, coverage, dict(compile=t1 - t0, solve=t2 - t1), int(out[1].steps)
 
 
@@ -221,11 +221,11 @@ def run(scenes, configs):
                 else:
                     kwargs = dict(CONFIGS[name])
                     try:
-                        n = kwargs.pop("pixel_samples", 1)
+                        call = dict(kwargs)
+                        n = call.pop("pixel_samples", 1)
                         if n > 1:  # as `pbrfit.fit.fit` does: start, continuation and search on pixel centres
-                            kwargs["centres"] = obs
-                        res = fit_observations(observations(n), model=model, ibl=ibl, resolution=resolution, **kwargs)
-                        kwargs = dict(CONFIGS[name])
+                            call["centres"] = obs
+                        res = fit_observations(observations(n), model=model, ibl=ibl, resolution=resolution, **call)
                     except Exception as exc:  # a solver that fails is a result too
                         rows.append(dict(base, config=name, kwargs=kwargs,
                                          error=f"{type(exc).__name__}: {exc}"[:300]))

@@ -276,6 +276,8 @@ def fit_observations(
     pairs_final = neighbour_pairs(final)
     e_final = pairs_final.shape[0]
 
+    if centres is not None and obs.samples > 1 and model.ibl == "per_pixel" and centre_ibl is None:
+        raise ValueError("centres with a per-pixel IBL model need centre_ibl: the centres' own integrals")
     mesh = None if devices is None else pixel_mesh(devices)
     continuation = () if continuation is None else tuple(float(w) for w in np.ravel(continuation))
     if any(not (math.isfinite(w) and w >= 0) for w in continuation):
@@ -323,7 +325,11 @@ def fit_observations(
         early = problem  # the start, the continuation's steps and the search
         if centres is not None and obs.samples > 1:
             lay = _layout(centres, shape, wrap)
+            # texels only samples read have no data here: they keep their start until the samples
+            centre_seen = np.zeros(t_final, bool)
+            centre_seen[:t] = coverage_counts(lay).reshape(-1) > 0
             early = dataclasses.replace(problem, obs=centres, index=lay.index, weight=lay.weight,
+                                        free=to_device(free * centre_seen[:, None]),
                                         ibl=centre_ibl if model.ibl == "per_pixel" else ibl)
             if mesh is not None:
                 early = shard_problem(early, mesh)
@@ -468,7 +474,7 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     n_par = int(np.sum(seen)) * int(np.sum(channels))
     sigma2 = residual_variance(float(energy), n_res, n_par)
     sigma = block_standard_errors(blocks, channels > 0, seen, sigma2).reshape(final + (k,))
-    coverage = coverage_counts(_layout(obs, final, "repeat"))
+    coverage = coverage_counts(_layout(obs, final, "repeat"), obs.samples)
     # Per-view renders in image space and PSNR (peak 1: display values).
     if loss == "l2":
         resid = np.asarray(r)[: obs.num_pixels]

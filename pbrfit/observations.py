@@ -303,11 +303,15 @@ def uniform_layout(obs: Observations) -> TexelLayout:
     return TexelLayout(index, weight, (1, 1))
 
 
-def coverage_counts(layout: TexelLayout) -> np.ndarray:
-    """(H, W) int32: how many pixel observations read each texel with nonzero weight (pixel
-    samples, with several per pixel)."""
+def coverage_counts(layout: TexelLayout, samples: int = 1) -> np.ndarray:
+    """(H, W) int32: how many pixel observations read each texel with nonzero weight. With
+    `samples` rows per pixel, a pixel counts once per texel any of its samples reads."""
     idx = np.asarray(layout.index).reshape(-1)
     w = np.asarray(layout.weight).reshape(-1)
+    if samples > 1:  # distinct (pixel, texel) pairs
+        pixel = np.arange(idx.size) // (4 * samples)
+        pairs = np.unique(pixel[w > 0].astype(np.int64) * layout.num_texels + idx[w > 0])
+        idx, w = pairs % layout.num_texels, np.ones(pairs.size)
     counts = np.bincount(idx[w > 0], minlength=layout.num_texels)
     return counts.astype(np.int32).reshape(layout.shape)
 

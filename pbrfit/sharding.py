@@ -32,7 +32,9 @@ Build layouts from the real observations and pad them; a layout computed from pa
 observations would give the padded pixels bilinear weights at uv 0.
 
 Results that are per pixel (the solver's residuals and Jacobians) come back padded; their
-first ``num_real`` rows are the real pixels, in the original order.
+first ``num_real`` rows are the real pixels, in the original order. With several samples per
+pixel, ``num_real`` counts rows: the residuals (one per pixel) have ``num_real / samples`` real
+rows, the Jacobians (one per sample) ``num_real``.
 
 `shard_problem` places host or single-device arrays with `jax.device_put`, so it is for one
 process driving all the mesh's devices (one host, several GPUs or CPU devices).
@@ -109,16 +111,18 @@ def pad_observations(obs: Observations, multiple: int) -> tuple[Observations, in
 
 
 def pad_pixel_rows(
-    index: Int[Array, "P 4"], weight: Float[Array, "P 4"], multiple: int
+    index: Int[Array, "P 4"], weight: Float[Array, "P 4"], multiple: int, samples: int = 1
 ) -> tuple[Int[Array, "Q 4"], Float[Array, "Q 4"]]:
-    """Texel indices and weights padded like `pad_observations`: texel 0 with weight 0."""
-    index, weight = _padded_texel_rows(index, weight, multiple)
+    """Texel indices and weights padded like `pad_observations` (of observations with `samples`
+    rows per pixel): texel 0 with weight 0."""
+    index, weight = _padded_texel_rows(index, weight, multiple * samples)
     return jnp.asarray(index), jnp.asarray(weight)
 
 
-def pad_layout(layout: TexelLayout, multiple: int) -> TexelLayout:
-    """A `TexelLayout` padded to match `pad_observations(obs, multiple)`."""
-    index, weight = pad_pixel_rows(layout.index, layout.weight, multiple)
+def pad_layout(layout: TexelLayout, multiple: int, samples: int = 1) -> TexelLayout:
+    """A `TexelLayout` padded to match `pad_observations(obs, multiple)` (`samples`: the
+    observations' rows per pixel)."""
+    index, weight = pad_pixel_rows(layout.index, layout.weight, multiple, samples)
     return TexelLayout(index, weight, layout.shape)
 
 

@@ -302,19 +302,26 @@ def normal_blocks(jac: Float[Array, "R 3 K"], problem: Problem) -> Float[Array, 
 
     With S samples per pixel, a pixel's 4 S taps (sample s, bilinear tap k) have Jacobians
     A_j = w_j J_ps; taps that read the same texel add up before squaring:
-    D_t = Σ_p (Σ_(j: t_j = t) A_j)ᵀ (Σ_(j: t_j = t) A_j) = Σ_p Σ_(j: t_j = t) A_jᵀ B_j with
-    B_j the sum of the A_i of the taps i that read t_j."""
+    D_t = Σ_p B_ptᵀ B_pt with B_pt = Σ_(j: t_j = t) A_j, one segment sum over the pixel's distinct
+    texels (memory linear in the taps)."""
     if problem.samples == 1:
         gp = jnp.einsum("pci,pcj->pij", jac, jac, precision=lax.Precision.HIGHEST)
         w2 = problem.weight * problem.weight
         return _scatter(w2[:, :, None, None] * gp[:, None], problem)
     p, taps = problem.num_pixels, 4 * problem.samples
     index = problem.index.reshape(p, taps)
-    a = (problem.weight[:, :, None, None] * jac[:, None]).reshape((p, taps) + jac.shape[1:])
-    same = (index[:, :, None] == index[:, None, :]).astype(jac.dtype)  # (P, taps, taps)
-    b = jnp.einsum("pji,picq->pjcq", same, a, precision=lax.Precision.HIGHEST)
-    ab = jnp.einsum("pjci,pjcq->pjiq", a, b, precision=lax.Precision.HIGHEST)
-    return jax.ops.segment_sum(ab.reshape((-1,) + ab.shape[2:]), index.reshape(-1), num_segments=problem.num_texels)
+    a = (problem.weight[:, :, None, None] * jac[:, None]).reshape((p * taps,) + jac.shape[1:])
+    # number each pixel's distinct texels (sort its taps; a new run starts a new texel), so that
+    # B, the sum of the A_j of each (pixel, texel), is one segment sum of size O(taps) per pixel
+    order = jnp.argsort(index, axis=1)
+    ranked = jnp.take_along_axis(index, order, axis=1)
+    start = jnp.concatenate([jnp.ones((p, 1), bool), ranked[:, 1:] != ranked[:, :-1]], axis=1)
+    run = jnp.cumsum(start, axis=1) - 1 + taps * jnp.arange(p)[:, None]
+    segment = jnp.zeros_like(index).at[jnp.arange(p)[:, None], order].set(run).reshape(-1)
+    b = jax.ops.segment_sum(a, segment, num_segments=p * taps)
+    texel = jnp.zeros(p * taps, index.dtype).at[segment].set(index.reshape(-1))  # unused segments: B = 0
+    bb = jnp.einsum("sci,scq->siq", b, b, precision=lax.Precision.HIGHEST)
+    return jax.ops.segment_sum(bb, texel, num_segments=problem.num_texels)
 
 
 def gradient(r, jac, x, problem: Problem) -> Float[Array, "T K"]:

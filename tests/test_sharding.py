@@ -254,6 +254,30 @@ def _multi_device_report() -> dict:
         fit_sigma_diff=float(np.max(np.abs(one.uncertainty - many.uncertainty))),
         fit_render_diff=max(float(np.max(np.abs(a - b))) for a, b in zip(one.images, many.images)),
     )
+    # Four samples per pixel: whole pixels per device (rows padded to 4 x 4 x 251), same fit.
+    base = problem.obs
+    jitter = np.tile([[-0.01, -0.01], [0.01, -0.01], [-0.01, 0.01], [0.01, 0.01]], (base.num_pixels, 1))
+    rows = {name: np.repeat(np.asarray(getattr(base, name)), 4, axis=0) for name in
+            ("normal", "tangent", "view", "light_l", "light_radiance", "uv", "exposure", "target", "view_index", "pixel")}
+    rows["uv"] = rows["uv"] + jitter.astype(np.float32)
+    sampled = dataclasses.replace(base, samples=4, **{k: jnp.asarray(v) for k, v in rows.items()})
+    layout = texel_layout(sampled, MAP)
+    sp = dataclasses.replace(problem, obs=sampled, index=layout.index, weight=layout.weight)
+    sp_sh = shard_problem(sp, mesh)
+    one = fit_observations(sampled, resolution=MAP, max_steps=20)
+    many = fit_observations(sampled, resolution=MAP, max_steps=20, devices=jax.devices())
+    out.update(
+        samples_shard_rows=sorted(int(s.data.shape[0]) for s in sp_sh.obs.target.addressable_shards),
+        samples_blocks_rel_diff=float(
+            jnp.max(jnp.abs(jax.jit(normal_blocks)(jax.jit(linearize)(x, sp)[1], sp)
+                            - jax.jit(normal_blocks)(jax.jit(linearize)(x, sp_sh)[1], sp_sh)))
+            / jnp.max(jnp.abs(jax.jit(normal_blocks)(jax.jit(linearize)(x, sp)[1], sp)))),
+        samples_map_diff=max(float(np.max(np.abs(np.asarray(getattr(one.material, n))
+                                                 - np.asarray(getattr(many.material, n)))))
+                             for n in ("base_color", "metallic", "roughness")),
+        samples_loss=[one.report["final_loss"], many.report["final_loss"]],
+        samples_render_diff=max(float(np.max(np.abs(a - b))) for a, b in zip(one.images, many.images)),
+    )
     # Per-pixel IBL integrals travel with their pixels.
     from pbrfit.environment import procedural_sky
     from pbrfit.pixel_ibl import PixelIBLSettings, pixel_ibl
@@ -298,6 +322,10 @@ def test_structured_lm_sharded_over_four_cpu_devices():
     assert rep["blocks_rel_diff"] <= 1e-5, rep
     assert rep["search_diff"] <= 1e-5, rep
     assert rep["fit_devices"] == DEVICES, rep
+    assert rep["samples_shard_rows"] == [4 * 251] * DEVICES, rep
+    assert rep["samples_blocks_rel_diff"] <= 1e-5 and rep["samples_map_diff"] <= 1e-3, rep
+    np.testing.assert_allclose(rep["samples_loss"][1], rep["samples_loss"][0], rtol=1e-4)
+    assert rep["samples_render_diff"] <= 1e-3, rep
     assert rep["fit_map_diff"] <= 1e-4 and rep["fit_render_diff"] <= 1e-4 and rep["fit_sigma_diff"] <= 1e-4, rep
     assert rep["table_shard_rows"] == [251] * DEVICES and rep["table_padding"] == 0.0, rep
     assert rep["pixel_ibl_map_diff"] <= 1e-4, rep
