@@ -41,8 +41,8 @@ __all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "observations_from_vie
            "pixel_offsets", "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout", "coverage_counts", "neighbour_pairs"]
 
 
-#: Largest n of n × n samples per pixel (`observations_from_capture`).
-MAX_PIXEL_SAMPLES = 8
+#: Largest n of n × n samples per pixel (`observations_from_capture`): memory and time grow as n².
+MAX_PIXEL_SAMPLES = 4
 #: The per-pixel fields of `Observations` (leading axis: rows, P × samples).
 PIXEL_FIELDS = ("normal", "tangent", "view", "light_l", "light_radiance", "uv", "exposure", "target", "view_index",
                 "pixel")
