@@ -28,6 +28,7 @@ import functools
 from typing import Optional, Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
@@ -215,8 +216,7 @@ def _sample_views(capture, cache_dir, n: int) -> list:
 def _view_rows(view, pixels: np.ndarray):
     """`view` kept to `pixels` (sorted flat indices it holds)."""
     rows = np.searchsorted(np.asarray(view.pixel), pixels)
-    return type(view)(**{f: (getattr(view, f) if f == "shape" else to_device(np.asarray(getattr(view, f))[rows]))
-                         for f in ("pixel", "uv", "normal", "tangent", "view", "light_l", "light_radiance", "shape")})
+    return jax.tree_util.tree_map(lambda a: to_device(np.asarray(a)[rows]), view)  # every per-pixel array
 
 
 def _interleave(parts: Sequence[Observations]) -> Observations:

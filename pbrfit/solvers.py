@@ -147,21 +147,9 @@ def shading_normal(m: Float[Array, "*P K"], normal: Float[Array, "*P 3"], tangen
     return apply_normal_map(normal, tangent, normal_from_slopes(m[..., 5:7]))
 
 
-def _pixel_residual(m, normal, tangent, view, light_l, light_radiance, exposure, target, *lobes, problem: Problem):
-    """Residual (3,) of one pixel from its sampled (K,) material values (``lobes``: the pixel's
-    row of per-pixel IBL integrals, when the model uses them)."""
-    obs = problem.obs
-    ibl = dataclasses.replace(problem.ibl, table=lobes[0][None]) if lobes else problem.ibl
-    rad = shade(
-        shading_normal(m, normal, tangent)[None], view[None], light_l[None], light_radiance[None],
-        m[None, 0:3], m[None, 3:4], m[None, 4:5], problem.model, ibl,
-    )[0]
-    value = encode(rad, exposure, obs.tonemap, obs.color_space)
-    return robust_residual(value - target, problem.loss, problem.loss_scale)
-
-
 def _sample_radiance(m, normal, tangent, view, light_l, light_radiance, *lobes, problem: Problem):
-    """Linear radiance (3,) of one pixel sample from its sampled (K,) material values."""
+    """Linear radiance (3,) of one pixel sample from its sampled (K,) material values (``lobes``:
+    its row of per-pixel IBL integrals, when the model uses them)."""
     ibl = dataclasses.replace(problem.ibl, table=lobes[0][None]) if lobes else problem.ibl
     return shade(
         shading_normal(m, normal, tangent)[None], view[None], light_l[None], light_radiance[None],
@@ -170,16 +158,27 @@ def _sample_radiance(m, normal, tangent, view, light_l, light_radiance, *lobes, 
 
 
 def _value_residual(rad, exposure, target, problem: Problem):
-    """Residual (3,) of one pixel from its mean linear radiance (3,)."""
+    """Residual (3,) of one pixel from its (mean) linear radiance (3,)."""
     obs = problem.obs
     value = encode(rad, exposure, obs.tonemap, obs.color_space)
     return robust_residual(value - target, problem.loss, problem.loss_scale)
 
 
+def _pixel_residual(m, exposure, target, *sample_args, problem: Problem):
+    """Residual (3,) of a pixel shaded at one sample from its sampled (K,) material values."""
+    return _value_residual(_sample_radiance(m, *sample_args, problem=problem), exposure, target, problem)
+
+
 def _sample_args(problem: Problem):
+    """Per-row arguments of `_sample_radiance` after the material values."""
     obs = problem.obs
     args = (obs.normal, obs.tangent, obs.view, obs.light_l, obs.light_radiance)
     return args + ((problem.ibl.table,) if problem.model.ibl == "per_pixel" else ())
+
+
+def _pixel_args(problem: Problem):
+    """Per-row arguments of `_pixel_residual` after the material values."""
+    return (problem.obs.exposure, problem.obs.target) + _sample_args(problem)
 
 
 def _by_pixel(a, problem: Problem):
@@ -187,10 +186,10 @@ def _by_pixel(a, problem: Problem):
     return a.reshape((problem.num_pixels, problem.samples) + a.shape[1:])
 
 
-def _pixel_args(problem: Problem):
-    obs = problem.obs
-    args = (obs.normal, obs.tangent, obs.view, obs.light_l, obs.light_radiance, obs.exposure, obs.target)
-    return args + ((problem.ibl.table,) if problem.model.ibl == "per_pixel" else ())
+def _value_and_jacfwd(f, x):
+    """(f(x), ∂f/∂x) by forward mode, f evaluated once."""
+    jac, value = jax.jacfwd(lambda v: (f(v), f(v)), has_aux=True)(x)
+    return value, jac
 
 
 def sample_texels(x: Float[Array, "T K"], problem: Problem) -> Float[Array, "P K"]:
@@ -233,12 +232,8 @@ def linearize(x: Float[Array, "T K"], problem: Problem):
     (R, 3, K), with several samples per pixel) and E(x)."""
     m = sample_texels(x, problem)
 
-    def one(mm, *a):
-        f = lambda v: _pixel_residual(v, *a, problem=problem)  # noqa: E731
-        jac, val = jax.jacfwd(lambda v: (f(v), f(v)), has_aux=True)(mm)
-        return val, jac
-
     if problem.samples == 1:
+        one = lambda mm, *a: _value_and_jacfwd(lambda v: _pixel_residual(v, *a, problem=problem), mm)  # noqa: E731
         r, jac = jax.vmap(one)(m, *_pixel_args(problem))
     else:
         r, jac = _linearize_samples(m, problem)
@@ -252,19 +247,10 @@ def _linearize_samples(m, problem: Problem):
     of each sample's radiance Jacobian (forward mode, K tangents) and the Jacobian of the
     pixel's encoding and loss at the mean radiance (3 tangents), divided by S."""
 
-    def sample(mm, *a):
-        f = lambda v: _sample_radiance(v, *a, problem=problem)  # noqa: E731
-        jac, val = jax.jacfwd(lambda v: (f(v), f(v)), has_aux=True)(mm)
-        return val, jac
-
+    sample = lambda mm, *a: _value_and_jacfwd(lambda v: _sample_radiance(v, *a, problem=problem), mm)  # noqa: E731
     rad, jrad = jax.vmap(sample)(m, *_sample_args(problem))
     mean = jnp.mean(_by_pixel(rad, problem), axis=1)
-
-    def pixel(rr, e, t):
-        f = lambda v: _value_residual(v, e, t, problem)  # noqa: E731
-        jac, val = jax.jacfwd(lambda v: (f(v), f(v)), has_aux=True)(rr)
-        return val, jac
-
+    pixel = lambda rr, e, t: _value_and_jacfwd(lambda v: _value_residual(v, e, t, problem), rr)  # noqa: E731
     obs = problem.obs
     r, jenc = jax.vmap(pixel)(mean, obs.pixel_rows(obs.exposure), obs.pixel_rows(obs.target))
     jac = jnp.einsum("pab,psbk->psak", jenc, _by_pixel(jrad, problem), precision=lax.Precision.HIGHEST)
