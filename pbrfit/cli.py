@@ -207,9 +207,11 @@ def _add_fit(sub) -> None:
                    help=f"per_pixel: sample steps per pixel (default {PixelIBLSettings.samples})")
     p.add_argument("--ibl-levels", type=int, default=PixelIBLSettings.levels,
                    help=f"per_pixel: roughness levels tabulated (default {PixelIBLSettings.levels})")
-    p.add_argument("--pixel-samples", type=int, default=1, metavar="N",
+    p.add_argument("--pixel-samples", default="auto", metavar="{auto,N}",
                    help="shade N x N samples per pixel and fit their mean: the pixel footprint of an antialiased or "
-                        "supersampled capture (default 1: pixel centres; cost grows as N^2)")
+                        "supersampled capture (1: pixel centres; cost grows as N^2). Default auto: pixel centres for "
+                        "linear HDR images; for sRGB or tone-mapped ones, fit both 2 x 2 samples and centres and keep "
+                        "the better match")
     p.add_argument("--no-search", action="store_true",
                    help="skip the per-texel re-search of metallic and roughness midway through the solve")
     p.add_argument("--continuation", default=",".join(str(w) for w in CONTINUATION), metavar="W[,W...]",
@@ -273,8 +275,11 @@ def _fit_options(args) -> dict:
         if not (math.isfinite(value) and value >= 0):
             raise CaptureError(f"--{name}: must be a finite number >= 0, got {value}")
     continuation = _continuation(args.continuation)
-    if not 1 <= args.pixel_samples <= MAX_PIXEL_SAMPLES:
-        raise CaptureError(f"--pixel-samples: expected 1 to {MAX_PIXEL_SAMPLES}, got {args.pixel_samples}")
+    pixel_samples = args.pixel_samples
+    if pixel_samples != "auto":
+        if not (pixel_samples.isdigit() and 1 <= int(pixel_samples) <= MAX_PIXEL_SAMPLES):
+            raise CaptureError(f"--pixel-samples: expected auto or 1 to {MAX_PIXEL_SAMPLES}, got {args.pixel_samples}")
+        pixel_samples = int(pixel_samples)
     if "normal" in free and args.ibl == "per_pixel":
         raise CaptureError("--ibl per_pixel: fitted normals need --ibl split_sum (per-pixel integrals hold the normals fixed)")
     try:
@@ -294,7 +299,7 @@ def _fit_options(args) -> dict:
         fit=tuple(free), fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
         max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, loss=args.loss, smooth=args.smooth,
         coarse_to_fine=args.coarse_to_fine, search=not args.no_search, devices=devices, ibl=args.ibl,
-        pixel_ibl_settings=pixel_ibl_settings, continuation=continuation, pixel_samples=args.pixel_samples,
+        pixel_ibl_settings=pixel_ibl_settings, continuation=continuation, pixel_samples=pixel_samples,
     )
 
 
@@ -340,12 +345,21 @@ class _Progress:
         self.history.append(dict(info, time=self._clock() - self._start))
         if self._live is not None:
             h, w = info["resolution"]
+            n = info.get("footprint")  # the auto footprint's two finishes: centres, then samples
+            where = "" if n is None else ("  pixel centres" if n == 1 else f"  {n}x{n} samples")
             self._live.update(self._task, description=(
-                f"level {info['level']} ({h}x{w}) step {info['step']:3d}  loss {info['loss']:.4e}"))
+                f"level {info['level']} ({h}x{w}){where} step {info['step']:3d}  loss {info['loss']:.4e}"))
 
     def close(self) -> None:
         if self._live is not None:
             self._live.stop()
+
+
+def _loss_history(steps: list, report: dict) -> list:
+    """The convergence plot's (step, loss) points: every step reported, but of the automatic
+    footprint's two finishes (entries tagged "footprint") only the kept one's."""
+    kept = report.get("footprint", {}).get("selected")
+    return [dict(step=i, loss=h["loss"]) for i, h in enumerate(h for h in steps if h.get("footprint", kept) == kept)]
 
 
 def run_fit(capture, out, options: dict, cache_dir=None, quiet: bool = False):
@@ -372,7 +386,7 @@ def run_fit(capture, out, options: dict, cache_dir=None, quiet: bool = False):
     if truth is not None:
         errors = map_rmse(truth, result)
         result.report["truth_rmse"] = errors
-    history = [dict(step=i, loss=h["loss"]) for i, h in enumerate(progress.history)]
+    history = _loss_history(progress.history, result.report)
     normals = result.material.normal is not None
     if normals:  # uncertainty.exr holds the spec's five channels; the slopes' σ goes to the report
         sig = np.asarray(result.uncertainty)[..., 5:7]
@@ -392,6 +406,14 @@ def _summary(result, errors) -> str:
     extra = f", per-pixel IBL {r['ibl']['seconds']:.1f} s" if r.get("ibl", {}).get("mode") == "per_pixel" else ""
     parts = [f"fit {h}x{w} maps with {r['solver']}: {r['steps']} steps, loss {r['final_loss']:.3e}",
              f"{r['wall_time']:.1f} s (compile {r['times'].get('compile', 0.0):.1f} s{extra})"]
+    n, foot = r.get("pixel_samples", 1), r.get("footprint")
+    if foot is not None:  # auto: which footprint explained the images, and by how much
+        other = next(k for k in foot["energies"] if int(k) != foot["selected"])
+        where = "pixel centres" if n == 1 else f"{n}x{n} samples per pixel"
+        parts[0] += (f", {where} (auto: data loss {foot['energies'][str(foot['selected'])]:.3e} against "
+                     f"{foot['energies'][other]:.3e} {'at centres' if other == '1' else f'with {other}x{other}'})")
+    elif n > 1:
+        parts[0] += f", {n}x{n} samples per pixel"
     if errors:
         parts.append("RMSE " + ", ".join(f"{k} {v:.4f}" for k, v in errors.items()))
     return "; ".join(parts)

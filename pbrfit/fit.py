@@ -14,6 +14,10 @@ solver chosen by ``solver=``:
 - ``"lm"``, ``"gn"``, ``"dogleg"``, ``"bfgs"``, ``"lbfgs"``, ``"ncg"``, ``"adam"``: optimistix
   solvers on the same objective (`pbrfit.optx_solvers`), run through the same schedule.
 
+A pixel's footprint: a display-referred capture (sRGB, tone mapped) is fitted both at pixel
+centres and with 2 × 2 samples per pixel, and the fit whose images match better is kept
+(``pixel_samples="auto"``, `footprint_choice`); linear images are fitted at pixel centres.
+
 Pixels can be split over several devices (``devices=``, `pbrfit.sharding`). The result carries
 the maps, per-texel standard errors (`pbrfit.uncertainty`), per-texel coverage, the fitted
 renders of every view and a report.
@@ -33,8 +37,8 @@ import numpy as np
 from .initialisation import coordinate_search, grid_initialise, parity_classes
 from .material import Material
 from .model import Model
-from .observations import (Observations, TexelLayout, coverage_counts, neighbour_pairs, observations_from_capture,
-                           texel_layout, uniform_layout)
+from .observations import (MAX_PIXEL_SAMPLES, Observations, TexelLayout, coverage_counts, neighbour_pairs,
+                           observations_from_capture, texel_layout, uniform_layout)
 from .optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
 from .pixel_ibl import PixelIBLSettings, pixel_ibl
 from .parameters import CHANNELS, FIT_GROUPS, NORMAL_CHANNELS, channel_mask, normal_from_slopes, prior
@@ -45,7 +49,8 @@ from .transfer import to_device
 from .uncertainty import block_standard_errors, residual_variance
 
 __all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "model_for_capture",
-           "SOLVERS", "DEFAULT_SOLVER", "IBL_MODES", "CONTINUATION", "SETTLE_STEPS", "RELEASED_STEPS", "continuation_scale", "schedule"]
+           "SOLVERS", "DEFAULT_SOLVER", "IBL_MODES", "CONTINUATION", "SETTLE_STEPS", "RELEASED_STEPS", "continuation_scale", "schedule",
+           "footprint_choice", "footprint_energies", "AUTO_PIXEL_SAMPLES"]
 
 DEFAULT_SOLVER = "structured"
 #: What `fit` may integrate a capture's environment light with (``ibl=``); the first is the default.
@@ -76,6 +81,10 @@ SEARCH_ROUNDS = 1
 CONTINUATION = (0.0035, 0.00035)
 SETTLE_STEPS = 5
 RELEASED_STEPS = 10
+#: Samples per pixel side that ``pixel_samples="auto"`` tries on display-referred images
+#: (`footprint_choice`): 2 × 2 is exact for 2 × 2 supersampled renders and close to finer box
+#: averages (experiments/solvers.md, "Pixel footprints").
+AUTO_PIXEL_SAMPLES = 2
 #: Default scale of the robust losses, in image units (a few times a typical noise level).
 LOSS_SCALE = 0.05
 #: Each coarse-to-fine level is this factor finer than the one before (see experiments/solvers.md).
@@ -242,13 +251,18 @@ def fit_observations(
     setup_time: float = 0.0,
     centres: Optional[Observations] = None,
     centre_ibl=None,
+    select_footprint: bool = False,
 ) -> FitResult:
     """Fit maps to prepared `Observations` (see `fit` for the arguments).
 
     With several samples per pixel in `obs`, `centres` (optional) holds the same capture's
     observations at pixel centres (and `centre_ibl` their IBL, when it is per pixel): the grid
     start, the continuation's first steps and the coordinate search then run on them, at a
-    quarter of the cost or less, and only the settling and released steps on `obs`."""
+    quarter of the cost or less, and only the settling and released steps on `obs`. With
+    ``select_footprint`` as well, those last steps run on both, from the same point, and the fit
+    whose data term is lower over the pixels both use is kept (`footprint_energies`; both have
+    the same parameters, so that is the likelier model of the pixels' footprint); the report's
+    "footprint" entry gives both energies and the choice."""
     t_start = time.perf_counter()
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
@@ -276,6 +290,8 @@ def fit_observations(
     pairs_final = neighbour_pairs(final)
     e_final = pairs_final.shape[0]
 
+    if select_footprint and (centres is None or obs.samples == 1):
+        raise ValueError("select_footprint needs observations with several samples per pixel and their centres")
     if centres is not None and obs.samples > 1 and model.ibl == "per_pixel" and centre_ibl is None:
         raise ValueError("centres with a per-pixel IBL model need centre_ibl: the centres' own integrals")
     mesh = None if devices is None else pixel_mesh(devices)
@@ -284,7 +300,7 @@ def fit_observations(
         raise ValueError(f"continuation weights must be finite and >= 0, got {continuation}")
     x = None
     history = []
-    annealed = None
+    annealed = footprint = None
     clock = dict(compile=0.0, solve=0.0)
     where = dict(level=0, resolution=levels[0])
     cb = None if progress is None else (
@@ -312,12 +328,8 @@ def fit_observations(
         searching = last and search and maps_level and np.any(channels[3:] > 0) and head < steps
         annealing = (last and maps_level and solver == DEFAULT_SOLVER and any(w > 0 for w in continuation)
                      and steps - head >= RELEASED_STEPS)
-        pairs = np.zeros((e_final, 2), np.int32)
-        pw = np.zeros(e_final, np.float32)
-        if maps_level and (smooth > 0 or annealing):
-            p = neighbour_pairs(shape)
-            pairs[: len(p)] = p
-            pw[: len(p)] = (seen[p[:, 0]] & seen[p[:, 1]]).astype(np.float32)
+        prior_on = maps_level and (smooth > 0 or annealing)
+        pairs, pw = _neighbour_weights(shape, seen, e_final, prior_on)
         problem = Problem(obs, layout.index, layout.weight, to_device(free), to_device(pairs), to_device(pw),
                           to_device(smooth, np.float32), to_device(loss_scale, np.float32), ibl, model, loss)
         if mesh is not None:
@@ -325,11 +337,15 @@ def fit_observations(
         early = problem  # the start, the continuation's steps and the search
         if centres is not None and obs.samples > 1:
             lay = _layout(centres, shape, wrap)
-            # texels only samples read have no data here: they keep their start until the samples
+            # the texels the centres see are free here (as in a fit of centres alone); texels only
+            # samples read keep their start until the samples' steps, and texels only centres read
+            # (where some sample misses the mesh) go back to their fixed values for those steps
             centre_seen = np.zeros(t_final, bool)
             centre_seen[:t] = coverage_counts(lay).reshape(-1) > 0
+            c_pairs, c_pw = _neighbour_weights(shape, centre_seen, e_final, prior_on)
             early = dataclasses.replace(problem, obs=centres, index=lay.index, weight=lay.weight,
-                                        free=to_device(free * centre_seen[:, None]),
+                                        free=to_device((centre_seen[:, None] * channels[None, :]).astype(np.float32)),
+                                        pairs=to_device(c_pairs), pair_weight=to_device(c_pw),
                                         ibl=centre_ibl if model.ibl == "per_pixel" else ibl)
             if mesh is not None:
                 early = shard_problem(early, mesh)
@@ -351,25 +367,101 @@ def fit_observations(
         elif searching:
             xs, info = _merge(info, runner(xs, early, head, num_free))
         done = head if (annealing or searching) else 0
+        settle = False
         if searching:
             xn = np.asarray(_timed(coordinate_search, clock, "search", to_device(xs, np.float32), early,
                                    to_device(parity_classes(shape)), SEARCH_ROUNDS, bool(channels[3] > 0)))
             info["search_moved"] = int(np.sum(np.any(xn[:t] != np.asarray(xs)[:t], axis=1)))
             xs = xn
-            if annealing and weights[-1] > 0 and steps - done - SETTLE_STEPS >= RELEASED_STEPS:
-                xs, info = _merge(info, runner(to_device(xs, np.float32), with_smooth(problem, smooth + weights[-1]),
-                                               SETTLE_STEPS, num_free))
-                done += SETTLE_STEPS
+            settle = annealing and weights[-1] > 0 and steps - done - SETTLE_STEPS >= RELEASED_STEPS
+            if settle:
                 annealed["settle_steps"] = SETTLE_STEPS
-        xs, info = _merge(info, runner(to_device(xs, np.float32), problem, steps - done, num_free))
+
+        tail = dict(steps=steps - done, num_free=num_free, settle_weight=smooth + weights[-1] if settle else None)
+        if last and select_footprint:  # the same steps at pixel centres first, from the same point
+            where["footprint"] = 1
+            x_c, info_c, lin_c = _finish_level(runner, early, xs, info, **tail)
+            where["footprint"] = n_side = _samples_side(obs)
+        if early is not problem:
+            xs = np.where(seen[:, None], xs, fixed_x)
+        xs, info, linearization = _finish_level(runner, problem, xs, info, **tail)
+        if last and select_footprint:
+            where.pop("footprint")
+            e_samples, e_centres, common = footprint_energies(
+                obs, _final_residuals(xs, problem, linearization), centres, _final_residuals(x_c, early, lin_c))
+            footprint = dict(selected=n_side, energies={str(n_side): e_samples, "1": e_centres}, pixels=common,
+                             steps={str(n_side): info["steps"], "1": info_c["steps"]})
+            if e_centres <= e_samples:  # the pixel centres explain the images at least as well
+                footprint["selected"] = 1
+                xs, info, linearization = x_c, info_c, lin_c
+                obs, problem, seen = centres, early, centre_seen
         history.append(dict(resolution=list(shape), **info))
         x = xs[:t].reshape(shape + (k,))
 
     t_post = time.perf_counter()
     result = _finish(obs, problem, x, final, channels, seen[:t_final], model, solver, history, loss, smooth,
-                     dict(setup=setup_time, **clock), t_post, t_start, runner.linearization)
+                     dict(setup=setup_time, **clock), t_post, t_start, linearization)
     result.report["continuation"] = annealed
+    if footprint is not None:
+        result.report["footprint"] = footprint
     return result
+
+
+def _neighbour_weights(shape, seen, size: int, on: bool):
+    """The smoothness prior's neighbour pairs at this resolution, padded to `size`, and their
+    weights: 1 where both texels are seen, else 0 (all 0 when the prior is not `on`)."""
+    pairs = np.zeros((size, 2), np.int32)
+    weights = np.zeros(size, np.float32)
+    if on:
+        p = neighbour_pairs(shape)
+        pairs[: len(p)] = p
+        weights[: len(p)] = (seen[p[:, 0]] & seen[p[:, 1]]).astype(np.float32)
+    return pairs, weights
+
+
+def _finish_level(runner, problem: Problem, x, info, steps: int, num_free: int, settle_weight=None):
+    """A level's last `steps` on `problem` from x: the first `SETTLE_STEPS` under the prior
+    weight `settle_weight` (unless None), the rest as asked; (x, info, linearisation)."""
+    if settle_weight is not None:
+        x, info = _merge(info, runner(to_device(x, np.float32), with_smooth(problem, settle_weight), SETTLE_STEPS,
+                                      num_free))
+        steps -= SETTLE_STEPS
+    x, info = _merge(info, runner(to_device(x, np.float32), problem, steps, num_free))
+    return x, info, runner.linearization
+
+
+def _samples_side(obs: Observations) -> int:
+    """n of the n × n samples per pixel of `obs`."""
+    return int(round(math.sqrt(obs.samples)))
+
+
+def _final_residuals(x, problem: Problem, linearization):
+    """Pixel residuals at a solver's result: from its linearisation (the structured solver),
+    else evaluated (the optimistix solvers return none)."""
+    if linearization is not None:
+        return linearization[0]
+    return jax.jit(pixel_residuals)(to_device(x, np.float32), problem)
+
+
+def footprint_energies(obs: Observations, residuals, centres: Observations, centre_residuals):
+    """The data terms 1/2 Σ_p ||r̃_p||² (the loss: r̃ is the residual transformed by the robust
+    loss, the residual itself for l2) of two fits of the same images, one with pixel samples
+    (`obs`) and one at pixel centres, summed over the pixels both use (a pixel is usable with
+    samples only where all of them hit the mesh): (samples' energy, centres' energy, pixels).
+    Both models have the same maps to fit and no other parameter, so the lower energy is the
+    likelier footprint (for l2 and Gaussian noise, the higher likelihood)."""
+
+    def per_pixel(o: Observations, r):
+        r = np.asarray(r, np.float64)[: o.num_pixels]
+        view = np.asarray(o.pixel_rows(o.view_index)).astype(np.int64)
+        pix = np.asarray(o.pixel_rows(o.pixel)).astype(np.int64)
+        key = view * (1 << 40) + pix
+        return key, 0.5 * np.sum(r * r, axis=1)
+
+    ks, es = per_pixel(obs, residuals)
+    kc, ec = per_pixel(centres, centre_residuals)
+    common, i_s, i_c = np.intersect1d(ks, kc, assume_unique=True, return_indices=True)
+    return float(np.sum(es[i_s])), float(np.sum(ec[i_c])), int(common.size)
 
 
 def continuation_scale(jac, problem: Problem) -> float:
@@ -515,7 +607,7 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
         final_loss=float(energy),
         residual_sigma=math.sqrt(sigma2),
         pixels=int(obs.num_pixels),
-        pixel_samples=int(round(math.sqrt(obs.samples))),
+        pixel_samples=_samples_side(obs),
         observed_texels=int(np.sum(coverage > 0)),
         psnr=psnr,
         times={name: float(v) for name, v in times.items()},
@@ -530,16 +622,38 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     return FitResult(material, sigma, coverage, report, images, targets, masks)
 
 
+def footprint_choice(capture, pixel_samples="auto", views=None) -> tuple[int, bool]:
+    """(n, select) for `fit`'s ``pixel_samples``: an integer n is taken as given; ``"auto"``
+    gives (`AUTO_PIXEL_SAMPLES`, True) for display-referred images (any frame in sRGB, or a tone
+    map), which are photographs or finished renders and so usually pixel averages, and (1, False)
+    for linear HDR images, where the cost (about three times the run time) is not paid unless
+    asked for, although antialiased HDR renders average pixels too, and for precomputed `views`,
+    which hold pixel centres. select says to fit both footprints and keep the one that explains
+    the images better (`fit_observations`)."""
+    if isinstance(pixel_samples, str):
+        if pixel_samples != "auto":
+            raise ValueError(f"pixel_samples must be 'auto' or an integer from 1 to {MAX_PIXEL_SAMPLES}, "
+                             f"got {pixel_samples!r}")
+        display = (getattr(capture, "tonemap", "none") != "none"
+                   or any(f.color_space == "srgb" for f in getattr(capture, "frames", ())))
+        return (AUTO_PIXEL_SAMPLES, True) if display and views is None else (1, False)
+    return pixel_samples, False
+
+
 def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, ibl: Optional[str] = None,
-        pixel_ibl_settings: PixelIBLSettings = PixelIBLSettings(), pixel_samples: int = 1, **kwargs) -> FitResult:
+        pixel_ibl_settings: PixelIBLSettings = PixelIBLSettings(), pixel_samples="auto", **kwargs) -> FitResult:
     """Fit material maps to a `pbrfit.scene.Capture`.
 
     Keyword arguments (all optional):
         pixel_samples: n: shade n × n samples per pixel and compare their mean radiance with the
             pixel (`pbrfit.observations`, pixel footprints): the model of an antialiased or
-            supersampled capture (1, the default: pixel centres). The grid start, the
-            continuation's first steps and the search run on pixel centres, the settling and
-            released steps on the samples (`fit_observations`).
+            supersampled capture (1: pixel centres). The grid start, the continuation's first
+            steps and the search run on pixel centres, the settling and released steps on the
+            samples (`fit_observations`). ``"auto"`` (default, `footprint_choice`): pixel
+            centres for linear HDR images (and with precomputed ``views``); for display-referred
+            ones (sRGB, tone mapped) the last steps run both ways, at centres and with 2 × 2
+            samples, and the fit whose images match better is kept (the report's "footprint"
+            entry gives both energies and step counts).
         ibl: how the capture's environment light is integrated, ``"split_sum"`` (default: Karis
             2013, the renderer's tables) or ``"per_pixel"`` (`pbrfit.pixel_ibl`: each pixel's
             lobe integrals by Monte Carlo on a roughness grid, once before the solve, with
@@ -581,6 +695,7 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     if ibl is not None and model.ibl is not None:
         model = model.replace(ibl=ibl)
     _check_normals(model, kwargs.get("fit", ()))
+    pixel_samples, select = footprint_choice(capture, pixel_samples, views)
     obs = observations_from_capture(capture, cache_dir=cache_dir, views=views, pixel_samples=pixel_samples)
     centres = None if obs.samples == 1 else observations_from_capture(capture, cache_dir=cache_dir, views=views)
     t_ibl = time.perf_counter()
@@ -602,7 +717,7 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
         tables = _ibl_for_capture(capture, model)
     t_ibl = time.perf_counter() - t_ibl
     result = fit_observations(obs, model=model, ibl=tables, setup_time=time.perf_counter() - t0, centres=centres,
-                              centre_ibl=centre_tables, **kwargs)
+                              centre_ibl=centre_tables, select_footprint=select, **kwargs)
     if model.ibl is not None:
         result.report["ibl"] = dict(mode=model.ibl, seconds=t_ibl, **(
             dataclasses.asdict(pixel_ibl_settings) if model.ibl == "per_pixel" else {}))

@@ -124,8 +124,9 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--smooth", "nan"], "--smooth"),
         (["--continuation", "abc"], "--continuation"),
         (["--continuation", "0.01,-1"], "--continuation"),
-        (["--pixel-samples", "0"], "--pixel-samples: expected 1 to 4, got 0"),
+        (["--pixel-samples", "0"], "--pixel-samples: expected auto or 1 to 4, got 0"),
         (["--pixel-samples", "5"], "--pixel-samples"),
+        (["--pixel-samples", "two"], "--pixel-samples: expected auto or 1 to 4, got two"),
         (["--rtol", "-1"], "--rtol"),
         (["--atol", "inf"], "--atol"),
         (["--metallic", "0.5", "--fit", "metallic,roughness"], "--fit: lists metallic, which --metallic holds fixed"),
@@ -198,6 +199,8 @@ def test_fit_a_capture_mixing_exr_and_png_frames(tmp_path, monkeypatch):
     assert main(["fit", str(cap), "--out", str(out), "--resolution", "16", "--quiet"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert max(report["truth_rmse"].values()) < 1e-3, report["truth_rmse"]
+    # sRGB frames: the default tried 2 x 2 samples too, and kept the centres the images were rendered at
+    assert report["footprint"]["selected"] == 1 and report["pixel_samples"] == 1
 
 
 def _broken_copy(capture, tmp_path, edit):
@@ -292,3 +295,31 @@ def test_per_pixel_ibl_without_an_environment_warns_and_fits(capture, tmp_path, 
     assert len(err) == 1 and "--ibl per_pixel" in err[0] and "has no environment" in err[0]
     report = json.loads((out / "report.json").read_text())
     assert report["model"]["ibl"] is None and "ibl" not in report
+
+
+def test_summary_line_names_the_footprint():
+    from types import SimpleNamespace
+
+    from pbrfit.cli import _summary
+
+    report = dict(resolution=[8, 8], solver="structured", steps=30, final_loss=2.0, wall_time=5.0,
+                  times=dict(compile=1.0), pixel_samples=2,
+                  footprint=dict(selected=2, energies={"2": 2.0, "1": 3.5}, pixels=10))
+    line = _summary(SimpleNamespace(report=report), {})
+    assert "2x2 samples per pixel (auto: data loss 2.000e+00 against 3.500e+00 at centres)" in line
+    report.update(pixel_samples=1, footprint=dict(selected=1, energies={"2": 3.5, "1": 2.0}, pixels=10))
+    assert "pixel centres (auto: data loss 2.000e+00 against 3.500e+00 with 2x2)" in _summary(
+        SimpleNamespace(report=report), {})
+    report.pop("footprint")
+    assert "samples" not in _summary(SimpleNamespace(report=report), {})
+
+
+def test_loss_history_keeps_the_kept_footprint_only():
+    from pbrfit.cli import _loss_history
+
+    steps = [dict(loss=9.0), dict(loss=5.0), dict(loss=4.0, footprint=1), dict(loss=3.0, footprint=1),
+             dict(loss=2.0, footprint=2)]
+    assert _loss_history(steps, dict(footprint=dict(selected=2))) == [
+        dict(step=0, loss=9.0), dict(step=1, loss=5.0), dict(step=2, loss=2.0)]
+    assert [h["loss"] for h in _loss_history(steps, dict(footprint=dict(selected=1)))] == [9.0, 5.0, 4.0, 3.0]
+    assert [h["loss"] for h in _loss_history(steps[:2], {})] == [9.0, 5.0]

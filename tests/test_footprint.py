@@ -121,12 +121,22 @@ def test_structure_is_exact_with_samples(capture, loss):
                                rtol=1e-6, atol=1e-6 * scale)
 
 
+_FITS = {}
+
+
+def _footprint_fit(capture):
+    """The 2 × 2 fit of the module's capture, shared by the tests that compare with it."""
+    if "samples" not in _FITS:
+        _FITS["samples"] = fit(capture, resolution=MAP[0], pixel_samples=2)
+    return _FITS["samples"]
+
+
 def test_supersampled_capture_fitted_exactly_with_pixel_samples(capture, capture_dir):
     """Noiseless 2 × 2 supersampled images: pixel centres leave a bias in the maps, 2 × 2
     samples per pixel (the capture's own footprint) recover them."""
     truth = read_material(capture_dir / "truth")
-    centre = fit(capture, resolution=MAP[0])
-    footprint = fit(capture, resolution=MAP[0], pixel_samples=2)
+    centre = fit(capture, resolution=MAP[0], pixel_samples=1)
+    footprint = _footprint_fit(capture)
     assert footprint.report["pixel_samples"] == 2 and centre.report["pixel_samples"] == 1
     assert footprint.report["pixels"] <= centre.report["pixels"]
     got, was = map_rmse(truth, footprint), map_rmse(truth, centre)
@@ -172,3 +182,111 @@ def test_pixel_samples_with_per_pixel_ibl(tmp_path, monkeypatch):
             np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
         else:  # other rows of the pass shift their sequences differently: equal up to the noise
             assert np.median(np.abs(got - want) / (np.abs(want) + 1e-2)) < 0.05
+
+
+def _same_fit(a, b):
+    for name in ("base_color", "metallic", "roughness"):
+        np.testing.assert_allclose(np.asarray(getattr(a.material, name)), np.asarray(getattr(b.material, name)),
+                                   rtol=0, atol=1e-6, err_msg=name)
+    np.testing.assert_array_equal(a.coverage, b.coverage)
+    np.testing.assert_allclose(a.uncertainty, b.uncertainty, rtol=1e-3)
+    assert a.report["pixels"] == b.report["pixels"] and a.report["pixel_samples"] == b.report["pixel_samples"]
+    assert a.report["steps"] == b.report["steps"] and a.report["levels"] == b.report["levels"]
+
+
+def test_auto_footprint_keeps_samples_for_a_supersampled_capture(capture):
+    """sRGB images: ``"auto"`` fits 2 × 2 samples and pixel centres from the same start and keeps
+    the samples here, whose images match (the capture is 2 × 2 supersampled); the kept fit is
+    the 2 × 2 fit itself."""
+    auto = fit(capture, resolution=MAP[0])
+    foot = auto.report["footprint"]
+    assert foot["selected"] == 2 and foot["pixels"] == auto.report["pixels"]
+    assert foot["energies"]["2"] < 0.01 * foot["energies"]["1"], foot
+    _same_fit(auto, _footprint_fit(capture))
+
+
+def test_auto_footprint_keeps_centres_for_a_capture_rendered_at_centres(tmp_path):
+    """A plane rendered at pixel centres into 16-bit sRGB PNGs, its edges in view (pixels there
+    that some sample misses are used by the centres only): ``"auto"`` keeps the centres' fit,
+    the very fit of ``pixel_samples=1`` (texels only those pixels read included), and reports
+    both energies."""
+    from data_synth.presets import make_scene
+    from data_synth.writer import synthesize
+
+    synthesize(make_scene("peer-plane", seed=3, size=32, views=4, texture_size=MAP[0], image_format="png16"),
+               tmp_path / "cap")
+    capture = load_capture(tmp_path / "cap")
+    auto = fit(capture, resolution=MAP[0])
+    centre = fit(capture, resolution=MAP[0], pixel_samples=1)
+    foot = auto.report["footprint"]
+    assert foot["selected"] == 1 and foot["energies"]["1"] < 0.01 * foot["energies"]["2"], foot
+    assert foot["pixels"] < centre.report["pixels"]  # the edges' pixels are left out of the comparison
+    assert "footprint" not in centre.report
+    _same_fit(auto, centre)
+    assert map_rmse(read_material(tmp_path / "cap" / "truth"), auto)["roughness"] < 1e-3
+
+
+def test_texels_only_centres_read_are_fitted_when_centres_are_kept(tmp_path):
+    """Samples that miss the mesh drop their pixel, so the centres can see texels no sample row
+    reads. Here the sample rows of every pixel outside the map's middle half are dropped: when
+    the centres' fit is kept, the texels only centres read are fitted and observed as in a fit
+    of centres alone."""
+    import equinox as eqx
+
+    from data_synth.presets import make_scene
+    from data_synth.writer import synthesize
+    from pbrfit.fit import fit_observations
+    from pbrfit.observations import PIXEL_FIELDS
+
+    synthesize(make_scene("peer-plane", seed=4, size=32, views=4, texture_size=MAP[0], image_format="png16"),
+               tmp_path / "cap")
+    capture = load_capture(tmp_path / "cap")
+    model = model_for_capture(capture)
+    centres = observations_from_capture(capture)
+    samples = observations_from_capture(capture, pixel_samples=2)
+    u = np.asarray(samples.pixel_rows(samples.uv))[:, 0] % 1.0
+    keep = np.flatnonzero((u >= 0.25) & (u <= 0.75))  # textures repeat: column 0 is read from both sides
+    rows = jnp.asarray((keep[:, None] * samples.samples + np.arange(samples.samples)).ravel(), jnp.int32)
+    samples = eqx.tree_at(lambda o: tuple(getattr(o, n) for n in PIXEL_FIELDS), samples,
+                          tuple(getattr(samples, n)[rows] for n in PIXEL_FIELDS))
+    auto = fit_observations(samples, model=model, resolution=MAP[0], centres=centres, select_footprint=True)
+    alone = fit_observations(centres, model=model, resolution=MAP[0])
+    assert auto.report["footprint"]["selected"] == 1
+    sampled = coverage_counts(texel_layout(samples, MAP), samples.samples)
+    assert (sampled[:, 0] == 0).all() and (alone.coverage[:, 0] > 0).all()  # column 0: centres only
+    _same_fit(auto, alone)
+
+
+def test_auto_footprint_with_an_optimistix_solver_and_a_uniform_material(capture):
+    """The choice also works where the solver returns no linearisation (optimistix) and for
+    one uniform material: the kept fit is the one of lower energy."""
+    res = fit(capture, maps="none", solver="lm", max_steps=5)
+    foot = res.report["footprint"]
+    e = {int(k): v for k, v in foot["energies"].items()}
+    assert set(e) == {1, 2} and all(np.isfinite(v) and v > 0 for v in e.values())
+    assert foot["selected"] == min(e, key=e.get) == res.report["pixel_samples"]
+    assert res.report["resolution"] == [1, 1] and np.isfinite(res.report["final_loss"])
+
+
+def test_select_footprint_needs_samples_and_centres(capture):
+    from pbrfit.fit import fit_observations
+
+    obs = observations_from_capture(capture)
+    with pytest.raises(ValueError, match="select_footprint"):
+        fit_observations(obs, model=model_for_capture(capture), resolution=MAP[0], select_footprint=True)
+
+
+def test_footprint_choice_by_image_kind(capture):
+    """``"auto"`` tries 2 × 2 samples for display-referred images only; an integer is taken as
+    given; precomputed views hold centres."""
+    from pbrfit.fit import AUTO_PIXEL_SAMPLES, footprint_choice
+
+    linear = dataclasses.replace(capture, frames=[dataclasses.replace(f, color_space="linear") for f in capture.frames],
+                                 color_space="linear")
+    assert footprint_choice(capture) == (AUTO_PIXEL_SAMPLES, True)
+    assert footprint_choice(linear) == (1, False)
+    assert footprint_choice(dataclasses.replace(linear, tonemap="reinhard")) == (AUTO_PIXEL_SAMPLES, True)
+    assert footprint_choice(capture, views=[object()]) == (1, False)
+    assert footprint_choice(capture, 3) == (3, False) and footprint_choice(linear, 1) == (1, False)
+    with pytest.raises(ValueError, match="auto"):
+        footprint_choice(capture, "many")
