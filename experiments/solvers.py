@@ -58,6 +58,9 @@ CONFIGS = {
     "adam (optimistix)": dict(GRID, solver="adam", max_steps=300),
     # supersampled captures: the pixel footprint modelled by 2 x 2 samples per pixel
     "structured (default, 2 × 2 pixel samples)": dict(solver="structured", pixel_samples=2),
+    # what `pbrfit fit` does on sRGB images (pixel_samples="auto"): the last steps both ways, the
+    # better match kept
+    "structured (default, auto footprint)": dict(solver="structured", pixel_samples=2, select_footprint=True),
     # the noisy scene only: the default with the smoothness prior kept to the end
     "structured (default, smooth=0.003)": dict(solver="structured", smooth=0.003),
     "structured (default, smooth=0.03)": dict(solver="structured", smooth=0.03),
@@ -70,15 +73,20 @@ ORACLE = "oracle (start at the truth)"
 #: The oracle of the model with 2 x 2 samples per pixel.
 ORACLE_FOOTPRINT = "oracle, 2 × 2 pixel samples"
 FOOTPRINT = "structured (default, 2 × 2 pixel samples)"
-#: What the noiseless scenes run: every configuration but the smoothness priors, and the oracle.
-COMPARISON = [c for c in CONFIGS if "smooth=" not in c and c != FOOTPRINT] + [ORACLE]
+AUTO = "structured (default, auto footprint)"
+#: What the noiseless scenes run: every configuration but the smoothness priors and the
+#: footprints, and the oracle.
+COMPARISON = [c for c in CONFIGS if "smooth=" not in c and c not in (FOOTPRINT, AUTO)] + [ORACLE]
 #: name: (data_synth preset, make_scene overrides, configurations to run)
 SCENES = {
     "peer-plane": ("peer-plane", {}, COMPARISON),
-    "plane-flash": ("plane-flash", {}, COMPARISON + [FOOTPRINT, ORACLE_FOOTPRINT]),
+    "plane-flash": ("plane-flash", {}, COMPARISON + [FOOTPRINT, ORACLE_FOOTPRINT, AUTO]),
     # the flash capture without noise: what is left is the model's (pixel centres against the
     # 2 x 2 supersampled images) and the solver's
-    "plane-flash-noiseless": ("plane-flash", dict(noise=0.0), [DEFAULT, FOOTPRINT, ORACLE, ORACLE_FOOTPRINT]),
+    "plane-flash-noiseless": ("plane-flash", dict(noise=0.0), [DEFAULT, FOOTPRINT, ORACLE, ORACLE_FOOTPRINT, AUTO]),
+    # the peer layout as 16-bit sRGB PNGs rendered at pixel centres: what the automatic footprint
+    # costs where the centres are right
+    "peer-plane-png": ("peer-plane", dict(image_format="png16"), [DEFAULT, FOOTPRINT, AUTO]),
     "sphere-env": ("sphere-env", {}, COMPARISON),
     "spheres-grid": ("spheres-grid", {}, COMPARISON),
     "peer-plane-noisy": ("peer-plane", dict(noise=0.01),
@@ -86,7 +94,7 @@ SCENES = {
                           "structured (default, smooth=0.003)", "structured (default, smooth=0.03)", ORACLE]),
     # plane-flash with a third of the noise: three times the signal-to-noise
     "plane-flash-quiet": ("plane-flash", dict(noise=0.01 / 3),
-                          [DEFAULT, NO_CONTINUATION, "structured (grid, no search)", ORACLE, FOOTPRINT]),
+                          [DEFAULT, NO_CONTINUATION, "structured (grid, no search)", ORACLE, FOOTPRINT, AUTO]),
     # the same noise with lights π times brighter (intensity 6π): three times the signal-to-noise
     "peer-plane-noisy-bright": ("peer-plane", dict(noise=0.01, light_intensity=6.0 * math.pi),
                                 [DEFAULT, NO_CONTINUATION, "structured (grid, no search)", ORACLE]),
@@ -94,7 +102,7 @@ SCENES = {
     "peer-plane-noisy-relative": ("peer-plane", dict(noise=0.01, noise_model="relative"),
                                   [DEFAULT, NO_CONTINUATION, ORACLE]),
     "plane-flash-relative": ("plane-flash", dict(noise=0.01, noise_model="relative"),
-                             [DEFAULT, NO_CONTINUATION, ORACLE, FOOTPRINT]),
+                             [DEFAULT, NO_CONTINUATION, ORACLE, FOOTPRINT, AUTO]),
 }
 
 
@@ -237,6 +245,8 @@ def run(scenes, configs):
                                **_metrics(truth, res.material, res.coverage, res.uncertainty), wall=wall,
                                run=run_time(times), compile=times["compile"], times=times, steps=res.report["steps"],
                                levels=res.report["levels"], final_loss=res.report["final_loss"])
+                    if "footprint" in res.report:
+                        row["footprint"] = res.report["footprint"]
                     if "result" in row["levels"][-1]:
                         row["result_message"] = _result_message(row["levels"][-1]["result"])
                 rows.append(row)
@@ -267,6 +277,7 @@ SHORT = {
     "structured (default, smooth=0.03)": "smooth 0.03",
     ORACLE: "oracle",
     FOOTPRINT: "2 × 2 pixel samples",
+    AUTO: "auto footprint",
     ORACLE_FOOTPRINT: "oracle, 2 × 2 samples",
 }
 #: Sums of RMSE below this are drawn at it (a log axis has no 0).
