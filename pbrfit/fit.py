@@ -335,7 +335,7 @@ def fit_observations(
         if mesh is not None:
             problem = shard_problem(problem, mesh)
         early = problem  # the start, the continuation's steps and the search
-        if centres is not None and obs.samples > 1:
+        if centres is not None and obs.samples > 1 and (last or (level == 0 and init == "grid")):
             lay = _layout(centres, shape, wrap)
             # the texels the centres see are free here (as in a fit of centres alone); texels only
             # samples read keep their start until the samples' steps, and texels only centres read
@@ -393,7 +393,8 @@ def fit_observations(
                              steps={str(n_side): info["steps"], "1": info_c["steps"]})
             if e_centres <= e_samples:  # the pixel centres explain the images at least as well
                 footprint["selected"] = 1
-                xs, info, linearization = x_c, info_c, lin_c
+                # texels only samples read are unseen here: their fixed values, as in a fit of centres alone
+                xs, info, linearization = np.where(centre_seen[:, None], x_c, fixed_x), info_c, lin_c
                 obs, problem, seen = centres, early, centre_seen
         history.append(dict(resolution=list(shape), **info))
         x = xs[:t].reshape(shape + (k,))
@@ -513,7 +514,8 @@ def _timed(fn, clock: dict, name: str, *args):
 
 class _Runner:
     """Compiles a solver once per shape (ahead of time, so compile and solve are timed apart):
-    once per fit, or twice when the start runs on pixel centres (`fit_observations`)."""
+    once per fit, or twice when the start runs on pixel centres (`fit_observations`); an
+    optimistix solver also once per step budget (its loop length is static)."""
 
     def __init__(self, solver, rtol, atol, progress, clock):
         self.solver, self.rtol, self.atol, self.progress, self.clock = solver, rtol, atol, progress, clock
@@ -653,7 +655,7 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             centres for linear HDR images (and with precomputed ``views``); for display-referred
             ones (sRGB, tone mapped) the last steps run both ways, at centres and with 2 × 2
             samples, and the fit whose images match better is kept (the report's "footprint"
-            entry gives both energies and step counts).
+            entry gives both energies, and each fit's step count, the shared start's included).
         ibl: how the capture's environment light is integrated, ``"split_sum"`` (default: Karis
             2013, the renderer's tables) or ``"per_pixel"`` (`pbrfit.pixel_ibl`: each pixel's
             lobe integrals by Monte Carlo on a roughness grid, once before the solve, with
