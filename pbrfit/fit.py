@@ -50,7 +50,7 @@ from .uncertainty import block_standard_errors, residual_variance
 
 __all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "model_for_capture",
            "SOLVERS", "DEFAULT_SOLVER", "IBL_MODES", "CONTINUATION", "SETTLE_STEPS", "RELEASED_STEPS", "continuation_scale", "schedule",
-           "footprint_choice", "footprint_energies", "AUTO_PIXEL_SAMPLES"]
+           "footprint_choice", "footprint_energies", "AUTO_PIXEL_SAMPLES", "AUTO_MAX_PIXELS"]
 
 DEFAULT_SOLVER = "structured"
 #: What `fit` may integrate a capture's environment light with (``ibl=``); the first is the default.
@@ -85,6 +85,10 @@ RELEASED_STEPS = 10
 #: (`footprint_choice`): 2 × 2 is exact for 2 × 2 supersampled renders and close to finer box
 #: averages (experiments/solvers.md, "Pixel footprints").
 AUTO_PIXEL_SAMPLES = 2
+#: ... and only on captures of at most this many pixels (all frames together; 16 views of 350²):
+#: the samples take four times the rows, so about four times the memory and three times the time
+#: of pixel centres; beyond it a fit asks for them with ``pixel_samples=2``.
+AUTO_MAX_PIXELS = 2_000_000
 #: Default scale of the robust losses, in image units (a few times a typical noise level).
 LOSS_SCALE = 0.05
 #: Each coarse-to-fine level is this factor finer than the one before (see experiments/solvers.md).
@@ -624,21 +628,32 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     return FitResult(material, sigma, coverage, report, images, targets, masks)
 
 
+def _display_referred(capture) -> bool:
+    """Whether any frame holds display values: sRGB-encoded, or tone mapped."""
+    return (getattr(capture, "tonemap", "none") != "none"
+            or any(f.color_space == "srgb" for f in getattr(capture, "frames", ())))
+
+
+def _image_pixels(capture) -> int:
+    """Pixels of all frames together."""
+    return int(sum(f.image.shape[0] * f.image.shape[1] for f in getattr(capture, "frames", ())))
+
+
 def footprint_choice(capture, pixel_samples="auto", views=None) -> tuple[int, bool]:
     """(n, select) for `fit`'s ``pixel_samples``: an integer n is taken as given; ``"auto"``
     gives (`AUTO_PIXEL_SAMPLES`, True) for display-referred images (any frame in sRGB, or a tone
     map), which are photographs or finished renders and so usually pixel averages, and (1, False)
     for linear HDR images, where the cost (about three times the run time) is not paid unless
-    asked for, although antialiased HDR renders average pixels too, and for precomputed `views`,
-    which hold pixel centres. select says to fit both footprints and keep the one that explains
-    the images better (`fit_observations`)."""
+    asked for, although antialiased HDR renders average pixels too; for precomputed `views`,
+    which hold pixel centres; and for captures of more than `AUTO_MAX_PIXELS` pixels. select says
+    to fit both footprints and keep the one that explains the images better (`fit_observations`)."""
     if isinstance(pixel_samples, str):
         if pixel_samples != "auto":
             raise ValueError(f"pixel_samples must be 'auto' or an integer from 1 to {MAX_PIXEL_SAMPLES}, "
                              f"got {pixel_samples!r}")
-        display = (getattr(capture, "tonemap", "none") != "none"
-                   or any(f.color_space == "srgb" for f in getattr(capture, "frames", ())))
-        return (AUTO_PIXEL_SAMPLES, True) if display and views is None else (1, False)
+        if _display_referred(capture) and views is None and _image_pixels(capture) <= AUTO_MAX_PIXELS:
+            return AUTO_PIXEL_SAMPLES, True
+        return 1, False
     return pixel_samples, False
 
 
@@ -697,6 +712,8 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     if ibl is not None and model.ibl is not None:
         model = model.replace(ibl=ibl)
     _check_normals(model, kwargs.get("fit", ()))
+    too_large = (pixel_samples == "auto" and views is None and _display_referred(capture)
+                 and _image_pixels(capture) > AUTO_MAX_PIXELS)
     pixel_samples, select = footprint_choice(capture, pixel_samples, views)
     obs = observations_from_capture(capture, cache_dir=cache_dir, views=views, pixel_samples=pixel_samples)
     centres = None if obs.samples == 1 else observations_from_capture(capture, cache_dir=cache_dir, views=views)
@@ -720,6 +737,10 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     t_ibl = time.perf_counter() - t_ibl
     result = fit_observations(obs, model=model, ibl=tables, setup_time=time.perf_counter() - t0, centres=centres,
                               centre_ibl=centre_tables, select_footprint=select, **kwargs)
+    if too_large:
+        result.report["footprint"] = dict(selected=1, skipped=(
+            f"{_image_pixels(capture):,} image pixels > AUTO_MAX_PIXELS ({AUTO_MAX_PIXELS:,}): "
+            f"pixel centres only; --pixel-samples 2 fits the footprint"))
     if model.ibl is not None:
         result.report["ibl"] = dict(mode=model.ibl, seconds=t_ibl, **(
             dataclasses.asdict(pixel_ibl_settings) if model.ibl == "per_pixel" else {}))

@@ -310,6 +310,8 @@ def test_summary_line_names_the_footprint():
     report.update(pixel_samples=1, footprint=dict(selected=1, energies={"2": 3.5, "1": 2.0}, pixels=10))
     assert "pixel centres (auto: data loss 2.000e+00 against 3.500e+00 with 2x2)" in _summary(
         SimpleNamespace(report=report), {})
+    report["footprint"] = dict(selected=1, skipped="too many")
+    assert "pixel centres (auto: 2x2 samples skipped, too many pixels)" in _summary(SimpleNamespace(report=report), {})
     report.pop("footprint")
     assert "samples" not in _summary(SimpleNamespace(report=report), {})
 

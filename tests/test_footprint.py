@@ -290,3 +290,19 @@ def test_footprint_choice_by_image_kind(capture):
     assert footprint_choice(capture, 3) == (3, False) and footprint_choice(linear, 1) == (1, False)
     with pytest.raises(ValueError, match="auto"):
         footprint_choice(capture, "many")
+
+
+def test_auto_footprint_skips_the_samples_on_a_large_capture(capture, monkeypatch):
+    """Beyond `AUTO_MAX_PIXELS` image pixels the automatic choice keeps to pixel centres (four
+    times the rows would not pay), and the report says so."""
+    import pbrfit.fit as fit_module
+
+    pixels = sum(f.image.shape[0] * f.image.shape[1] for f in capture.frames)
+    monkeypatch.setattr(fit_module, "AUTO_MAX_PIXELS", pixels - 1)
+    assert fit_module.footprint_choice(capture) == (1, False)
+    assert fit_module.footprint_choice(capture, 2) == (2, False)  # asked for: no limit
+    res = fit(capture, maps="none", max_steps=5)
+    assert res.report["pixel_samples"] == 1 and "energies" not in res.report["footprint"]
+    assert f"{pixels:,} image pixels > AUTO_MAX_PIXELS" in res.report["footprint"]["skipped"]
+    monkeypatch.setattr(fit_module, "AUTO_MAX_PIXELS", pixels)
+    assert fit_module.footprint_choice(capture) == (fit_module.AUTO_PIXEL_SAMPLES, True)
