@@ -50,7 +50,7 @@ from .uncertainty import block_standard_errors, residual_variance
 
 __all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "model_for_capture",
            "SOLVERS", "DEFAULT_SOLVER", "IBL_MODES", "CONTINUATION", "SETTLE_STEPS", "RELEASED_STEPS", "continuation_scale", "schedule",
-           "footprint_choice", "footprint_energies", "AUTO_PIXEL_SAMPLES", "AUTO_MAX_PIXELS"]
+           "footprint_choice", "footprint_energies", "AUTO_PIXEL_SAMPLES", "AUTO_MAX_PIXELS", "PROBE_STEPS"]
 
 DEFAULT_SOLVER = "structured"
 #: What `fit` may integrate a capture's environment light with (``ibl=``); the first is the default.
@@ -89,6 +89,11 @@ AUTO_PIXEL_SAMPLES = 2
 #: the samples take four times the rows, so about four times the memory and three times the time
 #: of pixel centres; beyond it a fit asks for them with ``pixel_samples=2``.
 AUTO_MAX_PIXELS = 2_000_000
+#: The automatic footprint's early stop: after the centres' last steps, the samples' first
+#: `PROBE_STEPS` (the settling ones) run, and where their data term is not yet below the
+#: centres' final one the centres are kept without the rest (structured solver; the model the
+#: images need gets there at once, experiments/solvers.md).
+PROBE_STEPS = SETTLE_STEPS
 #: Default scale of the robust losses, in image units (a few times a typical noise level).
 LOSS_SCALE = 0.05
 #: Each coarse-to-fine level is this factor finer than the one before (see experiments/solvers.md).
@@ -263,10 +268,12 @@ def fit_observations(
     observations at pixel centres (and `centre_ibl` their IBL, when it is per pixel): the grid
     start, the continuation's first steps and the coordinate search then run on them, at a
     quarter of the cost or less, and only the settling and released steps on `obs`. With
-    ``select_footprint`` as well, those last steps run on both, from the same point, and the fit
-    whose data term is lower over the pixels both use is kept (`footprint_energies`; both have
-    the same parameters, so that is the likelier model of the pixels' footprint); the report's
-    "footprint" entry gives both energies and the choice."""
+    ``select_footprint`` as well, those last steps run on both, from the same point (centres
+    first), and the fit whose data term is lower over the pixels both use is kept
+    (`footprint_energies`; both have the same parameters, so that is the likelier model of the
+    pixels' footprint). With the structured solver the samples stop after their first
+    `PROBE_STEPS` when these do not yet fit better than the centres' whole finish. The report's
+    "footprint" entry gives both energies, the steps and the choice."""
     t_start = time.perf_counter()
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
@@ -382,20 +389,31 @@ def fit_observations(
                 annealed["settle_steps"] = SETTLE_STEPS
 
         tail = dict(steps=steps - done, num_free=num_free, settle_weight=smooth + weights[-1] if settle else None)
-        if last and select_footprint:  # the same steps at pixel centres first, from the same point
+        selecting = last and select_footprint
+        if selecting:  # the same steps at pixel centres first, from the same point
             where["footprint"] = 1
             x_c, info_c, lin_c = _finish_level(runner, early, xs, info, **tail)
+            r_c = _final_residuals(x_c, early, lin_c)
             where["footprint"] = n_side = _samples_side(obs)
         if early is not problem:
             xs = np.where(seen[:, None], xs, fixed_x)
-        xs, info, linearization = _finish_level(runner, problem, xs, info, **tail)
-        if last and select_footprint:
+        probing = selecting and solver == DEFAULT_SOLVER and tail["steps"] > PROBE_STEPS
+        stopped = False
+        if probing:  # the samples' first steps, then a look at how well they fit already
+            xs, info, linearization = _finish_level(runner, problem, xs, info, **dict(tail, steps=PROBE_STEPS))
+            stopped = _centres_explain_better(footprint_energies(obs, linearization[0], centres, r_c))
+            if not stopped:
+                xs, info, linearization = _finish_level(runner, problem, xs, info, tail["steps"] - PROBE_STEPS,
+                                                        num_free)
+        else:
+            xs, info, linearization = _finish_level(runner, problem, xs, info, **tail)
+        if selecting:
             where.pop("footprint")
             e_samples, e_centres, common = footprint_energies(
-                obs, _final_residuals(xs, problem, linearization), centres, _final_residuals(x_c, early, lin_c))
+                obs, _final_residuals(xs, problem, linearization), centres, r_c)
             footprint = dict(selected=n_side, energies={str(n_side): e_samples, "1": e_centres}, pixels=common,
-                             steps={str(n_side): info["steps"], "1": info_c["steps"]})
-            if e_centres <= e_samples:  # the pixel centres explain the images at least as well
+                             steps={str(n_side): info["steps"], "1": info_c["steps"]}, stopped_early=stopped)
+            if _centres_explain_better((e_samples, e_centres)):
                 footprint["selected"] = 1
                 # texels only samples read are unseen here: their fixed values, as in a fit of centres alone
                 xs, info, linearization = np.where(centre_seen[:, None], x_c, fixed_x), info_c, lin_c
@@ -433,6 +451,12 @@ def _finish_level(runner, problem: Problem, x, info, steps: int, num_free: int, 
         steps -= SETTLE_STEPS
     x, info = _merge(info, runner(to_device(x, np.float32), problem, steps, num_free))
     return x, info, runner.linearization
+
+
+def _centres_explain_better(energies) -> bool:
+    """Of (samples' data term, centres' data term, ...): the centres explain the images at
+    least as well (ties go to the cheaper model)."""
+    return energies[1] <= energies[0]
 
 
 def _samples_side(obs: Observations) -> int:
@@ -669,8 +693,9 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             samples (`fit_observations`). ``"auto"`` (default, `footprint_choice`): pixel
             centres for linear HDR images (and with precomputed ``views``); for display-referred
             ones (sRGB, tone mapped) the last steps run both ways, at centres and with 2 × 2
-            samples, and the fit whose images match better is kept (the report's "footprint"
-            entry gives both energies, and each fit's step count, the shared start's included).
+            samples (these stop after `PROBE_STEPS` when they do not yet match better), and the
+            fit whose images match better is kept (the report's "footprint" entry gives both
+            energies, and each fit's step count, the shared start's included).
         ibl: how the capture's environment light is integrated, ``"split_sum"`` (default: Karis
             2013, the renderer's tables) or ``"per_pixel"`` (`pbrfit.pixel_ibl`: each pixel's
             lobe integrals by Monte Carlo on a roughness grid, once before the solve, with

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pbrfit.fit import fit, map_rmse, model_for_capture
+from pbrfit.fit import PROBE_STEPS, SEARCH_AFTER, fit, map_rmse, model_for_capture
 from pbrfit.gbuffer import Camera, compute_gbuffer
 from pbrfit.io import read_material
 from pbrfit.observations import coverage_counts, observations_from_capture, pixel_offsets, texel_layout
@@ -200,7 +200,7 @@ def test_auto_footprint_keeps_samples_for_a_supersampled_capture(capture):
     the 2 × 2 fit itself."""
     auto = fit(capture, resolution=MAP[0])
     foot = auto.report["footprint"]
-    assert foot["selected"] == 2 and foot["pixels"] == auto.report["pixels"]
+    assert foot["selected"] == 2 and foot["pixels"] == auto.report["pixels"] and not foot["stopped_early"]
     assert foot["energies"]["2"] < 0.01 * foot["energies"]["1"], foot
     _same_fit(auto, _footprint_fit(capture))
 
@@ -220,6 +220,8 @@ def test_auto_footprint_keeps_centres_for_a_capture_rendered_at_centres(tmp_path
     centre = fit(capture, resolution=MAP[0], pixel_samples=1)
     foot = auto.report["footprint"]
     assert foot["selected"] == 1 and foot["energies"]["1"] < 0.01 * foot["energies"]["2"], foot
+    # the samples stopped after their first steps, which fitted worse than the centres' whole finish
+    assert foot["stopped_early"] and foot["steps"]["2"] <= SEARCH_AFTER + PROBE_STEPS, foot
     assert foot["pixels"] < centre.report["pixels"]  # the edges' pixels are left out of the comparison
     assert "footprint" not in centre.report
     _same_fit(auto, centre)
@@ -265,6 +267,7 @@ def test_auto_footprint_with_an_optimistix_solver_and_a_uniform_material(capture
     e = {int(k): v for k, v in foot["energies"].items()}
     assert set(e) == {1, 2} and all(np.isfinite(v) and v > 0 for v in e.values())
     assert foot["selected"] == min(e, key=e.get) == res.report["pixel_samples"]
+    assert not foot["stopped_early"]  # the early stop is the structured solver's
     assert res.report["resolution"] == [1, 1] and np.isfinite(res.report["final_loss"])
 
 
