@@ -663,22 +663,27 @@ def _image_pixels(capture) -> int:
     return int(sum(f.image.shape[0] * f.image.shape[1] for f in getattr(capture, "frames", ())))
 
 
-def footprint_choice(capture, pixel_samples="auto", views=None) -> tuple[int, bool]:
-    """(n, select) for `fit`'s ``pixel_samples``: an integer n is taken as given; ``"auto"``
-    gives (`AUTO_PIXEL_SAMPLES`, True) for display-referred images (any frame in sRGB, or a tone
-    map), which are photographs or finished renders and so usually pixel averages, and (1, False)
-    for linear HDR images, where the cost (about three times the run time) is not paid unless
-    asked for, although antialiased HDR renders average pixels too; for precomputed `views`,
-    which hold pixel centres; and for captures of more than `AUTO_MAX_PIXELS` pixels. select says
-    to fit both footprints and keep the one that explains the images better (`fit_observations`)."""
-    if isinstance(pixel_samples, str):
-        if pixel_samples != "auto":
-            raise ValueError(f"pixel_samples must be 'auto' or an integer from 1 to {MAX_PIXEL_SAMPLES}, "
-                             f"got {pixel_samples!r}")
-        if _display_referred(capture) and views is None and _image_pixels(capture) <= AUTO_MAX_PIXELS:
-            return AUTO_PIXEL_SAMPLES, True
-        return 1, False
-    return pixel_samples, False
+def footprint_choice(capture, pixel_samples="auto", views=None) -> tuple[int, bool, Optional[str]]:
+    """(n, select, skipped) for `fit`'s ``pixel_samples``: an integer n is taken as given;
+    ``"auto"`` gives (`AUTO_PIXEL_SAMPLES`, True) for display-referred images (any frame in
+    sRGB, or a tone map), which are photographs or finished renders and so usually pixel
+    averages, and (1, False) for linear HDR images, where the cost (about three times the run
+    time) is not paid unless asked for, although antialiased HDR renders average pixels too; for
+    precomputed `views`, which hold pixel centres; and for display-referred captures of more than
+    `AUTO_MAX_PIXELS` pixels, for which `skipped` says so (else None). select says to fit both
+    footprints and keep the one that explains the images better (`fit_observations`)."""
+    if not isinstance(pixel_samples, str):
+        return pixel_samples, False, None
+    if pixel_samples != "auto":
+        raise ValueError(f"pixel_samples must be 'auto' or an integer from 1 to {MAX_PIXEL_SAMPLES}, "
+                         f"got {pixel_samples!r}")
+    if not _display_referred(capture) or views is not None:
+        return 1, False, None
+    pixels = _image_pixels(capture)
+    if pixels > AUTO_MAX_PIXELS:
+        return 1, False, (f"{pixels:,} image pixels > AUTO_MAX_PIXELS ({AUTO_MAX_PIXELS:,}): pixel centres only; "
+                          f"--pixel-samples 2 fits the footprint")
+    return AUTO_PIXEL_SAMPLES, True, None
 
 
 def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, ibl: Optional[str] = None,
@@ -737,9 +742,7 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     if ibl is not None and model.ibl is not None:
         model = model.replace(ibl=ibl)
     _check_normals(model, kwargs.get("fit", ()))
-    too_large = (pixel_samples == "auto" and views is None and _display_referred(capture)
-                 and _image_pixels(capture) > AUTO_MAX_PIXELS)
-    pixel_samples, select = footprint_choice(capture, pixel_samples, views)
+    pixel_samples, select, skipped = footprint_choice(capture, pixel_samples, views)
     obs = observations_from_capture(capture, cache_dir=cache_dir, views=views, pixel_samples=pixel_samples)
     centres = None if obs.samples == 1 else observations_from_capture(capture, cache_dir=cache_dir, views=views)
     t_ibl = time.perf_counter()
@@ -762,10 +765,8 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     t_ibl = time.perf_counter() - t_ibl
     result = fit_observations(obs, model=model, ibl=tables, setup_time=time.perf_counter() - t0, centres=centres,
                               centre_ibl=centre_tables, select_footprint=select, **kwargs)
-    if too_large:
-        result.report["footprint"] = dict(selected=1, skipped=(
-            f"{_image_pixels(capture):,} image pixels > AUTO_MAX_PIXELS ({AUTO_MAX_PIXELS:,}): "
-            f"pixel centres only; --pixel-samples 2 fits the footprint"))
+    if skipped is not None:
+        result.report["footprint"] = dict(selected=1, skipped=skipped)
     if model.ibl is not None:
         result.report["ibl"] = dict(mode=model.ibl, seconds=t_ibl, **(
             dataclasses.asdict(pixel_ibl_settings) if model.ibl == "per_pixel" else {}))

@@ -309,7 +309,7 @@ def coverage_counts(layout: TexelLayout, samples: int = 1) -> np.ndarray:
     idx = np.asarray(layout.index).reshape(-1)
     w = np.asarray(layout.weight).reshape(-1)
     if samples > 1:  # distinct (pixel, texel) pairs
-        pixel = np.arange(idx.size) // (4 * samples)
+        pixel = np.arange(idx.size) // (layout.index.shape[-1] * samples)
         pairs = np.unique(pixel[w > 0].astype(np.int64) * layout.num_texels + idx[w > 0])
         idx, w = pairs % layout.num_texels, np.ones(pairs.size)
     counts = np.bincount(idx[w > 0], minlength=layout.num_texels)

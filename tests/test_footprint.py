@@ -286,11 +286,11 @@ def test_footprint_choice_by_image_kind(capture):
 
     linear = dataclasses.replace(capture, frames=[dataclasses.replace(f, color_space="linear") for f in capture.frames],
                                  color_space="linear")
-    assert footprint_choice(capture) == (AUTO_PIXEL_SAMPLES, True)
-    assert footprint_choice(linear) == (1, False)
-    assert footprint_choice(dataclasses.replace(linear, tonemap="reinhard")) == (AUTO_PIXEL_SAMPLES, True)
-    assert footprint_choice(capture, views=[object()]) == (1, False)
-    assert footprint_choice(capture, 3) == (3, False) and footprint_choice(linear, 1) == (1, False)
+    assert footprint_choice(capture) == (AUTO_PIXEL_SAMPLES, True, None)
+    assert footprint_choice(linear) == (1, False, None)
+    assert footprint_choice(dataclasses.replace(linear, tonemap="reinhard")) == (AUTO_PIXEL_SAMPLES, True, None)
+    assert footprint_choice(capture, views=[object()]) == (1, False, None)
+    assert footprint_choice(capture, 3) == (3, False, None) and footprint_choice(linear, 1) == (1, False, None)
     with pytest.raises(ValueError, match="auto"):
         footprint_choice(capture, "many")
 
@@ -302,10 +302,11 @@ def test_auto_footprint_skips_the_samples_on_a_large_capture(capture, monkeypatc
 
     pixels = sum(f.image.shape[0] * f.image.shape[1] for f in capture.frames)
     monkeypatch.setattr(fit_module, "AUTO_MAX_PIXELS", pixels - 1)
-    assert fit_module.footprint_choice(capture) == (1, False)
-    assert fit_module.footprint_choice(capture, 2) == (2, False)  # asked for: no limit
+    n, select, skipped = fit_module.footprint_choice(capture)
+    assert (n, select) == (1, False) and f"{pixels:,} image pixels > AUTO_MAX_PIXELS" in skipped
+    assert fit_module.footprint_choice(capture, 2) == (2, False, None)  # asked for: no limit
     res = fit(capture, maps="none", max_steps=5)
     assert res.report["pixel_samples"] == 1 and "energies" not in res.report["footprint"]
     assert f"{pixels:,} image pixels > AUTO_MAX_PIXELS" in res.report["footprint"]["skipped"]
     monkeypatch.setattr(fit_module, "AUTO_MAX_PIXELS", pixels)
-    assert fit_module.footprint_choice(capture) == (fit_module.AUTO_PIXEL_SAMPLES, True)
+    assert fit_module.footprint_choice(capture) == (fit_module.AUTO_PIXEL_SAMPLES, True, None)
