@@ -229,7 +229,8 @@ def run(scenes, configs):
                 else:
                     kwargs = dict(CONFIGS[name])
                     try:
-                        call = dict(kwargs)
+                        # every compile where it is first needed: no compile thread shares the cores with the run
+                        call = dict(kwargs, background_compile=False)
                         n = call.pop("pixel_samples", 1)
                         if n > 1:  # as `pbrfit.fit.fit` does: start, continuation and search on pixel centres
                             call["centres"] = obs

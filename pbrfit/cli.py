@@ -401,11 +401,13 @@ def run_fit(capture, out, options: dict, cache_dir=None, quiet: bool = False):
 
 
 def _summary(result, errors) -> str:
+    from .fit import compile_summary
+
     r = result.report
     h, w = r["resolution"]
     extra = f", per-pixel IBL {r['ibl']['seconds']:.1f} s" if r.get("ibl", {}).get("mode") == "per_pixel" else ""
     parts = [f"fit {h}x{w} maps with {r['solver']}: {r['steps']} steps, loss {r['final_loss']:.3e}",
-             f"{r['wall_time']:.1f} s (compile {r['times'].get('compile', 0.0):.1f} s{extra})"]
+             f"{r['wall_time']:.1f} s ({compile_summary(r['times'])}{extra})"]
     n, foot = r.get("pixel_samples", 1), r.get("footprint")
     if foot is not None and "skipped" in foot:  # auto, on a capture too large to try the samples
         parts[0] += ", pixel centres (auto: 2x2 samples skipped, too many pixels)"

@@ -69,6 +69,7 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
 
     from .cli import run_fit
     from .errors import CaptureError
+    from .fit import compile_summary
     from .io import check_output_dir, read_material
     from .scene import load_capture
     from .views import default_cache_dir
@@ -99,7 +100,7 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
     say("")
     say(
         f"{h}x{w} maps, {r['steps']} solver steps, fit {r['wall_time']:.1f} s "
-        f"(compile {r['times'].get('compile', 0.0):.1f} s), total {time.perf_counter() - start:.1f} s; "
+        f"({compile_summary(r['times'])}), total {time.perf_counter() - start:.1f} s; "
         f"{int(seen.sum())} of {seen.size} texels observed"
     )
     say(f"wrote {out / 'fit'} (maps, uncertainty.exr, material.glb, report.json, views/)")

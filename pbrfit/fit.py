@@ -25,6 +25,7 @@ renders of every view and a report.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import math
 import time
@@ -261,6 +262,7 @@ def fit_observations(
     centres: Optional[Observations] = None,
     centre_ibl=None,
     select_footprint: bool = False,
+    background_compile: bool = True,
 ) -> FitResult:
     """Fit maps to prepared `Observations` (see `fit` for the arguments).
 
@@ -316,110 +318,126 @@ def fit_observations(
     where = dict(level=0, resolution=levels[0])
     cb = None if progress is None else (
         lambda step, value: progress(dict(where, step=int(step), loss=float(value))))
-    runner = _Runner(solver, rtol, atol, cb, clock)
-    for level, shape in enumerate(levels):
-        where.update(level=level, resolution=tuple(shape))
-        layout = _layout(obs, shape, wrap)
-        cov = coverage_counts(layout).reshape(-1)
-        t = shape[0] * shape[1]
-        seen = np.zeros(t_final, bool)
-        seen[:t] = cov > 0
-        free = (seen[:, None] * channels[None, :]).astype(np.float32)
-        fixed_x = np.broadcast_to(prior(k), (t_final, k)).copy()
-        fixed_x[:t] = _fixed_values(fixed, shape, k).reshape(t, k)
-        x0 = fixed_x.copy()
-        if x is not None:
-            up = _upsample(x, shape).reshape(t, k)
-            x0[:t] = np.where(channels[None, :] > 0, up, x0[:t])
-        x0[:t] = np.where(seen[:t, None], x0[:t], fixed_x[:t])
-        last = level == len(levels) - 1
-        steps = max_steps if last else min(coarse_steps, max_steps)
-        head = min(SEARCH_AFTER, steps)
-        maps_level = shape != (1, 1)
-        searching = last and search and maps_level and np.any(channels[3:] > 0) and head < steps
-        annealing = (last and maps_level and solver == DEFAULT_SOLVER and any(w > 0 for w in continuation)
-                     and steps - head >= RELEASED_STEPS)
-        prior_on = maps_level and (smooth > 0 or annealing)
-        pairs, pw = _neighbour_weights(shape, seen, e_final, prior_on)
-        problem = Problem(obs, layout.index, layout.weight, to_device(free), to_device(pairs), to_device(pw),
-                          to_device(smooth, np.float32), to_device(loss_scale, np.float32), ibl, model, loss)
-        if mesh is not None:
-            problem = shard_problem(problem, mesh)
-        early = problem  # the start, the continuation's steps and the search
-        if centres is not None and obs.samples > 1 and (last or (level == 0 and init == "grid")):
-            lay = _layout(centres, shape, wrap)
-            # the texels the centres see are free here (as in a fit of centres alone); texels only
-            # samples read keep their start until the samples' steps, and texels only centres read
-            # (where some sample misses the mesh) go back to their fixed values for those steps
-            centre_seen = np.zeros(t_final, bool)
-            centre_seen[:t] = coverage_counts(lay).reshape(-1) > 0
-            c_pairs, c_pw = _neighbour_weights(shape, centre_seen, e_final, prior_on)
-            early = dataclasses.replace(problem, obs=centres, index=lay.index, weight=lay.weight,
-                                        free=to_device((centre_seen[:, None] * channels[None, :]).astype(np.float32)),
-                                        pairs=to_device(c_pairs), pair_weight=to_device(c_pw),
-                                        ibl=centre_ibl if model.ibl == "per_pixel" else ibl)
+    compiler = _Compiler(clock, background_compile)
+    runner = _Runner(solver, rtol, atol, cb, compiler)
+    try:
+        for level, shape in enumerate(levels):
+            where.update(level=level, resolution=tuple(shape))
+            layout = _layout(obs, shape, wrap)
+            cov = coverage_counts(layout).reshape(-1)
+            t = shape[0] * shape[1]
+            seen = np.zeros(t_final, bool)
+            seen[:t] = cov > 0
+            free = (seen[:, None] * channels[None, :]).astype(np.float32)
+            fixed_x = np.broadcast_to(prior(k), (t_final, k)).copy()
+            fixed_x[:t] = _fixed_values(fixed, shape, k).reshape(t, k)
+            x0 = fixed_x.copy()
+            if x is not None:
+                up = _upsample(x, shape).reshape(t, k)
+                x0[:t] = np.where(channels[None, :] > 0, up, x0[:t])
+            x0[:t] = np.where(seen[:t, None], x0[:t], fixed_x[:t])
+            last = level == len(levels) - 1
+            steps = max_steps if last else min(coarse_steps, max_steps)
+            head = min(SEARCH_AFTER, steps)
+            maps_level = shape != (1, 1)
+            searching = last and search and maps_level and np.any(channels[3:] > 0) and head < steps
+            annealing = (last and maps_level and solver == DEFAULT_SOLVER and any(w > 0 for w in continuation)
+                         and steps - head >= RELEASED_STEPS)
+            prior_on = maps_level and (smooth > 0 or annealing)
+            pairs, pw = _neighbour_weights(shape, seen, e_final, prior_on)
+            problem = Problem(obs, layout.index, layout.weight, to_device(free), to_device(pairs), to_device(pw),
+                              to_device(smooth, np.float32), to_device(loss_scale, np.float32), ibl, model, loss)
             if mesh is not None:
-                early = shard_problem(early, mesh)
-        if level == 0 and init == "grid":
-            x0 = np.asarray(_timed(grid_initialise, clock, "init", to_device(x0, np.float32), early))
-        num_free = int(np.sum(free))
-        xs, info = to_device(x0, np.float32), None
-        if annealing:
-            jac = runner.jacobian(xs, early, num_free)  # timed as compile and solve
-            t0 = time.perf_counter()
-            scale = continuation_scale(jac, early)
-            clock["init"] = clock.get("init", 0.0) + time.perf_counter() - t0
-            weights = [w * scale for w in continuation]
-            for w, n in zip(weights, (len(a) for a in np.array_split(np.arange(head), len(weights)))):
-                if n > 0:
-                    xs, info = _merge(info, runner(to_device(xs, np.float32), with_smooth(early, smooth + w), n,
-                                                   num_free))
-            annealed = dict(relative=list(continuation), weights=weights, curvature=scale, steps=head, settle_steps=0)
-        elif searching:
-            xs, info = _merge(info, runner(xs, early, head, num_free))
-        done = head if (annealing or searching) else 0
-        settle = False
-        if searching:
-            xn = np.asarray(_timed(coordinate_search, clock, "search", to_device(xs, np.float32), early,
-                                   to_device(parity_classes(shape)), SEARCH_ROUNDS, bool(channels[3] > 0)))
-            info["search_moved"] = int(np.sum(np.any(xn[:t] != np.asarray(xs)[:t], axis=1)))
-            xs = xn
-            settle = annealing and weights[-1] > 0 and steps - done - SETTLE_STEPS >= RELEASED_STEPS
-            if settle:
-                annealed["settle_steps"] = SETTLE_STEPS
+                problem = shard_problem(problem, mesh)
+            early = problem  # the start, the continuation's steps and the search
+            if centres is not None and obs.samples > 1 and (last or (level == 0 and init == "grid")):
+                lay = _layout(centres, shape, wrap)
+                # the texels the centres see are free here (as in a fit of centres alone); texels only
+                # samples read keep their start until the samples' steps, and texels only centres read
+                # (where some sample misses the mesh) go back to their fixed values for those steps
+                centre_seen = np.zeros(t_final, bool)
+                centre_seen[:t] = coverage_counts(lay).reshape(-1) > 0
+                c_pairs, c_pw = _neighbour_weights(shape, centre_seen, e_final, prior_on)
+                centre_free = (centre_seen[:, None] * channels[None, :]).astype(np.float32)
+                early = dataclasses.replace(problem, obs=centres, index=lay.index, weight=lay.weight,
+                                            free=to_device(centre_free),
+                                            pairs=to_device(c_pairs), pair_weight=to_device(c_pw),
+                                            ibl=centre_ibl if model.ibl == "per_pixel" else ibl)
+                if mesh is not None:
+                    early = shard_problem(early, mesh)
+            num_free = int(np.sum(free))
+            x0 = to_device(x0, np.float32)
+            classes = to_device(parity_classes(shape)) if searching else None
+            search_key = ("search", shape) + _problem_key(early)
+            search_static = (SEARCH_ROUNDS, bool(channels[3] > 0))
+            # compiles this level needs, in the order of their first use, overlap the work before it
+            runner.prefetch(x0, early, num_free)
+            if searching:
+                compiler.prefetch(search_key, coordinate_search, x0, early, classes, *search_static)
+            if early is not problem:
+                runner.prefetch(x0, problem, num_free)
+            if level == 0 and init == "grid":
+                x0 = _timed(compiler, ("grid",) + _problem_key(early), grid_initialise, "init", x0, early)
+            xs, info = x0, None
+            if annealing:
+                jac = runner.jacobian(xs, early, num_free)  # timed as compile and solve
+                t0 = time.perf_counter()
+                scale = continuation_scale(jac, early)
+                clock["init"] = clock.get("init", 0.0) + time.perf_counter() - t0
+                weights = [w * scale for w in continuation]
+                for w, n in zip(weights, (len(a) for a in np.array_split(np.arange(head), len(weights)))):
+                    if n > 0:
+                        xs, info = _merge(info, runner(to_device(xs, np.float32), with_smooth(early, smooth + w), n,
+                                                       num_free))
+                annealed = dict(relative=list(continuation), weights=weights, curvature=scale, steps=head,
+                                settle_steps=0)
+            elif searching:
+                xs, info = _merge(info, runner(xs, early, head, num_free))
+            done = head if (annealing or searching) else 0
+            settle = False
+            if searching:
+                xn = np.asarray(_timed(compiler, search_key, coordinate_search, "search", to_device(xs, np.float32),
+                                       early, classes, *search_static))
+                info["search_moved"] = int(np.sum(np.any(xn[:t] != np.asarray(xs)[:t], axis=1)))
+                xs = xn
+                settle = annealing and weights[-1] > 0 and steps - done - SETTLE_STEPS >= RELEASED_STEPS
+                if settle:
+                    annealed["settle_steps"] = SETTLE_STEPS
 
-        tail = dict(steps=steps - done, num_free=num_free, settle_weight=smooth + weights[-1] if settle else None)
-        selecting = last and select_footprint
-        if selecting:  # the same steps at pixel centres first, from the same point
-            where["footprint"] = 1
-            x_c, info_c, lin_c = _finish_level(runner, early, xs, info, **tail)
-            r_c = _final_residuals(x_c, early, lin_c)
-            where["footprint"] = n_side = _samples_side(obs)
-        if early is not problem:
-            xs = np.where(seen[:, None], xs, fixed_x)
-        probing = selecting and solver == DEFAULT_SOLVER and tail["steps"] > PROBE_STEPS
-        stopped = False
-        if probing:  # the samples' first steps, then a look at how well they fit already
-            xs, info, linearization = _finish_level(runner, problem, xs, info, **dict(tail, steps=PROBE_STEPS))
-            stopped = _centres_explain_better(footprint_energies(obs, linearization[0], centres, r_c))
-            if not stopped:
-                xs, info, linearization = _finish_level(runner, problem, xs, info, tail["steps"] - PROBE_STEPS,
-                                                        num_free)
-        else:
-            xs, info, linearization = _finish_level(runner, problem, xs, info, **tail)
-        if selecting:
-            where.pop("footprint")
-            e_samples, e_centres, common = footprint_energies(
-                obs, _final_residuals(xs, problem, linearization), centres, r_c)
-            footprint = dict(selected=n_side, energies={str(n_side): e_samples, "1": e_centres}, pixels=common,
-                             steps={str(n_side): info["steps"], "1": info_c["steps"]}, stopped_early=stopped)
-            if _centres_explain_better((e_samples, e_centres)):
-                footprint["selected"] = 1
-                # texels only samples read are unseen here: their fixed values, as in a fit of centres alone
-                xs, info, linearization = np.where(centre_seen[:, None], x_c, fixed_x), info_c, lin_c
-                obs, problem, seen = centres, early, centre_seen
-        history.append(dict(resolution=list(shape), **info))
-        x = xs[:t].reshape(shape + (k,))
+            tail = dict(steps=steps - done, num_free=num_free, settle_weight=smooth + weights[-1] if settle else None)
+            selecting = last and select_footprint
+            if selecting:  # the same steps at pixel centres first, from the same point
+                where["footprint"] = 1
+                x_c, info_c, lin_c = _finish_level(runner, early, xs, info, **tail)
+                r_c = _final_residuals(x_c, early, lin_c)
+                where["footprint"] = n_side = _samples_side(obs)
+            if early is not problem:
+                xs = np.where(seen[:, None], xs, fixed_x)
+            probing = selecting and solver == DEFAULT_SOLVER and tail["steps"] > PROBE_STEPS
+            stopped = False
+            if probing:  # the samples' first steps, then a look at how well they fit already
+                xs, info, linearization = _finish_level(runner, problem, xs, info, **dict(tail, steps=PROBE_STEPS))
+                stopped = _centres_explain_better(footprint_energies(obs, linearization[0], centres, r_c))
+                if not stopped:
+                    xs, info, linearization = _finish_level(runner, problem, xs, info, tail["steps"] - PROBE_STEPS,
+                                                            num_free)
+            else:
+                xs, info, linearization = _finish_level(runner, problem, xs, info, **tail)
+            if selecting:
+                where.pop("footprint")
+                e_samples, e_centres, common = footprint_energies(
+                    obs, _final_residuals(xs, problem, linearization), centres, r_c)
+                footprint = dict(selected=n_side, energies={str(n_side): e_samples, "1": e_centres}, pixels=common,
+                                 steps={str(n_side): info["steps"], "1": info_c["steps"]}, stopped_early=stopped)
+                if _centres_explain_better((e_samples, e_centres)):
+                    footprint["selected"] = 1
+                    # texels only samples read are unseen here: their fixed values, as in a fit of centres alone
+                    xs, info, linearization = np.where(centre_seen[:, None], x_c, fixed_x), info_c, lin_c
+                    obs, problem, seen = centres, early, centre_seen
+            history.append(dict(resolution=list(shape), **info))
+            x = xs[:t].reshape(shape + (k,))
+    finally:
+        compiler.close()
 
     t_post = time.perf_counter()
     result = _finish(obs, problem, x, final, channels, seen[:t_final], model, solver, history, loss, smooth,
@@ -523,49 +541,111 @@ def _merge(info: Optional[dict], run) -> tuple:
     return x, more
 
 
-def _compile(fn, clock: dict, *args, **kwargs):
-    """`fn` compiled ahead of time for these arguments; the time goes to ``clock["compile"]``."""
-    t0 = time.perf_counter()
-    compiled = fn.lower(*args, **kwargs).compile()
-    clock["compile"] += time.perf_counter() - t0
-    return compiled
+class _Compiler:
+    """Ahead-of-time compilation, timed apart from the runs, each executable compiled once per key.
+
+    `prefetch` starts a compile in a background thread as soon as the arguments' shapes are
+    known, so that it overlaps the work before its first use (compiling is mostly single-threaded,
+    so a second core is idle meanwhile); `get` returns the executable, waiting for it if needed.
+    ``clock["compile"]`` gets the time the fit waits for compiles, ``clock["compile_background"]``
+    the compile time spent in the background thread (overlapping other work)."""
+
+    def __init__(self, clock: dict, background: bool = True):
+        self.clock, self.background = clock, background
+        self.clock.setdefault("compile", 0.0)
+        self.executor = None
+        self.pending, self.done = {}, {}
+
+    def prefetch(self, key, fn, *args, **kwargs) -> None:
+        if not self.background or key in self.pending or key in self.done:
+            return
+        if self.executor is None:
+            self.executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pbrfit-compile")
+
+        def work():
+            t0 = time.perf_counter()
+            compiled = fn.lower(*args, **kwargs).compile()
+            return compiled, time.perf_counter() - t0
+
+        self.pending[key] = self.executor.submit(work)
+
+    def get(self, key, fn, *args, **kwargs):
+        if key in self.done:
+            return self.done[key]
+        t0 = time.perf_counter()
+        future = self.pending.pop(key, None)
+        if future is None:
+            compiled = fn.lower(*args, **kwargs).compile()
+        else:
+            compiled, took = future.result()
+            self.clock["compile_background"] = self.clock.get("compile_background", 0.0) + took
+        self.clock["compile"] += time.perf_counter() - t0
+        self.done[key] = compiled
+        return compiled
+
+    def close(self) -> None:
+        """Stop: compiles not started are dropped, a running one is waited for."""
+        if self.executor is not None:
+            self.executor.shutdown(wait=True, cancel_futures=True)
+            self.executor = None
+        self.pending.clear()
 
 
-def _timed(fn, clock: dict, name: str, *args):
-    """Compile `fn` ahead of time (`_compile`), run it and add the run time to ``clock[name]``."""
-    compiled = _compile(fn, clock, *args)
+def compile_summary(times: Mapping[str, float]) -> str:
+    """A report's compile times in words: waited for, and compiled meanwhile in the background."""
+    text = f"compile {times.get('compile', 0.0):.1f} s"
+    if times.get("compile_background", 0.0) > 0.0:
+        text += f", {times['compile_background']:.1f} s more overlapped"
+    return text
+
+
+def _problem_key(problem: Problem) -> tuple:
+    """What an executable over `problem` is specialised to: rows per pixel and the shapes."""
+    return (problem.obs.samples, tuple(problem.index.shape), tuple(problem.free.shape), tuple(problem.pairs.shape))
+
+
+def _timed(compiler: _Compiler, key, fn, name: str, *args):
+    """Run `fn` compiled ahead of time (`_Compiler.get`) and add the run time to ``clock[name]``."""
+    compiled = compiler.get(key, fn, *args)
     t0 = time.perf_counter()
     out = jax.block_until_ready(compiled(*args))
-    clock[name] = clock.get(name, 0.0) + time.perf_counter() - t0
+    compiler.clock[name] = compiler.clock.get(name, 0.0) + time.perf_counter() - t0
     return out
 
 
 class _Runner:
-    """Compiles a solver once per shape (ahead of time, so compile and solve are timed apart):
-    once per fit, or twice when the start runs on pixel centres (`fit_observations`); an
-    optimistix solver also once per step budget (its loop length is static)."""
+    """Runs a solver, compiled ahead of time once per problem shape (`_Compiler`): once per fit,
+    or twice when the start runs on pixel centres (`fit_observations`); an optimistix solver
+    also once per step budget (its loop length is static)."""
 
-    def __init__(self, solver, rtol, atol, progress, clock):
-        self.solver, self.rtol, self.atol, self.progress, self.clock = solver, rtol, atol, progress, clock
-        self.compiled = {}
+    def __init__(self, solver, rtol, atol, progress, compiler: _Compiler):
+        self.solver, self.rtol, self.atol, self.progress, self.compiler = solver, rtol, atol, progress, compiler
+        self.clock = compiler.clock
+
+    def _call(self, x0, problem, steps, num_free):
+        """(key, fn, args, kwargs, optimistix solver or None) of a run."""
+        if self.solver == DEFAULT_SOLVER:
+            args = (x0, problem, to_device(steps, np.int32), self.rtol, self.atol)
+            return ("structured",) + _problem_key(problem), structured_lm, args, dict(progress=self.progress), None
+        opt, is_ls = make_solver(self.solver, self.rtol, self.atol, num_free)
+        key = (type(opt).__name__, steps) + _problem_key(problem)
+        return key, optx_solve, (x0, problem, opt, is_ls, steps), {}, opt
+
+    def prefetch(self, x0, problem, num_free) -> None:
+        """Start compiling the structured solver for `problem` in the background (its step
+        budget is an argument; an optimistix solver's is not known yet, so it is not)."""
+        if self.solver == DEFAULT_SOLVER:
+            key, fn, args, kwargs, _ = self._call(x0, problem, 0, num_free)
+            self.compiler.prefetch(key, fn, *args, **kwargs)
 
     def __call__(self, x0, problem, steps, num_free):
-        structured = self.solver == DEFAULT_SOLVER
-        shape = (problem.obs.samples,) + tuple(problem.index.shape)
-        if structured:
-            key, args = ("structured", shape), (x0, problem, to_device(steps, np.int32), self.rtol, self.atol)
-            kwargs = dict(progress=self.progress)
-            fn = structured_lm
-        else:
-            opt, is_ls = make_solver(self.solver, self.rtol, self.atol, num_free)
-            key, args, kwargs, fn = (type(opt).__name__, steps, shape), (x0, problem, opt, is_ls, steps), {}, optx_solve
-        if key not in self.compiled:
-            self.compiled[key] = _compile(fn, self.clock, *args, **kwargs)
+        key, fn, args, kwargs, opt = self._call(x0, problem, steps, num_free)
+        compiled = self.compiler.get(key, fn, *args, **kwargs)
         t0 = time.perf_counter()
-        out = self.compiled[key](*args, **kwargs)
+        out = compiled(*args, **kwargs)
         x = np.asarray(jax.block_until_ready(out[0]))
         self.clock["solve"] += time.perf_counter() - t0
-        if structured:
+        if opt is None:
             s = out[1]
             info = dict(steps=int(s.steps), accepted=int(s.accepted), cg_iterations=int(s.cg_iterations))
             self.linearization = (out[2], out[3])
@@ -730,6 +810,11 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
         devices: a sequence of JAX devices to split the pixels over (`pbrfit.sharding`); default
             None: the default device.
         model: override the `Model` (default `model_for_capture`: the one that rendered the images).
+        background_compile: compile the structured solver and the search for each problem in a
+            background thread as soon as their shapes are known, overlapping the grid start and
+            the steps before their first use (default on; the report's ``times["compile"]`` is
+            the time the fit waited for compiles, ``times["compile_background"]`` what was
+            compiled meanwhile). Off: every compile runs where it is first needed.
         progress: called with {stage: "ibl", done, total} (pixels) while per-pixel IBL integrals
             are computed, then with {level, resolution, step, loss} after each step (a host callback;
             leave None for a solve with no host round-trips).

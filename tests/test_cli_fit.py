@@ -314,6 +314,9 @@ def test_summary_line_names_the_footprint():
     assert "pixel centres (auto: 2x2 samples skipped, too many pixels)" in _summary(SimpleNamespace(report=report), {})
     report.pop("footprint")
     assert "samples" not in _summary(SimpleNamespace(report=report), {})
+    assert "5.0 s (compile 1.0 s)" in _summary(SimpleNamespace(report=report), {})
+    report["times"]["compile_background"] = 6.5
+    assert "5.0 s (compile 1.0 s, 6.5 s more overlapped)" in _summary(SimpleNamespace(report=report), {})
 
 
 def test_loss_history_keeps_the_kept_footprint_only():

@@ -265,6 +265,46 @@ def test_fit_reports_the_search():
     assert "search_moved" not in off.report["levels"][-1]
 
 
+def test_background_compile_gives_the_same_fit():
+    """Compiling the solver and the search in a background thread changes when they compile,
+    not the fit: equal maps, steps and uncertainty; the report says how much compiled meanwhile."""
+    truth = _checker()
+    obs = observations_from_views(VIEWS, _images(VIEWS, truth))
+    on = fit_observations(obs, resolution=8, max_steps=40)
+    off = fit_observations(obs, resolution=8, max_steps=40, background_compile=False)
+    for name in ("base_color", "metallic", "roughness"):
+        np.testing.assert_array_equal(np.asarray(getattr(on.material, name)), np.asarray(getattr(off.material, name)))
+    np.testing.assert_array_equal(on.uncertainty, off.uncertainty)
+    assert on.report["levels"] == off.report["levels"]
+    assert on.report["times"]["compile_background"] >= 0.0 and "compile_background" not in off.report["times"]
+
+
+def test_compiler_prefetches_waits_and_reraises():
+    clock = {}
+    compiler = pbrfit.fit._Compiler(clock)
+    square = jax.jit(lambda v: v * v)
+    x = jnp.arange(3.0)
+    compiler.prefetch("square", square, x)
+    assert "square" in compiler.pending
+    np.testing.assert_array_equal(compiler.get("square", square, x)(x), [0.0, 1.0, 4.0])
+    assert not compiler.pending and clock["compile_background"] > 0.0 and clock["compile"] >= 0.0
+    assert compiler.get("square", None, x) is compiler.done["square"]  # compiled once per key
+
+    @jax.jit
+    def bad(v):
+        raise RuntimeError("no shape for this")
+
+    compiler.prefetch("bad", bad, x)
+    with pytest.raises(RuntimeError, match="no shape for this"):
+        compiler.get("bad", bad, x)  # an error in the background thread is raised where the executable is needed
+    compiler.prefetch("later", square, jnp.arange(4.0))
+    compiler.close()
+    assert not compiler.pending and compiler.executor is None
+    off = pbrfit.fit._Compiler({}, background=False)
+    off.prefetch("square", square, x)
+    assert not off.pending and off.executor is None
+
+
 def test_continuation_is_reported_scales_with_the_data_and_is_released(monkeypatch):
     """The prior's weights are relative to the data's curvature (the same fit on images and lights
     four times brighter gives the same maps and 16 times the weights); it acts on the first steps
