@@ -441,7 +441,7 @@ def fit_observations(
 
     t_post = time.perf_counter()
     result = _finish(obs, problem, x, final, channels, seen[:t_final], model, solver, history, loss, smooth,
-                     dict(setup=setup_time, **clock), t_post, t_start, linearization)
+                     dict(setup=setup_time, **clock), t_post, t_start, linearization, wrap)
     result.report["continuation"] = annealed
     if footprint is not None:
         result.report["footprint"] = footprint
@@ -662,7 +662,7 @@ class _Runner:
 
 
 def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss, smooth, times, t_post, t_start,
-            linearization=None):
+            linearization=None, wrap: str = "repeat"):
     k = len(channels)
     xj = to_device(x.reshape(-1, k), np.float32)
     if linearization is None:
@@ -676,7 +676,7 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     n_par = int(np.sum(seen)) * int(np.sum(channels))
     sigma2 = residual_variance(float(energy), n_res, n_par)
     sigma = block_standard_errors(blocks, channels > 0, seen, sigma2).reshape(final + (k,))
-    coverage = coverage_counts(_layout(obs, final, "repeat"), obs.samples)
+    coverage = coverage_counts(_layout(obs, final, wrap), obs.samples)
     # Per-view renders in image space and PSNR (peak 1: display values).
     if loss == "l2":
         resid = np.asarray(r)[: obs.num_pixels]

@@ -19,7 +19,7 @@ from pbrfit.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, par
 from pbrfit.lights import point_light
 from pbrfit.material import Material
 from pbrfit.model import Model
-from pbrfit.observations import neighbour_pairs, observations_from_views, texel_layout
+from pbrfit.observations import coverage_counts, neighbour_pairs, observations_from_views, texel_layout
 from pbrfit.parameters import LOWER, UPPER, from_sine, to_sine
 from pbrfit.render import ViewInputs, light_arrays, radiance_view
 from pbrfit.solvers import Problem, objective, structured_lm
@@ -277,6 +277,17 @@ def test_background_compile_gives_the_same_fit():
     np.testing.assert_array_equal(on.uncertainty, off.uncertainty)
     assert on.report["levels"] == off.report["levels"]
     assert on.report["times"]["compile_background"] >= 0.0 and "compile_background" not in off.report["times"]
+
+
+def test_coverage_counts_the_fits_own_wrap():
+    """coverage.exr counts the taps the fit used: with ``wrap="clamp"`` a pixel near an edge
+    reads the edge texels, not those on the far side."""
+    truth = _checker()
+    obs = observations_from_views(VIEWS, _images(VIEWS, truth))
+    res = fit_observations(obs, resolution=8, max_steps=2, wrap="clamp", search=False, continuation=())
+    clamp, repeat = (coverage_counts(texel_layout(obs, (8, 8), w)) for w in ("clamp", "repeat"))
+    assert np.any(clamp != repeat)
+    np.testing.assert_array_equal(res.coverage, clamp)
 
 
 def test_compiler_prefetches_waits_and_reraises():
