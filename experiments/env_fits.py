@@ -83,7 +83,7 @@ def run(scenes, mc_samples: int, pixel_samples, out: Path):
             for mode, settings in configs:
                 label = mode if settings is None else f"{mode} ({settings.samples} samples)"
                 result = fit(capture, ibl=mode, pixel_ibl_settings=settings or PixelIBLSettings(),
-                             resolution=resolution, cache_dir=cache)
+                             resolution=resolution, cache_dir=cache, background_compile=False)
                 m = _metrics(truth, result.material, result.coverage, result.uncertainty)
                 times = result.report["times"]
                 row = dict(scene=name, ibl=mode, samples=None if settings is None else settings.samples,

@@ -370,14 +370,17 @@ def fit_observations(
             classes = to_device(parity_classes(shape)) if searching else None
             search_key = ("search", shape) + _problem_key(early)
             search_static = (SEARCH_ROUNDS, bool(channels[3] > 0))
+            selecting = last and select_footprint
             # compiles this level needs, in the order of their first use, overlap the work before it
-            runner.prefetch(x0, early, num_free)
+            if early is problem or annealing or searching or selecting:  # else only the grid start runs on it
+                runner.prefetch(x0, early, num_free)
             if searching:
                 compiler.prefetch(search_key, coordinate_search, x0, early, classes, *search_static)
             if early is not problem:
                 runner.prefetch(x0, problem, num_free)
             if level == 0 and init == "grid":
-                x0 = _timed(compiler, ("grid",) + _problem_key(early), grid_initialise, "init", x0, early)
+                x0 = to_device(np.asarray(_timed(compiler, ("grid",) + _problem_key(early), grid_initialise, "init",
+                                                 x0, early)), np.float32)
             xs, info = x0, None
             if annealing:
                 jac = runner.jacobian(xs, early, num_free)  # timed as compile and solve
@@ -405,7 +408,6 @@ def fit_observations(
                     annealed["settle_steps"] = SETTLE_STEPS
 
             tail = dict(steps=steps - done, num_free=num_free, settle_weight=smooth + weights[-1] if settle else None)
-            selecting = last and select_footprint
             if selecting:  # the same steps at pixel centres first, from the same point
                 where["footprint"] = 1
                 x_c, info_c, lin_c = _finish_level(runner, early, xs, info, **tail)
@@ -547,8 +549,10 @@ class _Compiler:
     `prefetch` starts a compile in a background thread as soon as the arguments' shapes are
     known, so that it overlaps the work before its first use (compiling is mostly single-threaded,
     so a second core is idle meanwhile); `get` returns the executable, waiting for it if needed.
-    ``clock["compile"]`` gets the time the fit waits for compiles, ``clock["compile_background"]``
-    the compile time spent in the background thread (overlapping other work)."""
+    The thread compiles under the caller's default device, matmul precision and x64 setting
+    (JAX's contexts for them are thread-local). ``clock["compile"]`` gets the time the fit waits
+    for compiles, ``clock["compile_background"]`` the compile time the thread spent while the fit
+    did other work (its compile time less the wait)."""
 
     def __init__(self, clock: dict, background: bool = True):
         self.clock, self.background = clock, background
@@ -561,11 +565,15 @@ class _Compiler:
             return
         if self.executor is None:
             self.executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pbrfit-compile")
+        config = jax.config
+        device, precision, x64 = (config.jax_default_device, config.jax_default_matmul_precision,
+                                  config.jax_enable_x64)
 
         def work():
-            t0 = time.perf_counter()
-            compiled = fn.lower(*args, **kwargs).compile()
-            return compiled, time.perf_counter() - t0
+            with jax.default_device(device), jax.default_matmul_precision(precision), jax.enable_x64(x64):
+                t0 = time.perf_counter()
+                compiled = fn.lower(*args, **kwargs).compile()
+                return compiled, time.perf_counter() - t0
 
         self.pending[key] = self.executor.submit(work)
 
@@ -578,15 +586,16 @@ class _Compiler:
             compiled = fn.lower(*args, **kwargs).compile()
         else:
             compiled, took = future.result()
-            self.clock["compile_background"] = self.clock.get("compile_background", 0.0) + took
+            overlapped = max(took - (time.perf_counter() - t0), 0.0)
+            self.clock["compile_background"] = self.clock.get("compile_background", 0.0) + overlapped
         self.clock["compile"] += time.perf_counter() - t0
         self.done[key] = compiled
         return compiled
 
     def close(self) -> None:
-        """Stop: compiles not started are dropped, a running one is waited for."""
+        """Stop: compiles not started are dropped; a running one finishes in its thread, unwaited."""
         if self.executor is not None:
-            self.executor.shutdown(wait=True, cancel_futures=True)
+            self.executor.shutdown(wait=False, cancel_futures=True)
             self.executor = None
         self.pending.clear()
 

@@ -272,11 +272,14 @@ def test_background_compile_gives_the_same_fit():
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
     on = fit_observations(obs, resolution=8, max_steps=40)
     off = fit_observations(obs, resolution=8, max_steps=40, background_compile=False)
+    cpu = jax.default_backend() == "cpu"  # a GPU's scatter-adds sum in no fixed order
     for name in ("base_color", "metallic", "roughness"):
-        np.testing.assert_array_equal(np.asarray(getattr(on.material, name)), np.asarray(getattr(off.material, name)))
-    np.testing.assert_array_equal(on.uncertainty, off.uncertainty)
-    assert on.report["levels"] == off.report["levels"]
-    assert on.report["times"]["compile_background"] >= 0.0 and "compile_background" not in off.report["times"]
+        np.testing.assert_allclose(np.asarray(getattr(on.material, name)), np.asarray(getattr(off.material, name)),
+                                   rtol=0, atol=0 if cpu else 1e-5)
+    np.testing.assert_allclose(on.uncertainty, off.uncertainty, rtol=0 if cpu else 1e-3)
+    if cpu:
+        assert on.report["levels"] == off.report["levels"]
+    assert "compile_background" in on.report["times"] and "compile_background" not in off.report["times"]
 
 
 def test_coverage_counts_the_fits_own_wrap():
@@ -297,6 +300,7 @@ def test_compiler_prefetches_waits_and_reraises():
     x = jnp.arange(3.0)
     compiler.prefetch("square", square, x)
     assert "square" in compiler.pending
+    compiler.pending["square"].result()  # compiled while the caller did something else
     np.testing.assert_array_equal(compiler.get("square", square, x)(x), [0.0, 1.0, 4.0])
     assert not compiler.pending and clock["compile_background"] > 0.0 and clock["compile"] >= 0.0
     assert compiler.get("square", None, x) is compiler.done["square"]  # compiled once per key
@@ -311,6 +315,13 @@ def test_compiler_prefetches_waits_and_reraises():
     compiler.prefetch("later", square, jnp.arange(4.0))
     compiler.close()
     assert not compiler.pending and compiler.executor is None
+    with jax.enable_x64(True):  # the caller's thread-local setting holds in the compile thread
+        wide = pbrfit.fit._Compiler({})
+        x64 = jnp.arange(3.0)
+        ones = jax.jit(lambda v: jnp.ones(v.shape))  # float64 only where the trace sees x64 on
+        wide.prefetch("ones", ones, x64)
+        assert wide.get("ones", ones, x64)(x64).dtype == jnp.float64
+        wide.close()
     off = pbrfit.fit._Compiler({}, background=False)
     off.prefetch("square", square, x)
     assert not off.pending and off.executor is None
