@@ -276,7 +276,8 @@ def test_background_compile_gives_the_same_fit():
     for name in ("base_color", "metallic", "roughness"):
         np.testing.assert_allclose(np.asarray(getattr(on.material, name)), np.asarray(getattr(off.material, name)),
                                    rtol=0, atol=0 if cpu else 1e-5)
-    np.testing.assert_allclose(on.uncertainty, off.uncertainty, rtol=0 if cpu else 1e-3)
+    # (noiseless: σ is ~1e-7 here, set by the rounding of the residuals)
+    np.testing.assert_allclose(on.uncertainty, off.uncertainty, rtol=0 if cpu else 1e-3, atol=0 if cpu else 1e-6)
     if cpu:
         assert on.report["levels"] == off.report["levels"]
     assert "compile_background" in on.report["times"] and "compile_background" not in off.report["times"]
