@@ -44,7 +44,7 @@ from .optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
 from .pixel_ibl import PixelIBLSettings, pixel_ibl
 from .parameters import CHANNELS, FIT_GROUPS, NORMAL_CHANNELS, channel_mask, normal_from_slopes, prior
 from .sharding import pixel_mesh, shard_problem
-from .solvers import LOSSES, Problem, linearize, normal_blocks, objective, pixel_residuals, structured_lm
+from .solvers import CG_RTOL, LOSSES, Problem, linearize, normal_blocks, objective, pixel_residuals, structured_lm
 from .textures import sample_bilinear
 from .transfer import to_device
 from .uncertainty import block_standard_errors, residual_variance
@@ -247,6 +247,7 @@ def fit_observations(
     coarse_steps: int = COARSE_STEPS,
     rtol: float = 1e-6,
     atol: float = 1e-5,
+    cg_rtol: float = CG_RTOL,
     loss: str = "l2",
     loss_scale: float = LOSS_SCALE,
     smooth: float = 0.0,
@@ -285,6 +286,8 @@ def fit_observations(
         raise ValueError(f"init must be 'grid' or 'prior', got {init!r}")
     if maps not in ("texture", "none"):
         raise ValueError(f"maps must be 'texture' or 'none', got {maps!r}")
+    if not 0.0 < cg_rtol < 1.0:
+        raise ValueError(f"cg_rtol must be in (0, 1), got {cg_rtol}")
     _check_normals(model, fit)
     fixed = dict(fixed or {})
     channels = channel_mask(fit)
@@ -319,7 +322,7 @@ def fit_observations(
     cb = None if progress is None else (
         lambda step, value: progress(dict(where, step=int(step), loss=float(value))))
     compiler = _Compiler(clock, background_compile)
-    runner = _Runner(solver, rtol, atol, cb, compiler)
+    runner = _Runner(solver, rtol, atol, cb, compiler, cg_rtol)
     try:
         for level, shape in enumerate(levels):
             where.update(level=level, resolution=tuple(shape))
@@ -445,6 +448,8 @@ def fit_observations(
     result = _finish(obs, problem, x, final, channels, seen[:t_final], model, solver, history, loss, smooth,
                      dict(setup=setup_time, **clock), t_post, t_start, linearization, wrap)
     result.report["continuation"] = annealed
+    if solver == DEFAULT_SOLVER:
+        result.report["cg_rtol"] = float(cg_rtol)
     if footprint is not None:
         result.report["footprint"] = footprint
     return result
@@ -627,15 +632,17 @@ class _Runner:
     or twice when the start runs on pixel centres (`fit_observations`); an optimistix solver
     also once per step budget (its loop length is static)."""
 
-    def __init__(self, solver, rtol, atol, progress, compiler: _Compiler):
+    def __init__(self, solver, rtol, atol, progress, compiler: _Compiler, cg_rtol: float = CG_RTOL):
         self.solver, self.rtol, self.atol, self.progress, self.compiler = solver, rtol, atol, progress, compiler
+        self.cg_rtol = float(cg_rtol)
         self.clock = compiler.clock
 
     def _call(self, x0, problem, steps, num_free):
         """(key, fn, args, kwargs, optimistix solver or None) of a run."""
         if self.solver == DEFAULT_SOLVER:
             args = (x0, problem, to_device(steps, np.int32), self.rtol, self.atol)
-            return ("structured",) + _problem_key(problem), structured_lm, args, dict(progress=self.progress), None
+            kwargs = dict(cg_rtol=self.cg_rtol, progress=self.progress)
+            return ("structured",) + _problem_key(problem), structured_lm, args, kwargs, None
         opt, is_ls = make_solver(self.solver, self.rtol, self.atol, num_free)
         key = (type(opt).__name__, steps) + _problem_key(problem)
         return key, optx_solve, (x0, problem, opt, is_ls, steps), {}, opt
@@ -802,6 +809,8 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             maps neither fitted nor given stay at `pbrfit.parameters.PRIOR`.
         maps: "texture" (maps) or "none" (one uniform material, 1 × 1 maps).
         solver: one of `SOLVERS`; max_steps (final level), coarse_steps, rtol, atol.
+        cg_rtol: the structured solver's conjugate-gradient tolerance per step (in (0, 1),
+            default `pbrfit.solvers.CG_RTOL`): looser takes fewer CG iterations per step.
         loss: "l2", "huber" or "cauchy" (scale `loss_scale`, image units); smooth: weight of the
             neighbour-difference prior (0 = off).
         coarse_to_fine: run the levels of `schedule`, or (default) the final resolution only.

@@ -74,6 +74,9 @@ DAMPING_FLOOR = 1e-6
 LAMBDA_INIT = 1e-3
 #: Damping above this means the model cannot be decreased further from here: stop.
 LAMBDA_MAX = 1e10
+#: Relative residual at which a step's conjugate gradients stop, ||r|| <= CG_RTOL ||g|| (an inexact
+#: Levenberg-Marquardt step; `fit --cg-rtol` trades it for speed, measured in the README).
+CG_RTOL = 1e-3
 #: Below this ratio s = r²/c² the robust weights use their series (ρ(s)/s -> 1) to stay finite.
 _ROBUST_SERIES = 1e-6
 
@@ -389,7 +392,7 @@ def structured_lm(
     max_steps: int = 50,
     rtol: float = 1e-6,
     atol: float = 1e-5,
-    cg_rtol: float = 1e-3,
+    cg_rtol: float = CG_RTOL,
     cg_max_steps: int = 100,
     progress: Optional[Callable] = None,
 ):

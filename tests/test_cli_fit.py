@@ -129,6 +129,9 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--pixel-samples", "two"], "--pixel-samples: expected auto or 1 to 4, got two"),
         (["--rtol", "-1"], "--rtol"),
         (["--atol", "inf"], "--atol"),
+        (["--cg-rtol", "0"], "--cg-rtol: must be a number in (0, 1), got 0.0"),
+        (["--cg-rtol", "1.5"], "--cg-rtol"),
+        (["--cg-rtol", "nan"], "--cg-rtol"),
         (["--metallic", "0.5", "--fit", "metallic,roughness"], "--fit: lists metallic, which --metallic holds fixed"),
         (["--resolution", "abc"], "argument --resolution: invalid int value: 'abc'"),
         (["--solver", "bogus"], "argument --solver: invalid choice: 'bogus'"),
@@ -328,3 +331,13 @@ def test_loss_history_keeps_the_kept_footprint_only():
         dict(step=0, loss=9.0), dict(step=1, loss=5.0), dict(step=2, loss=2.0)]
     assert [h["loss"] for h in _loss_history(steps, dict(footprint=dict(selected=1)))] == [9.0, 5.0, 4.0, 3.0]
     assert [h["loss"] for h in _loss_history(steps[:2], {})] == [9.0, 5.0]
+
+
+def test_cg_rtol_option_reaches_the_fit():
+    from pbrfit.cli import _fit_options, build_parser
+
+    def options(*extra):
+        return _fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
+
+    assert options("--cg-rtol", "0.01")["cg_rtol"] == 0.01
+    assert "cg_rtol" not in options()  # the library's default, CG_RTOL

@@ -14,6 +14,7 @@ import pytest
 
 from pbrfit.color import encode
 import pbrfit.fit
+import pbrfit.solvers
 from pbrfit.fit import RELEASED_STEPS, SEARCH_AFTER, SETTLE_STEPS, SOLVERS, default_resolution, fit_observations, map_rmse, schedule
 from pbrfit.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, parity_classes
 from pbrfit.lights import point_light
@@ -281,6 +282,23 @@ def test_background_compile_gives_the_same_fit():
     if cpu:
         assert on.report["levels"] == off.report["levels"]
     assert "compile_background" in on.report["times"] and "compile_background" not in off.report["times"]
+
+
+def test_cg_rtol_trades_cg_iterations():
+    """A looser CG tolerance takes fewer CG iterations per step and still fits; it is reported,
+    and values outside (0, 1) are refused."""
+    truth = _checker()
+    obs = observations_from_views(VIEWS, _images(VIEWS, truth))
+    tight = fit_observations(obs, resolution=8, max_steps=40)
+    loose = fit_observations(obs, resolution=8, max_steps=40, cg_rtol=0.1)
+    assert tight.report["cg_rtol"] == pbrfit.solvers.CG_RTOL and loose.report["cg_rtol"] == 0.1
+    per_step = [r.report["levels"][-1]["cg_iterations"] / r.report["levels"][-1]["steps"] for r in (tight, loose)]
+    assert per_step[1] < 0.8 * per_step[0], per_step
+    err = map_rmse(truth, loose)
+    assert err["base_color"] < 0.01 and err["roughness"] < 0.03 and err["metallic"] < 0.02, err
+    for bad in (0.0, 1.0):
+        with pytest.raises(ValueError, match="cg_rtol"):
+            fit_observations(obs, resolution=8, cg_rtol=bad)
 
 
 def test_coverage_counts_the_fits_own_wrap():
