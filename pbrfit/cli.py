@@ -231,6 +231,7 @@ def _fit_options(args) -> dict:
     """Keyword arguments of `pbrfit.fit.fit` from the command line (errors name the option)."""
     import math
 
+    from .fit import DEFAULT_SOLVER
     from .io import read_map
     from .observations import MAX_PIXEL_SAMPLES
     from .pixel_ibl import PixelIBLSettings
@@ -279,6 +280,8 @@ def _fit_options(args) -> dict:
             raise CaptureError(f"--{name}: must be a finite number >= 0, got {value}")
     if args.cg_rtol is not None and not 0.0 < args.cg_rtol < 1.0:
         raise CaptureError(f"--cg-rtol: must be a number in (0, 1), got {args.cg_rtol}")
+    if args.cg_rtol is not None and args.solver != DEFAULT_SOLVER:
+        raise CaptureError(f"--cg-rtol: only the {DEFAULT_SOLVER} solver uses it, not --solver {args.solver}")
     continuation = _continuation(args.continuation)
     pixel_samples = args.pixel_samples
     if pixel_samples != "auto":

@@ -132,6 +132,7 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--cg-rtol", "0"], "--cg-rtol: must be a number in (0, 1), got 0.0"),
         (["--cg-rtol", "1.5"], "--cg-rtol"),
         (["--cg-rtol", "nan"], "--cg-rtol"),
+        (["--cg-rtol", "0.01", "--solver", "lm"], "--cg-rtol: only the structured solver uses it, not --solver lm"),
         (["--metallic", "0.5", "--fit", "metallic,roughness"], "--fit: lists metallic, which --metallic holds fixed"),
         (["--resolution", "abc"], "argument --resolution: invalid int value: 'abc'"),
         (["--solver", "bogus"], "argument --solver: invalid choice: 'bogus'"),
