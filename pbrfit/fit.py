@@ -641,7 +641,8 @@ class _Runner:
         """(key, fn, args, kwargs, optimistix solver or None) of a run."""
         if self.solver == DEFAULT_SOLVER:
             args = (x0, problem, to_device(steps, np.int32), self.rtol, self.atol)
-            kwargs = dict(cg_rtol=self.cg_rtol, progress=self.progress)
+            # cg_rtol as an array: one executable serves every tolerance
+            kwargs = dict(cg_rtol=to_device(self.cg_rtol, np.float32), progress=self.progress)
             return ("structured",) + _problem_key(problem), structured_lm, args, kwargs, None
         opt, is_ls = make_solver(self.solver, self.rtol, self.atol, num_free)
         key = (type(opt).__name__, steps) + _problem_key(problem)
