@@ -24,6 +24,7 @@ __all__ = [
     "tonemap_aces_hill",
     "tonemap_khronos_neutral",
     "tonemap",
+    "inverse_tonemap",
     "encode",
     "luminance",
 ]
@@ -161,6 +162,76 @@ def tonemap(x: Float[ArrayLike, "... 3"], name: str) -> Float[Array, "... 3"]:
     if name not in _TONEMAPS:
         raise ValueError(f"unknown tone map {name!r}; expected one of {', '.join(TONEMAPS)}")
     return _TONEMAPS[name](x)
+
+
+#: Display values are capped below 1 before `inverse_tonemap`: the operators reach 1 only at
+#: infinity (Reinhard, Khronos PBR Neutral) or clip there (the ACES fits).
+_INVERSE_CAP = 1.0 - 1e-4
+
+
+def _positive_root(a, b, c):
+    """The non-negative root of a t² + b t + c = 0 for a < 0 <= c (the roots' product c/a <= 0)."""
+    return (-b - jnp.sqrt(jnp.maximum(b * b - 4.0 * a * c, 0.0))) / (2.0 * a)
+
+
+def _inverse_reinhard(y):
+    """x = y / (1 - y)."""
+    return y / (1.0 - y)
+
+
+def _inverse_aces_narkowicz(y):
+    """y (2.43 x² + 0.59 x + 0.14) = 2.51 x² + 0.03 x, solved for x >= 0 (a < 0 for y <= 1)."""
+    return _positive_root(2.43 * y - 2.51, 0.59 * y - 0.03, 0.14 * y)
+
+
+def _inverse_aces_hill(y):
+    """c = M_out⁻¹ y; the rational fit solved per channel (a quadratic in c, a < 0 for c_out <= 1);
+    x = M_in⁻¹ c."""
+    hi = jax.lax.Precision.HIGHEST
+    c = jnp.einsum("ij,...j->...i", jnp.linalg.inv(_ACES_OUTPUT).astype(y.dtype), y, precision=hi)
+    c = _positive_root(0.983729 * c - 1.0, 0.4329510 * c - 0.0245786, 0.238081 * c + 0.000090537)
+    return jnp.einsum("ij,...j->...i", jnp.linalg.inv(_ACES_INPUT).astype(y.dtype), c, precision=hi)
+
+
+def _inverse_khronos_neutral(y):
+    """Undo the peak compression (the compressed peak is max(y), so the peak p before it follows
+    from p_new = 1 - d² / (p + d - start), and g from p), then the toe: with m the minimum after
+    the offset, min(x) = sqrt(m / 6.25) where m < 0.04, else m + 0.04."""
+    start, desaturation = 0.8 - 0.04, 0.15
+    d = 1.0 - start
+    new_peak = jnp.max(y, axis=-1, keepdims=True)
+    safe_new = jnp.maximum(new_peak, start)
+    peak = d * d / (1.0 - safe_new) - d + start
+    g = 1.0 - 1.0 / (desaturation * (peak - safe_new) + 1.0)
+    x = jnp.where(new_peak < start, y, (y - safe_new * g) / ((safe_new / peak) * (1.0 - g)))
+    m = jnp.maximum(jnp.min(x, axis=-1, keepdims=True), 0.0)
+    low = jnp.where(m < 0.04, jnp.sqrt(m / 6.25), m + 0.04)
+    return x + (low - m)
+
+
+_INVERSE_TONEMAPS = {
+    "none": lambda y: y,
+    "reinhard": _inverse_reinhard,
+    "aces_narkowicz": _inverse_aces_narkowicz,
+    "aces_hill": _inverse_aces_hill,
+    "khronos_neutral": _inverse_khronos_neutral,
+}
+
+
+def inverse_tonemap(y: Float[ArrayLike, "... 3"], name: str) -> Float[Array, "... 3"]:
+    """The linear values that the named operator maps to `y` (tone-mapped, before any sRGB curve):
+    exact where the operator is invertible, in closed form for each of `TONEMAPS`.
+
+    Display values are clipped to [0, 1 - 1e-4] first, so a value at the top (where the ACES fits
+    clip and the others reach only at infinity) comes back large but finite. Used to start fits
+    of tone-mapped captures in linear radiance; the fits themselves compare through `encode`.
+    """
+    if name not in _INVERSE_TONEMAPS:
+        raise ValueError(f"unknown tone map {name!r}; expected one of {', '.join(TONEMAPS)}")
+    y = jnp.asarray(y)
+    if name == "none":
+        return y
+    return jnp.maximum(_INVERSE_TONEMAPS[name](jnp.clip(y, 0.0, _INVERSE_CAP)), 0.0)
 
 
 def encode(

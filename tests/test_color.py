@@ -158,6 +158,31 @@ def test_tonemap_monotone_and_bounded(name):
             assert np.all(y <= 1.0 + 1e-6), name
 
 
+@pytest.mark.parametrize("name", color.TONEMAPS)
+def test_inverse_tonemap_round_trips(name):
+    """inverse_tonemap(tonemap(x)) = x wherever the operator is invertible (no channel clipped to
+    0 or near the top), and display values at the top come back finite."""
+    x = _colors()
+    y = np.asarray(color.tonemap(jnp.asarray(x, jnp.float32), name))
+    back = np.asarray(color.inverse_tonemap(jnp.asarray(y), name))
+    ok = np.all((y > 1e-4) & (y < 0.99), axis=1)
+    assert ok.sum() > 100
+    np.testing.assert_allclose(back[ok], x[ok], rtol=1e-3, atol=1e-4)
+    top = np.asarray(color.inverse_tonemap(jnp.array([[1.0, 1.0, 1.0], [1.0, 0.2, 0.0]]), name))
+    assert np.all(np.isfinite(top)) and np.all(top >= 0.0)
+    if name != "none":
+        assert np.all(top[0] > 5.0), top  # the top of the display range is far up in linear
+
+
+def test_inverse_tonemap_known_values():
+    np.testing.assert_allclose(color.inverse_tonemap(jnp.full(3, 0.5), "reinhard"), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(color.inverse_tonemap(jnp.full(3, 2.54 / 3.16), "aces_narkowicz"), 1.0, rtol=1e-5)
+    x = jnp.array([0.5, 0.3, 0.1])  # Khronos PBR Neutral's identity region: x - 0.04
+    np.testing.assert_allclose(color.inverse_tonemap(x - 0.04, "khronos_neutral"), x, rtol=1e-5)
+    with pytest.raises(ValueError, match="tone map"):
+        color.inverse_tonemap(x, "filmic")
+
+
 def test_khronos_neutral_identity_region():
     """Below the compression start (max < 0.76 after the 0.04 offset) and with min ≥ 0.08, Khronos PBR
     Neutral is x - 0.04: a base color renders as itself minus the fixed toe offset."""
