@@ -10,11 +10,18 @@ at metallic 1), so
     L_p(b) = L_p(0) + b (L_p(1) - L_p(0)).
 
 For every candidate (m, r) we render each pixel with its slope in b (one forward-mode pass),
-solve each texel's base colour in closed form from the pixels that read it (weighted by their
-bilinear weights, in linear radiance, the targets decoded from sRGB), score the candidate by the
-image-space residual of those pixels, and keep each texel's best candidate. Channels held fixed
-keep their values. This costs one forward-mode render per candidate and no solve; the
-structured solver refines from there.
+solve the base colours of all texels jointly by linear least squares in linear radiance (the
+targets decoded from sRGB and the tone map; `_solve_base_joint`), score the candidate by the
+image-space residual of the pixels that read each texel, and keep each texel's best candidate.
+Channels held fixed keep their values. This costs one forward-mode render and a few
+conjugate-gradient iterations per candidate; the structured solver refines from there.
+
+The base colours are solved jointly because a pixel averages four texels: solved texel by
+texel, as if each pixel showed only the texel being solved, a texel at an edge of the base
+colour map takes part of its neighbour's colour, and the misfit that leaves in its pixels can
+be smaller for a wrong roughness (one that shows no highlight at all) than for the true one. On
+captures whose maps have sharp-edged patches this started clusters of texels in wrong basins
+that neither the continuation nor the search left (tests/test_fit.py).
 
 That start assumes a texel's four bilinear neighbours share its candidate, which fails where
 the maps change: at edges, and where one neighbour landed in a wrong roughness basin the others
@@ -39,7 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .color import encode, srgb_to_linear
+from .color import encode, inverse_tonemap, srgb_to_linear
 from .brdf import MIN_ROUGHNESS
 from .parameters import LOWER, UPPER
 from .render import shade
@@ -82,14 +89,22 @@ BLEND_METALLIC_CANDIDATES = (0.25, 0.5, 0.75)
 BLEND_ROUGHNESS_FACTORS = (0.8, 1.0, 1.25)
 #: Floor on Σ w A² when solving a texel's base colour (a texel whose pixels see no light).
 _NORMAL_FLOOR = 1e-12
+_TINY = 1e-30
+#: Conjugate-gradient iterations of the grid start's joint base-colour solve per candidate
+#: (`_solve_base_joint`): 3 already fit the sharp-edged conformance captures exactly; more change
+#: little, as the per-texel start is close wherever the map is smooth.
+GRID_BASE_CG_STEPS = 3
 
 
 def _linear_targets(problem: Problem):
+    """The targets as linear radiance: sRGB decoded, the tone map inverted (`inverse_tonemap`),
+    the exposure divided out."""
     obs = problem.obs
     y = obs.target
     if obs.color_space == "srgb":
         y = srgb_to_linear(y)
-    return y * jnp.exp2(-obs.exposure)[:, None]  # tone maps are not inverted: this is only a start
+    y = inverse_tonemap(y, obs.tonemap)
+    return y * jnp.exp2(-obs.exposure)[:, None]
 
 
 def _candidates(roughness, dtype, metallic=METALLIC_CANDIDATES) -> jnp.ndarray:
@@ -107,6 +122,33 @@ def _solve_base(l0, a, y, weight, problem: Problem):
     num = _scatter(w * (a * (y - l0))[:, None, :], problem)
     den = _scatter(w * (a * a)[:, None, :], problem)
     return jnp.clip(num / jnp.maximum(den, _NORMAL_FLOOR), 0.0, 1.0)
+
+
+def _solve_base_joint(l0, a, y, problem: Problem, steps: int = GRID_BASE_CG_STEPS):
+    """(T, 3) base colours b of all texels minimising Σ_p ||y_p - l0_p - a_p Σ_k w_pk b_(t_pk)||²
+    channel by channel (every pixel's bilinear mix of its texels; linear radiance), clipped to
+    [0, 1]: `steps` iterations of Jacobi-preconditioned conjugate gradients on the normal
+    equations AᵀA b = Aᵀ(y - l0), (A b)_p = a_p Σ_k w_pk b_(t_pk), started from the unclipped
+    per-texel solution (which is the Jacobi step from 0)."""
+    w = problem.weight[:, :, None]
+
+    def normal_op(b):  # AᵀA b
+        return _scatter(w * (a * a * sample_texels(b, problem))[:, None, :], problem)
+
+    diag = jnp.maximum(_scatter(w * w * (a * a)[:, None, :], problem), _NORMAL_FLOOR)
+    rhs = _scatter(w * (a * (y - l0))[:, None, :], problem)
+    b = rhs / jnp.maximum(_scatter(w * (a * a)[:, None, :], problem), _NORMAL_FLOOR)
+    r = rhs - normal_op(b)
+    z = r / diag
+    p, rz = z, jnp.sum(r * z, axis=0)
+    for _ in range(steps):  # a handful, unrolled: per channel, α and β are scalars
+        q = normal_op(p)
+        alpha = rz / jnp.maximum(jnp.sum(p * q, axis=0), _TINY)
+        b, r = b + alpha * p, r - alpha * q
+        z = r / diag
+        rz_new = jnp.sum(r * z, axis=0)
+        p, rz = z + (rz_new / jnp.maximum(rz, _TINY)) * p, rz_new
+    return jnp.clip(b, 0.0, 1.0)
 
 
 @eqx.filter_jit
@@ -132,7 +174,7 @@ def grid_initialise(x_fixed, problem: Problem):
 
         zero = jnp.zeros_like(fixed_m[:, :3])
         l0, a = jax.jvp(render, (zero,), (jnp.ones_like(zero),))  # affine in b: the slope is exact
-        base_t = _solve_base(l0, a, y, problem.weight, problem)
+        base_t = _solve_base_joint(l0, a, y, problem)
         base_t = jnp.where(base_free, base_t, x_fixed[:, :3])
         b_p = sample_texels(jnp.concatenate([base_t, x_fixed[:, 3:]], axis=1), problem)[:, :3]
         value = encode(l0 + b_p * a, obs.exposure[:, None], obs.tonemap, obs.color_space)

@@ -16,7 +16,7 @@ from pbrfit.color import encode
 import pbrfit.fit
 import pbrfit.solvers
 from pbrfit.fit import RELEASED_STEPS, SEARCH_AFTER, SETTLE_STEPS, SOLVERS, default_resolution, fit_observations, map_rmse, schedule
-from pbrfit.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, parity_classes
+from pbrfit.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, grid_initialise, parity_classes
 from pbrfit.lights import point_light
 from pbrfit.material import Material
 from pbrfit.model import Model
@@ -196,6 +196,35 @@ def _texel_problem(truth, smooth=0.0):
 
 def _stack(material):
     return jnp.concatenate([material.base_color, material.metallic, material.roughness], -1).reshape(-1, 5)
+
+
+def test_grid_start_solves_base_colour_jointly_at_colour_edges():
+    """Every pixel of the checker mixes texels of both colours. The grid start solves all base
+    colours jointly, so each comes out right (solved texel by texel, as if a pixel showed only the
+    texel being solved, they were up to 0.15 off) and each roughness stays in its basin."""
+    truth = _checker()
+    x_true = np.asarray(_stack(truth))
+    x = np.asarray(grid_initialise(jnp.asarray(x_true), _texel_problem(truth)))
+    assert np.abs(x[:, :3] - x_true[:, :3]).max() < 0.02, np.abs(x[:, :3] - x_true[:, :3]).max()
+    assert np.abs(x[:, 4] - x_true[:, 4]).max() < 0.09 and np.all(x[:, 3] == 0.0)
+
+
+@pytest.mark.parametrize("tonemap", ["reinhard", "aces_hill", "khronos_neutral"])
+def test_grid_start_inverts_the_tone_map(tonemap):
+    """On tone-mapped sRGB images (exposure +1) the grid start solves base colour in linear
+    radiance from the inverted tone map, as well as on linear images."""
+    truth = _checker()
+    imgs = []
+    for vi in VIEWS:
+        img = np.zeros((vi.shape[0] * vi.shape[1], 3), np.float32)
+        img[np.asarray(vi.pixel)] = np.asarray(encode(radiance_view(vi, truth, Model()), 1.0, tonemap, "srgb"))
+        imgs.append(img.reshape(vi.shape + (3,)))
+    obs = observations_from_views(VIEWS, imgs, exposures=[1.0] * len(VIEWS), tonemap=tonemap, color_space="srgb")
+    problem = dataclasses.replace(_texel_problem(truth), obs=obs)
+    x_true = np.asarray(_stack(truth))
+    x = np.asarray(grid_initialise(jnp.asarray(x_true), problem))
+    assert np.abs(x[:, :3] - x_true[:, :3]).max() < 0.02, np.abs(x[:, :3] - x_true[:, :3]).max()
+    assert np.abs(x[:, 4] - x_true[:, 4]).max() < 0.11 and np.all(x[:, 3] == 0.0)  # 0.08 on linear images
 
 
 @pytest.mark.parametrize("smooth", [0.0, 1e-3])
