@@ -222,7 +222,7 @@ def inverse_tonemap(y: Float[ArrayLike, "... 3"], name: str) -> Float[Array, "..
     """The linear values that the named operator maps to `y` (tone-mapped, before any sRGB curve):
     exact where the operator is invertible, in closed form for each of `TONEMAPS`.
 
-    Display values are clipped to [0, 1 - 1e-4] first, so a value at the top (where the ACES fits
+    With a tone map, display values are clipped to [0, 1 - 1e-4] first ("none" returns `y`), so a value at the top (where the ACES fits
     clip and the others reach only at infinity) comes back large but finite. Used to start fits
     of tone-mapped captures in linear radiance; the fits themselves compare through `encode`.
     """

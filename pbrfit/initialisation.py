@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .color import encode, inverse_tonemap, srgb_to_linear
+from .color import encode, inverse_tonemap, srgb_to_linear, tonemap
 from .brdf import MIN_ROUGHNESS
 from .parameters import LOWER, UPPER
 from .render import shade
@@ -100,6 +100,23 @@ _TINY = 1e-30
 GRID_BASE_CG_STEPS = 3
 
 
+def _tonemap_slopes(problem: Problem):
+    """(P, 3) per pixel and channel, d(tone-mapped value)/d(radiance) at the target: the tone map's
+    slope (its Jacobian's diagonal) at the inverted target, times 2^exposure; None without a
+    tone map. The grid start weights its base-colour least squares by it, which makes them a
+    linearised fit of the tone-mapped values: near the top of the display range a tone map is
+    flat, one 8-bit code there spans a large range of radiance, and unweighted, those few pixels
+    decided whole texels' base colours."""
+    obs = problem.obs
+    if obs.tonemap == "none":
+        return None
+    y = srgb_to_linear(obs.target) if obs.color_space == "srgb" else obs.target
+    x = inverse_tonemap(y, obs.tonemap)
+    diag = [jax.jvp(lambda v: tonemap(v, obs.tonemap), (x,), (jnp.zeros_like(x).at[:, c].set(1.0),))[1][:, c]
+            for c in range(3)]
+    return jnp.stack(diag, axis=1) * jnp.exp2(obs.exposure)[:, None]
+
+
 def _linear_targets(problem: Problem):
     """The targets as linear radiance: sRGB decoded, the tone map inverted (`inverse_tonemap`),
     the exposure divided out."""
@@ -132,8 +149,9 @@ def _solve_base_joint(l0, a, y, problem: Problem, steps: int = GRID_BASE_CG_STEP
     """(T, 3) base colours b of all texels minimising Σ_p ||y_p - l0_p - a_p Σ_k w_pk b_(t_pk)||²
     channel by channel (every pixel's bilinear mix of its texels; linear radiance), clipped to
     [0, 1]: `steps` iterations of Jacobi-preconditioned conjugate gradients on the normal
-    equations AᵀA b = Aᵀ(y - l0), (A b)_p = a_p Σ_k w_pk b_(t_pk), started from the unclipped
-    per-texel solution (which is the Jacobi step from 0)."""
+    equations AᵀA b = Aᵀ(y - l0), (A b)_p = a_p Σ_k w_pk b_(t_pk) (the preconditioner is Σ_pk w_pk² a_p²,
+    the diagonal where a pixel's taps read distinct texels), started from the unclipped per-texel
+    solution."""
     w = problem.weight[:, :, None]
 
     def normal_op(b):  # AᵀA b
@@ -164,6 +182,7 @@ def grid_initialise(x_fixed, problem: Problem):
     seen = jnp.max(free, axis=1) > 0
     fixed_m = sample_texels(x_fixed, problem)  # (P, 5) sampled values of the fixed channels
     y = _linear_targets(problem)
+    slope = _tonemap_slopes(problem)
     metal_free = jnp.max(free[:, 3]) > 0
     rough_free = jnp.max(free[:, 4]) > 0
     base_free = jnp.max(free[:, 0]) > 0
@@ -178,10 +197,12 @@ def grid_initialise(x_fixed, problem: Problem):
 
         zero = jnp.zeros_like(fixed_m[:, :3])
         l0, a = jax.jvp(render, (zero,), (jnp.ones_like(zero),))  # affine in b: the slope is exact
+        # with a tone map, least squares in (linearised) tone-mapped values: the rows times its slope
+        lw, aw, yw = (l0, a, y) if slope is None else (l0 * slope, a * slope, y * slope)
         if x_fixed.shape[1] > 5:  # normals fitted: see the module docstring
-            base_t = _solve_base(l0, a, y, problem.weight, problem)
+            base_t = _solve_base(lw, aw, yw, problem.weight, problem)
         else:
-            base_t = _solve_base_joint(l0, a, y, problem)
+            base_t = _solve_base_joint(lw, aw, yw, problem)
         base_t = jnp.where(base_free, base_t, x_fixed[:, :3])
         b_p = sample_texels(jnp.concatenate([base_t, x_fixed[:, 3:]], axis=1), problem)[:, :3]
         value = encode(l0 + b_p * a, obs.exposure[:, None], obs.tonemap, obs.color_space)
