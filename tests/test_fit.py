@@ -209,6 +209,30 @@ def test_grid_start_solves_base_colour_jointly_at_colour_edges():
     assert np.abs(x[:, 4] - x_true[:, 4]).max() < 0.09 and np.all(x[:, 3] == 0.0)
 
 
+def test_joint_base_colour_solve_matches_a_dense_solve():
+    """`_solve_base_joint` is least squares over all texels at once: it converges to the base
+    colours that made the pixels (a dense solve's answer), 3 steps already close; rows with zero
+    slope and all-zero channels stay finite."""
+    from pbrfit.initialisation import _solve_base, _solve_base_joint
+
+    truth = _checker()
+    problem = _texel_problem(truth)
+    rng = np.random.default_rng(0)
+    p, t = problem.index.shape[0], problem.num_texels
+    b_true = jnp.asarray(rng.uniform(0.2, 0.8, (t, 3)), jnp.float32)
+    a = rng.uniform(0.2, 1.0, (p, 3)).astype(np.float32)
+    a[::7] = 0.0  # pixels whose radiance does not depend on the base colour
+    a[:, 2] = 0.0  # a channel no pixel constrains
+    a, l0 = jnp.asarray(a), jnp.asarray(rng.uniform(0.0, 0.1, (p, 3)), jnp.float32)
+    y = l0 + a * pbrfit.solvers.sample_texels(b_true, problem)
+    err = {n: np.abs(np.asarray(_solve_base_joint(l0, a, y, problem, n)) - np.asarray(b_true))[:, :2].max()
+           for n in (0, 3, 40)}
+    per_texel = np.abs(np.asarray(_solve_base(l0, a, y, problem.weight, problem)) - np.asarray(b_true))[:, :2].max()
+    assert err[40] < 1e-4 and err[3] < 0.25 * per_texel and err[0] == pytest.approx(per_texel, abs=1e-6), (err, per_texel)
+    out = np.asarray(_solve_base_joint(l0, a, y, problem, 3))
+    assert np.all(np.isfinite(out)) and np.all(out[:, 2] == 0.0)
+
+
 @pytest.mark.parametrize("tonemap,ev,bits", [("reinhard", 1.0, None), ("aces_hill", 1.0, None),
                                              ("khronos_neutral", 1.0, None), ("aces_narkowicz", 3.0, 8),
                                              ("reinhard", 3.0, 8)])
