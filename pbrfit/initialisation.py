@@ -93,6 +93,8 @@ BLEND_METALLIC_CANDIDATES = (0.25, 0.5, 0.75)
 BLEND_ROUGHNESS_FACTORS = (0.8, 1.0, 1.25)
 #: Floor on Σ w A² when solving a texel's base colour (a texel whose pixels see no light).
 _NORMAL_FLOOR = 1e-12
+#: Floor on the CG's curvature pᵀAᵀAp and on rᵀz in `_solve_base_joint`: a channel no pixel
+#: constrains (all slopes 0) has both 0, and then takes steps of 0 instead of 0 / 0.
 _TINY = 1e-30
 #: Conjugate-gradient iterations of the grid start's joint base-colour solve per candidate
 #: (`_solve_base_joint`): 3 already fit the sharp-edged conformance captures exactly; more change
@@ -100,9 +102,16 @@ _TINY = 1e-30
 GRID_BASE_CG_STEPS = 3
 
 
-def _tonemap_slopes(problem: Problem):
+def _inverted_targets(problem: Problem):
+    """The targets as the tone map's input: sRGB decoded, the tone map inverted (`inverse_tonemap`)."""
+    obs = problem.obs
+    y = srgb_to_linear(obs.target) if obs.color_space == "srgb" else obs.target
+    return inverse_tonemap(y, obs.tonemap)
+
+
+def _tonemap_slopes(problem: Problem, inverted):
     """(P, 3) per pixel and channel, d(tone-mapped value)/d(radiance) at the target: the tone map's
-    slope (its Jacobian's diagonal) at the inverted target, times 2^exposure; None without a
+    slope (its Jacobian's diagonal) at `inverted` (`_inverted_targets`), times 2^exposure; None without a
     tone map. The grid start weights its base-colour least squares by it, which makes them a
     linearised fit of the tone-mapped values: near the top of the display range a tone map is
     flat, one 8-bit code there spans a large range of radiance, and unweighted, those few pixels
@@ -110,22 +119,17 @@ def _tonemap_slopes(problem: Problem):
     obs = problem.obs
     if obs.tonemap == "none":
         return None
-    y = srgb_to_linear(obs.target) if obs.color_space == "srgb" else obs.target
-    x = inverse_tonemap(y, obs.tonemap)
+    x = inverted
     diag = [jax.jvp(lambda v: tonemap(v, obs.tonemap), (x,), (jnp.zeros_like(x).at[:, c].set(1.0),))[1][:, c]
             for c in range(3)]
     return jnp.stack(diag, axis=1) * jnp.exp2(obs.exposure)[:, None]
 
 
-def _linear_targets(problem: Problem):
-    """The targets as linear radiance: sRGB decoded, the tone map inverted (`inverse_tonemap`),
+def _linear_targets(problem: Problem, inverted=None):
+    """The targets as linear radiance: `_inverted_targets` (or `inverted`, already computed) with
     the exposure divided out."""
-    obs = problem.obs
-    y = obs.target
-    if obs.color_space == "srgb":
-        y = srgb_to_linear(y)
-    y = inverse_tonemap(y, obs.tonemap)
-    return y * jnp.exp2(-obs.exposure)[:, None]
+    inverted = _inverted_targets(problem) if inverted is None else inverted
+    return inverted * jnp.exp2(-problem.obs.exposure)[:, None]
 
 
 def _candidates(roughness, dtype, metallic=METALLIC_CANDIDATES) -> jnp.ndarray:
@@ -139,10 +143,15 @@ def _candidates(roughness, dtype, metallic=METALLIC_CANDIDATES) -> jnp.ndarray:
 def _solve_base(l0, a, y, weight, problem: Problem):
     """(T, 3) per-texel base colour b minimising Σ_pk weight_pk ||y_p - l0_p - b a_p||² channel by
     channel (linear radiance L_p = l0_p + b a_p), clipped to [0, 1]."""
+    return jnp.clip(_per_texel_base(l0, a, y, weight, problem), 0.0, 1.0)
+
+
+def _per_texel_base(l0, a, y, weight, problem: Problem):
+    """`_solve_base` before clipping: Σ w a (y - l0) / Σ w a² per texel and channel."""
     w = weight[:, :, None]
     num = _scatter(w * (a * (y - l0))[:, None, :], problem)
     den = _scatter(w * (a * a)[:, None, :], problem)
-    return jnp.clip(num / jnp.maximum(den, _NORMAL_FLOOR), 0.0, 1.0)
+    return num / jnp.maximum(den, _NORMAL_FLOOR)
 
 
 def _solve_base_joint(l0, a, y, problem: Problem, steps: int = GRID_BASE_CG_STEPS):
@@ -159,7 +168,7 @@ def _solve_base_joint(l0, a, y, problem: Problem, steps: int = GRID_BASE_CG_STEP
 
     diag = jnp.maximum(_scatter(w * w * (a * a)[:, None, :], problem), _NORMAL_FLOOR)
     rhs = _scatter(w * (a * (y - l0))[:, None, :], problem)
-    b = rhs / jnp.maximum(_scatter(w * (a * a)[:, None, :], problem), _NORMAL_FLOOR)
+    b = _per_texel_base(l0, a, y, problem.weight, problem)
     r = rhs - normal_op(b)
     z = r / diag
     p, rz = z, jnp.sum(r * z, axis=0)
@@ -181,8 +190,9 @@ def grid_initialise(x_fixed, problem: Problem):
     free = problem.free
     seen = jnp.max(free, axis=1) > 0
     fixed_m = sample_texels(x_fixed, problem)  # (P, 5) sampled values of the fixed channels
-    y = _linear_targets(problem)
-    slope = _tonemap_slopes(problem)
+    inverted = _inverted_targets(problem)
+    y = _linear_targets(problem, inverted)
+    slope = _tonemap_slopes(problem, inverted)
     metal_free = jnp.max(free[:, 3]) > 0
     rough_free = jnp.max(free[:, 4]) > 0
     base_free = jnp.max(free[:, 0]) > 0
