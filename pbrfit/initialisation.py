@@ -45,6 +45,8 @@ search still keeps a move only where the exact objective, the pixels' mean radia
 
 from __future__ import annotations
 
+from typing import Optional
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -154,13 +156,14 @@ def _per_texel_base(l0, a, y, weight, problem: Problem):
     return num / jnp.maximum(den, _NORMAL_FLOOR)
 
 
-def _solve_base_joint(l0, a, y, problem: Problem, steps: int = GRID_BASE_CG_STEPS):
+def _solve_base_joint(l0, a, y, problem: Problem, steps: Optional[int] = None):
     """(T, 3) base colours b of all texels minimising Σ_p ||y_p - l0_p - a_p Σ_k w_pk b_(t_pk)||²
     channel by channel (every pixel's bilinear mix of its texels; linear radiance), clipped to
     [0, 1]: `steps` iterations of Jacobi-preconditioned conjugate gradients on the normal
     equations AᵀA b = Aᵀ(y - l0), (A b)_p = a_p Σ_k w_pk b_(t_pk) (the preconditioner is Σ_pk w_pk² a_p²,
     the diagonal where a pixel's taps read distinct texels), started from the unclipped per-texel
-    solution."""
+    solution. `steps` defaults to `GRID_BASE_CG_STEPS`, read when the grid start is traced."""
+    steps = GRID_BASE_CG_STEPS if steps is None else steps
     w = problem.weight[:, :, None]
 
     def normal_op(b):  # AᵀA b

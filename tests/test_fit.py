@@ -14,6 +14,7 @@ import pytest
 
 from pbrfit.color import encode
 import pbrfit.fit
+import pbrfit.initialisation
 import pbrfit.solvers
 from pbrfit.fit import RELEASED_STEPS, SEARCH_AFTER, SETTLE_STEPS, SOLVERS, default_resolution, fit_observations, map_rmse, schedule
 from pbrfit.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, grid_initialise, parity_classes
@@ -209,7 +210,7 @@ def test_grid_start_solves_base_colour_jointly_at_colour_edges():
     assert np.abs(x[:, 4] - x_true[:, 4]).max() < 0.09 and np.all(x[:, 3] == 0.0)
 
 
-def test_joint_base_colour_solve_matches_a_dense_solve():
+def test_joint_base_colour_solve_matches_a_dense_solve(monkeypatch):
     """`_solve_base_joint` is least squares over all texels at once: it converges to the base
     colours that made the pixels (a dense solve's answer), 3 steps already close; rows with zero
     slope and all-zero channels stay finite."""
@@ -231,6 +232,10 @@ def test_joint_base_colour_solve_matches_a_dense_solve():
     assert err[40] < 1e-4 and err[3] < 0.25 * per_texel and err[0] == pytest.approx(per_texel, abs=1e-6), (err, per_texel)
     out = np.asarray(_solve_base_joint(l0, a, y, problem, 3))
     assert np.all(np.isfinite(out)) and np.all(out[:, 2] == 0.0)
+    # the knob: the module's GRID_BASE_CG_STEPS is the default step count
+    monkeypatch.setattr(pbrfit.initialisation, "GRID_BASE_CG_STEPS", 40)
+    np.testing.assert_array_equal(np.asarray(_solve_base_joint(l0, a, y, problem)),
+                                  np.asarray(_solve_base_joint(l0, a, y, problem, 40)))
 
 
 @pytest.mark.parametrize("tonemap,ev,bits", [("reinhard", 1.0, None), ("aces_hill", 1.0, None),
