@@ -6,6 +6,7 @@ JAX; capture loading, ray casting and fitting are imported on first use.
 
 import importlib
 import os
+import pkgutil
 
 
 def _xla_workarounds() -> None:
@@ -42,21 +43,20 @@ _LAZY = {
     "GBuffer": ("gbuffer", "GBuffer"),
     "compute_gbuffer": ("gbuffer", "compute_gbuffer"),
     "render_capture": ("views", "render_capture"),
-    "fit": ("fit", "fit"),
     "FitResult": ("fit", "FitResult"),
     "PixelIBLSettings": ("pixel_ibl", "PixelIBLSettings"),
     "read_material": ("io", "read_material"),
     "write_material": ("io", "write_material"),
 }
 
-__all__ = ["brdf", "color", "CaptureError", "Material", "Model", *_LAZY]
+__all__ = ["brdf", "color", "CaptureError", "Material", "Model", "fit", *_LAZY]
 
 
 def __getattr__(name):
     if name in _LAZY:
         module, attr = _LAZY[name]
         return getattr(importlib.import_module(f".{module}", __name__), attr)
-    if name in ("lights", "textures", "render", "ibl", "pixel_ibl", "environment", "montecarlo", "scene", "gbuffer",
-                "io", "views", "fit", "outputs", "model"):
+    # submodules, on first access; `pbrfit.fit` is the fit module, and calling it calls `pbrfit.fit.fit`
+    if name in {m.name for m in pkgutil.iter_modules(__path__)}:
         return importlib.import_module(f".{name}", __name__)
     raise AttributeError(f"module 'pbrfit' has no attribute {name!r}")

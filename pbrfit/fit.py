@@ -28,7 +28,9 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import math
+import sys
 import time
+import types
 from typing import Callable, Mapping, Optional, Sequence
 
 import jax
@@ -896,3 +898,16 @@ def map_rmse(truth: Material, result, coverage: Optional[np.ndarray] = None) -> 
         err = (f - t)[seen]
         out[name] = float(np.sqrt(np.mean(err ** 2))) if err.size else float("nan")
     return out
+
+
+class _CallableModule(types.ModuleType):
+    """`pbrfit.fit` is this module and the function: ``pbrfit.fit(capture)`` calls `fit`, and
+    ``pbrfit.fit.fit_observations`` (or any other name here) is the module's. Python sets a
+    package's attribute to a submodule when it is imported, so a plain alias of the function on the
+    package would turn into this module on the first ``import pbrfit.fit``."""
+
+    def __call__(self, *args, **kwargs) -> FitResult:
+        return self.fit(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule

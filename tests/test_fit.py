@@ -480,3 +480,27 @@ def test_normal_map_recovered_on_small_scene():
     # the same images fitted with flat normals leave a clearly worse match
     flat = fit_observations(obs, resolution=8, fit=("base_color", "roughness"), max_steps=60)
     assert flat.report["final_loss"] > 5 * res.report["final_loss"], (flat.report["final_loss"], res.report["final_loss"])
+
+
+def test_pbrfit_fit_is_the_function_and_the_module():
+    """``pbrfit.fit(capture)`` (the issue's Python API) calls the fit whatever was imported
+    before it, and ``pbrfit.fit.<name>`` reaches the module, in a fresh interpreter where
+    ``import pbrfit.fit`` would otherwise replace a function alias on the package."""
+    import subprocess
+    import sys
+
+    code = """
+import pbrfit
+first = pbrfit.fit
+import pbrfit.fit
+from pbrfit.fit import FitResult, fit_observations
+assert pbrfit.fit is first and callable(pbrfit.fit), pbrfit.fit
+assert pbrfit.fit.fit_observations is fit_observations and pbrfit.FitResult is FitResult
+calls = []
+pbrfit.fit.fit = lambda *a, **k: calls.append((a, k)) or "result"
+assert pbrfit.fit("cap", max_steps=3) == "result" and pbrfit.fit("cap") == "result"
+assert calls == [(("cap",), {"max_steps": 3}), (("cap",), {})], calls
+assert pbrfit.solvers.CG_RTOL > 0 and pbrfit.sharding.pixel_mesh
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
