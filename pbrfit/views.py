@@ -148,6 +148,16 @@ def _image_dtype(frame) -> str:
     return "uint16" if info.bits > 8 else "uint8"
 
 
+def _inside(rel: str, fallback: str) -> str:
+    """`rel` when it names a path inside the output folder, else `fallback`: the spec lets a
+    capture's paths leave its folder (``../images/0.png``) or be absolute, and written as they are
+    they would land outside the output, over the input's own files."""
+    norm = os.path.normpath(rel)
+    if os.path.isabs(norm) or norm == os.pardir or norm.startswith(os.pardir + os.sep):
+        return fallback
+    return norm
+
+
 def _copy_into(src: Path, root_out: Path, rel: str) -> None:
     dst = root_out / rel
     dst.parent.mkdir(parents=True, exist_ok=True)
@@ -169,16 +179,22 @@ def write_rendered_capture(
     that hold no alpha (`NO_ALPHA_SUFFIXES`: Radiance HDR, JPEG) get RGB and the same coverage
     as an 8-bit mask at ``masks/<file_path>.png`` (suffix kept: ``masks/images/0.jpg.png``),
     named by the frame's ``mask_path``. The mesh and environment files are copied beside it.
-    The folder is built under a temporary name and renamed into place, so a failure leaves
-    nothing.
+    A path that leaves the capture's folder (``..``) or is absolute is written inside the output
+    instead (frame i at ``frames/<i>_<name>``, the mesh at ``mesh<suffix>``, the environment at
+    ``environment<suffix>``) and capture.json names it there. A NeRF-style ``transforms.json``
+    without ``format`` gets it, so the output loads as a capture. The folder is built under a
+    temporary name and renamed into place, so a failure leaves nothing.
     """
     from .io import atomic_dir, write_image
+    from .scene import CAPTURE_FORMAT
 
     raw = copy.deepcopy(capture.raw)
+    raw["format"] = CAPTURE_FORMAT
     out_dir = Path(out_dir)
     with atomic_dir(out_dir, kind="capture") as tmp:
         tmp = Path(tmp)
-        mesh_rel = raw.get("mesh", capture.mesh_path.name)
+        mesh_rel = _inside(raw.get("mesh", capture.mesh_path.name), "mesh" + capture.mesh_path.suffix)
+        raw["mesh"] = mesh_rel
         _copy_into(capture.mesh_path, tmp, mesh_rel)
         if environment_file is not None:
             env_rel = "environment" + Path(environment_file).suffix
@@ -187,11 +203,15 @@ def write_rendered_capture(
             env["file"] = env_rel
             raw["environment"] = env
         elif capture.environment is not None:
-            _copy_into(capture.environment.file, tmp, raw["environment"]["file"])
+            env_file = Path(capture.environment.file)
+            env_rel = _inside(raw["environment"]["file"], "environment" + env_file.suffix)
+            raw["environment"]["file"] = env_rel
+            _copy_into(env_file, tmp, env_rel)
         if lights_json is not None:
             raw["lights"] = lights_json
-        for frame, entry, (image, alpha) in zip(capture.frames, raw["frames"], renders):
-            rel = os.path.relpath(frame.file_path, capture.root)
+        for i, (frame, entry, (image, alpha)) in enumerate(zip(capture.frames, raw["frames"], renders)):
+            found = Path(frame.file_path)
+            rel = _inside(os.path.relpath(found, capture.root), os.path.join("frames", f"{i:03d}_{found.name}"))
             entry["file_path"] = rel
             entry.pop("mask_path", None)  # the alpha channel is the mask
             dst = tmp / rel

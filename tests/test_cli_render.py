@@ -121,3 +121,41 @@ def test_render_refuses_to_write_over_its_own_capture_and_takes_inline_lights(tm
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o2"), "--lights",
                  "[{bad"]) == 2
     assert "--lights: invalid JSON" in capsys.readouterr().err
+
+
+def test_render_writes_paths_that_leave_the_capture_inside_its_output(tmp_path, monkeypatch):
+    """The spec lets `file_path` and `mesh` leave the capture's folder or be absolute; written
+    as they are, a render would land outside its output, over the capture's own images. And a
+    NeRF-style transforms.json without `format` renders to a capture that loads again."""
+    import shutil
+
+    from pbrfit.scene import load_capture
+
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    cap = tmp_path / "cap"
+    assert main(["synth", "peer-plane", "--out", str(cap), "--size", "16", "--views", "2", "--texture-size", "4",
+                 "--quiet"]) == 0
+    data = json.loads((cap / "capture.json").read_text())
+    shared, meshes = tmp_path / "shared", tmp_path / "meshes"
+    shared.mkdir(), meshes.mkdir()
+    for frame in data["frames"]:
+        src = cap / frame["file_path"]
+        shutil.move(src, shared / src.name)
+        frame["file_path"] = f"../shared/{src.name}"
+    shutil.move(cap / data["mesh"], meshes / Path(data["mesh"]).name)
+    data["mesh"] = str(meshes / Path(data["mesh"]).name)  # absolute
+    data.pop("format")
+    (cap / "capture.json").unlink()
+    (cap / "transforms.json").write_text(json.dumps(data))
+    before = {p.name: p.read_bytes() for p in shared.iterdir()}
+    out = tmp_path / "out"
+    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--quiet"]) == 0
+    assert {p.name: p.read_bytes() for p in shared.iterdir()} == before  # the inputs are untouched
+    written = json.loads((out / "capture.json").read_text())
+    assert written["format"] == "pbrfit-capture/1" and written["mesh"] == "mesh" + Path(data["mesh"]).suffix
+    names = [f["file_path"] for f in written["frames"]]
+    assert names == [f"frames/{i:03d}_{Path(f['file_path']).name}" for i, f in enumerate(data["frames"])]
+    rendered = load_capture(out)
+    assert len(rendered.frames) == 2 and all(f.mask.any() for f in rendered.frames)
+    assert not (tmp_path / "shared" / "frames").exists() and sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["cache", "cap", "meshes", "out", "shared"])
