@@ -84,9 +84,9 @@ def load_environment(path, world_up: str = "+y", intensity: float = 1.0,
                      rotation_deg: float = 0.0) -> Environment:
     """Read an equirectangular HDR (EXR, HDR, ...) through OpenImageIO.
 
-    One channel is replicated to RGB; channels past the third (alpha) are dropped. Non-finite
-    pixels are set to 0 with a warning and negative values clamped to 0 (radiance is not negative).
-    Raises `CaptureError` naming the file when it cannot be read or is not an image.
+    One channel is replicated to RGB; channels past the third (alpha) are dropped. Negative
+    values are clamped to 0 (radiance is not negative). Raises `CaptureError` naming the file when
+    it cannot be read, is not an image, or holds NaN or inf pixels.
     """
     import OpenImageIO as oiio
 

@@ -18,6 +18,7 @@ Conventions held here:
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import shutil
 import tempfile
@@ -284,7 +285,30 @@ def read_image(path: str | os.PathLike, where: str | None = None) -> tuple[np.nd
     elif pixels.ndim == 4:  # volume images: take the first slice
         pixels = pixels[0]
     info = _info(path, spec, file_format)
+    window = (int(spec.x), int(spec.y), int(spec.width), int(spec.height))
+    display = (int(spec.full_x), int(spec.full_y), int(spec.full_width), int(spec.full_height))
+    if window != display and display[2] > 0 and display[3] > 0:
+        pixels, info = _to_display_window(pixels, info, window, display)
     return pixels, info
+
+
+def _to_display_window(pixels, info: ImageInfo, window, display):
+    """An image whose data window differs from its display window (OpenEXR crops and overscan:
+    the camera's frame is the display window) placed in the display window: pixels outside the
+    data window are 0 and get alpha 0 (an alpha channel is added when the file has none), so they
+    leave the objective like uncovered pixels."""
+    x, y, w, h = window
+    fx, fy, fw, fh = display
+    if info.alpha_channel is None:
+        pixels = np.concatenate([pixels, np.ones(pixels.shape[:2] + (1,), np.float32)], axis=-1)
+        info = dataclasses.replace(info, channels=info.channels + 1, channel_names=info.channel_names + ("A",),
+                                   alpha_channel=info.channels)
+    out = np.zeros((fh, fw, pixels.shape[-1]), np.float32)
+    x0, x1 = max(x, fx), min(x + w, fx + fw)  # the overlap, in pixel coordinates
+    y0, y1 = max(y, fy), min(y + h, fy + fh)
+    if x1 > x0 and y1 > y0:
+        out[y0 - fy : y1 - fy, x0 - fx : x1 - fx] = pixels[y0 - y : y1 - y, x0 - x : x1 - x]
+    return out, dataclasses.replace(info, width=fw, height=fh)
 
 
 def write_image(

@@ -202,6 +202,17 @@ def _object(value: Any, where: str) -> Mapping:
     return value
 
 
+def _optional(d: Mapping, key: str, default):
+    """An optional key's value; null counts as absent (as for ``flash`` and ``environment``)."""
+    value = d.get(key)
+    return default if value is None else value
+
+
+def _nonzero(values: np.ndarray) -> np.ndarray:
+    """A mask's "nonzero = use the pixel" (negative values included; NaN is not a value)."""
+    return (values != 0) & ~np.isnan(values)
+
+
 def _positive(d: Mapping, key: str, where: str) -> Optional[float]:
     if key not in d:
         return None
@@ -303,7 +314,10 @@ def _camera(top: Mapping, frame: Mapping, c2w: np.ndarray, width: int, height: i
                 )
     elif "camera_angle_x" in top:
         fx = _fov_focal(top, "camera_angle_x", width, name)
-        fy = _fov_focal(top, "camera_angle_y", height, name) if "camera_angle_y" in top else fx
+        # a given fl_y (the frame's, then the global one) is the vertical focal length here too
+        fy = _positive(frame, "fl_y", where) or _positive(top, "fl_y", name)
+        if fy is None:
+            fy = _fov_focal(top, "camera_angle_y", height, name) if "camera_angle_y" in top else fx
     else:
         raise CaptureError(f"{where}: no intrinsics: give camera_angle_x, or fl_x (top level or per frame)")
     cx = _number(frame, "cx", where, None) if "cx" in frame else _number(top, "cx", name, 0.5 * width)
@@ -402,7 +416,7 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
         code_max = float(_LDR_MAX[info.format])
         saturated = np.any(rgb >= (code_max - 0.5) / code_max, axis=-1)
 
-    if "mask_path" in frame_raw:
+    if _optional(frame_raw, "mask_path", None) is not None:
         mask_file = resolve_image_path(root, _string(frame_raw, "mask_path", where), f"{where}.mask_path")
         mask_pixels, mask_info = read_image(mask_file, f"{where}.mask_path")
         if mask_pixels.shape[:2] != (height, width):
@@ -410,12 +424,14 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
                 f"{_loc(where, 'mask_path')}: mask {mask_file} is {mask_pixels.shape[1]}x{mask_pixels.shape[0]}, "
                 f"image is {width}x{height}"
             )
-        mask = mask_pixels[..., 0] > 0
+        mask = _nonzero(mask_pixels[..., 0])
         if mask_info.alpha_channel is not None and mask_info.alpha_channel != 0:  # an RGBA mask: alpha too
-            mask &= mask_pixels[..., mask_info.alpha_channel] > 0
+            mask &= _nonzero(mask_pixels[..., mask_info.alpha_channel])
         mask_source = "file"
     elif info.alpha_channel is not None:
-        mask = pixels[..., info.alpha_channel] > 0
+        alpha = pixels[..., info.alpha_channel]
+        # premultiplied colour under an alpha too small to divide by (above) stays darkened: not used
+        mask = alpha >= _MIN_UNPREMULTIPLY_ALPHA if info.associated_alpha else _nonzero(alpha)
         mask_source = "alpha"
     else:
         mask_source = "none"
@@ -427,7 +443,7 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
         rgb = np.where(bad[..., None], 0.0, rgb).astype(np.float32)
     image = _srgb_decode(rgb) if color_space == "srgb" else np.ascontiguousarray(rgb, dtype=np.float32)
 
-    frame_lights_raw = frame_raw.get("lights", [])
+    frame_lights_raw = _optional(frame_raw, "lights", [])
     if not isinstance(frame_lights_raw, list):
         raise CaptureError(f"{_loc(where, 'lights')}: expected a list of lights")
     lights = global_lights + tuple(
@@ -479,7 +495,7 @@ def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
         raise CaptureError(f"{name}: world_up: unknown value {world_up!r} (expected '+y' or '+z')")
 
     # images
-    images = _object(raw.get("images", {}), f"{name}: images")
+    images = _object(_optional(raw, "images", {}), f"{name}: images")
     _check_keys(images, _IMAGES_KEYS, f"{name}: images", "images")
     color_space_override = images.get("color_space")
     if color_space_override is not None and color_space_override not in COLOR_SPACES:
@@ -492,7 +508,7 @@ def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
     base_exposure = _number(images, "exposure", f"{name}: images", 0.0)
 
     # lights, flash, environment
-    lights_raw = raw.get("lights", [])
+    lights_raw = _optional(raw, "lights", [])
     if not isinstance(lights_raw, list):
         raise CaptureError(f"{name}: lights: expected a list of lights")
     global_lights = tuple(light_from_json(d, f"{name}: lights[{i}]") for i, d in enumerate(lights_raw))

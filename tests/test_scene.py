@@ -402,3 +402,68 @@ def test_frames_without_mask_or_alpha_leave_out_the_silhouette(tmp_path):
     assert cap.frames[0].mask_source == "alpha"
     used = np.asarray(capture_views(cap, capture_gbuffers(cap, None))[0].pixel)
     assert used.size == hit.sum()
+
+
+def test_fl_y_with_camera_angle_x(tmp_path):
+    """A given fl_y is the vertical focal length with `camera_angle_x` too (it was dropped)."""
+    data = base_capture_dict()
+    data["fl_y"] = 7.0
+    data["frames"][1].pop("fl_x")
+    data["frames"][1]["fl_y"] = 9.0
+    c0, c1 = (f.camera for f in load_capture(write_capture(tmp_path / "a", data)).frames)
+    f = fov_focal(W, ANGLE_X)
+    assert (c0.fx, c0.fy) == pytest.approx((f, 7.0)) and (c1.fx, c1.fy) == pytest.approx((f, 9.0))
+
+
+def test_null_optional_keys_count_as_absent(tmp_path):
+    data = base_capture_dict()
+    data.update(images=None, lights=None)
+    data["frames"][0].update(mask_path=None, lights=None)
+    cap = load_capture(write_capture(tmp_path / "a", data))
+    assert cap.lights == () and cap.color_space == "linear" and cap.frames[0].mask_source == "none"
+
+
+def test_mask_values_other_than_zero_use_the_pixel(tmp_path):
+    mask = np.full((H, W, 1), -1.0, np.float32)  # nonzero: used
+    mask[:, :2] = 0.0
+    mask[0, 5] = np.nan  # not a value: not used
+    root = _single_frame(tmp_path, "img.exr", np.full((H, W, 3), 0.5, np.float32), "float", mask_path="m.exr")
+    write_image(root / "m.exr", mask, "float")
+    used = load_capture(root).frames[0].mask
+    assert not used[:, :2].any() and not used[0, 5] and used[1:, 2:].all()
+
+
+def test_premultiplied_alpha_too_small_to_divide_by_is_masked_out(tmp_path):
+    rgba = np.full((H, W, 4), 1.0, np.float32)
+    rgba[0, :, 3] = 1e-3  # below 1/256: its colour cannot be recovered
+    rgba[0, :, :3] = 1e-3 * 0.5
+    rgba[1, :, 3] = 0.5  # partly covered: the colour is divided by alpha
+    rgba[1, :, :3] = 0.25
+    frame = load_capture(_single_frame(tmp_path, "img.exr", rgba, "float")).frames[0]
+    assert not frame.mask[0].any() and frame.mask[1:].all()
+    np.testing.assert_allclose(frame.image[1], 0.5)
+
+
+def test_exr_data_window_is_placed_in_the_display_window(tmp_path):
+    """A cropped OpenEXR (data window inside the display window, as compositors write): the camera
+    is the display window's, and pixels outside the data window leave the objective."""
+    import OpenImageIO as oiio
+
+    from pbrfit.io import read_image
+
+    root = _single_frame(tmp_path, "img.exr", np.zeros((H, W, 3), np.float32), "float")
+    crop = np.arange(3 * 4 * 3, dtype=np.float32).reshape(3, 4, 3)
+    spec = oiio.ImageSpec(4, 3, 3, "float")
+    spec.x, spec.y = 2, 1
+    spec.full_x, spec.full_y, spec.full_width, spec.full_height = 0, 0, W, H
+    out = oiio.ImageOutput.create(str(root / "img.exr"))
+    assert out.open(str(root / "img.exr"), spec) and out.write_image(crop)
+    out.close()
+    pixels, info = read_image(root / "img.exr")
+    assert pixels.shape == (H, W, 4) and (info.width, info.height, info.alpha_channel) == (W, H, 3)
+    np.testing.assert_array_equal(pixels[1:4, 2:6, :3], crop)
+    frame = load_capture(root).frames[0]
+    assert (frame.camera.width, frame.camera.height) == (W, H) and frame.camera.cx == W / 2
+    expected = np.zeros((H, W), bool)
+    expected[1:4, 2:6] = True
+    np.testing.assert_array_equal(frame.mask, expected)
