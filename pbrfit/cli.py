@@ -195,8 +195,12 @@ def _add_fit(sub) -> None:
         p.add_argument(f"--{flag}-from", metavar="DIR", help=f"hold {name} fixed at the map in a material folder")
     p.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER, help=f"default {DEFAULT_SOLVER}")
     p.add_argument("--max-steps", type=int, help="solver steps at the final resolution")
-    p.add_argument("--rtol", type=float, default=1e-6)
-    p.add_argument("--atol", type=float, default=1e-5)
+    p.add_argument("--rtol", type=float, default=1e-6,
+                   help="relative stopping tolerance: the structured solver stops at an accepted step that lowers the "
+                        "loss by less than this fraction of it; the optimistix solvers' rtol (default 1e-6)")
+    p.add_argument("--atol", type=float, default=1e-5,
+                   help="absolute stopping tolerance: the structured solver also stops at an accepted step that moves "
+                        "no parameter by more than this; the optimistix solvers' atol (default 1e-5)")
     p.add_argument("--cg-rtol", type=float, default=None, metavar="TOL",
                    help="structured solver: relative tolerance of each step's conjugate gradients, in (0, 1) "
                         "(default 1e-3; 1e-2 solves about a quarter faster, see the README)")
