@@ -19,8 +19,8 @@ no search)".
 
 Writes experiments/results/solvers.json and solvers.png. ``--merge`` keeps the rows already in
 solvers.json and replaces those of the (scene, config) pairs just run; the plot is redrawn from
-all rows. ``--plot-only`` redraws the plot from solvers.json. The whole run takes about 35 minutes
-on a 2-core CPU.
+all rows. ``--plot-only`` redraws the plot from solvers.json; ``--tables`` prints the markdown
+tables of experiments/solvers.md from it. The whole run takes about an hour on a 2-core CPU.
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import platform
 import tempfile
 import time
@@ -151,7 +152,7 @@ def _oracle(obs, model, ibl, truth, resolution, max_steps=40):
     from pbrfit.material import Material
     from pbrfit.observations import coverage_counts, neighbour_pairs, texel_layout
     from pbrfit.parameters import channel_mask
-    from pbrfit.solvers import Problem, structured_lm
+    from pbrfit.solvers import Problem, objective, structured_lm
 
     layout = texel_layout(obs, resolution, "repeat")
     seen = coverage_counts(layout).reshape(-1) > 0
@@ -175,7 +176,8 @@ def _oracle(obs, model, ibl, truth, resolution, max_steps=40):
     material = Material(base_color=jnp.asarray(x[..., 0:3]), metallic=jnp.asarray(x[..., 3:4]),
                         roughness=jnp.asarray(x[..., 4:5]))
     coverage = coverage_counts(layout, obs.samples)
-    return material, coverage, dict(compile=t1 - t0, solve=t2 - t1), int(out[1].steps)
+    loss = float(jax.jit(objective)(out[0], problem))  # the fit's final_loss: 1/2 Σ residuals²
+    return material, coverage, dict(compile=t1 - t0, solve=t2 - t1), int(out[1].steps), loss
 
 
 def run(scenes, configs):
@@ -220,12 +222,12 @@ def run(scenes, configs):
                 t1 = time.perf_counter()
                 if name in (ORACLE, ORACLE_FOOTPRINT):
                     n = 2 if name == ORACLE_FOOTPRINT else 1
-                    material, coverage, times, steps = _oracle(observations(n), model, ibl, truth, resolution)
+                    material, coverage, times, steps, loss = _oracle(observations(n), model, ibl, truth, resolution)
                     wall = time.perf_counter() - t1
                     row = dict(base, config=name, kwargs=dict(solver="structured", start="truth", search=False,
                                                               pixel_samples=n),
                                **_metrics(truth, material, coverage), wall=wall, run=run_time(times),
-                               compile=times["compile"], times=times, steps=steps)
+                               compile=times["compile"], times=times, steps=steps, final_loss=loss)
                 else:
                     kwargs = dict(CONFIGS[name])
                     try:
@@ -333,7 +335,8 @@ def plot(rows, path: Path):
     import matplotlib.pyplot as plt
 
     ok = [r for r in rows if "rmse" in r]
-    scenes = [s for s in SCENES if any(r["scene"] == s for r in ok)]
+    # a panel per scene with a row to draw (the oracle is drawn as a line, not a point)
+    scenes = [s for s in SCENES if any(r["scene"] == s and r["config"] != ORACLE for r in ok)]
     configs = [c for c in SHORT if c != ORACLE and any(r["config"] == c for r in ok)]
     cmap = plt.get_cmap("tab20")
     markers = "o*sDv^<>phXP"
@@ -388,6 +391,75 @@ def plot(rows, path: Path):
     plt.close(fig)
 
 
+#: Packages whose versions can move the fits: the float programs (jax), the data (numpy, trimesh,
+#: OpenImageIO) and the optimistix rows.
+VERSIONED = ("jax", "jaxlib", "numpy", "scipy", "trimesh", "OpenImageIO", "equinox", "lineax", "optimistix", "optax")
+
+
+def machine() -> dict:
+    """Where a run was taken: the platform, the CPU model and the versions of `VERSIONED`. On
+    scenes whose objective is flat or multimodal in places (the spheres) the last digits of a
+    float program, which the CPU's instruction set and these versions decide, can move which
+    minimum a texel ends in, so RMSE there is comparable only between runs of one environment."""
+    from importlib import metadata
+
+    import jax
+
+    cpu = ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), "")
+    except OSError:
+        pass
+    versions = {}
+    for name in VERSIONED:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return dict(platform=platform.platform(), processor=platform.processor() or cpu, cpu_count=os.cpu_count(),
+                backend=jax.default_backend(), versions=versions,
+                note="shared 2-core CPU; all rows of a run in one process")
+
+
+def _fmt(v: float) -> str:
+    """3 significant digits; below 1e-4 one (``6e-7``); 0 as ``0``."""
+    if v == 0:
+        return "0"
+    if abs(v) < 1e-4:
+        m, e = f"{v:.0e}".split("e")
+        return f"{m}e{int(e)}"
+    return f"{v:.3g}"
+
+
+def tables(rows) -> str:
+    """The per-scene markdown tables of experiments/solvers.md, from solvers.json's rows."""
+    out = []
+    maps = ("base_color", "metallic", "roughness")
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        mine = [r for r in rows if r["scene"] == scene and "error" not in r]
+        head = mine[0]
+        res = "×".join(str(v) for v in head["resolution"])
+        out.append(f"### {scene} ({res} maps, {head['pixels']:,} pixels; "
+                   f"{100 * head['well_fraction']:.1f}% of observed texels well observed)\n")
+        out.append("| configuration | base | metallic | roughness | well-observed: base / metallic / roughness "
+                   "| within 2σ (%) | final loss | steps | run s | compile s | wall s |")
+        out.append("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+        for r in mine:
+            name = f"**{r['config']}**" if r["config"] == DEFAULT else r["config"]
+            cover = r.get("within_2sigma")
+            cover = " / ".join(f"{100 * cover[m]:.0f}" for m in maps) if cover else "–"
+            loss = f"{r['final_loss']:.4g}" if "final_loss" in r else "–"
+            out.append(f"| {name} | " + " | ".join(_fmt(r["rmse"][m]) for m in maps)
+                       + " | " + " / ".join(_fmt(r["rmse_well"][m]) for m in maps)
+                       + f" | {cover} | {loss} | {r['steps']} | {r['run']:.1f} | {r['compile']:.1f} | {r['wall']:.1f} |")
+        for r in rows:
+            if r["scene"] == scene and "error" in r:
+                out.append(f"| {r['config']} | failed: {r['error']} | | | | | | | | | |")
+        out.append("")
+    return "\n".join(out)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
@@ -396,12 +468,16 @@ def main():
     parser.add_argument("--out", default=str(Path(__file__).parent / "results"))
     parser.add_argument("--merge", action="store_true", help="keep the other rows already in solvers.json")
     parser.add_argument("--plot-only", action="store_true", help="redraw solvers.png from solvers.json")
+    parser.add_argument("--tables", action="store_true", help="print solvers.md's tables from solvers.json")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "solvers.json"
     if args.plot_only:
         plot(json.loads(path.read_text())["rows"], out / "solvers.png")
+        return
+    if args.tables:
+        print(tables(json.loads(path.read_text())["rows"]))
         return
     rows = run(args.scenes, args.configs)
     if args.merge and path.exists():
@@ -412,11 +488,7 @@ def main():
         order = {s: i for i, s in enumerate(SCENES)}
         conf = {c: i for i, c in enumerate(SHORT)}
         rows = sorted(kept + rows, key=lambda r: (order.get(r["scene"], len(order)), conf.get(r["config"], len(conf))))
-    import jax
-
-    doc = dict(machine=dict(platform=platform.platform(), processor=platform.processor(), jax=jax.__version__,
-                            backend=jax.default_backend(), note="shared 2-core CPU; all rows of a run in one process"),
-               rows=rows)
+    doc = dict(machine=machine(), rows=rows)
     path.write_text(json.dumps(doc, indent=1))
     plot(rows, out / "solvers.png")
 
