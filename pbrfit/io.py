@@ -18,7 +18,6 @@ Conventions held here:
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import os
 import shutil
 import tempfile
@@ -190,6 +189,9 @@ class ImageInfo:
         associated_alpha: the color channels are premultiplied by alpha as stored: always for
             OpenEXR, for TIFF unless the file says unassociated; PNG, BMP, TGA... are straight.
         file_format: OpenImageIO's format name (``"png"``, ``"openexr"``, ``"hdr"``, ``"tiff"``, ``"jpeg"``).
+        data_window: for an OpenEXR whose data window differs from its display window (a crop or
+            overscan), the display-window pixels that hold data, ``(x0, y0, x1, y1)`` (end
+            exclusive); `read_image` returns the display window, 0 elsewhere. None otherwise.
     """
 
     path: Path
@@ -203,6 +205,7 @@ class ImageInfo:
     alpha_channel: Optional[int]
     file_format: str
     associated_alpha: bool = False
+    data_window: Optional[tuple[int, int, int, int]] = None
 
 
 def _first_line(message: str) -> str:
@@ -217,12 +220,31 @@ def _unassociated_config():
     return config
 
 
+def _windows(spec, file_format: str):
+    """(data window, display window) as (x, y, width, height), or None when they agree or the
+    file is not an OpenEXR (only OpenEXR's display window is the camera's frame: PNG's oFFs
+    offset or TIFF's position say where an image sits on a page, not a crop of it)."""
+    if str(file_format) != "openexr":
+        return None
+    data = (int(spec.x), int(spec.y), int(spec.width), int(spec.height))
+    display = (int(spec.full_x), int(spec.full_y), int(spec.full_width), int(spec.full_height))
+    if data == display or display[2] <= 0 or display[3] <= 0:
+        return None
+    return data, display
+
+
 def _info(path: Path, spec, file_format: str) -> ImageInfo:
     fmt = str(spec.format)
+    windows = _windows(spec, file_format)
+    data_window = None
+    if windows is not None:
+        (x, y, w, h), (fx, fy, fw, fh) = windows
+        x0, y0 = min(max(x - fx, 0), fw), min(max(y - fy, 0), fh)
+        data_window = (x0, y0, max(min(x + w - fx, fw), x0), max(min(y + h - fy, fh), y0))
     return ImageInfo(
         path=path,
-        width=int(spec.width),
-        height=int(spec.height),
+        width=int(spec.full_width) if windows else int(spec.width),
+        height=int(spec.full_height) if windows else int(spec.height),
         channels=int(spec.nchannels),
         channel_names=tuple(spec.channelnames),
         format=fmt,
@@ -234,6 +256,7 @@ def _info(path: Path, spec, file_format: str) -> ImageInfo:
             str(file_format) == "openexr"
             or (str(file_format) == "tiff" and spec.get_int_attribute("oiio:UnassociatedAlpha", 0) != 1)
         ),
+        data_window=data_window,
     )
 
 
@@ -285,30 +308,25 @@ def read_image(path: str | os.PathLike, where: str | None = None) -> tuple[np.nd
     elif pixels.ndim == 4:  # volume images: take the first slice
         pixels = pixels[0]
     info = _info(path, spec, file_format)
-    window = (int(spec.x), int(spec.y), int(spec.width), int(spec.height))
-    display = (int(spec.full_x), int(spec.full_y), int(spec.full_width), int(spec.full_height))
-    if window != display and display[2] > 0 and display[3] > 0:
-        pixels, info = _to_display_window(pixels, info, window, display)
+    windows = _windows(spec, file_format)
+    if windows is not None:  # an OpenEXR crop or overscan: the display window is the image
+        (x, y, _, _), (fx, fy, fw, fh) = windows
+        x0, y0, x1, y1 = info.data_window
+        out = np.zeros((fh, fw, pixels.shape[-1]), np.float32)
+        out[y0:y1, x0:x1] = pixels[y0 + fy - y : y1 + fy - y, x0 + fx - x : x1 + fx - x]
+        pixels = out
     return pixels, info
 
 
-def _to_display_window(pixels, info: ImageInfo, window, display):
-    """An image whose data window differs from its display window (OpenEXR crops and overscan:
-    the camera's frame is the display window) placed in the display window: pixels outside the
-    data window are 0 and get alpha 0 (an alpha channel is added when the file has none), so they
-    leave the objective like uncovered pixels."""
-    x, y, w, h = window
-    fx, fy, fw, fh = display
-    if info.alpha_channel is None:
-        pixels = np.concatenate([pixels, np.ones(pixels.shape[:2] + (1,), np.float32)], axis=-1)
-        info = dataclasses.replace(info, channels=info.channels + 1, channel_names=info.channel_names + ("A",),
-                                   alpha_channel=info.channels)
-    out = np.zeros((fh, fw, pixels.shape[-1]), np.float32)
-    x0, x1 = max(x, fx), min(x + w, fx + fw)  # the overlap, in pixel coordinates
-    y0, y1 = max(y, fy), min(y + h, fy + fh)
-    if x1 > x0 and y1 > y0:
-        out[y0 - fy : y1 - fy, x0 - fx : x1 - fx] = pixels[y0 - y : y1 - y, x0 - x : x1 - x]
-    return out, dataclasses.replace(info, width=fw, height=fh)
+def data_window_mask(info: ImageInfo) -> np.ndarray:
+    """(H, W) bool: the pixels of `read_image`'s result that the file holds (all but where an
+    OpenEXR's data window leaves its display window empty)."""
+    mask = np.ones((info.height, info.width), bool)
+    if info.data_window is not None:
+        x0, y0, x1, y1 = info.data_window
+        mask[:] = False
+        mask[y0:y1, x0:x1] = True
+    return mask
 
 
 def write_image(
@@ -460,7 +478,10 @@ def read_map(directory: str | os.PathLike, name: str) -> np.ndarray:
         raise CaptureError(f"material folder not found: {directory}")
     exr, png = directory / f"{name}.exr", directory / ("base_color.png" if name == "base_color" else "metallic_roughness.png")
     if exr.is_file():
-        pixels = read_image(exr)[0]
+        pixels, info = read_image(exr)
+        if info.data_window is not None:
+            raise CaptureError(f"{exr}: the data window does not fill the display window (a cropped OpenEXR); "
+                               "write the whole texture")
         return _channels(pixels, 3, exr) if name == "base_color" else pixels[..., :1]
     if png.is_file():
         pixels = _channels(read_image(png)[0], 3, png)

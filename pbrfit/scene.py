@@ -56,7 +56,7 @@ import numpy as np
 
 from .errors import CaptureError
 from .gbuffer import Camera
-from .io import _LDR_MAX, ImageInfo, _srgb_decode, read_image, read_image_info
+from .io import _LDR_MAX, ImageInfo, _srgb_decode, data_window_mask, read_image, read_image_info
 from .lights import Light, _loc, _number, _triple, color_and_intensity, flash_light, light_from_json
 from .mesh import load_mesh
 
@@ -202,10 +202,15 @@ def _object(value: Any, where: str) -> Mapping:
     return value
 
 
-def _optional(d: Mapping, key: str, default):
-    """An optional key's value; null counts as absent (as for ``flash`` and ``environment``)."""
-    value = d.get(key)
-    return default if value is None else value
+def _without_nulls(value):
+    """`value` with every object key whose value is null removed, at any depth (``extras`` left as
+    written): null means absent, so an optional key falls back to its default and a required one
+    is reported missing."""
+    if isinstance(value, dict):
+        return {k: (v if k == "extras" else _without_nulls(v)) for k, v in value.items() if v is not None}
+    if isinstance(value, list):
+        return [_without_nulls(v) for v in value]
+    return value
 
 
 def _nonzero(values: np.ndarray) -> np.ndarray:
@@ -416,7 +421,7 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
         code_max = float(_LDR_MAX[info.format])
         saturated = np.any(rgb >= (code_max - 0.5) / code_max, axis=-1)
 
-    if _optional(frame_raw, "mask_path", None) is not None:
+    if "mask_path" in frame_raw:
         mask_file = resolve_image_path(root, _string(frame_raw, "mask_path", where), f"{where}.mask_path")
         mask_pixels, mask_info = read_image(mask_file, f"{where}.mask_path")
         if mask_pixels.shape[:2] != (height, width):
@@ -436,6 +441,7 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
     else:
         mask_source = "none"
         mask = np.ones((height, width), bool)
+    mask &= data_window_mask(info)  # a cropped OpenEXR: the display window's empty part is not observed
 
     bad = ~np.all(np.isfinite(rgb), axis=-1)
     nonfinite = bad & mask  # an error only if the mesh covers one (known after ray casting)
@@ -443,7 +449,7 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
         rgb = np.where(bad[..., None], 0.0, rgb).astype(np.float32)
     image = _srgb_decode(rgb) if color_space == "srgb" else np.ascontiguousarray(rgb, dtype=np.float32)
 
-    frame_lights_raw = _optional(frame_raw, "lights", [])
+    frame_lights_raw = frame_raw.get("lights", [])
     if not isinstance(frame_lights_raw, list):
         raise CaptureError(f"{_loc(where, 'lights')}: expected a list of lights")
     lights = global_lights + tuple(
@@ -472,7 +478,7 @@ def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
     json_path = _json_path(Path(path))
     root = json_path.parent
     name = str(json_path)
-    raw = _read_json(json_path)
+    raw = _without_nulls(_read_json(json_path))
 
     # format and keys
     if "format" in raw:
@@ -495,7 +501,7 @@ def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
         raise CaptureError(f"{name}: world_up: unknown value {world_up!r} (expected '+y' or '+z')")
 
     # images
-    images = _object(_optional(raw, "images", {}), f"{name}: images")
+    images = _object(raw.get("images", {}), f"{name}: images")
     _check_keys(images, _IMAGES_KEYS, f"{name}: images", "images")
     color_space_override = images.get("color_space")
     if color_space_override is not None and color_space_override not in COLOR_SPACES:
@@ -508,7 +514,7 @@ def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
     base_exposure = _number(images, "exposure", f"{name}: images", 0.0)
 
     # lights, flash, environment
-    lights_raw = _optional(raw, "lights", [])
+    lights_raw = raw.get("lights", [])
     if not isinstance(lights_raw, list):
         raise CaptureError(f"{name}: lights: expected a list of lights")
     global_lights = tuple(light_from_json(d, f"{name}: lights[{i}]") for i, d in enumerate(lights_raw))

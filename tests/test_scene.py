@@ -415,12 +415,21 @@ def test_fl_y_with_camera_angle_x(tmp_path):
     assert (c0.fx, c0.fy) == pytest.approx((f, 7.0)) and (c1.fx, c1.fy) == pytest.approx((f, 9.0))
 
 
-def test_null_optional_keys_count_as_absent(tmp_path):
+def test_null_keys_count_as_absent(tmp_path):
     data = base_capture_dict()
-    data.update(images=None, lights=None)
-    data["frames"][0].update(mask_path=None, lights=None)
+    data.update(images=None, lights=None, world_up=None)
+    data["frames"][0].update(mask_path=None, lights=None, exposure=None)
+    data["frames"][1].update(cx=None)
+    data["environment"]["rotation_deg"] = None
+    data["extras"] = {"note": None}  # left as written
     cap = load_capture(write_capture(tmp_path / "a", data))
-    assert cap.lights == () and cap.color_space == "linear" and cap.frames[0].mask_source == "none"
+    assert cap.lights == () and cap.color_space == "linear" and cap.world_up == "+y"
+    assert cap.frames[0].mask_source == "none" and cap.frames[0].exposure == 0.0 and cap.frames[1].camera.cx == W / 2
+    assert cap.environment.rotation_deg == 0.0
+    data = base_capture_dict()
+    data["mesh"] = None  # a required key: missing
+    with pytest.raises(CaptureError, match="missing key 'mesh'"):
+        load_capture(write_capture(tmp_path / "b", data))
 
 
 def test_mask_values_other_than_zero_use_the_pixel(tmp_path):
@@ -444,26 +453,79 @@ def test_premultiplied_alpha_too_small_to_divide_by_is_masked_out(tmp_path):
     np.testing.assert_allclose(frame.image[1], 0.5)
 
 
-def test_exr_data_window_is_placed_in_the_display_window(tmp_path):
-    """A cropped OpenEXR (data window inside the display window, as compositors write): the camera
-    is the display window's, and pixels outside the data window leave the objective."""
+def _write_cropped_exr(path, crop, origin, display):
     import OpenImageIO as oiio
 
-    from pbrfit.io import read_image
+    spec = oiio.ImageSpec(crop.shape[1], crop.shape[0], crop.shape[2], "float")
+    spec.x, spec.y = origin
+    spec.full_x, spec.full_y, spec.full_width, spec.full_height = display
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(crop)
+    out.close()
+
+
+def test_exr_data_window_is_placed_in_the_display_window(tmp_path):
+    """A cropped OpenEXR (data window inside the display window, as compositors write): the camera
+    is the display window's, and pixels outside the data window leave the objective, whatever
+    the mask's source; the silhouette rule for images without a mask still applies."""
+    from pbrfit.io import read_image, read_image_info
 
     root = _single_frame(tmp_path, "img.exr", np.zeros((H, W, 3), np.float32), "float")
-    crop = np.arange(3 * 4 * 3, dtype=np.float32).reshape(3, 4, 3)
-    spec = oiio.ImageSpec(4, 3, 3, "float")
-    spec.x, spec.y = 2, 1
-    spec.full_x, spec.full_y, spec.full_width, spec.full_height = 0, 0, W, H
-    out = oiio.ImageOutput.create(str(root / "img.exr"))
-    assert out.open(str(root / "img.exr"), spec) and out.write_image(crop)
-    out.close()
+    crop = np.arange(3 * 4 * 3, dtype=np.float32).reshape(3, 4, 3) + 1.0
+    _write_cropped_exr(root / "img.exr", crop, (2, 1), (0, 0, W, H))
     pixels, info = read_image(root / "img.exr")
-    assert pixels.shape == (H, W, 4) and (info.width, info.height, info.alpha_channel) == (W, H, 3)
-    np.testing.assert_array_equal(pixels[1:4, 2:6, :3], crop)
+    assert pixels.shape == (H, W, 3) and (info.width, info.height, info.data_window) == (W, H, (2, 1, 6, 4))
+    assert read_image_info(root / "img.exr") == info
+    np.testing.assert_array_equal(pixels[1:4, 2:6], crop)
+    assert pixels.sum() == crop.sum()
     frame = load_capture(root).frames[0]
     assert (frame.camera.width, frame.camera.height) == (W, H) and frame.camera.cx == W / 2
     expected = np.zeros((H, W), bool)
     expected[1:4, 2:6] = True
     np.testing.assert_array_equal(frame.mask, expected)
+    assert frame.mask_source == "none"
+    # with a mask file the data window still bounds what is observed
+    data = json.loads((root / "capture.json").read_text())
+    data["frames"][0]["mask_path"] = "m.png"
+    (root / "capture.json").write_text(json.dumps(data))
+    write_image(root / "m.png", np.ones((H, W, 1), np.float32), "uint8")
+    np.testing.assert_array_equal(load_capture(root).frames[0].mask, expected)
+    # overscan: a data window larger than the display window is cut to it
+    big = np.random.default_rng(0).uniform(size=(H + 4, W + 2, 3)).astype(np.float32)
+    _write_cropped_exr(root / "img.exr", big, (-1, -2), (0, 0, W, H))
+    pixels, info = read_image(root / "img.exr")
+    np.testing.assert_array_equal(pixels, big[2 : 2 + H, 1 : 1 + W])
+    assert info.data_window == (0, 0, W, H)
+
+
+def test_png_offsets_do_not_move_the_image(tmp_path):
+    """PNG's oFFs (ImageMagick keeps a crop's offset there) places an image on a page; it is not
+    a crop of the camera's frame, so the pixels are read as stored."""
+    import struct
+    import zlib
+
+    import OpenImageIO as oiio
+
+    from pbrfit.io import read_image
+
+    pixels = np.random.default_rng(1).integers(0, 255, size=(H, W, 3)) / 255.0
+    write_image(tmp_path / "plain.png", pixels, "uint8")
+    data = (tmp_path / "plain.png").read_bytes()
+    body = struct.pack(">iiB", 3, 2, 0)  # x, y offset in pixels
+    chunk = struct.pack(">I", len(body)) + b"oFFs" + body + struct.pack(">I", zlib.crc32(b"oFFs" + body))
+    (tmp_path / "o.png").write_bytes(data[:33] + chunk + data[33:])  # after the signature and IHDR
+    inp = oiio.ImageInput.open(str(tmp_path / "o.png"))
+    offset = (inp.spec().x, inp.spec().y)
+    inp.close()
+    assert offset == (3, 2)  # OpenImageIO reports the offset as the data window's origin
+    read, info = read_image(tmp_path / "o.png")
+    np.testing.assert_allclose(read, pixels, atol=1e-6)
+    assert info.data_window is None and (info.width, info.height) == (W, H)
+
+
+def test_cropped_material_exr_is_refused(tmp_path):
+    from pbrfit.io import read_map
+
+    _write_cropped_exr(tmp_path / "roughness.exr", np.ones((2, 2, 1), np.float32), (1, 1), (0, 0, 4, 4))
+    with pytest.raises(CaptureError, match="cropped OpenEXR"):
+        read_map(tmp_path, "roughness")
