@@ -50,6 +50,7 @@ _LAZY = {
 }
 
 __all__ = ["brdf", "color", "CaptureError", "Material", "Model", "fit", *_LAZY]
+_SUBMODULES = frozenset(m.name for m in pkgutil.iter_modules(__path__))
 
 
 def __getattr__(name):
@@ -57,6 +58,6 @@ def __getattr__(name):
         module, attr = _LAZY[name]
         return getattr(importlib.import_module(f".{module}", __name__), attr)
     # submodules, on first access; `pbrfit.fit` is the fit module, and calling it calls `pbrfit.fit.fit`
-    if name in {m.name for m in pkgutil.iter_modules(__path__)}:
+    if name in _SUBMODULES:
         return importlib.import_module(f".{name}", __name__)
     raise AttributeError(f"module 'pbrfit' has no attribute {name!r}")

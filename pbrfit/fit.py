@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import importlib
+import inspect
 import math
 import sys
 import time
@@ -909,5 +911,9 @@ class _CallableModule(types.ModuleType):
     def __call__(self, *args, **kwargs) -> FitResult:
         return self.fit(*args, **kwargs)
 
+    def __reduce__(self):  # pickled by name, like a function (process pools)
+        return importlib.import_module, (self.__name__,)
 
+
+__signature__ = inspect.signature(fit)  # what inspect.signature(pbrfit.fit) shows
 sys.modules[__name__].__class__ = _CallableModule

@@ -181,7 +181,8 @@ def write_rendered_capture(
     named by the frame's ``mask_path``. The mesh and environment files are copied beside it.
     A path that leaves the capture's folder (``..``) or is absolute is written inside the output
     instead (frame i at ``frames/<i>_<name>``, the mesh at ``mesh<suffix>``, the environment at
-    ``environment<suffix>``) and capture.json names it there. A NeRF-style ``transforms.json``
+    ``environment<suffix>``) and capture.json names it there; so is a frame whose path another
+    frame (or the mesh or environment) already took. A NeRF-style ``transforms.json``
     without ``format`` gets it, so the output loads as a capture. The folder is built under a
     temporary name and renamed into place, so a failure leaves nothing.
     """
@@ -209,9 +210,16 @@ def write_rendered_capture(
             _copy_into(env_file, tmp, env_rel)
         if lights_json is not None:
             raw["lights"] = lights_json
+        taken = {os.path.normcase(mesh_rel)}
+        if raw.get("environment"):
+            taken.add(os.path.normcase(raw["environment"]["file"]))
         for i, (frame, entry, (image, alpha)) in enumerate(zip(capture.frames, raw["frames"], renders)):
             found = Path(frame.file_path)
-            rel = _inside(os.path.relpath(found, capture.root), os.path.join("frames", f"{i:03d}_{found.name}"))
+            own = os.path.join("frames", f"{i:03d}_{found.name}")
+            rel = _inside(os.path.relpath(found, capture.root), own)
+            if os.path.normcase(rel) in taken:  # two frames of one file, or a frame named like the mesh
+                rel = own
+            taken.add(os.path.normcase(rel))
             entry["file_path"] = rel
             entry.pop("mask_path", None)  # the alpha channel is the mask
             dst = tmp / rel

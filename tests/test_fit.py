@@ -501,6 +501,9 @@ pbrfit.fit.fit = lambda *a, **k: calls.append((a, k)) or "result"
 assert pbrfit.fit("cap", max_steps=3) == "result" and pbrfit.fit("cap") == "result"
 assert calls == [(("cap",), {"max_steps": 3}), (("cap",), {})], calls
 assert pbrfit.solvers.CG_RTOL > 0 and pbrfit.sharding.pixel_mesh
+import inspect, pickle
+assert list(inspect.signature(pbrfit.fit).parameters)[0] == "capture"
+assert pickle.loads(pickle.dumps(pbrfit.fit)) is pbrfit.fit
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
