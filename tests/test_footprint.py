@@ -179,7 +179,12 @@ def test_pixel_samples_with_per_pixel_ibl(tmp_path, monkeypatch):
         got = np.asarray(tables.table)
         assert got.shape == want.shape and got.shape[0] == obs.num_rows
         if obs.samples == 1:  # the first rows of the pass: the same quasi-random sequences
-            np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+            # equal but for float32 rounding, which differs with the batch's shape and the CPU: a
+            # sample direction on an environment texel's edge may round to its neighbour (seen:
+            # 6 of 22,032 values 7e-4 apart on one host); other sequences differ by the noise
+            close = np.isclose(got, want, rtol=1e-4, atol=1e-5)
+            assert close.mean() > 0.999, close.mean()
+            assert np.max(np.abs(got - want) / (np.abs(want) + 1e-2)) < 2e-3
         else:  # other rows of the pass shift their sequences differently: equal up to the noise
             assert np.median(np.abs(got - want) / (np.abs(want) + 1e-2)) < 0.05
 
