@@ -144,6 +144,12 @@ def _cmd_synth(args) -> int:
         value = getattr(args, name)
         if value is not None and value < low:
             raise CaptureError(f"--{name.replace('_', '-')}: must be at least {low}, got {value}")
+    for name in ("size", "texture_size"):
+        value = getattr(args, name)
+        if value is not None and value > MAX_SIZE:
+            raise CaptureError(f"--{name.replace('_', '-')}: must be at most {MAX_SIZE}, got {value}")
+    if args.seed < 0:
+        raise CaptureError(f"--seed: must be at least 0, got {args.seed}")
     if args.noise is not None and not args.noise >= 0:
         raise CaptureError(f"--noise: must be a number >= 0, got {args.noise}")
     out = Path(args.out)
@@ -272,8 +278,8 @@ def _fit_options(args) -> dict:
             free.remove(name)  # by default a map given on the command line is held, not fitted
     if not free:
         raise CaptureError("--fit: nothing left to fit (every map is held fixed)")
-    if args.resolution is not None and args.resolution < 1:
-        raise CaptureError(f"--resolution: must be at least 1, got {args.resolution}")
+    if args.resolution is not None and not 1 <= args.resolution <= MAX_SIZE:
+        raise CaptureError(f"--resolution: must be between 1 and {MAX_SIZE}, got {args.resolution}")
     if args.max_steps is not None and args.max_steps < 1:
         raise CaptureError(f"--max-steps: must be at least 1, got {args.max_steps}")
     if not (math.isfinite(args.smooth) and args.smooth >= 0):
@@ -504,6 +510,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: The largest image side (`synth --size`) and map side (`--resolution`, `--texture-size`) taken.
+MAX_SIZE = 8192
+_LESS = "use a smaller --resolution (or fewer or smaller images)"
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Entry point of the `pbrfit` console script; returns the exit status."""
     parser = build_parser()
@@ -519,6 +530,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return _COMMANDS[args.command](args)
     except CaptureError as err:
         print(f"pbrfit: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except MemoryError as err:  # numpy's allocations (its message names the size)
+        from .io import _first_line
+
+        print(f"pbrfit: error: out of memory: {_first_line(str(err))}; {_LESS}", file=sys.stderr)
+        return EXIT_USAGE
+    except Exception as err:
+        if "RESOURCE_EXHAUSTED" not in str(err):  # XLA's allocations; anything else is a bug: traceback
+            raise
+        from .io import _first_line
+
+        print(f"pbrfit: error: out of memory: {_first_line(str(err))}; {_LESS}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("pbrfit: interrupted", file=sys.stderr)

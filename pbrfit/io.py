@@ -470,7 +470,8 @@ def read_map(directory: str | os.PathLike, name: str) -> np.ndarray:
     """One map of a material folder: ``base_color`` (H, W, 3, linear), ``metallic`` or
     ``roughness`` (H, W, 1), from its EXR when present, else from the 8-bit PNG that holds it
     (``base_color.png`` sRGB-decoded; metallic from B and roughness from G of
-    ``metallic_roughness.png``). Raises `CaptureError` naming the folder and the files tried."""
+    ``metallic_roughness.png``). Raises `CaptureError` naming the folder and the files tried,
+    or the file when it holds NaN, inf or values outside [0, 1] (or is a cropped OpenEXR)."""
     if name not in ("base_color", "metallic", "roughness"):
         raise ValueError(f"unknown map {name!r}")
     directory = Path(directory)
@@ -482,13 +483,22 @@ def read_map(directory: str | os.PathLike, name: str) -> np.ndarray:
         if info.data_window is not None:
             raise CaptureError(f"{exr}: the data window does not fill the display window (a cropped OpenEXR); "
                                "write the whole texture")
-        return _channels(pixels, 3, exr) if name == "base_color" else pixels[..., :1]
-    if png.is_file():
+        values, source = (_channels(pixels, 3, exr) if name == "base_color" else pixels[..., :1]), exr
+    elif png.is_file():
         pixels = _channels(read_image(png)[0], 3, png)
         if name == "base_color":
-            return _srgb_decode(pixels)
-        return pixels[..., 2:3] if name == "metallic" else pixels[..., 1:2]
-    raise CaptureError(f"{directory}: material folder has no {exr.name} or {png.name}")
+            values = _srgb_decode(pixels)
+        else:
+            values = pixels[..., 2:3] if name == "metallic" else pixels[..., 1:2]
+        source = png
+    else:
+        raise CaptureError(f"{directory}: material folder has no {exr.name} or {png.name}")
+    bad = ~np.isfinite(values)
+    if bad.any():
+        raise CaptureError(f"{source}: {int(bad.any(-1).sum())} texels of {name} hold NaN or inf values")
+    if values.min() < 0.0 or values.max() > 1.0:
+        raise CaptureError(f"{source}: {name} must lie in [0, 1], found values from {values.min():g} to {values.max():g}")
+    return values
 
 
 def read_material(directory: str | os.PathLike):

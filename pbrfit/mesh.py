@@ -105,13 +105,18 @@ def _flatten(scene) -> list:
     return parts
 
 
+#: The triangle-mesh formats read (through trimesh).
+MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
+
+
 def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     """Load a triangle mesh as one `trimesh.Trimesh` with uv in glTF orientation.
 
     Scenes are flattened (node transforms applied, meshes concatenated in the order trimesh
     lists the scene's geometry nodes, fixed for a given file). Raises
-    `CaptureError` when the file is missing or unreadable, has no triangles, or (with
-    ``require_uv``) lacks texture coordinates on any of its meshes.
+    `CaptureError` when the file is missing, unreadable or not one of `MESH_SUFFIXES`, has no
+    triangles or non-finite positions or texture coordinates, or (with ``require_uv``) lacks
+    texture coordinates on any of its meshes.
     """
     import trimesh
     from trimesh.visual.texture import TextureVisuals
@@ -119,6 +124,9 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     path = Path(path)
     if not path.is_file():
         raise CaptureError(f"{where}: mesh file not found: {path}")
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise CaptureError(f"{where}: {path}: unsupported mesh format {path.suffix or '(no suffix)'!r}; "
+                           f"pbrfit reads {', '.join(MESH_SUFFIXES)}")
     try:
         if path.suffix.lower() in (".glb", ".gltf"):
             scene = _load_gltf_keeping_uv(path)
@@ -154,6 +162,10 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
         # trimesh's convention (v = 0 at the image bottom) -> glTF's (v = 0 at the top row)
         uv_gltf = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])
         visual = TextureVisuals(uv=uv_gltf)
+    for label, values in (("vertex positions", vertices), ("texture coordinates", None if uvs is None else uv)):
+        if values is not None and not np.all(np.isfinite(values)):
+            count = int(np.sum(~np.all(np.isfinite(values), axis=1)))
+            raise CaptureError(f"{where}: mesh {path}: {count} {label} hold NaN or inf values")
     mesh = trimesh.Trimesh(
         vertices=vertices, faces=faces, vertex_normals=normals, visual=visual, process=False
     )

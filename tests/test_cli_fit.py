@@ -118,6 +118,7 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--fit", "roughness", "--roughness", "0.3"], "--fit: lists roughness, which --roughness holds fixed"),
         (["--base-color", "0.5,0.5,0.5", "--metallic", "0", "--roughness", "0.3"], "nothing left to fit"),
         (["--resolution", "0"], "--resolution"),
+        (["--resolution", "100000"], "--resolution: must be between 1 and 8192, got 100000"),
         (["--roughness-from", "/no/such/folder"], "/no/such/folder"),
         (["--devices", "99"], "--devices"),
         (["--devices", "0"], "--devices"),
@@ -342,3 +343,20 @@ def test_cg_rtol_option_reaches_the_fit():
 
     assert options("--cg-rtol", "0.01")["cg_rtol"] == 0.01
     assert "cg_rtol" not in options()  # the library's default, CG_RTOL
+
+
+@pytest.mark.parametrize("error", [MemoryError("Unable to allocate 74.5 GiB for an array"),
+                                   RuntimeError("RESOURCE_EXHAUSTED: Out of memory allocating 1 bytes.\nmore")])
+def test_out_of_memory_is_one_line_and_exit_2(capture, tmp_path, capsys, monkeypatch, error):
+    import pbrfit.cli
+
+    def fail(args):
+        raise error
+
+    monkeypatch.setitem(pbrfit.cli._COMMANDS, "fit", fail)
+    assert main(["fit", str(capture), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pbrfit: error: out of memory: ") and "--resolution" in err[0]
+    monkeypatch.setitem(pbrfit.cli._COMMANDS, "fit", lambda args: 1 / 0)  # anything else is a bug: it propagates
+    with pytest.raises(ZeroDivisionError):
+        main(["fit", str(capture), "--out", str(tmp_path / "out"), "--quiet"])

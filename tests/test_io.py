@@ -228,6 +228,22 @@ def test_read_material_errors(tmp_path):
         read_material(tmp_path)
 
 
+def test_read_map_refuses_non_finite_and_out_of_range_values(tmp_path):
+    """A held map (--roughness-from DIR) or a rendered material with NaN or values outside [0, 1]
+    is refused, as --roughness 2 is, rather than clamped or rendered as NaN."""
+    rough = np.full((2, 3, 1), 0.5, np.float32)
+    rough[1, 2] = np.nan
+    write_image(tmp_path / "roughness.exr", rough)
+    with pytest.raises(CaptureError, match="roughness.exr: 1 texels of roughness hold NaN"):
+        read_map(tmp_path, "roughness")
+    write_image(tmp_path / "roughness.exr", np.full((2, 3, 1), 2.0, np.float32))
+    with pytest.raises(CaptureError, match=r"roughness must lie in \[0, 1\], found values from 2 to 2"):
+        read_map(tmp_path, "roughness")
+    write_image(tmp_path / "base_color.exr", np.full((2, 3, 3), -0.1, np.float32))
+    with pytest.raises(CaptureError, match="base_color must lie in"):
+        read_map(tmp_path, "base_color")
+
+
 def test_read_map_reads_one_map_alone(tmp_path):
     # --metallic-from DIR: a folder holding only metallic.exr is enough
     write_image(tmp_path / "metallic.exr", np.full((2, 3, 1), 0.25, np.float32))

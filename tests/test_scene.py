@@ -529,3 +529,16 @@ def test_cropped_material_exr_is_refused(tmp_path):
     _write_cropped_exr(tmp_path / "roughness.exr", np.ones((2, 2, 1), np.float32), (1, 1), (0, 0, 4, 4))
     with pytest.raises(CaptureError, match="cropped OpenEXR"):
         read_map(tmp_path, "roughness")
+
+
+def test_mesh_with_non_finite_values_or_an_unknown_format_is_refused(tmp_path):
+    obj = write_quad_obj(tmp_path / "q.obj").read_text()
+    (tmp_path / "uv.obj").write_text(obj.replace("vt 0 0\n", "vt nan nan\n", 1))
+    with pytest.raises(CaptureError, match="1 texture coordinates hold NaN or inf"):
+        load_mesh(tmp_path / "uv.obj")
+    (tmp_path / "v.obj").write_text(obj.replace("v 0 0 0\n", "v 0 0 nan\n", 1))
+    with pytest.raises(CaptureError, match="1 vertex positions hold NaN or inf"):
+        load_mesh(tmp_path / "v.obj")
+    (tmp_path / "m.xyz").write_text("0 0 0\n")
+    with pytest.raises(CaptureError, match="unsupported mesh format '.xyz'; pbrfit reads .glb, .gltf, .obj"):
+        load_mesh(tmp_path / "m.xyz")

@@ -426,6 +426,12 @@ def test_cli_synth_writes_and_refuses_bad_input(tmp_path, capsys):
     assert (out / "capture.json").is_file() and capsys.readouterr().out == ""
     assert main(args + ["--noise", "-1"]) == 2
     assert "--noise" in capsys.readouterr().err
+    for extra, message in ((["--seed", "-1"], "--seed: must be at least 0"),
+                           (["--size", "200000"], "--size: must be at most 8192"),
+                           (["--texture-size", "200000"], "--texture-size: must be at most 8192")):
+        assert main(["synth", "peer-plane", "--out", str(tmp_path / "x"), *extra]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0] and not (tmp_path / "x").exists()
     other = tmp_path / "mine"
     other.mkdir()
     (other / "precious.txt").write_text("keep")
