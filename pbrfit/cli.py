@@ -140,16 +140,14 @@ def _cmd_synth(args) -> int:
 
     from .io import check_output_dir
 
-    for name, low in (("size", 1), ("views", 1), ("supersample", 1), ("texture_size", 1), ("ibl_samples", 1)):
+    bounds = (("size", 1, MAX_SIZE), ("views", 1, None), ("supersample", 1, None), ("texture_size", 1, MAX_SIZE),
+              ("ibl_samples", 1, None), ("seed", 0, None))
+    for name, low, high in bounds:
         value = getattr(args, name)
         if value is not None and value < low:
             raise CaptureError(f"--{name.replace('_', '-')}: must be at least {low}, got {value}")
-    for name in ("size", "texture_size"):
-        value = getattr(args, name)
-        if value is not None and value > MAX_SIZE:
-            raise CaptureError(f"--{name.replace('_', '-')}: must be at most {MAX_SIZE}, got {value}")
-    if args.seed < 0:
-        raise CaptureError(f"--seed: must be at least 0, got {args.seed}")
+        if value is not None and high is not None and value > high:
+            raise CaptureError(f"--{name.replace('_', '-')}: must be at most {high}, got {value}")
     if args.noise is not None and not args.noise >= 0:
         raise CaptureError(f"--noise: must be a number >= 0, got {args.noise}")
     out = Path(args.out)
@@ -531,13 +529,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except CaptureError as err:
         print(f"pbrfit: error: {err}", file=sys.stderr)
         return EXIT_USAGE
-    except MemoryError as err:  # numpy's allocations (its message names the size)
-        from .io import _first_line
-
-        print(f"pbrfit: error: out of memory: {_first_line(str(err))}; {_LESS}", file=sys.stderr)
-        return EXIT_USAGE
     except Exception as err:
-        if "RESOURCE_EXHAUSTED" not in str(err):  # XLA's allocations; anything else is a bug: traceback
+        # out of memory: numpy's MemoryError (its message names the size) or XLA's RESOURCE_EXHAUSTED;
+        # anything else is a bug, and keeps its traceback
+        if not (isinstance(err, MemoryError) or "RESOURCE_EXHAUSTED" in str(err)):
             raise
         from .io import _first_line
 

@@ -148,10 +148,12 @@ def _solve_base(l0, a, y, weight, problem: Problem):
     return jnp.clip(_per_texel_base(l0, a, y, weight, problem), 0.0, 1.0)
 
 
-def _per_texel_base(l0, a, y, weight, problem: Problem):
-    """`_solve_base` before clipping: Σ w a (y - l0) / Σ w a² per texel and channel."""
+def _per_texel_base(l0, a, y, weight, problem: Problem, num=None):
+    """`_solve_base` before clipping: Σ w a (y - l0) / Σ w a² per texel and channel (`num`, the
+    numerator, when already scattered)."""
     w = weight[:, :, None]
-    num = _scatter(w * (a * (y - l0))[:, None, :], problem)
+    if num is None:
+        num = _scatter(w * (a * (y - l0))[:, None, :], problem)
     den = _scatter(w * (a * a)[:, None, :], problem)
     return num / jnp.maximum(den, _NORMAL_FLOOR)
 
@@ -170,8 +172,8 @@ def _solve_base_joint(l0, a, y, problem: Problem, steps: Optional[int] = None):
         return _scatter(w * (a * a * sample_texels(b, problem))[:, None, :], problem)
 
     diag = jnp.maximum(_scatter(w * w * (a * a)[:, None, :], problem), _NORMAL_FLOOR)
-    rhs = _scatter(w * (a * (y - l0))[:, None, :], problem)
-    b = _per_texel_base(l0, a, y, problem.weight, problem)
+    rhs = _scatter(w * (a * (y - l0))[:, None, :], problem)  # also the per-texel solve's numerator
+    b = _per_texel_base(l0, a, y, problem.weight, problem, num=rhs)
     r = rhs - normal_op(b)
     z = r / diag
     p, rz = z, jnp.sum(r * z, axis=0)

@@ -321,11 +321,11 @@ def read_image(path: str | os.PathLike, where: str | None = None) -> tuple[np.nd
 def data_window_mask(info: ImageInfo) -> np.ndarray:
     """(H, W) bool: the pixels of `read_image`'s result that the file holds (all but where an
     OpenEXR's data window leaves its display window empty)."""
-    mask = np.ones((info.height, info.width), bool)
-    if info.data_window is not None:
-        x0, y0, x1, y1 = info.data_window
-        mask[:] = False
-        mask[y0:y1, x0:x1] = True
+    if info.data_window is None:
+        return np.ones((info.height, info.width), bool)
+    x0, y0, x1, y1 = info.data_window
+    mask = np.zeros((info.height, info.width), bool)
+    mask[y0:y1, x0:x1] = True
     return mask
 
 

@@ -307,9 +307,9 @@ def _camera(top: Mapping, frame: Mapping, c2w: np.ndarray, width: int, height: i
     frame_fl_x = fl_x is not None  # a frame's own intrinsics override the global ones
     if fl_x is None:
         fl_x = _positive(top, "fl_x", name)
+    fl_y = _positive(frame, "fl_y", where) or _positive(top, "fl_y", name)  # with either form of fx
     if fl_x is not None:
-        fl_y = _positive(frame, "fl_y", where) or _positive(top, "fl_y", name) or fl_x
-        fx, fy = fl_x, fl_y
+        fx, fy = fl_x, fl_y or fl_x
         if "camera_angle_x" in top and not frame_fl_x:  # both global forms (instant-ngp writes both): must agree
             fx_angle = _fov_focal(top, "camera_angle_x", width, name)
             if not abs(fl_x - fx_angle) <= INTRINSICS_RTOL * fx_angle:
@@ -318,9 +318,7 @@ def _camera(top: Mapping, frame: Mapping, c2w: np.ndarray, width: int, height: i
                     f"(= fl_x {fx_angle:.6g} at width {width}); give one of the two or make them agree"
                 )
     elif "camera_angle_x" in top:
-        fx = _fov_focal(top, "camera_angle_x", width, name)
-        # a given fl_y (the frame's, then the global one) is the vertical focal length here too
-        fy = _positive(frame, "fl_y", where) or _positive(top, "fl_y", name)
+        fx, fy = _fov_focal(top, "camera_angle_x", width, name), fl_y
         if fy is None:
             fy = _fov_focal(top, "camera_angle_y", height, name) if "camera_angle_y" in top else fx
     else:
