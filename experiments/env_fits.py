@@ -15,7 +15,7 @@ precomputation and the rest.
 
     python experiments/env_fits.py [--scenes demo sphere-env] [--mc-samples 4096] [--pixel-samples 128 512]
 
-Writes experiments/results/env_fits.json. The recorded run took 2.5 minutes on one H100; on a 2-core
+Writes experiments/results/env_fits.json. The recorded run took 2 min 46 s on one H100; on a 2-core
 CPU the per-pixel integrals alone would take about 6 minutes (0.6 and 2.5 ms per pixel at 128 and
 512 samples; the oracles read the fits' tables from the cache), and the Monte Carlo renders at
 4,096 samples about two hours (sphere-env at 16 samples: 26 s).

@@ -418,8 +418,8 @@ def machine() -> dict:
         except metadata.PackageNotFoundError:
             versions[name] = None
     return dict(platform=platform.platform(), processor=platform.processor() or cpu, cpu_count=os.cpu_count(),
-                backend=jax.default_backend(), versions=versions,
-                note="shared 2-core CPU; all rows of a run in one process")
+                backend=jax.default_backend(), device=jax.devices()[0].device_kind, versions=versions,
+                note="all rows of a run in one process")
 
 
 def _fmt(v: float) -> str:
