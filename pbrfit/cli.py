@@ -82,16 +82,23 @@ def _cache_dir(args):
 def _cmd_render(args) -> int:
     import time
 
+    import numpy as np
+
     from .io import check_not_inside, check_output_dir, read_material
+    from .mesh import check_uv_layout
     from .scene import load_capture
     from .views import apply_overrides, load_lights_override, render_capture, write_rendered_capture
 
     start = time.perf_counter()
     check_output_dir(args.out, "capture")
-    capture = load_capture(args.capture)
+    capture = load_capture(args.capture, require_uv=False)
     check_not_inside(capture.root, args.out, "capture being rendered")
     check_not_inside(args.material, args.out, "material being rendered")
     material = read_material(args.material)
+    # a uniform material (1 x 1 maps, as `fit --maps none` writes) needs no texture coordinates
+    if material.normal is not None or any(
+            np.shape(m)[:2] != (1, 1) for m in (material.base_color, material.metallic, material.roughness)):
+        check_uv_layout(capture.mesh, f"{capture.json_path}: mesh")
     lights_json = load_lights_override(args.lights) if args.lights else None
     capture = apply_overrides(capture, args.environment, lights_json)
     renders = render_capture(capture, material, cache_dir=_cache_dir(args))

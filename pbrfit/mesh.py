@@ -109,6 +109,18 @@ def _flatten(scene) -> list:
 MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
 
 
+#: Below this total uv area (in units of the texture square) a mesh's texture coordinates lay out
+#: nothing: every texel would be seen through no triangle or through all of them.
+UV_AREA_MIN = 1e-10
+
+
+def _uv_area(uv: np.ndarray, faces: np.ndarray) -> float:
+    """Σ over triangles of the uv triangle's area, ½ |(uv1 - uv0) × (uv2 - uv0)|."""
+    a, b, c = (uv[faces[:, k]] for k in range(3))
+    cross = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    return float(0.5 * np.sum(np.abs(cross)))
+
+
 def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     """Load a triangle mesh as one `trimesh.Trimesh` with uv in glTF orientation.
 
@@ -116,7 +128,7 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     lists the scene's geometry nodes, fixed for a given file). Raises
     `CaptureError` when the file is missing, unreadable or not one of `MESH_SUFFIXES`, has no
     triangles or non-finite positions or texture coordinates, or (with ``require_uv``) lacks
-    texture coordinates on any of its meshes.
+    texture coordinates on any of its meshes or has texture coordinates that span no area.
     """
     import trimesh
     from trimesh.visual.texture import TextureVisuals
@@ -147,7 +159,7 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
                 label = f" (mesh {name!r})" if name and len(parts) > 1 else ""
                 raise CaptureError(
                     f"{where}: mesh {path}{label} has no texture coordinates "
-                    "(glTF TEXCOORD_0 / OBJ vt); map fitting needs them"
+                    "(glTF TEXCOORD_0 / OBJ vt); texture maps need them"
                 )
             uvs = None
             break
@@ -171,4 +183,19 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     )
     mesh.metadata["uv_orientation"] = "gltf"
     mesh.metadata["file"] = str(path)
+    if require_uv:
+        check_uv_layout(mesh, where)
     return mesh
+
+
+def check_uv_layout(mesh, where: str = "mesh") -> None:
+    """Raise `CaptureError` unless a loaded mesh's texture coordinates lay out an area texture
+    maps can be read through (total uv area above `UV_AREA_MIN`)."""
+    path = mesh.metadata.get("file", "")
+    uv = getattr(mesh.visual, "uv", None)
+    if uv is None:
+        raise CaptureError(f"{where}: mesh {path} has no texture coordinates (glTF TEXCOORD_0 / OBJ vt); "
+                           "texture maps need them")
+    if _uv_area(np.asarray(uv, np.float64), np.asarray(mesh.faces)) <= UV_AREA_MIN:
+        raise CaptureError(f"{where}: mesh {path}: texture coordinates span no area (every triangle's uv area "
+                           "is 0, e.g. all equal); texture maps need a uv layout")

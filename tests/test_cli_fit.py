@@ -246,12 +246,12 @@ def test_captures_that_leave_nothing_to_fit_exit_2(capture, tmp_path, capsys, mo
     assert not out.exists()
 
 
-def test_uniform_fit_of_a_mesh_without_uvs_and_a_map_held_from_a_folder(capture, tmp_path, monkeypatch):
+def test_uniform_fit_of_a_mesh_without_uvs_and_a_map_held_from_a_folder(capture, tmp_path, monkeypatch, capsys):
     import shutil
 
     import trimesh
 
-    from pbrfit.io import write_image
+    from pbrfit.io import read_image, write_image
 
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
 
@@ -268,6 +268,16 @@ def test_uniform_fit_of_a_mesh_without_uvs_and_a_map_held_from_a_folder(capture,
     report = json.loads((out / "report.json").read_text())
     assert report["fitted"] == ["base_r", "base_g", "base_b", "roughness"]
     assert report["material"]["metallic"] == 0.0 and (out / "material.glb").is_file()
+    # the uniform material renders on the same mesh: 1 x 1 maps need no texture coordinates
+    rendered = tmp_path / "rendered"
+    assert main(["render", str(cap), "--material", str(out), "--out", str(rendered), "--quiet"]) == 0
+    image, _ = read_image(rendered / json.loads((rendered / "capture.json").read_text())["frames"][0]["file_path"])
+    assert np.isfinite(image).all() and image[..., :3].max() > 0
+    textured = tmp_path / "textured"
+    shutil.copytree(out, textured)
+    write_image(textured / "base_color.exr", np.full((2, 2, 3), 0.5, np.float32))
+    assert main(["render", str(cap), "--material", str(textured), "--out", str(tmp_path / "r2"), "--quiet"]) == 2
+    assert "has no texture coordinates" in capsys.readouterr().err and not (tmp_path / "r2").exists()
     shutil.rmtree(out)
     # texture maps still need texture coordinates: a one-line error before any work
     assert main(["fit", str(cap), "--out", str(out), "--quiet"]) == 2

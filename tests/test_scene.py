@@ -137,6 +137,19 @@ def test_scene_nodes_are_concatenated_with_transforms(tmp_path):
     np.testing.assert_array_equal(mesh.faces[2:], [[4, 5, 6], [4, 6, 7]])
 
 
+def test_mesh_whose_texture_coordinates_span_no_area_is_refused_for_maps(tmp_path):
+    obj = write_quad_obj(tmp_path / "q.obj").read_text()
+    lines = obj.splitlines()
+    for name, uv in (("same", lambda i: "vt 0.5 0.5"), ("line", lambda i: f"vt {0.25 * i:g} 0.5")):
+        vts = iter(range(4))
+        text = "\n".join(uv(next(vts)) if line.startswith("vt ") else line for line in lines) + "\n"
+        (tmp_path / f"{name}.obj").write_text(text)
+        with pytest.raises(CaptureError, match=f"{name}.obj: texture coordinates span no area"):
+            load_mesh(tmp_path / f"{name}.obj")
+        assert len(load_mesh(tmp_path / f"{name}.obj", require_uv=False).faces) == 2  # a uniform fit needs none
+    assert len(load_mesh(tmp_path / "q.obj").faces) == 2
+
+
 def test_mesh_without_uv_allowed_for_uniform_fits(tmp_path):
     mesh = load_mesh(write_quad_obj(tmp_path / "q.obj", uv=False), require_uv=False)
     assert getattr(mesh.visual, "uv", None) is None
