@@ -84,11 +84,13 @@ def load_environment(path, world_up: str = "+y", intensity: float = 1.0,
                      rotation_deg: float = 0.0) -> Environment:
     """Read an equirectangular HDR (EXR, HDR, ...) through OpenImageIO.
 
-    One channel is replicated to RGB; channels past the third (alpha) are dropped. Negative
+    One channel is replicated to RGB; channels past the third (alpha) are dropped. The image is
+    the display window: an OpenEXR whose data window is smaller holds 0 outside it (OpenEXR's
+    meaning), and overscan past the display window is cut. Negative
     values are clamped to 0 (radiance is not negative). Raises `CaptureError` naming the file when
     it cannot be read, is not an image, or holds NaN or inf pixels.
     """
-    import OpenImageIO as oiio
+    from .io import read_image
 
     path = Path(path)
     if world_up not in WORLD_UPS:
@@ -97,16 +99,7 @@ def load_environment(path, world_up: str = "+y", intensity: float = 1.0,
         raise CaptureError(f"{path}: environment intensity must be a finite number >= 0, got {intensity!r}")
     if not path.is_file():
         raise CaptureError(f"{path}: environment file not found")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise CaptureError(f"{path}: cannot read environment image ({oiio.geterror().strip()})")
-    try:
-        pixels = inp.read_image(format="float")
-    finally:
-        inp.close()
-    if pixels is None or np.ndim(pixels) != 3:
-        raise CaptureError(f"{path}: cannot read environment image pixels")
-    pixels = np.asarray(pixels, dtype=np.float32)
+    pixels, _ = read_image(path, "environment")  # a cropped OpenEXR is placed in its display window
     if pixels.shape[-1] == 1:
         pixels = np.repeat(pixels, 3, axis=-1)
     elif pixels.shape[-1] == 2:

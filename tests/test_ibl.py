@@ -147,6 +147,21 @@ def test_load_environment(tmp_path):
     out.close()
     with pytest.raises(CaptureError, match=r"nan.exr: 1 environment pixels with NaN or inf values \(first at row 2, column 5\)"):
         load_environment(tmp_path / "nan.exr")
+    # a cropped OpenEXR is its display window, 0 outside the data window; overscan is cut
+    crop = np.arange(2 * 3 * 3, dtype=np.float32).reshape(2, 3, 3) + 1.0
+    for name, origin, display, inside in (("crop", (4, 1), (0, 0, 8, 4), (slice(1, 3), slice(4, 7))),
+                                          ("overscan", (-1, -1), (0, 0, 2, 1), (slice(0, 1), slice(0, 2)))):
+        spec = oiio.ImageSpec(3, 2, 3, "float")
+        spec.x, spec.y = origin
+        spec.full_x, spec.full_y, spec.full_width, spec.full_height = display
+        out = oiio.ImageOutput.create(str(tmp_path / f"{name}.exr"))
+        assert out.open(str(tmp_path / f"{name}.exr"), spec) and out.write_image(crop)
+        out.close()
+        radiance = np.asarray(load_environment(tmp_path / f"{name}.exr").radiance)
+        assert radiance.shape == (display[3], display[2], 3)
+        expected = np.zeros_like(radiance)
+        expected[inside] = crop if name == "crop" else crop[1:2, 1:3]
+        np.testing.assert_array_equal(radiance, expected)
 
 
 def test_resampling_preserves_the_sphere_integral():
