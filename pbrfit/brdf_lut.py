@@ -101,7 +101,7 @@ def _diffuse_lut(size, samples, model):
 
     def step(acc, u):
         l = jnp.broadcast_to(sample_cosine(u), v.shape)
-        nh, vh = brdf.half_vector_cosines(nv, l[..., 2], dot3(v, l))
+        nh, vh = brdf.half_vector_cosines(nv, l[..., 2], None, brdf.v_plus_l_sq(v, l))
         fd = lobe(nv, l[..., 2], vh, r) * math.pi            # f_d (n·l) / pdf, pdf = (n·l)/pi
         fc = brdf.f_schlick(vh, 0.0, 1.0)
         fdiel = brdf.f_dielectric(vh, model.ior)

@@ -146,6 +146,8 @@ def _scalar_terms() -> list:
         _Spec("half_vector_cosines", lambda x: _weighted(jnp.stack(brdf.half_vector_cosines(x[0], x[1], x[2]))),
               ("n·v", "n·l", "v·l"), _grid((0.3, 0.6, 0.9), (0.3, 0.6, 0.9), (-0.5, 0.0, 0.5, 0.9)), ((), (), (-1.0,)),
               skip=_half_vector_skip),
+        _Spec("v_plus_l_sq", lambda x: brdf.v_plus_l_sq(x[:3], x[3:]), ("v_x", "v_y", "v_z", "l_x", "l_y", "l_z"),
+              _grid((-0.6, 0.3), (0.2, 0.8), (0.1, 0.7), (-0.5, 0.4), (-0.3, 0.6), (0.2, 0.9)), ((),) * 6),
         _Spec("safe_normalize", lambda x: _weighted(brdf.safe_normalize(x)), ("x", "y", "z"),
               _grid((-0.7, 0.2, 1.5), (-0.3, 0.4), (0.1, 0.9)), ((), (), ())),
         _Spec("specular_dv", lambda x: brdf.specular_dv(Model(), x[0], x[1], x[2], x[3]), ("n·v", "n·l", "n·h", "roughness"),

@@ -269,13 +269,13 @@ def _mc(env, n, v, base_color, metallic, roughness, dfg, model, samples, batch, 
 
     def brdf_pdf(l):
         nl = dot3(n, l)
-        nh, _ = brdf.half_vector_cosines(nv, nl, dot3(v, l))
+        nh, _ = brdf.half_vector_cosines(nv, nl, None, brdf.v_plus_l_sq(v, l))
         spec = ggx_vndf_pdf(nv, nh, alpha) if model.specular else 0.0
         return jnp.where(nl > 0, p_spec * spec + (1 - p_spec) * nl / math.pi, 0.0)
 
     def estimate(l, pdf_sum):
         nl = dot3(n, l)
-        nh, vh = brdf.half_vector_cosines(nv, nl, dot3(v, l))
+        nh, vh = brdf.half_vector_cosines(nv, nl, None, brdf.v_plus_l_sq(v, l))
         f = brdf.evaluate_cosines(nv, nl, nh, vh, base_color, metallic, roughness, model, dfg)
         ok = pdf_sum > 0
         return jnp.where(ok[..., None], f * environment_lookup(env, l) / jnp.where(ok, pdf_sum, 1.0)[..., None], 0.0)

@@ -187,8 +187,8 @@ def _integrate(env, lut, n, v, first, seed, *, model, lobes, levels, samples, ba
         extra = l.ndim - 2
         nv_ = nv.reshape(nv.shape + (1,) * (extra - 1))
         nl = dot3(n.reshape(n.shape[:1] + (1,) * (extra - 1) + (3,)), l)
-        vl = dot3(v.reshape(v.shape[:1] + (1,) * (extra - 1) + (3,)), l)
-        nh, vh = brdf.half_vector_cosines(nv_, nl, vl)
+        vl_sq = brdf.v_plus_l_sq(v.reshape(v.shape[:1] + (1,) * (extra - 1) + (3,)), l)
+        nh, vh = brdf.half_vector_cosines(nv_, nl, None, vl_sq)
         return nl, nh, vh
 
     def spec_values(nl, nh, vh):

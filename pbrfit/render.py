@@ -139,8 +139,7 @@ def shade_punctual(
         return jnp.zeros_like(base_color)
     n_dot_v = jnp.sum(normal * view, axis=-1)[..., None]  # (P, 1) against (P, L)
     n_dot_l = jnp.sum(normal[:, None, :] * light_l, axis=-1)
-    v_dot_l = jnp.sum(view[:, None, :] * light_l, axis=-1)
-    n_dot_h, v_dot_h = brdf.half_vector_cosines(n_dot_v, n_dot_l, v_dot_l)
+    n_dot_h, v_dot_h = brdf.half_vector_cosines(n_dot_v, n_dot_l, None, brdf.v_plus_l_sq(view[:, None, :], light_l))
     f = brdf.evaluate_cosines(
         n_dot_v,
         n_dot_l,

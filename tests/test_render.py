@@ -87,7 +87,9 @@ def test_chunked_radiance_equals_whole():
     mat = Material.uniform((0.2, 0.6, 0.9), 0.5, 0.3)
     whole = radiance_view(vi, mat)
     chunked = radiance_view(vi, mat, chunk=10)
-    np.testing.assert_allclose(np.asarray(chunked), np.asarray(whole), rtol=1e-6)
+    # equal to float32 rounding: the two programs are compiled for different shapes, and near a
+    # highlight's peak one ulp of n·h moves D by 2e-5 relative (roughness 0.3)
+    np.testing.assert_allclose(np.asarray(chunked), np.asarray(whole), rtol=1e-4)
 
 
 def test_shade_gradients_finite_at_extremes():
