@@ -475,9 +475,11 @@ def test_normal_map_recovered_on_small_scene():
     got, want = np.asarray(res.material.normal), np.asarray(truth.normal)
     angle = np.degrees(np.arccos(np.clip(np.sum(got * want, -1), -1.0, 1.0)))
     # Most texels come back to about a degree; a few at the map's edge, where roughness and tilt
-    # trade off in the highlights these four views see, stay in a local minimum. (Median measured:
-    # 0.94° on the CPU, 1.18° on an H100, 0.67° without the continuation; flat normals: 17°.)
-    assert np.median(angle) < 1.5 and np.mean(angle < 3.0) > 0.7, angle
+    # trade off in the highlights these four views see, stay in a local minimum. Which of them do
+    # is decided by the last float bits: scaling the images by 1 ± 1e-7 moved the median between
+    # 0.93° and 1.38° and the share within 3° between 67% and 80% (0.67° without the
+    # continuation; flat normals: 17°).
+    assert np.median(angle) < 1.5 and np.mean(angle < 3.0) > 0.65, angle
     assert map_rmse(truth, res)["base_color"] < 0.03
     assert res.uncertainty.shape == (8, 8, 7) and np.all(np.isfinite(res.uncertainty[..., 5:]))
     # the same images fitted with flat normals leave a clearly worse match
