@@ -37,7 +37,7 @@ def _cmd_check_grads(args) -> int:
 def _add_demo(sub) -> None:
     p = sub.add_parser("demo", help="synthesize a capture on the embedded defaults and fit it")
     p.add_argument("--out", default="pbrfit-demo", help="output folder (default ./pbrfit-demo)")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="print only errors")
 
 
 def _cmd_demo(args) -> int:
@@ -60,7 +60,7 @@ def _add_render(sub) -> None:
                         "(KHR_lights_punctual units)")
     p.add_argument("--cache", help="G-buffer cache folder (default $PBRFIT_CACHE or ~/.cache/pbrfit)")
     p.add_argument("--no-cache", action="store_true", help="do not read or write the G-buffer cache")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="print only errors")
 
 
 def _cache_dir(args):
@@ -123,12 +123,12 @@ def _add_synth(sub) -> None:
     p.add_argument("preset", choices=preset_names(), metavar="PRESET", help="one of: " + ", ".join(preset_names()))
     p.add_argument("--out", required=True, help="capture folder to write (replaced if it holds a capture)")
     p.add_argument("--seed", type=int, default=0, help="every random choice follows from it (default 0)")
-    p.add_argument("--size", type=int, help="image width and height in pixels")
-    p.add_argument("--views", type=int, help="number of cameras")
+    p.add_argument("--size", type=int, help="image width and height in pixels (default: the preset's)")
+    p.add_argument("--views", type=int, help="number of cameras (default: the preset's)")
     p.add_argument("--noise", type=float, help="noise std at a display value of 1 (0 = none)")
     p.add_argument("--noise-model", choices=NOISE_MODELS, help="gaussian (additive), relative (std proportional to the value) or poisson_gaussian")
     p.add_argument("--supersample", type=int, help="render k x k samples per pixel and box-filter down")
-    p.add_argument("--texture-size", type=int, help="ground-truth map resolution")
+    p.add_argument("--texture-size", type=int, help="ground-truth map resolution (default: the preset's)")
     p.add_argument("--format", choices=sorted(IMAGE_FORMATS), help="exr (linear float), png16 or png8 (sRGB)")
     p.add_argument("--mesh", help="mesh-env: a mesh file with texture coordinates")
     p.add_argument("--shape", choices=("torus", "box", "sphere"), help="mesh-env: built-in shape")
@@ -184,7 +184,8 @@ _FIT_NAMES = _MAP_NAMES + ("normal",)
 
 
 def _add_fit(sub) -> None:
-    from .fit import CONTINUATION, DEFAULT_SOLVER, IBL_MODES, SOLVERS
+    from .fit import CONTINUATION, DEFAULT_SOLVER, IBL_MODES, MAX_STEPS, SOLVERS
+    from .observations import MAX_PIXEL_SAMPLES
     from .pixel_ibl import PixelIBLSettings
     from .solvers import LOSSES
 
@@ -197,7 +198,9 @@ def _add_fit(sub) -> None:
     p.add_argument("--fit",
                    help="comma-separated maps to fit, some of base_color, metallic, roughness, normal "
                         "(a tangent-space normal map, written as normal.png); default: the three maps "
-                        "not held by --base-color, --metallic, --roughness or --*-from")
+                        "not held by --base-color, --metallic, --roughness or --*-from; a map neither fitted nor "
+                        "held stays at the prior (base color 0.5 grey, metallic 0, roughness 0.5; report.json's "
+                        "\"held\" says what each map was held at)")
     p.add_argument("--base-color", help="hold base color fixed at R,G,B (linear)")
     p.add_argument("--metallic", type=float, help="hold metallic fixed at this value")
     p.add_argument("--roughness", type=float, help="hold roughness fixed at this value (perceptual)")
@@ -205,7 +208,7 @@ def _add_fit(sub) -> None:
         flag = name.replace("_", "-")
         p.add_argument(f"--{flag}-from", metavar="DIR", help=f"hold {name} fixed at the map in a material folder")
     p.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER, help=f"default {DEFAULT_SOLVER}")
-    p.add_argument("--max-steps", type=int, help="solver steps at the final resolution")
+    p.add_argument("--max-steps", type=int, help=f"solver steps at the final resolution (default {MAX_STEPS})")
     p.add_argument("--rtol", type=float, default=1e-6,
                    help="relative stopping tolerance: the structured solver stops at an accepted step that lowers the "
                         "loss by less than this fraction of it; the optimistix solvers' rtol (default 1e-6)")
@@ -226,8 +229,8 @@ def _add_fit(sub) -> None:
     p.add_argument("--ibl-levels", type=int, default=PixelIBLSettings.levels,
                    help=f"per_pixel: roughness levels tabulated (default {PixelIBLSettings.levels})")
     p.add_argument("--pixel-samples", default="auto", metavar="{auto,N}",
-                   help="shade N x N samples per pixel and fit their mean: the pixel footprint of an antialiased or "
-                        "supersampled capture (1: pixel centres; cost grows as N^2). Default auto: pixel centres for "
+                   help=f"shade N x N samples per pixel (N from 1 to {MAX_PIXEL_SAMPLES}) and fit their mean: the pixel "
+                        "footprint of an antialiased or supersampled capture (1: pixel centres; cost grows as N^2). Default auto: pixel centres for "
                         "linear HDR images; for sRGB or tone-mapped ones, fit both 2 x 2 samples and centres and keep "
                         "the better match")
     p.add_argument("--no-search", action="store_true",
@@ -274,6 +277,9 @@ def _fit_options(args) -> dict:
     for name in _MAP_NAMES:
         folder = getattr(args, f"{name}_from")
         if folder is not None:
+            flag = name.replace("_", "-")
+            if name in fixed:
+                raise CaptureError(f"--{flag}-from: --{flag} holds {name} at a value too; give one of the two")
             fixed[name] = read_map(folder, name)
     for name in fixed:
         if name in free:
@@ -458,6 +464,13 @@ def _cmd_fit(args) -> int:
     check_output_dir(out, "fit")
     capture = load_capture(args.capture, require_uv=options["maps"] == "texture" or "normal" in options["fit"])
     check_not_inside(capture.root, out, "capture being fitted")
+    for name in _MAP_NAMES:
+        folder = getattr(args, f"{name}_from")
+        if folder is not None:
+            check_not_inside(folder, out, f"{name} map of --{name.replace('_', '-')}-from")
+        if name not in options["fit"] and name not in options["fixed"] and not args.quiet:
+            print(f"pbrfit: note: {name} is neither fitted nor held (--fit, --{name.replace('_', '-')}): "
+                  "it stays at the prior", file=sys.stderr)
     if args.ibl == "per_pixel" and capture.environment is None:
         print(f"pbrfit: warning: --ibl per_pixel: {capture.root} has no environment; nothing to integrate",
               file=sys.stderr)
@@ -498,10 +511,11 @@ def _enable_compilation_cache(args) -> None:
 
 
 class _Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose usage errors are one line (``pbrfit fit: error: ...``), status 2."""
+    """An ArgumentParser whose usage errors are one line, ``pbrfit: error: <option>: <problem>
+    (see pbrfit fit --help)``, like every other error, and status 2."""
 
     def error(self, message: str):
-        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+        self.exit(EXIT_USAGE, f"pbrfit: error: {message} (see {self.prog} --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:

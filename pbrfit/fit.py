@@ -220,6 +220,29 @@ def _fixed_values(fixed: Mapping, shape: tuple[int, int], k: int = 5) -> np.ndar
     return out
 
 
+def held_report(fit: Sequence[str], fixed: Optional[Mapping]) -> dict:
+    """What each material map not fitted was held at, for the report: ``{"source": "value",
+    "value": v}`` (a number, or R, G, B), ``{"source": "map", "shape": [H, W], "mean": m}`` or,
+    for a map neither fitted nor given, ``{"source": "prior", "value": v}`` (`PRIOR`)."""
+    out = {}
+    for name in ("base_color", "metallic", "roughness"):
+        if name in fit:
+            continue
+        chans = list(FIT_GROUPS[name])
+        value = None if fixed is None else fixed.get(name)
+        if value is None:
+            v = [float(c) for c in prior(5)[chans]]
+            out[name] = dict(source="prior", value=v if len(v) > 1 else v[0])
+        elif np.ndim(value) == 3:
+            a = np.asarray(value, np.float64)
+            mean = [float(c) for c in a.reshape(-1, a.shape[-1]).mean(0)]
+            out[name] = dict(source="map", shape=list(a.shape[:2]), mean=mean if len(mean) > 1 else mean[0])
+        else:
+            v = [float(c) for c in np.ravel(value)]
+            out[name] = dict(source="value", value=v if len(v) > 1 else v[0])
+    return out
+
+
 def _upsample(x: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     h, w = shape
     u = (np.arange(w) + 0.5) / w
@@ -294,6 +317,7 @@ def fit_observations(
         raise ValueError(f"cg_rtol must be in (0, 1), got {cg_rtol}")
     _check_normals(model, fit)
     fixed = dict(fixed or {})
+    held = held_report(fit, fixed)
     channels = channel_mask(fit)
     k = len(channels)
     if not model.metallic:
@@ -452,6 +476,7 @@ def fit_observations(
     result = _finish(obs, problem, x, final, channels, seen[:t_final], model, solver, history, loss, smooth,
                      dict(setup=setup_time, **clock), t_post, t_start, linearization, wrap)
     result.report["continuation"] = annealed
+    result.report["held"] = held
     if solver == DEFAULT_SOLVER:
         result.report["cg_rtol"] = float(cg_rtol)
     if footprint is not None:

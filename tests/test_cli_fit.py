@@ -73,10 +73,25 @@ def test_uniform_fit_writes_one_texel_maps(capture, tmp_path, monkeypatch):
     np.testing.assert_allclose(report["material"]["base_color"], base[0, 0], rtol=1e-6)
     assert report["material"]["roughness"] == pytest.approx(0.5) and report["material_sigma"]["roughness"] == 0.0
     assert 0.0 <= report["material"]["metallic"] <= 1.0 and report["material_sigma"]["base_color"][0] > 0.0
+    assert report["held"] == {"roughness": {"source": "value", "value": 0.5}}
     # a second fit to the same folder replaces the first (it holds report.json)
     (out / "stale.txt").write_text("from the first fit")
     assert main(["fit", str(capture), "--out", str(out), "--maps", "none", "--quiet"]) == 0
     assert not (out / "stale.txt").exists() and (out / "report.json").is_file()
+    assert json.loads((out / "report.json").read_text())["held"] == {}
+
+
+def test_maps_neither_fitted_nor_held_stay_at_the_prior_and_say_so(capture, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "out"
+    assert main(["fit", str(capture), "--out", str(out), "--maps", "none", "--fit", "roughness"]) == 0
+    err = capsys.readouterr().err
+    for name in ("base_color", "metallic"):
+        assert f"pbrfit: note: {name} is neither fitted nor held" in err
+    report = json.loads((out / "report.json").read_text())
+    assert report["held"] == {"base_color": {"source": "prior", "value": [0.5, 0.5, 0.5]},
+                              "metallic": {"source": "prior", "value": 0.0}}
+    assert report["material"]["base_color"] == [0.5, 0.5, 0.5] and report["material"]["metallic"] == 0.0
 
 
 def test_fit_refuses_an_out_folder_it_did_not_write(capture, tmp_path, capsys):
@@ -141,16 +156,28 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--ibl", "per_pixel", "--fit", "base_color,normal"], "--ibl per_pixel: fitted normals need --ibl split_sum"),
         (["--ibl", "per_pixel", "--ibl-samples", "0"], "--ibl-samples"),
         (["--ibl", "exact"], "argument --ibl: invalid choice: 'exact'"),
+        (["--roughness", "0.3", "--roughness-from", "__HELD__"],
+         "--roughness-from: --roughness holds roughness at a value too; give one of the two"),
+        (["--roughness-from", "__OUT__"], "holds the roughness map of --roughness-from"),
     ],
 )
 def test_bad_fit_options_exit_2_and_write_nothing(capture, tmp_path, capsys, extra, message):
+    from pbrfit.io import write_image
+
     out = tmp_path / "out"
     (tmp_path / "a_file").write_text("")
-    extra = [str(tmp_path / "a_file") if e == "__FILE__" else e for e in extra]
+    (tmp_path / "held").mkdir()
+    write_image(tmp_path / "held" / "roughness.exr", np.full((1, 1, 1), 0.4, np.float32))
+    if "__OUT__" in extra:  # an earlier fit's folder, read from and written to: it would be replaced
+        out = tmp_path / "held"
+        (out / ".pbrfit-output").write_text("fit\n")
+    before = sorted(p.name for p in out.iterdir()) if out.exists() else None
+    paths = {"__FILE__": tmp_path / "a_file", "__HELD__": tmp_path / "held", "__OUT__": out}
+    extra = [str(paths.get(e, e)) for e in extra]
     assert main(["fit", str(capture), "--out", str(out), "--quiet", *extra]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith(("pbrfit: error: ", "pbrfit fit: error: ")) and message in err[0]
-    assert not out.exists()
+    assert len(err) == 1 and err[0].startswith("pbrfit: error: ") and message in err[0]
+    assert (sorted(p.name for p in out.iterdir()) if out.exists() else None) == before
 
 
 def test_fit_continuation_option(capture, tmp_path, monkeypatch):
