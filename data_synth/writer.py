@@ -304,8 +304,8 @@ def synthesize(
         image_paths = [f"images/{i:03d}{suffix}" for i in range(scene.num_views)]
         mask_paths = [f"masks/{i:03d}.png" for i in range(scene.num_views)]
         for img, mask, ip, mp in zip(images, masks, image_paths, mask_paths):
-            write_image(tmp / ip, img, dtype)
-            write_image(tmp / mp, mask.astype(np.float32)[..., None], "uint8")
+            write_image(tmp / ip, img, dtype, color_space=color_space)
+            write_image(tmp / mp, mask.astype(np.float32)[..., None], "uint8", color_space="linear")
         raw = capture_json(scene, image_paths, mask_paths, environment is not None)
         (tmp / "capture.json").write_text(_dumps(raw) + "\n")
 

@@ -70,13 +70,28 @@ def _oiio():
 
 
 # --- atomic writes -----------------------------------------------------------------------------
+def _process_umask() -> int:
+    """The process's file-creation mask (read once, at import: setting it to read it is not
+    thread-safe)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+#: Temporary files and folders (`tempfile`) are created private (0600, 0700); outputs get the
+#: modes a plain open() or mkdir() would give them.
+_UMASK = _process_umask()
+_FILE_MODE = 0o666 & ~_UMASK
+_DIR_MODE = 0o777 & ~_UMASK
+
+
 @contextlib.contextmanager
 def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``final`` (same folder, same suffix); rename on success.
 
     The temporary name keeps ``final``'s suffix, so tools that pick a format by extension
-    (OpenImageIO, trimesh) write the right one. If the body raises, the temporary file is
-    deleted and ``final`` is left as it was.
+    (OpenImageIO, trimesh) write the right one. The file gets the mode the umask gives a new
+    file. If the body raises, the temporary file is deleted and ``final`` is left as it was.
     """
     final = Path(final)
     final.parent.mkdir(parents=True, exist_ok=True)
@@ -85,6 +100,7 @@ def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        os.chmod(tmp_path, _FILE_MODE)
         os.replace(tmp_path, final)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -138,7 +154,8 @@ def check_not_inside(folder: str | os.PathLike, out_dir: str | os.PathLike, role
 def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optional[str] = None) -> Iterator[Path]:
     """Yield a temporary folder beside ``final_dir``; rename it to ``final_dir`` on success.
 
-    If the body raises, the temporary folder is removed and nothing appears at ``final_dir``.
+    The folder gets the mode the umask gives a new folder. If the body raises, the temporary
+    folder is removed and nothing appears at ``final_dir``.
     An existing ``final_dir`` is replaced when ``overwrite`` (moved aside, the new folder
     renamed in, the old one deleted), else `CaptureError`. With a `kind` (`OUTPUT_KINDS`), only
     an empty folder or an earlier output of that kind is replaced (`check_output_dir`), and the
@@ -155,6 +172,7 @@ def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optio
         yield tmp
         if kind is not None:
             (tmp / OUTPUT_MARKER).write_text(kind + "\n")
+        os.chmod(tmp, _DIR_MODE)
         if final_dir.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".old", dir=final_dir.parent))
             try:
@@ -334,14 +352,20 @@ def write_image(
     pixels: np.ndarray,
     dtype: str = "float",
     channel_names: Sequence[str] | None = None,
+    color_space: str = "srgb",
 ) -> Path:
     """Write (H, W) or (H, W, C) pixels to ``path`` atomically; the format follows the suffix.
 
     ``dtype`` is the stored pixel type: ``"float"`` (float32), ``"half"``, ``"uint8"`` or
     ``"uint16"``; integer types clip to [0, 1] and round ``x * max``. A 2-D array is written as
     (H, W, 1) (OpenImageIO garbles 2-D arrays). A 4-channel image gets alpha in channel 3,
-    stored unassociated (color values as given).
+    stored unassociated (color values as given). ``color_space`` says what integer pixels hold,
+    for the file's metadata: ``"srgb"`` (sRGB-encoded colour; a PNG gets sRGB, gAMA and cHRM
+    chunks) or ``"linear"`` (linear values or data such as packed metallic/roughness, normals
+    and masks; a PNG gets gAMA 1.0 and no sRGB chunk). Pixels are stored as given either way.
     """
+    if color_space not in ("srgb", "linear"):
+        raise ValueError(f"color_space must be 'srgb' or 'linear', got {color_space!r}")
     oiio = _oiio()
     if dtype not in _WRITE_DTYPES:
         raise ValueError(f"dtype must be one of {', '.join(_WRITE_DTYPES)}, got {dtype!r}")
@@ -366,6 +390,8 @@ def write_image(
     if channels == 4:
         spec.alpha_channel = 3
     spec.attribute("oiio:UnassociatedAlpha", 1)
+    if color_space == "linear" and dtype in ("uint8", "uint16"):
+        spec.attribute("oiio:ColorSpace", "lin_rec709")
     path = Path(path)
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
@@ -444,11 +470,11 @@ def write_material(directory: str | os.PathLike, material) -> list[Path]:
         write_image(directory / "base_color.png", _srgb_encode(base), "uint8"),
         write_image(directory / "metallic.exr", _np(material.metallic)[..., :1], "float"),
         write_image(directory / "roughness.exr", _np(material.roughness)[..., :1], "float"),
-        write_image(directory / "metallic_roughness.png", _pack_orm(material), "uint8"),
+        write_image(directory / "metallic_roughness.png", _pack_orm(material), "uint8", color_space="linear"),
     ]
     normal = _np(getattr(material, "normal", None))
     if normal is not None:
-        written.append(write_image(directory / "normal.png", _encode_normal(normal), "uint8"))
+        written.append(write_image(directory / "normal.png", _encode_normal(normal), "uint8", color_space="linear"))
     occlusion = _np(getattr(material, "occlusion", None))
     if occlusion is not None:
         written.append(write_image(directory / "occlusion.exr", occlusion[..., :1], "float"))
@@ -595,7 +621,7 @@ def _write_uniform_gltf(path: Path, mesh, material) -> Path:
             m["pbrMetallicRoughness"] = dict(baseColorFactor=base, metallicFactor=metallic, roughnessFactor=roughness)
         return tree
 
-    return _export_glb(path, mesh, TextureVisuals(material=PBRMaterial(name="pbrfit")), exact_factors)
+    return _export_glb(path, mesh, TextureVisuals(material=PBRMaterial(name="pbrfit", doubleSided=True)), exact_factors)
 
 
 def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
@@ -632,6 +658,7 @@ def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
         roughnessFactor=1.0,
         baseColorFactor=[255, 255, 255, 255],
         name="pbrfit",
+        doubleSided=True,  # pbrfit shades both sides of a face (`pbrfit.gbuffer`)
     )
     normal = _np(getattr(material, "normal", None))
     if normal is not None:

@@ -228,10 +228,11 @@ def write_rendered_capture(
                 mask_rel = os.path.join("masks", rel + ".png")  # a.jpg and a.hdr keep apart
                 entry["mask_path"] = mask_rel
                 (tmp / mask_rel).parent.mkdir(parents=True, exist_ok=True)
-                write_image(tmp / mask_rel, alpha[..., None], "uint8")
-                write_image(dst, image, _image_dtype(frame))
+                write_image(tmp / mask_rel, alpha[..., None], "uint8", color_space="linear")
+                write_image(dst, image, _image_dtype(frame), color_space=frame.color_space)
             else:
-                write_image(dst, np.concatenate([image, alpha[..., None]], axis=-1), _image_dtype(frame))
+                write_image(dst, np.concatenate([image, alpha[..., None]], axis=-1), _image_dtype(frame),
+                            color_space=frame.color_space)
         (tmp / "capture.json").write_text(json.dumps(raw, indent=2) + "\n")
     return out_dir
 

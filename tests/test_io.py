@@ -1,4 +1,5 @@
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -36,6 +37,25 @@ def test_atomic_path_renames_on_success(tmp_path):
         assert not final.exists()
     assert final.read_text() == "new"
     assert _listing(final.parent) == ["a.txt"]
+
+
+def test_atomic_outputs_get_the_modes_the_umask_gives(tmp_path):
+    """Not tempfile's private 0600 / 0700: others can read a fit's maps where the umask lets them."""
+    import os
+    import stat
+
+    from pbrfit import io as pio
+
+    with atomic_path(tmp_path / "a.exr") as tmp:
+        tmp.write_text("x")
+    with atomic_dir(tmp_path / "out") as d:
+        (d / "x").write_text("1")
+    plain_file, plain_dir = tmp_path / "plain", tmp_path / "plaindir"
+    plain_file.write_text("x")
+    plain_dir.mkdir()
+    mode = lambda p: stat.S_IMODE(os.stat(p).st_mode)
+    assert mode(tmp_path / "a.exr") == mode(plain_file) == pio._FILE_MODE
+    assert mode(tmp_path / "out") == mode(plain_dir) == pio._DIR_MODE
 
 
 def test_atomic_path_failure_keeps_old_and_leaves_no_temp(tmp_path):
@@ -268,6 +288,7 @@ def test_write_gltf_uniform_material_as_exact_factors_without_uv(tmp_path):
     assert pbr["metallicFactor"] == pytest.approx(0.3) and pbr["roughnessFactor"] == pytest.approx(0.7)
     assert "baseColorTexture" not in pbr and "images" not in tree
     assert "TEXCOORD_0" not in tree["meshes"][0]["primitives"][0]["attributes"]
+    assert tree["materials"][0]["doubleSided"] is True  # as pbrfit shades it
     assert len(trimesh.load(out).geometry) == 1
 
 
@@ -298,12 +319,40 @@ def test_write_gltf_uv_and_texture_orientation(tmp_path):
     mr = glb_image(tree, blob, pbr["metallicRoughnessTexture"]["index"])
     np.testing.assert_allclose(mr[..., 1:2] / 255.0, m.roughness, atol=0.5 / 255 + 1e-6)
     np.testing.assert_allclose(mr[..., 2:3] / 255.0, m.metallic, atol=0.5 / 255 + 1e-6)
-    assert "normalTexture" in mat
+    assert "normalTexture" in mat and mat["doubleSided"] is True
 
     # and it loads back through trimesh (via load_mesh) with the same uv
     again = load_mesh(out)
     np.testing.assert_allclose(again.visual.uv, QUAD_UV_GLTF)
     np.testing.assert_allclose(again.vertices, mesh.vertices)
+
+
+def _png_chunks(path):
+    import struct
+
+    data, chunks, at = Path(path).read_bytes(), [], 8
+    while at < len(data):
+        length, kind = struct.unpack(">I4s", data[at:at + 8])
+        chunks.append(kind.decode())
+        at += 12 + length
+    return chunks
+
+
+def test_png_colour_chunks_say_what_the_pixels_hold(tmp_path):
+    """base_color.png is sRGB-encoded (sRGB chunk); metallic_roughness.png and normal.png hold
+    linear data (gAMA 1.0, no sRGB chunk), which a reader that honours the chunks must not decode."""
+    m = _material(np.random.default_rng(3), normal=True, size=(2, 3))
+    write_material(tmp_path / "m", m)
+    assert "sRGB" in _png_chunks(tmp_path / "m" / "base_color.png")
+    for name in ("metallic_roughness.png", "normal.png"):
+        chunks = _png_chunks(tmp_path / "m" / name)
+        assert "gAMA" in chunks and "sRGB" not in chunks and "cHRM" not in chunks, (name, chunks)
+    for space in ("srgb", "linear"):
+        write_image(tmp_path / f"{space}.png", np.full((2, 2, 3), 0.5), "uint16", color_space=space)
+        assert ("sRGB" in _png_chunks(tmp_path / f"{space}.png")) == (space == "srgb")
+        np.testing.assert_allclose(read_image(tmp_path / f"{space}.png")[0], round(0.5 * 65535) / 65535)
+    with pytest.raises(ValueError, match="color_space"):
+        write_image(tmp_path / "x.png", np.zeros((2, 2, 3)), "uint8", color_space="rec2020")
 
 
 def test_only_exr_and_associated_tiff_alpha_count_as_premultiplied(tmp_path):
