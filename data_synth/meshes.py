@@ -283,7 +283,7 @@ def load_mesh(path, normalize: bool = False) -> MeshData:
     """
     from pbrfit.mesh import load_mesh as load_capture_mesh
 
-    mesh = load_capture_mesh(Path(path), where=f"mesh {path}")
+    mesh = load_capture_mesh(Path(path), where="--mesh")
     data = MeshData(mesh.vertices, mesh.faces, mesh.vertex_normals, np.asarray(mesh.visual.uv)[:, :2])
     if normalize:
         lo, hi = data.vertices.min(0), data.vertices.max(0)
