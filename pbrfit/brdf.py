@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 
 import jax.numpy as jnp
+from jax.scipy.special import erfc
 from jaxtyping import Array, ArrayLike, Float
 
 from .model import Model
@@ -38,6 +39,9 @@ __all__ = [
     "g2_smith_ggx_separable",
     "v_smith_ggx_correlated",
     "v_smith_ggx_separable",
+    "lambda_beckmann",
+    "g1_smith_beckmann",
+    "v_smith_beckmann_correlated",
     "k_direct",
     "k_ibl",
     "g_schlick_ggx",
@@ -66,7 +70,7 @@ MIN_ROUGHNESS = 0.045
 #: alpha = MIN_ROUGHNESS**2; the D terms also floor a directly passed alpha here (0/0 at alpha = 0).
 MIN_ALPHA = MIN_ROUGHNESS * MIN_ROUGHNESS
 #: Cosine floor inside terms that divide by n·v or n·l (V, Lambda, Beckmann's tan). The true V
-#: diverges as n·v, n·l -> 0; `evaluate` multiplies by n·l and masks n·l <= 0 or n·v <= 0 to
+#: diverges as n·v and n·l both -> 0 (the separable forms as either does); `evaluate` multiplies by n·l and masks n·l <= 0 or n·v <= 0 to
 #: exactly zero, so the floor only bounds the (unused) value at the horizon. Filament uses 1e-5
 #: on n·v for the same reason; 1e-4 keeps V·(its derivative) inside float32 at MIN_ALPHA.
 COS_MIN = 1e-4
@@ -232,6 +236,40 @@ def v_smith_ggx_separable(n_dot_v, n_dot_l, alpha):
     return 1.0 / ((nv + _ggx_root(nv, alpha)) * (nl + _ggx_root(nl, alpha)))
 
 
+# --- Smith masking-shadowing for Beckmann ------------------------------------------------------
+#: Above this a = 1 / (alpha tan theta) Beckmann's Λ is below 1e-45, 0 in float32 and float64
+#: alike to the precision that matters; a is capped there (Λ's terms are 0 · inf beyond).
+BECKMANN_A_MAX = 10.0
+
+
+def lambda_beckmann(n_dot_x, alpha):
+    """Smith Lambda for Beckmann: Λ(a) = (erf(a) - 1) / 2 + exp(-a²) / (2 a sqrt(pi)),
+    a = 1 / (alpha tan theta_x) = n·x / (alpha sqrt(1 - (n·x)²)).
+
+    Walter et al. 2007, eq. 27 (the exact form; eq. 27's rational fit is not used); Heitz 2014,
+    eq. 80. Written with erfc (no cancellation in erf(a) - 1). n·x is floored at `COS_MIN`
+    (Λ -> inf at grazing: large but finite there) and a capped at `BECKMANN_A_MAX` (Λ = 0).
+    """
+    c = _cos(n_dot_x)
+    sin = jnp.sqrt(jnp.maximum((1.0 - c) * (1.0 + c), NORM2_MIN))
+    a = jnp.minimum(c / (_alpha(alpha) * sin), BECKMANN_A_MAX)
+    return 0.5 * (jnp.exp(-a * a) / (a * math.sqrt(math.pi)) - erfc(a))
+
+
+def g1_smith_beckmann(n_dot_x, alpha):
+    """Exact Smith G1 for Beckmann: 1 / (1 + Λ) with `lambda_beckmann` (Walter et al. 2007, eq. 27)."""
+    return 1.0 / (1.0 + lambda_beckmann(n_dot_x, alpha))
+
+
+def v_smith_beckmann_correlated(n_dot_v, n_dot_l, alpha):
+    """V = G2 / (4 n·v n·l) with the height-correlated Smith G2 = 1 / (1 + Λ(v) + Λ(l)) for
+    Beckmann (Heitz 2014, eq. 99, with `lambda_beckmann`). Cosines floored at `COS_MIN`."""
+    nv = _cos(n_dot_v)
+    nl = _cos(n_dot_l)
+    g2 = 1.0 / (1.0 + lambda_beckmann(nv, alpha) + lambda_beckmann(nl, alpha))
+    return g2 / (4.0 * nv * nl)
+
+
 def k_direct(roughness):
     """Schlick-GGX k for punctual lights: k = (roughness + 1)^2 / 8 (Karis 2013, "remapping")."""
     return jnp.square(jnp.asarray(roughness) + 1.0) / 8.0
@@ -350,6 +388,8 @@ def _geometry(model: Model, n_dot_v, n_dot_l, roughness, alpha):
         return v_smith_ggx_correlated(n_dot_v, n_dot_l, alpha)
     if model.geometry == "smith_ggx_separable":
         return v_smith_ggx_separable(n_dot_v, n_dot_l, alpha)
+    if model.geometry == "smith_beckmann_correlated":
+        return v_smith_beckmann_correlated(n_dot_v, n_dot_l, alpha)
     if model.geometry == "schlick_ggx_direct":
         return v_schlick_ggx(n_dot_v, n_dot_l, k_direct(jnp.maximum(roughness, MIN_ROUGHNESS)))
     return v_schlick_ggx(n_dot_v, n_dot_l, k_ibl(alpha))
@@ -395,8 +435,10 @@ def evaluate_cosines(
 
     metallic and roughness have a trailing axis of 1 so they broadcast against RGB.
 
-    Energy: each lobe alone conserves energy (white Lambert integrates to 1, the single-
-    scattering specular lobe to at most 1), but glTF's (1 - F(v·h)) diffuse weighting does not
+    Energy: Lambert and the single-scattering specular lobe each conserve energy alone (white
+    Lambert integrates to 1, the specular lobe to at most 1); Burley's diffuse does not (a white
+    Burley lobe alone integrates to 1.04 at n·v = 1 and 1.15 at n·v = 0.3, roughness 1, as
+    Disney's model does). glTF's (1 - F(v·h)) diffuse weighting does not
     remove what the specular lobe's masking loses, so a white dielectric reflects more than
     it receives at grazing views (∫ f cos dω ≈ 1.03 at n·v = 0.5 and 1.33 at n·v = 0.05,
     roughness 0.3). That is the glTF model as viewers render it, kept as the default so that

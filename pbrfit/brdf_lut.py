@@ -86,8 +86,13 @@ def brdf_lut(size: int = 32, samples: int = 512, model: Optional[Model] = None) 
 
     for the specular lobe of ``model`` (default: GGX with height-correlated Smith, glTF), taken
     from `brdf.evaluate_cosines` with Schlick Fresnel. Deterministic: ``samples`` Hammersley points
-    through GGX visible-normal sampling (Heitz 2018), whose weight G2/G1 is smooth: 512 samples
-    reach 1e-3 everywhere, grazing entries included (256 leave ~2e-3 in bias at n·v ≈ 0).
+    through GGX visible-normal sampling (Heitz 2018), whose weight G2/G1 is smooth: against
+    16,384 samples, 512 are within 2.2e-3 everywhere (the largest in bias at the grazing,
+    smoothest entry; 4.5% of entries beyond 1e-3), 256 within 2.8e-3.
+
+    Entries sit at cell centres, as a GPU texture's do, and `lookup_table` clamps beyond the
+    outer ones: roughness above 1 - 0.5/size and n·v outside [0.5/size, 1 - 0.5/size] read the
+    edge entries (at size 32, scale + bias is 6% high at roughness 1, n·v = 1).
     """
     return _specular_tables(size, samples, model)[..., :2]
 

@@ -120,6 +120,13 @@ def _scalar_terms() -> list:
         _Spec("d_beckmann", lambda x: brdf.d_beckmann(x[0], x[1]), ("n·h", "alpha"), _grid(c, a), (ck, ak)),
         _Spec("lambda_ggx", lambda x: brdf.lambda_ggx(x[0], x[1]), ("n·x", "alpha"), _grid(c, a), (ck, ak)),
         _Spec("g1_smith_ggx", lambda x: brdf.g1_smith_ggx(x[0], x[1]), ("n·x", "alpha"), _grid(c, a), (ck, ak)),
+        _Spec("lambda_beckmann", lambda x: brdf.lambda_beckmann(x[0], x[1]), ("n·x", "alpha"), _grid(c, a), (ck, ak),
+              skip=_beckmann_cap_skip),
+        _Spec("g1_smith_beckmann", lambda x: brdf.g1_smith_beckmann(x[0], x[1]), ("n·x", "alpha"), _grid(c, a),
+              (ck, ak), skip=_beckmann_cap_skip),
+        _Spec("v_smith_beckmann_correlated", lambda x: brdf.v_smith_beckmann_correlated(x[0], x[1], x[2]),
+              ("n·v", "n·l", "alpha"), _grid(c, c, a), (ck, ck, ak),
+              skip=lambda p: _beckmann_cap_skip(p[:, [0, 2]]) | _beckmann_cap_skip(p[:, [1, 2]])),
     ]
     for name in ("g2_smith_ggx_correlated", "g2_smith_ggx_separable", "v_smith_ggx_correlated", "v_smith_ggx_separable"):
         fn = getattr(brdf, name)
@@ -163,6 +170,15 @@ def _scalar_terms() -> list:
     return specs
 
 
+def _beckmann_cap_skip(p):
+    # Λ_Beckmann's a = n·x / (alpha sin) is capped at BECKMANN_A_MAX. Past a = 4, Λ < 1e-8 is
+    # exp(-a²)'s tail, whose higher derivatives in alpha outgrow any central difference step:
+    # the check is left to points where Λ matters.
+    c, a = p[:, 0], np.maximum(p[:, 1], brdf.MIN_ALPHA)
+    x = c / (a * np.sqrt(np.maximum(1.0 - c * c, 1e-300)))
+    return x > 4.0
+
+
 def _half_vector_skip(p):
     # n·h and v·h are clipped to [0, 1]: skip where either (unclipped) reaches within a margin of 1.
     nv, nl, vl = p[:, 0], p[:, 1], p[:, 2]
@@ -175,6 +191,7 @@ def _half_vector_skip(p):
 MODEL_VARIANTS = (
     Model(),
     Model(distribution="beckmann"),
+    Model(distribution="beckmann", geometry="smith_beckmann_correlated"),
     Model(geometry="smith_ggx_separable"),
     Model(geometry="schlick_ggx_direct"),
     Model(geometry="schlick_ggx_ibl"),

@@ -10,7 +10,8 @@ direction towards the light and the radiance-like quantity a BRDF·cos multiplie
 ``direction`` is where the light travels (a spot's axis, a sun's rays), as in
 KHR_lights_punctual, where a light shines down its node's -Z axis.
 
-Range window (glTF-Sample-Viewer ``getRangeAttenuation``, after Karis 2013):
+Range window (glTF-Sample-Viewer ``getRangeAttenuation``, as KHR_lights_punctual recommends;
+Karis 2013 squares it and divides by d² + 1 instead):
 ``window(d) = clamp(1 - (d / range)^4, 0, 1)`` when ``range > 0``, else 1; the ``1/d^2`` stays
 outside the window. Spot falloff (the KHR_lights_punctual reference code, as glTF-Sample-Viewer's
 ``getSpotAttenuation``): ``cd = dot(spot_direction, -l)``,

@@ -19,7 +19,11 @@ DISTRIBUTIONS = ("ggx", "beckmann")
 #:  - ``smith_ggx_separable``: uncorrelated product G1(v) G1(l) with the exact GGX G1 (Walter 2007).
 #:  - ``schlick_ggx_direct``: Schlick-GGX product with k = (r + 1)^2 / 8 (Karis 2013, punctual).
 #:  - ``schlick_ggx_ibl``: Schlick-GGX product with k = alpha / 2 (Karis 2013, image-based).
-GEOMETRIES = ("smith_ggx_correlated", "smith_ggx_separable", "schlick_ggx_direct", "schlick_ggx_ibl")
+#:  - ``smith_beckmann_correlated``: height-correlated Smith with Beckmann's Λ (Walter 2007,
+#:    Heitz 2014): the masking that belongs with ``distribution="beckmann"`` (the GGX terms
+#:    paired with Beckmann's D lose energy: the weak white furnace gives 0.79 at alpha 0.3).
+GEOMETRIES = ("smith_ggx_correlated", "smith_ggx_separable", "schlick_ggx_direct", "schlick_ggx_ibl",
+              "smith_beckmann_correlated")
 #: Fresnel variants: Schlick's approximation for both lobes, or the exact unpolarised dielectric
 #: Fresnel equation (at ``ior``) for the dielectric lobe with Schlick for the metal lobe.
 FRESNELS = ("schlick", "dielectric")
