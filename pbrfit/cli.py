@@ -184,7 +184,7 @@ _FIT_NAMES = _MAP_NAMES + ("normal",)
 
 
 def _add_fit(sub) -> None:
-    from .fit import CONTINUATION, DEFAULT_SOLVER, IBL_MODES, MAX_STEPS, SOLVERS
+    from .fit import DEFAULT_SOLVER, IBL_MODES, MAX_STEPS, SOLVERS
     from .observations import MAX_PIXEL_SAMPLES
     from .pixel_ibl import PixelIBLSettings
     from .solvers import LOSSES
@@ -235,7 +235,7 @@ def _add_fit(sub) -> None:
                         "the better match")
     p.add_argument("--no-search", action="store_true",
                    help="skip the per-texel re-search of metallic and roughness midway through the solve")
-    p.add_argument("--continuation", default=",".join(str(w) for w in CONTINUATION), metavar="W[,W...]",
+    p.add_argument("--continuation", default=_default_continuation(), metavar="W[,W...]",
                    help="weights of the smoothness prior over the first steps, relative to the data's curvature, "
                         "released before the end (default %(default)s; 'none' turns it off)")
     p.add_argument("--devices", type=int,
@@ -304,6 +304,14 @@ def _fit_options(args) -> dict:
     if args.cg_rtol is not None and args.solver != DEFAULT_SOLVER:
         raise CaptureError(f"--cg-rtol: only the {DEFAULT_SOLVER} solver uses it, not --solver {args.solver}")
     continuation = _continuation(args.continuation)
+    # options that only one mode reads are refused elsewhere, not silently ignored
+    if args.continuation != _default_continuation() and args.solver != DEFAULT_SOLVER:
+        raise CaptureError(f"--continuation: only the {DEFAULT_SOLVER} solver uses it, not --solver {args.solver}")
+    for name, default in (("ibl_samples", PixelIBLSettings.samples), ("ibl_levels", PixelIBLSettings.levels)):
+        if getattr(args, name) != default and args.ibl != "per_pixel":
+            raise CaptureError(f"--{name.replace('_', '-')}: only --ibl per_pixel uses it")
+    if args.resolution is not None and args.maps == "none":
+        raise CaptureError("--resolution: --maps none fits one uniform material (1 x 1 maps)")
     pixel_samples = args.pixel_samples
     if pixel_samples != "auto":
         if not (pixel_samples.isdigit() and 1 <= int(pixel_samples) <= MAX_PIXEL_SAMPLES):
@@ -527,6 +535,12 @@ def build_parser() -> argparse.ArgumentParser:
     for add in (_add_demo, _add_fit, _add_render, _add_synth, _add_check_grads):
         add(sub)
     return parser
+
+
+def _default_continuation() -> str:
+    from .fit import CONTINUATION
+
+    return ",".join(str(w) for w in CONTINUATION)
 
 
 #: The largest image side (`synth --size`) and map side (`--resolution`, `--texture-size`) taken.

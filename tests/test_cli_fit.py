@@ -159,6 +159,10 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--roughness", "0.3", "--roughness-from", "__HELD__"],
          "--roughness-from: --roughness holds roughness at a value too; give one of the two"),
         (["--roughness-from", "__OUT__"], "holds the roughness map of --roughness-from"),
+        (["--continuation", "0.01", "--solver", "lm"], "--continuation: only the structured solver uses it, not --solver lm"),
+        (["--ibl-samples", "64"], "--ibl-samples: only --ibl per_pixel uses it"),
+        (["--ibl-levels", "5"], "--ibl-levels: only --ibl per_pixel uses it"),
+        (["--maps", "none", "--resolution", "8"], "--resolution: --maps none fits one uniform material"),
     ],
 )
 def test_bad_fit_options_exit_2_and_write_nothing(capture, tmp_path, capsys, extra, message):
