@@ -69,8 +69,9 @@ __all__ = [
 MIN_ROUGHNESS = 0.045
 #: alpha = MIN_ROUGHNESS**2; the D terms also floor a directly passed alpha here (0/0 at alpha = 0).
 MIN_ALPHA = MIN_ROUGHNESS * MIN_ROUGHNESS
-#: Cosine floor inside terms that divide by n·v or n·l (V, Lambda, Beckmann's tan). The true V
-#: diverges as n·v and n·l both -> 0 (the separable forms as either does); `evaluate` multiplies by n·l and masks n·l <= 0 or n·v <= 0 to
+#: Cosine floor inside terms that divide by n·v or n·l (V, Lambda, Beckmann's tan). Of the V
+#: terms only the height-correlated ones diverge, as n·v and n·l both -> 0 (the separable and
+#: Schlick forms stay below 1/alpha² and 1/(4k²)); `evaluate` multiplies by n·l and masks n·l <= 0 or n·v <= 0 to
 #: exactly zero, so the floor only bounds the (unused) value at the horizon. Filament uses 1e-5
 #: on n·v for the same reason; 1e-4 keeps V·(its derivative) inside float32 at MIN_ALPHA.
 COS_MIN = 1e-4
@@ -246,8 +247,8 @@ def lambda_beckmann(n_dot_x, alpha):
     """Smith Lambda for Beckmann: Λ(a) = (erf(a) - 1) / 2 + exp(-a²) / (2 a sqrt(pi)),
     a = 1 / (alpha tan theta_x) = n·x / (alpha sqrt(1 - (n·x)²)).
 
-    Walter et al. 2007, eq. 27 (the exact form; eq. 27's rational fit is not used); Heitz 2014,
-    eq. 80. Written with erfc (no cancellation in erf(a) - 1). n·x is floored at `COS_MIN`
+    Walter et al. 2007, eq. 26 (the exact form; eq. 27 is a rational fit, not used here);
+    Heitz 2014, eq. 80. Written with erfc (no cancellation in erf(a) - 1). n·x is floored at `COS_MIN`
     (Λ -> inf at grazing: large but finite there) and a capped at `BECKMANN_A_MAX` (Λ = 0).
     """
     c = _cos(n_dot_x)
@@ -257,7 +258,7 @@ def lambda_beckmann(n_dot_x, alpha):
 
 
 def g1_smith_beckmann(n_dot_x, alpha):
-    """Exact Smith G1 for Beckmann: 1 / (1 + Λ) with `lambda_beckmann` (Walter et al. 2007, eq. 27)."""
+    """Exact Smith G1 for Beckmann: 1 / (1 + Λ) with `lambda_beckmann` (Walter et al. 2007, eq. 26)."""
     return 1.0 / (1.0 + lambda_beckmann(n_dot_x, alpha))
 
 

@@ -82,9 +82,7 @@ def _cache_dir(args):
 def _cmd_render(args) -> int:
     import time
 
-    import numpy as np
-
-    from .io import check_not_inside, check_output_dir, read_material
+    from .io import check_not_inside, check_output_dir, needs_texture_coordinates, read_material
     from .mesh import check_uv_layout
     from .scene import load_capture
     from .views import apply_overrides, load_lights_override, render_capture, write_rendered_capture
@@ -95,9 +93,7 @@ def _cmd_render(args) -> int:
     check_not_inside(capture.root, args.out, "capture being rendered")
     check_not_inside(args.material, args.out, "material being rendered")
     material = read_material(args.material)
-    # a uniform material (1 x 1 maps, as `fit --maps none` writes) needs no texture coordinates
-    if material.normal is not None or any(
-            np.shape(m)[:2] != (1, 1) for m in (material.base_color, material.metallic, material.roughness)):
+    if needs_texture_coordinates(material):  # not a uniform one (1 x 1 maps, as `fit --maps none` writes)
         check_uv_layout(capture.mesh, f"{capture.json_path}: mesh")
     lights_json = load_lights_override(args.lights) if args.lights else None
     capture = apply_overrides(capture, args.environment, lights_json)
@@ -224,9 +220,9 @@ def _add_fit(sub) -> None:
     p.add_argument("--ibl", choices=IBL_MODES, default=IBL_MODES[0],
                    help="environment light: split_sum (default; the renderer's tables) or per_pixel "
                         "(each pixel's integrals by Monte Carlo before the solve: no split-sum error, slower setup)")
-    p.add_argument("--ibl-samples", type=int, default=PixelIBLSettings.samples,
+    p.add_argument("--ibl-samples", type=int,
                    help=f"per_pixel: sample steps per pixel (default {PixelIBLSettings.samples})")
-    p.add_argument("--ibl-levels", type=int, default=PixelIBLSettings.levels,
+    p.add_argument("--ibl-levels", type=int,
                    help=f"per_pixel: roughness levels tabulated (default {PixelIBLSettings.levels})")
     p.add_argument("--pixel-samples", default="auto", metavar="{auto,N}",
                    help=f"shade N x N samples per pixel (N from 1 to {MAX_PIXEL_SAMPLES}) and fit their mean: the pixel "
@@ -235,9 +231,9 @@ def _add_fit(sub) -> None:
                         "the better match")
     p.add_argument("--no-search", action="store_true",
                    help="skip the per-texel re-search of metallic and roughness midway through the solve")
-    p.add_argument("--continuation", default=_default_continuation(), metavar="W[,W...]",
+    p.add_argument("--continuation", metavar="W[,W...]",
                    help="weights of the smoothness prior over the first steps, relative to the data's curvature, "
-                        "released before the end (default %(default)s; 'none' turns it off)")
+                        f"released before the end (default {_default_continuation()}; 'none' turns it off)")
     p.add_argument("--devices", type=int,
                    help="split the pixels over this many JAX devices (default: one device)")
     p.add_argument("--cache", help="G-buffer and per-pixel IBL cache folder (default $PBRFIT_CACHE or ~/.cache/pbrfit)")
@@ -303,15 +299,19 @@ def _fit_options(args) -> dict:
         raise CaptureError(f"--cg-rtol: must be a number in (0, 1), got {args.cg_rtol}")
     if args.cg_rtol is not None and args.solver != DEFAULT_SOLVER:
         raise CaptureError(f"--cg-rtol: only the {DEFAULT_SOLVER} solver uses it, not --solver {args.solver}")
-    continuation = _continuation(args.continuation)
-    # options that only one mode reads are refused elsewhere, not silently ignored
-    if args.continuation != _default_continuation() and args.solver != DEFAULT_SOLVER:
+    continuation = _continuation(_default_continuation() if args.continuation is None else args.continuation)
+    # options that only another mode reads are refused, not silently ignored
+    if args.continuation is not None and continuation and args.solver != DEFAULT_SOLVER:
         raise CaptureError(f"--continuation: only the {DEFAULT_SOLVER} solver uses it, not --solver {args.solver}")
-    for name, default in (("ibl_samples", PixelIBLSettings.samples), ("ibl_levels", PixelIBLSettings.levels)):
-        if getattr(args, name) != default and args.ibl != "per_pixel":
+    for name in ("ibl_samples", "ibl_levels"):
+        if getattr(args, name) is not None and args.ibl != "per_pixel":
             raise CaptureError(f"--{name.replace('_', '-')}: only --ibl per_pixel uses it")
-    if args.resolution is not None and args.maps == "none":
-        raise CaptureError("--resolution: --maps none fits one uniform material (1 x 1 maps)")
+    if args.maps == "none":  # one texel: no map size, no neighbours, no levels
+        for flag, given in (("--resolution", args.resolution is not None), ("--smooth", args.smooth > 0),
+                            ("--continuation", args.continuation is not None and bool(continuation)),
+                            ("--coarse-to-fine", args.coarse_to_fine)):
+            if given:
+                raise CaptureError(f"{flag}: --maps none fits one uniform material (1 x 1 maps)")
     pixel_samples = args.pixel_samples
     if pixel_samples != "auto":
         if not (pixel_samples.isdigit() and 1 <= int(pixel_samples) <= MAX_PIXEL_SAMPLES):
@@ -320,7 +320,9 @@ def _fit_options(args) -> dict:
     if "normal" in free and args.ibl == "per_pixel":
         raise CaptureError("--ibl per_pixel: fitted normals need --ibl split_sum (per-pixel integrals hold the normals fixed)")
     try:
-        pixel_ibl_settings = PixelIBLSettings(levels=args.ibl_levels, samples=args.ibl_samples)
+        pixel_ibl_settings = PixelIBLSettings(
+            levels=PixelIBLSettings.levels if args.ibl_levels is None else args.ibl_levels,
+            samples=PixelIBLSettings.samples if args.ibl_samples is None else args.ibl_samples)
     except ValueError:
         raise CaptureError(f"--ibl-levels must be >= 2 and --ibl-samples >= 1, "
                            f"got {args.ibl_levels} and {args.ibl_samples}") from None

@@ -317,7 +317,8 @@ def fit_observations(
         raise ValueError(f"cg_rtol must be in (0, 1), got {cg_rtol}")
     _check_normals(model, fit)
     fixed = dict(fixed or {})
-    held = held_report(fit, fixed)
+    # what the caller held (before the model's own: a model without the metal lobe holds metallic 0)
+    held = held_report([f for f in fit if model.metallic or f != "metallic"], fixed)
     channels = channel_mask(fit)
     k = len(channels)
     if not model.metallic:

@@ -99,8 +99,9 @@ class IBLSettings:
             normalize(mix(R, n, alpha)) with alpha = roughness², an approximation of the lobe's
             dominant direction for rough surfaces in the family of Lagarde & de Rousiers 2014
             (section 4.9.3) and Filament's getSpecularDominantDirection, whose weights differ
-            (Filament's is alpha², Lagarde's a fit in alpha); this weight was chosen by measurement
-            (`experiments/ibl_accuracy.py`); ``"reflect"`` along R = reflect(-v, n) (Karis 2013). The dominant direction cuts the error by a third
+            (Filament's is alpha², Lagarde's a fit in alpha; these were not compared here);
+            ``"reflect"`` along R = reflect(-v, n) (Karis 2013). `experiments/ibl_accuracy.py`
+            measures this direction against ``"reflect"``. The dominant direction cuts the error by a third
             under smooth light and most at grazing angles.
     """
 

@@ -390,8 +390,8 @@ def write_image(
     if channels == 4:
         spec.alpha_channel = 3
     spec.attribute("oiio:UnassociatedAlpha", 1)
-    if color_space == "linear" and dtype in ("uint8", "uint16"):
-        spec.attribute("oiio:ColorSpace", "lin_rec709")
+    if dtype in ("uint8", "uint16"):  # the names every OpenImageIO's PNG writer knows
+        spec.attribute("oiio:ColorSpace", "Linear" if color_space == "linear" else "sRGB")
     path = Path(path)
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
@@ -567,6 +567,14 @@ def _is_uniform(material) -> bool:
     maps = [_np(material.base_color), _np(material.metallic), _np(material.roughness)]
     extra = [_np(getattr(material, name, None)) for name in ("normal", "emissive")]
     return all(m.shape[:2] == (1, 1) for m in maps) and all(e is None for e in extra)
+
+
+def needs_texture_coordinates(material) -> bool:
+    """Whether rendering ``material`` reads texture coordinates: any map larger than 1 x 1
+    (occlusion and emissive included), or a normal map."""
+    maps = [_np(getattr(material, name, None)) for name in ("base_color", "metallic", "roughness", "occlusion",
+                                                            "emissive")]
+    return getattr(material, "normal", None) is not None or any(m is not None and m.shape[:2] != (1, 1) for m in maps)
 
 
 def _glb_with_json(data: bytes, edit) -> bytes:

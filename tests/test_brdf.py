@@ -469,7 +469,7 @@ def _beckmann_hemisphere(alpha: float, nu: int = 256, nphi: int = 192):
 
 
 def test_lambda_beckmann_closed_form(x64):
-    """Walter et al. 2007, eq. 27: Λ = (erf(a) - 1) / 2 + exp(-a²) / (2 a sqrt(pi)), a = 1 / (alpha tan θ)."""
+    """Walter et al. 2007, eq. 26: Λ = (erf(a) - 1) / 2 + exp(-a²) / (2 a sqrt(pi)), a = 1 / (alpha tan θ)."""
     from scipy.special import erf
 
     for c in (brdf.COS_MIN, 0.05, 0.2, 0.5, 0.9, 0.999):

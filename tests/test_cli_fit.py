@@ -163,6 +163,10 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--ibl-samples", "64"], "--ibl-samples: only --ibl per_pixel uses it"),
         (["--ibl-levels", "5"], "--ibl-levels: only --ibl per_pixel uses it"),
         (["--maps", "none", "--resolution", "8"], "--resolution: --maps none fits one uniform material"),
+        (["--maps", "none", "--smooth", "0.1"], "--smooth: --maps none fits one uniform material"),
+        (["--maps", "none", "--coarse-to-fine"], "--coarse-to-fine: --maps none fits one uniform material"),
+        (["--maps", "none", "--continuation", "0.1"], "--continuation: --maps none fits one uniform material"),
+        (["--ibl-samples", "512"], "--ibl-samples: only --ibl per_pixel uses it"),
     ],
 )
 def test_bad_fit_options_exit_2_and_write_nothing(capture, tmp_path, capsys, extra, message):
@@ -182,6 +186,16 @@ def test_bad_fit_options_exit_2_and_write_nothing(capture, tmp_path, capsys, ext
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("pbrfit: error: ") and message in err[0]
     assert (sorted(p.name for p in out.iterdir()) if out.exists() else None) == before
+
+
+def test_options_that_mean_nothing_else_parse():
+    """'none' or the default spelled out is no conflict: only what another mode would ignore is."""
+    from pbrfit.cli import _fit_options, build_parser
+
+    parse = lambda *extra: _fit_options(build_parser().parse_args(["fit", "cap", "--out", "o", *extra]))
+    assert parse("--solver", "lm", "--continuation", "none")["continuation"] == ()
+    assert parse("--maps", "none", "--continuation", "none", "--smooth", "0")["maps"] == "none"
+    assert parse("--ibl", "per_pixel", "--ibl-samples", "64")["pixel_ibl_settings"].samples == 64
 
 
 def test_fit_continuation_option(capture, tmp_path, monkeypatch):
@@ -307,6 +321,11 @@ def test_uniform_fit_of_a_mesh_without_uvs_and_a_map_held_from_a_folder(capture,
     textured = tmp_path / "textured"
     shutil.copytree(out, textured)
     write_image(textured / "base_color.exr", np.full((2, 2, 3), 0.5, np.float32))
+    assert main(["render", str(cap), "--material", str(textured), "--out", str(tmp_path / "r2"), "--quiet"]) == 2
+    assert "has no texture coordinates" in capsys.readouterr().err and not (tmp_path / "r2").exists()
+    shutil.rmtree(textured)
+    shutil.copytree(out, textured)  # a uniform material with an emissive map reads texture coordinates too
+    write_image(textured / "emissive.exr", np.zeros((2, 2, 3), np.float32))
     assert main(["render", str(cap), "--material", str(textured), "--out", str(tmp_path / "r2"), "--quiet"]) == 2
     assert "has no texture coordinates" in capsys.readouterr().err and not (tmp_path / "r2").exists()
     shutil.rmtree(out)

@@ -39,23 +39,25 @@ def test_atomic_path_renames_on_success(tmp_path):
     assert _listing(final.parent) == ["a.txt"]
 
 
-def test_atomic_outputs_get_the_modes_the_umask_gives(tmp_path):
+def test_atomic_outputs_get_the_modes_the_umask_gives(tmp_path, monkeypatch):
     """Not tempfile's private 0600 / 0700: others can read a fit's maps where the umask lets them."""
     import os
     import stat
 
     from pbrfit import io as pio
 
-    with atomic_path(tmp_path / "a.exr") as tmp:
-        tmp.write_text("x")
-    with atomic_dir(tmp_path / "out") as d:
-        (d / "x").write_text("1")
     plain_file, plain_dir = tmp_path / "plain", tmp_path / "plaindir"
     plain_file.write_text("x")
     plain_dir.mkdir()
     mode = lambda p: stat.S_IMODE(os.stat(p).st_mode)
-    assert mode(tmp_path / "a.exr") == mode(plain_file) == pio._FILE_MODE
-    assert mode(tmp_path / "out") == mode(plain_dir) == pio._DIR_MODE
+    assert (mode(plain_file), mode(plain_dir)) == (pio._FILE_MODE, pio._DIR_MODE)  # read from the umask
+    monkeypatch.setattr(pio, "_FILE_MODE", 0o640)  # modes no umask default gives, nor tempfile
+    monkeypatch.setattr(pio, "_DIR_MODE", 0o750)
+    with atomic_path(tmp_path / "a.exr") as tmp:
+        tmp.write_text("x")
+    with atomic_dir(tmp_path / "out") as d:
+        (d / "x").write_text("1")
+    assert mode(tmp_path / "a.exr") == 0o640 and mode(tmp_path / "out") == 0o750
 
 
 def test_atomic_path_failure_keeps_old_and_leaves_no_temp(tmp_path):
