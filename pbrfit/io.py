@@ -564,9 +564,9 @@ def _pil_image(pixels: np.ndarray):
 
 
 def _is_uniform(material) -> bool:
-    maps = [_np(material.base_color), _np(material.metallic), _np(material.roughness)]
-    extra = [_np(getattr(material, name, None)) for name in ("normal", "emissive")]
-    return all(m.shape[:2] == (1, 1) for m in maps) and all(e is None for e in extra)
+    """Whether glTF's factors hold ``material`` whole: it reads no texture coordinates
+    (`needs_texture_coordinates`) and has no occlusion map, for which glTF has no factor."""
+    return not needs_texture_coordinates(material) and getattr(material, "occlusion", None) is None
 
 
 def needs_texture_coordinates(material) -> bool:
@@ -623,10 +623,13 @@ def _write_uniform_gltf(path: Path, mesh, material) -> Path:
     base = [float(v) for v in np.clip(_np(material.base_color).reshape(-1)[:3], 0.0, 1.0)] + [1.0]
     metallic = float(np.clip(_np(material.metallic).reshape(-1)[0], 0.0, 1.0))
     roughness = float(np.clip(_np(material.roughness).reshape(-1)[0], 0.0, 1.0))
+    emissive = _np(getattr(material, "emissive", None))
 
     def exact_factors(tree):  # trimesh stores baseColorFactor as 8-bit; write the floats
         for m in tree.get("materials", []):
             m["pbrMetallicRoughness"] = dict(baseColorFactor=base, metallicFactor=metallic, roughnessFactor=roughness)
+            if emissive is not None:  # clipped to [0, 1], as the emissive texture is
+                m["emissiveFactor"] = [float(v) for v in np.clip(emissive.reshape(-1)[:3], 0.0, 1.0)]
         return tree
 
     return _export_glb(path, mesh, TextureVisuals(material=PBRMaterial(name="pbrfit", doubleSided=True)), exact_factors)
@@ -645,9 +648,11 @@ def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
     (factor 1, clipped to [0, 1]) when the material has them. Vertex normals are written
     (NORMAL), so shading matches the mesh the material was fitted on.
 
-    A uniform material (1 x 1 maps, no normal or emissive map) is written as glTF factors
-    instead, exactly (baseColorFactor is linear, as the fit's base color): no textures, and no
-    texture coordinates needed.
+    A uniform material (1 x 1 maps, emissive included; no normal or occlusion map) is written as
+    glTF factors instead, exactly (baseColorFactor is linear, as the fit's base color): no
+    textures, and no texture coordinates needed. A material of 1 x 1 maps with a 1 x 1 occlusion
+    map, which only a texture can hold, is written with textures and TEXCOORD_0 = (0, 0) on a
+    mesh without texture coordinates: a 1 x 1 texture reads the same everywhere.
     """
     from trimesh.visual.material import PBRMaterial
     from trimesh.visual.texture import TextureVisuals
@@ -656,9 +661,12 @@ def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
         return _write_uniform_gltf(Path(path), mesh, material)
     uv = getattr(getattr(mesh, "visual", None), "uv", None)
     if uv is None or len(uv) != len(mesh.vertices):
-        raise ValueError("write_gltf needs a mesh with one texture coordinate per vertex (mesh.visual.uv)")
+        if needs_texture_coordinates(material):
+            raise ValueError("write_gltf needs a mesh with one texture coordinate per vertex (mesh.visual.uv)")
+        uv = np.zeros((len(mesh.vertices), 2))
     base = _np(material.base_color)
-    orm_image = _pil_image(_pack_orm(material))
+    orm = _pack_orm(material)
+    orm_image = _pil_image(orm)
     kwargs = dict(
         baseColorTexture=_pil_image(_srgb_encode(base)),
         metallicRoughnessTexture=orm_image,
@@ -671,8 +679,12 @@ def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
     normal = _np(getattr(material, "normal", None))
     if normal is not None:
         kwargs["normalTexture"] = _pil_image(_encode_normal(normal))
-    if getattr(material, "occlusion", None) is not None:
-        kwargs["occlusionTexture"] = orm_image
+    occlusion = _np(getattr(material, "occlusion", None))
+    if occlusion is not None:
+        if occlusion.shape[:2] == orm.shape[:2]:
+            kwargs["occlusionTexture"] = orm_image  # its R channel, as glTF reads occlusion
+        else:  # a size of its own: its own image (R, repeated so viewers show grey)
+            kwargs["occlusionTexture"] = _pil_image(np.repeat(occlusion[..., :1], 3, axis=-1))
     emissive = _np(getattr(material, "emissive", None))
     if emissive is not None:
         kwargs["emissiveTexture"] = _pil_image(_srgb_encode(emissive))

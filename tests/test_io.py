@@ -294,6 +294,59 @@ def test_write_gltf_uniform_material_as_exact_factors_without_uv(tmp_path):
     assert len(trimesh.load(out).geometry) == 1
 
 
+
+def _uniform_with(**extra):
+    u = Material.uniform([0.2, 0.4, 0.6], 0.3, 0.7)
+    return Material(base_color=u.base_color, metallic=u.metallic, roughness=u.roughness, **extra)
+
+
+def test_write_gltf_keeps_occlusion_and_emissive_of_uniform_materials(tmp_path):
+    """1 x 1 maps with an occlusion map (glTF has no occlusion factor) are written with textures;
+    a 1 x 1 emissive map becomes emissiveFactor. Before, both were dropped or refused."""
+    import trimesh
+
+    from pbrfit.mesh import load_mesh
+
+    box = trimesh.creation.box()  # no texture coordinates
+    tree, _ = read_glb(write_gltf(tmp_path / "e.glb", box, _uniform_with(emissive=np.full((1, 1, 3), [0.5, 2.0, 0.0]))))
+    np.testing.assert_allclose(tree["materials"][0]["emissiveFactor"], [0.5, 1.0, 0.0])  # clipped, as the texture
+    assert "images" not in tree
+
+    # a 1 x 1 occlusion on a mesh without texture coordinates: 1 x 1 textures read at uv (0, 0)
+    tree, blob = read_glb(write_gltf(tmp_path / "o1.glb", box, _uniform_with(occlusion=np.full((1, 1, 1), 0.4))))
+    prim = tree["meshes"][0]["primitives"][0]
+    np.testing.assert_array_equal(glb_accessor(tree, blob, prim["attributes"]["TEXCOORD_0"]), 0.0)
+    mat = tree["materials"][prim["material"]]
+    assert glb_image(tree, blob, mat["occlusionTexture"]["index"])[0, 0, 0] == round(0.4 * 255)
+
+    # an occlusion map larger than the 1 x 1 others, on a mesh with texture coordinates: its own image
+    occlusion = np.random.default_rng(4).uniform(0, 1, (3, 2, 1))
+    quad = load_mesh(write_quad_glb(tmp_path / "quad.glb"))
+    tree, blob = read_glb(write_gltf(tmp_path / "o3.glb", quad, _uniform_with(occlusion=occlusion)))
+    mat = tree["materials"][0]
+    image = glb_image(tree, blob, mat["occlusionTexture"]["index"])
+    np.testing.assert_allclose(image[..., :1] / 255.0, occlusion, atol=0.5 / 255 + 1e-6)
+    mr = glb_image(tree, blob, mat["pbrMetallicRoughness"]["metallicRoughnessTexture"]["index"])
+    np.testing.assert_allclose(mr[0, 0] / 255.0, [1.0, 0.7, 0.3], atol=0.5 / 255 + 1e-6)
+    with pytest.raises(ValueError, match="texture coordinate"):
+        write_gltf(tmp_path / "x.glb", box, _uniform_with(occlusion=occlusion))
+
+
+def test_write_gltf_occlusion_of_its_own_size(tmp_path):
+    """An occlusion map whose size differs from metallic and roughness cannot share their
+    packed image (R = 1 there); it gets its own."""
+    from pbrfit.mesh import load_mesh
+
+    rng = np.random.default_rng(5)
+    m = _material(rng, size=(4, 6))
+    occlusion = rng.uniform(0, 1, (2, 2, 1)).astype(np.float32)
+    m = Material(base_color=m.base_color, metallic=m.metallic, roughness=m.roughness, occlusion=occlusion)
+    tree, blob = read_glb(write_gltf(tmp_path / "m.glb", load_mesh(write_quad_glb(tmp_path / "quad.glb")), m))
+    mat = tree["materials"][0]
+    image = glb_image(tree, blob, mat["occlusionTexture"]["index"])
+    np.testing.assert_allclose(image[..., :1] / 255.0, occlusion, atol=0.5 / 255 + 1e-6)
+
+
 # --- glTF export --------------------------------------------------------------------------------
 def test_write_gltf_uv_and_texture_orientation(tmp_path):
     from pbrfit.mesh import load_mesh
