@@ -1,7 +1,22 @@
-"""Shared test settings: a small, deterministic hypothesis profile (the machine is shared)."""
+"""Shared test settings.
+
+- A small, deterministic hypothesis profile (the machine is shared).
+- A cache folder of the session's own (``PBRFIT_CACHE``), removed at exit: the CLI's G-buffer
+  and XLA caches never read or write the user's ``~/.cache/pbrfit``, so no test depends on what
+  earlier runs left there (a fresh CI machine has nothing there).
+- JAX's persistent compilation cache in that folder, on from the start, as ``pbrfit`` turns it on
+  for its commands (`pbrfit.cli`): a test that builds a new ``jax.jit`` of a function another
+  test compiled at the same shapes loads the executable instead of compiling it again.
+"""
+
+import atexit
+import os
+import shutil
+import tempfile
 
 import pbrfit  # noqa: F401  (first: sets XLA workarounds before any JAX backend starts)
 
+import jax
 from hypothesis import HealthCheck, settings
 
 settings.register_profile(
@@ -12,3 +27,9 @@ settings.register_profile(
     suppress_health_check=[HealthCheck.too_slow],
 )
 settings.load_profile("pbrfit")
+
+_CACHE = tempfile.mkdtemp(prefix="pbrfit-test-cache-")  # one per process (each xdist worker)
+atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
+os.environ["PBRFIT_CACHE"] = _CACHE
+jax.config.update("jax_compilation_cache_dir", os.path.join(_CACHE, "xla"))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)  # as `pbrfit.cli` sets it
