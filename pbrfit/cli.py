@@ -319,13 +319,12 @@ def _fit_options(args) -> dict:
         pixel_samples = int(pixel_samples)
     if "normal" in free and args.ibl == "per_pixel":
         raise CaptureError("--ibl per_pixel: fitted normals need --ibl split_sum (per-pixel integrals hold the normals fixed)")
-    try:
-        pixel_ibl_settings = PixelIBLSettings(
-            levels=PixelIBLSettings.levels if args.ibl_levels is None else args.ibl_levels,
-            samples=PixelIBLSettings.samples if args.ibl_samples is None else args.ibl_samples)
-    except ValueError:
-        raise CaptureError(f"--ibl-levels must be >= 2 and --ibl-samples >= 1, "
-                           f"got {args.ibl_levels} and {args.ibl_samples}") from None
+    for flag, value, least in (("--ibl-levels", args.ibl_levels, 2), ("--ibl-samples", args.ibl_samples, 1)):
+        if value is not None and value < least:
+            raise CaptureError(f"{flag}: must be >= {least}, got {value}")
+    pixel_ibl_settings = PixelIBLSettings(
+        levels=PixelIBLSettings.levels if args.ibl_levels is None else args.ibl_levels,
+        samples=PixelIBLSettings.samples if args.ibl_samples is None else args.ibl_samples)
     devices = None
     if args.devices is not None:
         import jax

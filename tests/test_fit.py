@@ -168,10 +168,22 @@ def test_fixed_channels_stay_fixed():
 
 
 def test_srgb_targets_and_huber_loss():
+    """sRGB targets with 3% of the pixels knocked dark (0.05): the Huber fit keeps to the truth,
+    the L2 fit is pulled off it (measured: base 0.003 / 0.031 off, roughness 0.0009 / 0.014)."""
     truth = Material.uniform((0.5, 0.4, 0.3), 0.0, 0.4)
-    obs = observations_from_views(VIEWS, _images(VIEWS, truth, color_space="srgb"), color_space="srgb")
-    res = fit_observations(obs, maps="none", loss="huber", max_steps=40)
-    assert abs(float(res.material.roughness[0, 0, 0]) - 0.4) < 1e-3
+    rng = np.random.default_rng(1)
+    images = []
+    for image in _images(VIEWS, truth, color_space="srgb"):
+        image = image.copy()
+        image[rng.random(image.shape[:2]) < 0.03] = 0.05
+        images.append(image)
+    obs = observations_from_views(VIEWS, images, color_space="srgb")
+    fits = {loss: fit_observations(obs, maps="none", loss=loss, max_steps=40) for loss in ("huber", "l2")}
+    error = {loss: (np.max(np.abs(np.asarray(r.material.base_color).ravel() - [0.5, 0.4, 0.3])),
+                    abs(float(r.material.roughness[0, 0, 0]) - 0.4)) for loss, r in fits.items()}
+    assert fits["huber"].report["loss"] == "huber" and fits["l2"].report["loss"] == "l2"
+    assert error["huber"][0] < 0.008 and error["huber"][1] < 3e-3, error
+    assert error["l2"][0] > 0.015 and error["l2"][1] > 6e-3, error
 
 
 @pytest.mark.parametrize("solver", [s for s in SOLVERS if s != "structured"])
@@ -180,7 +192,12 @@ def test_every_solver_runs(solver):
     obs = observations_from_views(VIEWS[:2], _images(VIEWS[:2], truth))
     res = fit_observations(obs, resolution=4, solver=solver, max_steps=3, init="prior")
     assert res.report["solver"] == solver
-    assert np.all(np.isfinite(np.asarray(res.material.base_color)))
+    assert 1 <= res.report["steps"] <= 3, res.report["levels"]  # it ran, and max_steps reached it
+    assert np.isfinite(res.report["final_loss"])
+    # from the prior's 0.5, every solver's three steps move base colour towards the truth
+    # (measured: RMSE 0.011 (lm) to 0.175 (adam), against the prior's 0.202)
+    rmse = float(np.sqrt(np.mean((np.asarray(res.material.base_color) - [0.6, 0.35, 0.2]) ** 2)))
+    assert rmse < 0.19, rmse
 
 
 def _texel_problem(truth, smooth=0.0):

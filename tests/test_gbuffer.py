@@ -338,9 +338,22 @@ def test_cache_round_trip_and_invalidation(tmp_path, monkeypatch):
     assert not np.array_equal(g3.position, g1.position)
     compute_gbuffer(mesh, SHADOW_CAM, SHADOW_LIGHTS[:1], cache_dir=tmp_path)  # other lights
     assert len(list(tmp_path.iterdir())) == 3
+    # the mesh's vertices, texture coordinates and normals are in the key too
+    verts = np.array(mesh.vertices)
+    verts[-4:, 2] += 0.1  # the occluder moved up
+    uv = np.array(mesh.visual.uv)
+    normals = np.array(mesh.vertex_normals)
+    normals[:4] = [0.0, 0.6, 0.8]
+    for edited, what in ((textured(verts, mesh.faces, uv), "position"), (textured(mesh.vertices, mesh.faces, uv[:, ::-1]), "uv"),
+                         (textured(mesh.vertices, mesh.faces, uv, normals), "normal")):
+        before = len(list(tmp_path.iterdir()))
+        g = compute_gbuffer(edited, SHADOW_CAM, SHADOW_LIGHTS, cache_dir=tmp_path)
+        assert len(list(tmp_path.iterdir())) == before + 1, what
+        assert not np.array_equal(getattr(g, what), getattr(g1, what)), what
     files[0].write_bytes(b"not an npz")  # a damaged entry is recomputed and replaced
     g4 = compute_gbuffer(mesh, SHADOW_CAM, SHADOW_LIGHTS, cache_dir=tmp_path)
     np.testing.assert_array_equal(g4.position, g1.position)
+    np.testing.assert_array_equal(np.load(files[0])["position"], g1.position)
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary file left
 
 

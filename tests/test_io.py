@@ -417,6 +417,14 @@ def test_only_exr_and_associated_tiff_alpha_count_as_premultiplied(tmp_path):
         write_image(tmp_path / name, rgba, dtype)
         info = read_image(tmp_path / name)[1]
         assert info.alpha_channel == 3 and info.associated_alpha is associated, name
+    # a TIFF written the way most tools write one, without the unassociated-alpha tag: premultiplied
+    import OpenImageIO as oiio
+
+    out = oiio.ImageOutput.create(str(tmp_path / "b.tif"))
+    assert out.open(str(tmp_path / "b.tif"), oiio.ImageSpec(4, 4, 4, "uint16")) and out.write_image(rgba)
+    out.close()
+    info = read_image(tmp_path / "b.tif")[1]
+    assert info.alpha_channel == 3 and info.associated_alpha is True
 
 
 def test_convergence_plot_survives_non_finite_losses(tmp_path):

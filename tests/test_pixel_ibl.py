@@ -1,6 +1,7 @@
 """Per-pixel IBL integrals: the regrouped BRDF against the Monte Carlo reference, the roughness
 spline, gradients at the extremes, and a fit that uses them."""
 
+import dataclasses
 import math
 
 import jax
@@ -106,7 +107,9 @@ def test_tables_are_cached_by_everything_they_depend_on(tmp_path, monkeypatch):
     again = pixel_ibl(SKY, n, v, Model(), settings, cache_dir=tmp_path)
     np.testing.assert_array_equal(np.asarray(again.table), np.asarray(first.table))
     for changed in (dict(settings=PixelIBLSettings(levels=3, samples=16)), dict(model=Model(fresnel="dielectric")),
-                    dict(v=np.roll(v, 1, axis=0)), dict(env=procedural_sky(64, sun_elevation_deg=20.0))):
+                    dict(v=np.roll(v, 1, axis=0)), dict(n=np.roll(n, 1, axis=0)),
+                    dict(env=procedural_sky(64, sun_elevation_deg=20.0)),
+                    dict(env=dataclasses.replace(SKY, rotation_deg=30.0)), dict(env=dataclasses.replace(SKY, world_up="+z"))):
         args = dict(env=SKY, n=n, v=v, model=Model(), settings=settings, cache_dir=tmp_path)
         args.update(changed)
         with pytest.raises(AssertionError, match="integrated again"):
