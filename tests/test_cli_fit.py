@@ -211,7 +211,11 @@ def test_fit_continuation_option(capture, tmp_path, monkeypatch):
         reports[value] = json.loads((out / "report.json").read_text())
     cont = reports["0.01,0.001"]["continuation"]
     assert cont["relative"] == [0.01, 0.001] and len(cont["weights"]) == 2
+    # the weights are the relative ones times the data's curvature; the steps ran under them
+    np.testing.assert_allclose(cont["weights"], [0.01 * cont["curvature"], 0.001 * cont["curvature"]], rtol=1e-5)
+    assert cont["weights"][0] > cont["weights"][1] > 0 and 0 < cont["steps"] < 26
     assert reports["none"]["continuation"] is None
+    assert reports["none"]["final_loss"] != reports["0.01,0.001"]["final_loss"]
 
 
 def test_fit_pixel_samples_option(capture, tmp_path, monkeypatch):
@@ -226,7 +230,7 @@ def test_fit_pixel_samples_option(capture, tmp_path, monkeypatch):
 def test_fit_missing_capture_exits_2(tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["fit", str(tmp_path / "nope"), "--out", str(out)]) == 2
-    assert "pbrfit: error:" in capsys.readouterr().err
+    assert capsys.readouterr().err.strip() == f"pbrfit: error: {tmp_path / 'nope'}: capture not found"
     assert not out.exists()
 
 

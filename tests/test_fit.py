@@ -286,7 +286,9 @@ def test_grid_start_inverts_the_tone_map(tonemap, ev, bits):
 
 @pytest.mark.parametrize("smooth", [0.0, 1e-3])
 def test_coordinate_search_repairs_texels_in_wrong_basins(smooth):
-    """Texels knocked into a wrong (metallic, roughness) basin come back; nothing gets worse."""
+    """Texels knocked into a wrong (metallic, roughness) basin come back, and the objective falls
+    tenfold. Their neighbours, which share pixels with them, move too (38 of 59 by up to 0.28 while
+    the knocked texels are wrong); a solve from the search's result reaches the optimum."""
     truth = _checker()
     problem = _texel_problem(truth, smooth)
     x_true = _stack(truth)
@@ -348,8 +350,9 @@ def test_fit_reports_the_search():
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
     res = fit_observations(obs, resolution=8, max_steps=40)
     assert "search_moved" in res.report["levels"][-1] and "search" in res.report["times"]
+    assert 0 <= res.report["levels"][-1]["search_moved"] <= 64
     off = fit_observations(obs, resolution=8, max_steps=40, search=False)
-    assert "search_moved" not in off.report["levels"][-1]
+    assert "search_moved" not in off.report["levels"][-1] and "search" not in off.report["times"]
 
 
 def test_background_compile_gives_the_same_fit():

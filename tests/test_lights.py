@@ -73,8 +73,9 @@ def test_spot_falloff_matches_khr_reference_code():
 
 
 def test_spot_hard_edge_finite():
-    v = spot_falloff(jnp.array([0.9, 0.95, 1.0]), jnp.asarray(0.3), jnp.asarray(0.3))
-    assert np.all(np.isfinite(v))
+    """inner = outer = 0.3 (cos 0.9553): a step, finite on both sides."""
+    v = spot_falloff(jnp.array([0.9, 0.95, 0.96, 1.0]), jnp.asarray(0.3), jnp.asarray(0.3))
+    np.testing.assert_array_equal(np.asarray(v), [0.0, 0.0, 1.0, 1.0])
 
 
 def test_directional_light_lux_and_direction():

@@ -34,7 +34,9 @@ def test_every_listed_variant_constructs():
             for f in FRESNELS:
                 for diff in DIFFUSES:
                     for ibl in IBLS:
-                        Model(distribution=d, geometry=g, fresnel=f, diffuse=diff, ibl=ibl)
+                        fields = dict(distribution=d, geometry=g, fresnel=f, diffuse=diff, ibl=ibl)
+                        described = Model(**fields).describe()
+                        assert {k: described[k] for k in fields} == fields
 
 
 def test_hashable_and_equal_by_value():
@@ -67,7 +69,9 @@ def test_static_jit_argument():
     np.testing.assert_allclose(a, _eval_default(_MIRROR, base, 0.0, 0.5), rtol=1e-6)
     assert not np.allclose(a, b)
     # an equal Model hits the compiled cache: same result, no retrace
+    compiled = _eval._cache_size()
     np.testing.assert_array_equal(_eval(_MIRROR, base, 0.0, 0.5, Model(diffuse="burley")), b)
+    assert _eval._cache_size() == compiled
 
 
 def test_specular_off_leaves_no_highlight():
