@@ -43,7 +43,8 @@ def capture(capture_dir):
 def test_pixel_offsets_are_subpixel_centres():
     np.testing.assert_array_equal(pixel_offsets(1), [[0.5, 0.5]])
     np.testing.assert_array_equal(pixel_offsets(2), [[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75]])
-    assert pixel_offsets(3).shape == (9, 2)
+    third = np.array([1.0, 3.0, 5.0]) / 6.0
+    np.testing.assert_allclose(pixel_offsets(3), np.stack(np.meshgrid(third, third), -1).reshape(9, 2), atol=1e-7)
     with pytest.raises(ValueError, match="pixel_samples"):
         observations_from_capture(None, pixel_samples=0)
 
