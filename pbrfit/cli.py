@@ -55,10 +55,10 @@ def _add_render(sub) -> None:
     p.add_argument("capture", help="capture folder or capture.json")
     p.add_argument("--material", required=True, help="material folder (base_color.exr, metallic.exr, ...)")
     p.add_argument("--out", required=True, help="output capture folder (written whole or not at all; replaces only an earlier capture folder)")
-    p.add_argument("--environment", help="relight with this equirect HDR instead of the capture's")
+    p.add_argument("--environment", help="relight with this equirect HDR instead of the capture's (the capture's intensity and rotation_deg apply to it)")
     p.add_argument("--lights", help="relight with these global lights: a JSON file, or inline JSON, holding a list of lights "
                         "(KHR_lights_punctual units)")
-    p.add_argument("--cache", help="G-buffer cache folder (default $PBRFIT_CACHE or ~/.cache/pbrfit)")
+    p.add_argument("--cache", help="G-buffer cache folder (default $PBRFIT_CACHE, else $XDG_CACHE_HOME/pbrfit, else ~/.cache/pbrfit)")
     p.add_argument("--no-cache", action="store_true", help="do not read or write the G-buffer cache")
     p.add_argument("--quiet", action="store_true", help="print only errors")
 
@@ -74,7 +74,7 @@ def _cache_dir(args):
         return None
     folder = Path(args.cache) if getattr(args, "cache", None) else default_cache_dir()
     if folder.exists() and not folder.is_dir():
-        where = "--cache" if getattr(args, "cache", None) else "cache folder ($PBRFIT_CACHE or ~/.cache/pbrfit)"
+        where = "--cache" if getattr(args, "cache", None) else "cache folder ($PBRFIT_CACHE, $XDG_CACHE_HOME/pbrfit or ~/.cache/pbrfit)"
         raise CaptureError(f"{where} {folder}: exists and is not a folder")
     return folder
 
@@ -124,7 +124,7 @@ def _add_synth(sub) -> None:
     p.add_argument("--noise", type=float, help="noise std at a display value of 1 (0 = none)")
     p.add_argument("--noise-model", choices=NOISE_MODELS, help="gaussian (additive), relative (std proportional to the value) or poisson_gaussian")
     p.add_argument("--supersample", type=int, help="render k x k samples per pixel and box-filter down")
-    p.add_argument("--texture-size", type=int, help="ground-truth map resolution (default: the preset's)")
+    p.add_argument("--texture-size", type=int, help="ground-truth map resolution (default: the preset's; spheres-grid rounds it down to 5 tiles across)")
     p.add_argument("--format", choices=sorted(IMAGE_FORMATS), help="exr (linear float), png16 or png8 (sRGB)")
     p.add_argument("--mesh", help="mesh-env: a mesh file with texture coordinates")
     p.add_argument("--shape", choices=("torus", "box", "sphere"), help="mesh-env: built-in shape")
@@ -236,9 +236,9 @@ def _add_fit(sub) -> None:
                         f"released before the end (default {_default_continuation()}; 'none' turns it off)")
     p.add_argument("--devices", type=int,
                    help="split the pixels over this many JAX devices (default: one device)")
-    p.add_argument("--cache", help="G-buffer and per-pixel IBL cache folder (default $PBRFIT_CACHE or ~/.cache/pbrfit)")
+    p.add_argument("--cache", help="G-buffer and per-pixel IBL cache folder (default $PBRFIT_CACHE, else $XDG_CACHE_HOME/pbrfit, else ~/.cache/pbrfit)")
     p.add_argument("--no-cache", action="store_true", help="do not read or write the cache")
-    p.add_argument("--quiet", action="store_true", help="no progress bar; only errors")
+    p.add_argument("--quiet", action="store_true", help="no progress bar and no summary line; warnings and errors still print")
 
 
 def _fit_options(args) -> dict:

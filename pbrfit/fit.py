@@ -910,7 +910,8 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
 def map_rmse(truth: Material, result, coverage: Optional[np.ndarray] = None) -> dict:
     """Per-map RMSE of a fitted material (or `FitResult`) against the truth, over observed texels.
 
-    The truth is resampled (area average) to the fitted resolution when sizes differ.
+    The truth is resampled to the fitted resolution when sizes differ: ``jax.image.resize``,
+    linear, antialiased (a widened triangle filter) when it shrinks.
     """
     material = result.material if isinstance(result, FitResult) else result
     if coverage is None and isinstance(result, FitResult):

@@ -6,7 +6,8 @@ environment-only and BRDF-only integrals, each tabulated once per environment (o
     diffuse   ≈ c_diff · E(n)/π · A_d(n·v, r)             E/π: SH9 or a cosine-convolved map
     specular  ≈ L_pre(R, r) · (F0 · scale(n·v, r) + F90 · bias(n·v, r))
 
-with R = reflect(-v, n). ``L_pre`` is the environment prefiltered with the GGX lobe under the
+with R = reflect(-v, n) (the default ``specular_direction="dominant"`` reads it along a direction
+bent from R towards n with roughness; `IBLSettings`). ``L_pre`` is the environment prefiltered with the GGX lobe under the
 N = V = R assumption; (scale, bias) is the BRDF LUT. The diffuse factor A_d is the directional
 albedo of the glTF diffuse lobe itself, ∫ (1 - F(v·h)) f_d (n·l) dω for the model's f_d and
 Fresnel (for Lambert and Schlick: (1 - F0) ∫ (1 - (1 - v·h)^5) (n·l)/π dω), tabulated like the

@@ -527,6 +527,23 @@ def read_map(directory: str | os.PathLike, name: str) -> np.ndarray:
     return values
 
 
+def _read_extra_map(path: Path, channels: int, top: Optional[float]) -> np.ndarray:
+    """``occlusion.exr`` (in [0, 1]) or ``emissive.exr`` (>= 0), checked as `read_map` checks the
+    three maps: finite, in range, not a cropped OpenEXR."""
+    pixels, info = read_image(path)
+    if info.data_window is not None:
+        raise CaptureError(f"{path}: the data window does not fill the display window (a cropped OpenEXR); "
+                           "write the whole texture")
+    values = pixels[..., :1] if channels == 1 else _channels(pixels, channels, path)
+    bad = ~np.isfinite(values)
+    if bad.any():
+        raise CaptureError(f"{path}: {int(bad.any(-1).sum())} texels hold NaN or inf values")
+    if values.min() < 0.0 or (top is not None and values.max() > top):
+        span = "[0, 1]" if top is not None else "[0, inf)"
+        raise CaptureError(f"{path}: values must lie in {span}, found values from {values.min():g} to {values.max():g}")
+    return values
+
+
 def read_material(directory: str | os.PathLike):
     """Read a material folder (fit-output layout) as a `pbrfit.material.Material`.
 
@@ -544,8 +561,8 @@ def read_material(directory: str | os.PathLike):
         return (directory / name).is_file()
 
     normal = _decode_normal(_channels(read_image(directory / "normal.png")[0], 3, directory / "normal.png")) if has("normal.png") else None
-    occlusion = read_image(directory / "occlusion.exr")[0][..., :1] if has("occlusion.exr") else None
-    emissive = _channels(read_image(directory / "emissive.exr")[0], 3, directory / "emissive.exr") if has("emissive.exr") else None
+    occlusion = _read_extra_map(directory / "occlusion.exr", 1, 1.0) if has("occlusion.exr") else None
+    emissive = _read_extra_map(directory / "emissive.exr", 3, None) if has("emissive.exr") else None
     return Material(
         base_color=base, metallic=metallic, roughness=roughness,
         normal=normal, occlusion=occlusion, emissive=emissive,

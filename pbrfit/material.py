@@ -1,8 +1,8 @@
 """`Material`: the glTF metallic-roughness maps as a pytree, sampled at uv, and normal mapping.
 
-Maps are stored as glTF textures are (row 0 is v = 0), all linear in memory: base color and
-emissive are decoded from sRGB when read from files; metallic, roughness, occlusion and normal
-are linear data. Roughness is perceptual.
+Maps are stored as glTF textures are (row 0 is v = 0), all linear in memory: base color is
+decoded from sRGB when read from ``base_color.png``; ``emissive.exr`` holds linear radiance;
+metallic, roughness, occlusion and normal are linear data. Roughness is perceptual.
 """
 
 from __future__ import annotations

@@ -88,7 +88,7 @@ def _convergence_plot(path: Path, history: Sequence[dict], size: tuple[int, int]
         draw.line(points, fill=(31, 119, 180), width=2)
     for x, y in points:
         draw.ellipse([x - 2.5, y - 2.5, x + 2.5, y + 2.5], fill=(31, 119, 180))
-    draw.text((left, 8), "convergence: loss (mean squared residual), log scale", fill="black", font=font)
+    draw.text((left, 8), "convergence: objective 1/2 sum r^2 (data + prior), log scale", fill="black", font=font)
     draw.text(((width - left) // 2 + left - 12, height - 16), "step", fill="black", font=font)
     image.save(path)
 

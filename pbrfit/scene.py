@@ -18,8 +18,9 @@ Rules pinned here (tests in ``tests/test_scene.py``):
   top level and in every object. Lens distortion (nonzero ``k1`` ... ``p2``), ``is_fisheye``
   and non-pinhole ``camera_model`` are refused: pbrfit's cameras are pinholes.
 * Intrinsics, per frame: ``fl_x`` (frame, else top level) selects the pinhole form: ``fl_y``
-  defaults to ``fl_x``; otherwise ``camera_angle_x`` gives ``fx = W / (2 tan(angle_x / 2))`` and
-  ``fy`` from ``camera_angle_y`` when present, else ``fy = fx``. ``cx``, ``cy`` (frame, else top
+  defaults to ``fl_x``; otherwise ``camera_angle_x`` gives ``fx = W / (2 tan(angle_x / 2))``, and
+  ``fy`` is a given ``fl_y`` (frame, else top level), else from ``camera_angle_y`` when present,
+  else ``fy = fx``. ``cx``, ``cy`` (frame, else top
   level, else ``W/2``, ``H/2``) apply to either form. ``w``, ``h``, when given, must equal the
   image size, and the principal point must lie inside the image.
 * Paths are relative to the folder of the json file. A path whose suffix is not a known image

@@ -544,6 +544,30 @@ def test_cropped_material_exr_is_refused(tmp_path):
         read_map(tmp_path, "roughness")
 
 
+def test_occlusion_and_emissive_maps_are_checked_like_the_others(tmp_path):
+    from pbrfit.io import read_material, write_image, write_material
+    from pbrfit.material import Material
+
+    m = Material.uniform([0.5, 0.5, 0.5], 0.0, 0.5, size=2)
+    write_material(tmp_path, m)
+    for name, pixels, message in (
+            ("occlusion.exr", np.full((2, 2, 1), np.nan, np.float32), "occlusion.exr: 4 texels hold NaN or inf"),
+            ("occlusion.exr", np.full((2, 2, 1), 1.5, np.float32), r"occlusion.exr: values must lie in \[0, 1\]"),
+            ("emissive.exr", np.full((2, 2, 3), -0.1, np.float32), r"emissive.exr: values must lie in \[0, inf\)"),
+            ("emissive.exr", np.full((2, 2, 2), 1.0, np.float32), "emissive.exr")):
+        write_image(tmp_path / name, pixels, "float")
+        with pytest.raises(CaptureError, match=message):
+            read_material(tmp_path)
+        (tmp_path / name).unlink()
+    _write_cropped_exr(tmp_path / "occlusion.exr", np.ones((1, 1, 1), np.float32), (1, 1), (0, 0, 2, 2))
+    with pytest.raises(CaptureError, match="occlusion.exr: the data window .* cropped OpenEXR"):
+        read_material(tmp_path)
+    write_image(tmp_path / "occlusion.exr", np.full((2, 2, 1), 0.25, np.float32), "float")
+    write_image(tmp_path / "emissive.exr", np.full((2, 2, 3), 4.0, np.float32), "float")  # HDR emission is fine
+    got = read_material(tmp_path)
+    assert float(got.occlusion.max()) == 0.25 and float(got.emissive.min()) == 4.0
+
+
 def test_mesh_with_non_finite_values_or_an_unknown_format_is_refused(tmp_path):
     obj = write_quad_obj(tmp_path / "q.obj").read_text()
     (tmp_path / "uv.obj").write_text(obj.replace("vt 0 0\n", "vt nan nan\n", 1))
