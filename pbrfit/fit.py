@@ -29,6 +29,7 @@ import concurrent.futures
 import dataclasses
 import importlib
 import inspect
+import itertools
 import math
 import sys
 import time
@@ -666,6 +667,9 @@ class _Runner:
         self.solver, self.rtol, self.atol, self.progress, self.compiler = solver, rtol, atol, progress, compiler
         self.cg_rtol = float(cg_rtol)
         self.clock = compiler.clock
+        # an optimistix solver reports each evaluation of the objective, numbered here
+        evaluations = itertools.count()
+        self.tick = None if progress is None else (lambda value: progress(next(evaluations), value))
 
     def _call(self, x0, problem, steps, num_free):
         """(key, fn, args, kwargs, optimistix solver or None) of a run."""
@@ -676,7 +680,7 @@ class _Runner:
             return ("structured",) + _problem_key(problem), structured_lm, args, kwargs, None
         opt, is_ls = make_solver(self.solver, self.rtol, self.atol, num_free)
         key = (type(opt).__name__, steps) + _problem_key(problem)
-        return key, optx_solve, (x0, problem, opt, is_ls, steps), {}, opt
+        return key, optx_solve, (x0, problem, opt, is_ls, steps, self.tick), {}, opt
 
     def prefetch(self, x0, problem, num_free) -> None:
         """Start compiling the structured solver for `problem` in the background (its step
@@ -865,8 +869,9 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             the time the fit waited for compiles, ``times["compile_background"]`` what was
             compiled meanwhile). Off: every compile runs where it is first needed.
         progress: called with {stage: "ibl", done, total} (pixels) while per-pixel IBL integrals
-            are computed, then with {level, resolution, step, loss} after each step (a host callback;
-            leave None for a solve with no host round-trips).
+            are computed, then with {level, resolution, step, loss} after each step (an optimistix
+            solver's: at each evaluation of the objective, one per step; a host callback; leave
+            None for a solve with no host round-trips).
     """
     t0 = time.perf_counter()
     model = model_for_capture(capture, kwargs.get("fit", ("base_color", "metallic", "roughness")),

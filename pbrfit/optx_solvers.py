@@ -21,6 +21,8 @@ told not to throw (a breakdown ends the solve, reported in its result).
 
 from __future__ import annotations
 
+from typing import Callable, Optional
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -70,14 +72,23 @@ def _values(z, x_fixed, problem: Problem):
 
 
 @eqx.filter_jit
-def optx_solve(x0, problem: Problem, solver, least_squares: bool, max_steps: int):
-    """Run an optimistix solver from texel values x0; returns (x, steps, result code)."""
+def optx_solve(x0, problem: Problem, solver, least_squares: bool, max_steps: int,
+               progress: Optional[Callable] = None):
+    """Run an optimistix solver from texel values x0; returns (x, steps, result code).
+
+    ``progress(loss)``, when given, is called on the host with the objective ½ Σ r² at every
+    evaluation of it (``jax.debug.callback``): optimistix's solvers keep their steps to
+    themselves, and an evaluation is what a step of each of them costs (line searches and trust
+    regions evaluate rejected points too)."""
     import optimistix as optx
 
     z0 = to_sine(x0)
 
     def res(z, args):
-        return residuals(_values(z, x0, problem), problem)
+        r, s = residuals(_values(z, x0, problem), problem)
+        if progress is not None:
+            jax.debug.callback(progress, 0.5 * (jnp.sum(r * r) + jnp.sum(s * s)))
+        return r, s
 
     def loss(z, args):
         r, s = res(z, args)

@@ -190,10 +190,16 @@ def test_srgb_targets_and_huber_loss():
 def test_every_solver_runs(solver):
     truth = Material.uniform((0.6, 0.35, 0.2), 0.0, 0.35)
     obs = observations_from_views(VIEWS[:2], _images(VIEWS[:2], truth))
-    res = fit_observations(obs, resolution=4, solver=solver, max_steps=3, init="prior")
+    seen = []
+    res = fit_observations(obs, resolution=4, solver=solver, max_steps=3, init="prior", progress=seen.append)
     assert res.report["solver"] == solver
     assert 1 <= res.report["steps"] <= 3, res.report["levels"]  # it ran, and max_steps reached it
     assert np.isfinite(res.report["final_loss"])
+    # progress (the CLI's bar and convergence.png): the objective at each evaluation, one per
+    # step, the first at the prior's 0.5 (the same for every solver)
+    losses = [entry["loss"] for entry in seen if "loss" in entry]
+    assert len(losses) == res.report["steps"] and np.all(np.isfinite(losses)), seen
+    assert losses[0] == pytest.approx(17.9297, rel=1e-4)
     # from the prior's 0.5, every solver's three steps move base colour towards the truth
     # (measured: RMSE 0.011 (lm) to 0.175 (adam), against the prior's 0.202)
     rmse = float(np.sqrt(np.mean((np.asarray(res.material.base_color) - [0.6, 0.35, 0.2]) ** 2)))
