@@ -124,7 +124,7 @@ def _add_synth(sub) -> None:
     p.add_argument("--noise", type=float, help="noise std at a display value of 1 (0 = none)")
     p.add_argument("--noise-model", choices=NOISE_MODELS, help="gaussian (additive), relative (std proportional to the value) or poisson_gaussian")
     p.add_argument("--supersample", type=int, help="render k x k samples per pixel and box-filter down")
-    p.add_argument("--texture-size", type=int, help="ground-truth map resolution (default: the preset's; spheres-grid rounds it down to 5 tiles across)")
+    p.add_argument("--texture-size", type=int, help="ground-truth map resolution (default: the preset's; spheres-grid rounds it down to a multiple of 5, one tile per sphere)")
     p.add_argument("--format", choices=sorted(IMAGE_FORMATS), help="exr (linear float), png16 or png8 (sRGB)")
     p.add_argument("--mesh", help="mesh-env: a mesh file with texture coordinates")
     p.add_argument("--shape", choices=("torus", "box", "sphere"), help="mesh-env: built-in shape")
@@ -501,7 +501,9 @@ _COMMANDS = {
 
 def _enable_compilation_cache(args) -> None:
     """Keep XLA compilations on disk beside the G-buffer cache, so a second run of a command
-    skips most of its compile time (off with --no-cache or PBRFIT_NO_COMPILE_CACHE=1)."""
+    skips part of its compile time (off with --no-cache or PBRFIT_NO_COMPILE_CACHE=1). JAX keeps
+    no program with a host callback, so the solver's loop, which reports each step, compiles on
+    every run (a small fit: 5.6 s of compile waited for, then 2.9 s on the second run)."""
     import os
 
     if getattr(args, "no_cache", False) or os.environ.get("PBRFIT_NO_COMPILE_CACHE"):

@@ -667,9 +667,10 @@ class _Runner:
         self.solver, self.rtol, self.atol, self.progress, self.compiler = solver, rtol, atol, progress, compiler
         self.cg_rtol = float(cg_rtol)
         self.clock = compiler.clock
-        # an optimistix solver reports each evaluation of the objective, numbered here
-        evaluations = itertools.count()
-        self.tick = None if progress is None else (lambda value: progress(next(evaluations), value))
+        # an optimistix solver reports each evaluation of the objective, numbered here from 0 in
+        # every run (one lambda per runner: the compiled solve keeps the one it was traced with)
+        self.evaluations = itertools.count()
+        self.tick = None if progress is None else (lambda value: progress(next(self.evaluations), value))
 
     def _call(self, x0, problem, steps, num_free):
         """(key, fn, args, kwargs, optimistix solver or None) of a run."""
@@ -690,6 +691,7 @@ class _Runner:
             self.compiler.prefetch(key, fn, *args, **kwargs)
 
     def __call__(self, x0, problem, steps, num_free):
+        self.evaluations = itertools.count()
         key, fn, args, kwargs, opt = self._call(x0, problem, steps, num_free)
         compiled = self.compiler.get(key, fn, *args, **kwargs)
         t0 = time.perf_counter()

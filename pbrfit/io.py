@@ -661,7 +661,8 @@ def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
     uv is flipped before export and TEXCOORD_0 ends up equal to ``mesh.visual.uv``. Textures are
     stored with row 0 at the top of the image, so texel row 0 is v = 0 as glTF requires. baseColorTexture is sRGB 8-bit,
     metallicRoughnessTexture linear (R = occlusion or 1, G = roughness, B = metallic) with
-    factors 1; normalTexture, occlusionTexture (the same image, R) and emissiveTexture
+    factors 1; normalTexture, occlusionTexture (the same image's R, or an image of its own when its
+    size differs from metallic and roughness) and emissiveTexture
     (factor 1, clipped to [0, 1]) when the material has them. Vertex normals are written
     (NORMAL), so shading matches the mesh the material was fitted on.
 

@@ -6,8 +6,10 @@
   earlier runs left there (a fresh CI machine has nothing there).
 - JAX's persistent compilation cache in that folder, on from the start, as ``pbrfit`` turns it on
   for its commands (`pbrfit.cli`): a test that builds a new ``jax.jit`` of a function another
-  test compiled at the same shapes loads the executable instead of compiling it again. A CLI
-  command run in a test points the setting at its own cache folder; it is put back afterwards.
+  test compiled at the same shapes loads the executable instead of compiling it again (JAX keeps
+  no program with a host callback, such as a solve that reports progress). JAX opens the cache
+  folder at the first compile and keeps it: a CLI command run in a test later sets the option
+  to its own folder, which changes nothing.
 """
 
 import atexit
@@ -18,7 +20,6 @@ import tempfile
 import pbrfit  # noqa: F401  (first: sets XLA workarounds before any JAX backend starts)
 
 import jax
-import pytest
 from hypothesis import HealthCheck, settings
 
 settings.register_profile(
@@ -35,15 +36,3 @@ atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
 os.environ["PBRFIT_CACHE"] = _CACHE
 jax.config.update("jax_compilation_cache_dir", os.path.join(_CACHE, "xla"))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)  # as `pbrfit.cli` sets it
-
-
-_COMPILE_CACHE_OPTIONS = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
-
-
-@pytest.fixture(autouse=True)
-def _keep_the_compilation_cache_settings():
-    before = {name: getattr(jax.config, name) for name in _COMPILE_CACHE_OPTIONS}
-    yield
-    for name, value in before.items():
-        if getattr(jax.config, name) != value:
-            jax.config.update(name, value)

@@ -57,7 +57,7 @@ def test_render_relights_with_lights_override(tmp_path, monkeypatch):
     # the override is exactly what a capture.json holding those lights renders
     again = tmp_path / "again"
     assert main(["render", str(out), "--material", str(cap / "truth"), "--out", str(again), "--quiet"]) == 0
-    np.testing.assert_array_equal(read_image(again / raw["frames"][0]["file_path"])[0], after)
+    np.testing.assert_allclose(read_image(again / raw["frames"][0]["file_path"])[0], after, rtol=0, atol=1e-6)
 
 
 def test_render_and_synth_refuse_an_out_folder_they_did_not_write(tmp_path, capsys):

@@ -23,7 +23,7 @@ def test_demo_runs_end_to_end(tmp_path, monkeypatch, capsys):
     assert set(report["truth_rmse"]) == {"base_color", "metallic", "roughness"}
     # it fitted (measured on this small scene: 0.087 / 0.179 / 0.188, the worst view's PSNR 39.9 dB)
     rmse = report["truth_rmse"]
-    assert rmse["base_color"] < 0.15 and rmse["metallic"] < 0.3 and rmse["roughness"] < 0.3, rmse
+    assert rmse["base_color"] < 0.15 and rmse["metallic"] < 0.35 and rmse["roughness"] < 0.3, rmse
     assert min(report["psnr"]) > 33.0, report["psnr"]
 
 

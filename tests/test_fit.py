@@ -356,7 +356,6 @@ def test_fit_reports_the_search():
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
     res = fit_observations(obs, resolution=8, max_steps=40)
     assert "search_moved" in res.report["levels"][-1] and "search" in res.report["times"]
-    assert 0 <= res.report["levels"][-1]["search_moved"] <= 64
     off = fit_observations(obs, resolution=8, max_steps=40, search=False)
     assert "search_moved" not in off.report["levels"][-1] and "search" not in off.report["times"]
 
