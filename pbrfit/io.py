@@ -505,10 +505,7 @@ def read_map(directory: str | os.PathLike, name: str) -> np.ndarray:
         raise CaptureError(f"material folder not found: {directory}")
     exr, png = directory / f"{name}.exr", directory / ("base_color.png" if name == "base_color" else "metallic_roughness.png")
     if exr.is_file():
-        pixels, info = read_image(exr)
-        if info.data_window is not None:
-            raise CaptureError(f"{exr}: the data window does not fill the display window (a cropped OpenEXR); "
-                               "write the whole texture")
+        pixels = _read_whole_exr(exr)
         values, source = (_channels(pixels, 3, exr) if name == "base_color" else pixels[..., :1]), exr
     elif png.is_file():
         pixels = _channels(read_image(png)[0], 3, png)
@@ -519,28 +516,27 @@ def read_map(directory: str | os.PathLike, name: str) -> np.ndarray:
         source = png
     else:
         raise CaptureError(f"{directory}: material folder has no {exr.name} or {png.name}")
-    bad = ~np.isfinite(values)
-    if bad.any():
-        raise CaptureError(f"{source}: {int(bad.any(-1).sum())} texels of {name} hold NaN or inf values")
-    if values.min() < 0.0 or values.max() > 1.0:
-        raise CaptureError(f"{source}: {name} must lie in [0, 1], found values from {values.min():g} to {values.max():g}")
-    return values
+    return _checked_map(values, source, name)
 
 
-def _read_extra_map(path: Path, channels: int, top: Optional[float]) -> np.ndarray:
-    """``occlusion.exr`` (in [0, 1]) or ``emissive.exr`` (>= 0), checked as `read_map` checks the
-    three maps: finite, in range, not a cropped OpenEXR."""
+def _read_whole_exr(path: Path) -> np.ndarray:
+    """A material map's OpenEXR pixels; a cropped one (data window inside the display window) is refused."""
     pixels, info = read_image(path)
     if info.data_window is not None:
         raise CaptureError(f"{path}: the data window does not fill the display window (a cropped OpenEXR); "
                            "write the whole texture")
-    values = pixels[..., :1] if channels == 1 else _channels(pixels, channels, path)
+    return pixels
+
+
+def _checked_map(values: np.ndarray, source: Path, name: str, top: Optional[float] = 1.0) -> np.ndarray:
+    """``values`` of map ``name`` read from ``source``, refused when any is NaN or inf or lies
+    outside [0, top] (no upper bound when ``top`` is None)."""
     bad = ~np.isfinite(values)
     if bad.any():
-        raise CaptureError(f"{path}: {int(bad.any(-1).sum())} texels hold NaN or inf values")
+        raise CaptureError(f"{source}: {int(bad.any(-1).sum())} texels of {name} hold NaN or inf values")
     if values.min() < 0.0 or (top is not None and values.max() > top):
-        span = "[0, 1]" if top is not None else "[0, inf)"
-        raise CaptureError(f"{path}: values must lie in {span}, found values from {values.min():g} to {values.max():g}")
+        span = "[0, inf)" if top is None else f"[0, {top:g}]"
+        raise CaptureError(f"{source}: {name} must lie in {span}, found values from {values.min():g} to {values.max():g}")
     return values
 
 
@@ -561,8 +557,13 @@ def read_material(directory: str | os.PathLike):
         return (directory / name).is_file()
 
     normal = _decode_normal(_channels(read_image(directory / "normal.png")[0], 3, directory / "normal.png")) if has("normal.png") else None
-    occlusion = _read_extra_map(directory / "occlusion.exr", 1, 1.0) if has("occlusion.exr") else None
-    emissive = _read_extra_map(directory / "emissive.exr", 3, None) if has("emissive.exr") else None
+    occlusion = emissive = None
+    if has("occlusion.exr"):
+        path = directory / "occlusion.exr"
+        occlusion = _checked_map(_read_whole_exr(path)[..., :1], path, "occlusion")
+    if has("emissive.exr"):  # linear radiance: no upper bound
+        path = directory / "emissive.exr"
+        emissive = _checked_map(_channels(_read_whole_exr(path), 3, path), path, "emissive", top=None)
     return Material(
         base_color=base, metallic=metallic, roughness=roughness,
         normal=normal, occlusion=occlusion, emissive=emissive,

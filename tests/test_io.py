@@ -297,7 +297,6 @@ def test_write_gltf_uniform_material_as_exact_factors_without_uv(tmp_path):
     assert len(trimesh.load(out).geometry) == 1
 
 
-
 def _uniform_with(**extra):
     u = Material.uniform([0.2, 0.4, 0.6], 0.3, 0.7)
     return Material(base_color=u.base_color, metallic=u.metallic, roughness=u.roughness, **extra)

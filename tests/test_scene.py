@@ -551,9 +551,9 @@ def test_occlusion_and_emissive_maps_are_checked_like_the_others(tmp_path):
     m = Material.uniform([0.5, 0.5, 0.5], 0.0, 0.5, size=2)
     write_material(tmp_path, m)
     for name, pixels, message in (
-            ("occlusion.exr", np.full((2, 2, 1), np.nan, np.float32), "occlusion.exr: 4 texels hold NaN or inf"),
-            ("occlusion.exr", np.full((2, 2, 1), 1.5, np.float32), r"occlusion.exr: values must lie in \[0, 1\]"),
-            ("emissive.exr", np.full((2, 2, 3), -0.1, np.float32), r"emissive.exr: values must lie in \[0, inf\)"),
+            ("occlusion.exr", np.full((2, 2, 1), np.nan, np.float32), "occlusion.exr: 4 texels of occlusion hold NaN or inf"),
+            ("occlusion.exr", np.full((2, 2, 1), 1.5, np.float32), r"occlusion.exr: occlusion must lie in \[0, 1\]"),
+            ("emissive.exr", np.full((2, 2, 3), -0.1, np.float32), r"emissive.exr: emissive must lie in \[0, inf\)"),
             ("emissive.exr", np.full((2, 2, 2), 1.0, np.float32), "emissive.exr: expected 3 channels, found 2")):
         write_image(tmp_path / name, pixels, "float")
         with pytest.raises(CaptureError, match=message):
