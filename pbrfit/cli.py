@@ -248,7 +248,7 @@ def _fit_options(args) -> dict:
     from .fit import DEFAULT_SOLVER
     from .io import read_map
     from .observations import MAX_PIXEL_SAMPLES
-    from .pixel_ibl import PixelIBLSettings
+    from .pixel_ibl import MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
 
     explicit = args.fit is not None
     free = [m.strip() for m in (args.fit if explicit else ",".join(_MAP_NAMES)).split(",") if m.strip()]
@@ -319,7 +319,7 @@ def _fit_options(args) -> dict:
         pixel_samples = int(pixel_samples)
     if "normal" in free and args.ibl == "per_pixel":
         raise CaptureError("--ibl per_pixel: fitted normals need --ibl split_sum (per-pixel integrals hold the normals fixed)")
-    for flag, value, least in (("--ibl-levels", args.ibl_levels, 2), ("--ibl-samples", args.ibl_samples, 1)):
+    for flag, value, least in (("--ibl-levels", args.ibl_levels, MIN_LEVELS), ("--ibl-samples", args.ibl_samples, MIN_SAMPLES)):
         if value is not None and value < least:
             raise CaptureError(f"{flag}: must be >= {least}, got {value}")
     pixel_ibl_settings = PixelIBLSettings(

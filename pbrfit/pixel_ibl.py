@@ -72,7 +72,7 @@ from .model import Model
 from .montecarlo import (_batch, _hash32, _uniforms, default_lut, environment_pdf, environment_sampler,
                          ggx_vndf_pdf, sample_cosine, sample_environment, sample_ggx_vndf, tangent_frame)
 
-__all__ = ["PixelIBLSettings", "PixelIBL", "LOBES", "lobes_for", "pixel_ibl", "interpolate_lobes",
+__all__ = ["PixelIBLSettings", "MIN_LEVELS", "MIN_SAMPLES", "PixelIBL", "LOBES", "lobes_for", "pixel_ibl", "interpolate_lobes",
            "shade_pixel_ibl", "pixel_dfg"]
 
 #: Every lobe a model can need (see the module docstring).
@@ -83,6 +83,11 @@ _DIFFUSE = ("lambert", "lambert_s", "lambert_fd")
 #: accelerator: bounds memory; a GPU wants large calls (an H100 integrates 69,000 pixels in 0.34 s
 #: in chunks of 16,384, 1.8 s in chunks of 2,048).
 PIXEL_CHUNK = {"cpu": 2048, "accelerator": 16384}
+
+
+#: The fewest roughness levels (a spline needs two nodes) and sample steps `PixelIBLSettings` takes.
+MIN_LEVELS = 2
+MIN_SAMPLES = 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,10 +109,10 @@ class PixelIBLSettings:
     seed: int = 0
 
     def __post_init__(self):
-        if int(self.levels) < 2:
-            raise ValueError(f"PixelIBLSettings.levels must be >= 2, got {self.levels!r}")
-        if int(self.samples) < 1:
-            raise ValueError(f"PixelIBLSettings.samples must be >= 1, got {self.samples!r}")
+        if int(self.levels) < MIN_LEVELS:
+            raise ValueError(f"PixelIBLSettings.levels must be >= {MIN_LEVELS}, got {self.levels!r}")
+        if int(self.samples) < MIN_SAMPLES:
+            raise ValueError(f"PixelIBLSettings.samples must be >= {MIN_SAMPLES}, got {self.samples!r}")
 
 
 class PixelIBL(eqx.Module):
