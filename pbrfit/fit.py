@@ -14,6 +14,10 @@ solver chosen by ``solver=``:
 - ``"lm"``, ``"gn"``, ``"dogleg"``, ``"bfgs"``, ``"lbfgs"``, ``"ncg"``, ``"adam"``: optimistix
   solvers on the same objective (`pbrfit.optx_solvers`), run through the same schedule.
 
+After the structured solve, the uniform check (``uniform_check=True``) makes metallic, then
+roughness, one common value where Akaike's criterion finds no support for a map in the images
+(`pbrfit.selection`).
+
 A pixel's footprint: a display-referred capture (sRGB, tone mapped) is fitted both at pixel
 centres and with 2 × 2 samples per pixel, and the fit whose images match better is kept
 (``pixel_samples="auto"``, `footprint_choice`); linear images are fitted at pixel centres.
@@ -47,9 +51,12 @@ from .observations import (MAX_PIXEL_SAMPLES, Observations, TexelLayout, coverag
                            observations_from_capture, texel_layout, uniform_layout)
 from .optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
 from .pixel_ibl import PixelIBLSettings, pixel_ibl
-from .parameters import CHANNELS, FIT_GROUPS, NORMAL_CHANNELS, channel_mask, normal_from_slopes, prior
+from .parameters import CHANNELS, FIT_GROUPS, NORMAL_CHANNELS, channel_mask, lower, normal_from_slopes, prior, upper
 from .sharding import pixel_mesh, shard_problem
-from .solvers import CG_RTOL, LOSSES, Problem, linearize, normal_blocks, objective, pixel_residuals, structured_lm
+from .selection import (NEWTON_STEPS, SELECTABLE, WALD_MARGIN, aic_statistic, newton_value, prefers_uniform,
+                        profile_precision, wald_statistic, weighted_value)
+from .solvers import (CG_RTOL, LOSSES, Problem, gradient, linearize, normal_blocks, objective, pixel_residuals,
+                      structured_lm)
 from .textures import sample_bilinear
 from .transfer import to_device
 from .uncertainty import block_standard_errors, residual_variance
@@ -112,6 +119,11 @@ PIXELS_PER_TEXEL = 1.0
 #: several directions).
 OBSERVATIONS_PER_TEXEL = 8.0
 MAX_RESOLUTION = 2048
+#: The uniform check (``uniform_check=True``, `pbrfit.selection`): steps of each re-fit of the
+#: other channels at a trial common value, and the Newton step on that value, in units of its
+#: standard error, below which the value is final (it moves the test statistic by its square).
+REFIT_STEPS = 10
+NEWTON_TOL = 1.0
 
 
 @dataclasses.dataclass
@@ -126,7 +138,7 @@ class FitResult:
             texels no view sees.
         coverage: (H, W) pixel observations per texel (0 = never seen; such texels keep `PRIOR`).
         report: model, solver, steps, times (setup / compile / solve), final loss, per-view PSNR,
-            devices and the levels run.
+            devices, the levels run and the uniform check's tests.
         images: per view, the fitted render in the images' own space (H, W, 3); targets: the
             images; masks: (H, W) bool, the pixels that entered the objective.
     """
@@ -292,6 +304,7 @@ def fit_observations(
     centre_ibl=None,
     select_footprint: bool = False,
     background_compile: bool = True,
+    uniform_check: bool = True,
 ) -> FitResult:
     """Fit maps to prepared `Observations` (see `fit` for the arguments).
 
@@ -471,12 +484,27 @@ def fit_observations(
                     obs, problem, seen = centres, early, centre_seen
             history.append(dict(resolution=list(shape), **info))
             x = xs[:t].reshape(shape + (k,))
+        checks, uniform = {}, {}
+        if uniform_check:
+            skipped = _uniform_check_skipped(solver, loss, smooth, final, channels)
+            if skipped is not None:
+                checks = dict(skipped=skipped)
+            else:
+                xs, linearization, problem, checks, uniform = _uniform_check(
+                    runner, problem, xs, linearization, channels, seen, obs.num_pixels, where)
+                x = xs[:t_final].reshape(final + (k,))
     finally:
         compiler.close()
 
     t_post = time.perf_counter()
     result = _finish(obs, problem, x, final, channels, seen[:t_final], model, solver, history, loss, smooth,
-                     dict(setup=setup_time, **clock), t_post, t_start, linearization, wrap)
+                     dict(setup=setup_time, **clock), t_post, t_start, linearization, wrap, uniform)
+    if uniform_check:
+        for name, c in SELECTABLE:  # the value's σ as uncertainty holds it: the kept fit's residual variance
+            if checks.get(name, {}).get("uniform"):
+                checks[name]["sigma"] = float(np.asarray(result.uncertainty)[..., c][seen[:t_final].reshape(final)][0])
+        result.report["uniform_check"] = checks
+        result.report["steps"] += sum(c.get("steps", 0) for c in checks.values() if isinstance(c, dict))
     result.report["continuation"] = annealed
     result.report["held"] = held
     if solver == DEFAULT_SOLVER:
@@ -484,6 +512,87 @@ def fit_observations(
     if footprint is not None:
         result.report["footprint"] = footprint
     return result
+
+
+def _uniform_check_skipped(solver, loss, smooth, final, channels) -> Optional[str]:
+    """Why the uniform check does not apply to a fit, or None where it does."""
+    if tuple(final) == (1, 1):
+        return "a uniform material"
+    if solver != DEFAULT_SOLVER:
+        return f"needs the {DEFAULT_SOLVER} solver"
+    if loss != "l2":
+        return f"needs the l2 loss (the test reads the data term as a Gaussian likelihood), not {loss}"
+    if smooth > 0:
+        return "the smoothness prior already ties the texels together"
+    if not any(channels[c] > 0 for _, c in SELECTABLE):
+        return "neither metallic nor roughness is fitted"
+    return None
+
+
+def _uniform_check(runner, problem: Problem, xs, linearization, channels, seen, num_pixels: int, where: dict):
+    """Metallic, then roughness, as one common value where Akaike's criterion prefers it to a map
+    (`pbrfit.selection`): (x, linearisation, problem, report, uniform) of the model kept, with
+    ``uniform`` {channel: (value, Σ s_t)} of the channels made uniform."""
+    channels = np.asarray(channels, np.float32).copy()
+    k = len(channels)
+    lo, hi = lower(k), upper(k)
+    seen_t = np.asarray(seen[: problem.num_texels], bool)
+    n_texels = int(np.sum(seen_t))
+    blocks_fn, gradient_fn = jax.jit(normal_blocks), jax.jit(gradient)
+    r, jac = linearization
+    e_map = 0.5 * float(np.sum(np.square(np.asarray(r, np.float64))))
+    sigma2 = residual_variance(e_map, 3 * num_pixels, n_texels * int(np.sum(channels)))
+    xs = np.asarray(xs, np.float32)
+    report, uniform = {}, {}
+    for name, c in SELECTABLE:
+        if channels[c] == 0:
+            continue
+        if n_texels < 2:
+            report[name] = dict(uniform=False, skipped="fewer than two texels seen")
+            continue
+        threshold = 2.0 * (n_texels - 1)
+        s = profile_precision(np.asarray(blocks_fn(jac, problem)), channels > 0, seen_t, c)[seen_t]
+        value = weighted_value(xs[seen_t, c], s, float(lo[c]), float(hi[c]))
+        wald = wald_statistic(xs[seen_t, c], s, value, sigma2)
+        entry = dict(texels=n_texels, threshold=threshold, wald=wald)
+        if wald > WALD_MARGIN * threshold:
+            report[name] = dict(entry, uniform=False)
+            continue
+        reduced_channels = channels.copy()
+        reduced_channels[c] = 0.0
+        free = (seen_t[:, None] * reduced_channels[None, :]).astype(np.float32)
+        reduced = dataclasses.replace(problem, free=jax.device_put(free, problem.free.sharding))
+        num_free = n_texels * int(np.sum(reduced_channels))
+        x_red, steps, values = xs.copy(), 0, []
+        where["check"] = name
+        for i in range(NEWTON_STEPS + 1):
+            values.append(value)
+            x_red = np.array(x_red, np.float32)
+            x_red[seen_t, c] = value
+            x_red, info = runner(to_device(x_red, np.float32), reduced, REFIT_STEPS, num_free)
+            steps += info["steps"]
+            r_red, jac_red = runner.linearization
+            if i == NEWTON_STEPS:
+                break
+            g = float(np.sum(np.asarray(gradient_fn(r_red, jac_red, to_device(x_red, np.float32), problem))[seen_t, c],
+                             dtype=np.float64))
+            s_sum = float(np.sum(profile_precision(np.asarray(blocks_fn(jac_red, problem)), channels > 0, seen_t, c)))
+            new = newton_value(value, g, s_sum, float(lo[c]), float(hi[c]))
+            if s_sum > 0 and abs(new - value) <= NEWTON_TOL * math.sqrt(sigma2 / s_sum):
+                break
+            value = new
+        where.pop("check")
+        e_uniform = 0.5 * float(np.sum(np.square(np.asarray(r_red, np.float64))))
+        statistic = aic_statistic(e_uniform, e_map, sigma2)
+        s_sum = float(np.sum(profile_precision(np.asarray(blocks_fn(jac_red, problem)), channels > 0, seen_t, c)))
+        keep = prefers_uniform(statistic, n_texels)
+        report[name] = dict(entry, uniform=keep, statistic=statistic, value=value, steps=steps, values=values,
+                            sigma=math.sqrt(sigma2 / s_sum) if s_sum > 0 else math.inf)
+        if keep:
+            xs, linearization, problem, e_map = np.asarray(x_red, np.float32), (r_red, jac_red), reduced, e_uniform
+            jac, channels = jac_red, reduced_channels
+            uniform[c] = (value, s_sum)
+    return xs, linearization, problem, report, uniform
 
 
 def _neighbour_weights(shape, seen, size: int, on: bool):
@@ -715,8 +824,13 @@ class _Runner:
 
 
 def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss, smooth, times, t_post, t_start,
-            linearization=None, wrap: str = "repeat"):
+            linearization=None, wrap: str = "repeat", uniform: Optional[Mapping] = None):
+    """The result at the fit's x. ``uniform`` {channel: (value, Σ s_t)}: channels fitted as one
+    common value (`_uniform_check`), whose standard error is σ̂ / sqrt(Σ s_t) at every seen texel."""
+    uniform = dict(uniform or {})
     k = len(channels)
+    texel_channels = np.asarray(channels, np.float32).copy()
+    texel_channels[list(uniform)] = 0.0
     xj = to_device(x.reshape(-1, k), np.float32)
     if linearization is None:
         r, jac, energy = jax.jit(linearize)(xj, problem)
@@ -726,9 +840,12 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
         energy = jax.jit(objective)(xj, problem) if float(problem.smooth) > 0 else 0.5 * np.sum(np.square(np.asarray(r)))
     blocks = np.asarray(jax.jit(normal_blocks)(jac, problem))
     n_res = 3 * obs.num_pixels
-    n_par = int(np.sum(seen)) * int(np.sum(channels))
+    n_par = int(np.sum(seen)) * int(np.sum(texel_channels)) + len(uniform)
     sigma2 = residual_variance(float(energy), n_res, n_par)
-    sigma = block_standard_errors(blocks, channels > 0, seen, sigma2).reshape(final + (k,))
+    sigma = block_standard_errors(blocks, texel_channels > 0, seen, sigma2)
+    for c, (_, s_sum) in uniform.items():
+        sigma[:, c] = np.where(seen, math.sqrt(sigma2 / s_sum) if s_sum > 0 else np.inf, np.inf)
+    sigma = sigma.reshape(final + (k,))
     coverage = coverage_counts(_layout(obs, final, wrap), obs.samples)
     # Per-view renders in image space and PSNR (peak 1: display values).
     if loss == "l2":
@@ -862,6 +979,15 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             objective as asked, so the prior only chooses basins (default `CONTINUATION`; () =
             off; structured solver only). The report's "continuation" entry gives the absolute
             weights and the step budgets used (None: none ran).
+        uniform_check: after the solve, test whether metallic, then roughness, is better fitted as
+            one common value than as a map (`pbrfit.selection`: Akaike's criterion on the data
+            term, the common value re-fitted with the other maps): where the images cannot tell
+            the channel's texels apart, the map fits noise and drags the maps correlated with it
+            (base colour with metallic) along. Default on; structured solver, l2 loss and no
+            ``smooth`` only (else the report says why it was skipped). The report's
+            "uniform_check" entry gives each test's statistic, threshold and outcome; a uniform
+            channel fills its map with the value and its uncertainty with the value's standard
+            error.
         devices: a sequence of JAX devices to split the pixels over (`pbrfit.sharding`); default
             None: the default device.
         model: override the `Model` (default `model_for_capture`: the one that rendered the images).
@@ -871,7 +997,8 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             the time the fit waited for compiles, ``times["compile_background"]`` what was
             compiled meanwhile). Off: every compile runs where it is first needed.
         progress: called with {stage: "ibl", done, total} (pixels) while per-pixel IBL integrals
-            are computed, then with {level, resolution, step, loss} after each step (an optimistix
+            are computed, then with {level, resolution, step, loss} after each step (``check``:
+            the channel, during the uniform check's re-fits; an optimistix
             solver's: at each evaluation of the objective, one per step; a host callback; leave
             None for a solve with no host round-trips).
     """

@@ -184,6 +184,7 @@ def test_srgb_targets_and_huber_loss():
     assert fits["huber"].report["loss"] == "huber" and fits["l2"].report["loss"] == "l2"
     assert error["huber"][0] < 0.008 and error["huber"][1] < 3e-3, error
     assert error["l2"][0] > 0.015 and error["l2"][1] > 6e-3, error
+    assert fits["huber"].report["uniform_check"] == dict(skipped="a uniform material")
 
 
 @pytest.mark.parametrize("solver", [s for s in SOLVERS if s != "structured"])
@@ -468,7 +469,9 @@ def test_continuation_is_reported_scales_with_the_data_and_is_released(monkeypat
     assert short.report["continuation"] is None
     off = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + 1, search=False, continuation=())
     monkeypatch.setattr(pbrfit.fit, "RELEASED_STEPS", 1)
-    held = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + 1, search=False, continuation=(10.0,))
+    # (no uniform check: its re-fits would take more steps)
+    held = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + 1, search=False, continuation=(10.0,),
+                            uniform_check=False)
     assert off.report["continuation"] is None and held.report["continuation"]["steps"] == SEARCH_AFTER
     # one released step from a prior ten times the data: the checker's edges are still blurred
     assert map_rmse(truth, off)["base_color"] < 1e-5 < 1e-3 < map_rmse(truth, held)["base_color"]
@@ -537,3 +540,82 @@ assert pickle.loads(pickle.dumps(pbrfit.fit)) is pbrfit.fit
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
+
+
+def _noisy_checker_obs(truth, sigma=0.01, seed=0):
+    rng = np.random.default_rng(seed)
+    return observations_from_views(VIEWS, [i + rng.normal(0, sigma, i.shape).astype(np.float32)
+                                           for i in _images(VIEWS, truth)])
+
+
+def test_uniform_check_makes_an_unsupported_map_one_value():
+    """A dielectric under 1% noise: the metallic map fits noise, and base colour follows it
+    (diffuse ∝ base · (1 - metallic)); one metallic value fitted from every pixel has no such
+    scatter. The checker's roughness contrast (0.35 / 0.45) is far above its noise: it stays a map."""
+    truth = _checker()
+    obs = _noisy_checker_obs(truth)
+    on = fit_observations(obs, resolution=8, max_steps=40)
+    off = fit_observations(obs, resolution=8, max_steps=40, uniform_check=False)
+    assert "uniform_check" not in off.report
+    check = on.report["uniform_check"]
+    metal, rough = check["metallic"], check["roughness"]
+    assert metal["uniform"] and metal["statistic"] <= metal["threshold"] == 2 * (64 - 1), check
+    assert not rough["uniform"] and rough["wald"] > 4 * rough["threshold"] and "statistic" not in rough, check
+    m = np.asarray(on.material.metallic)
+    assert np.all(m == np.float32(metal["value"])) and metal["value"] < 0.01
+    sigma = np.asarray(on.uncertainty)[..., 3]
+    assert np.all(sigma == np.float32(metal["sigma"])) and 0 < metal["sigma"] < 0.01
+    assert len(set(np.asarray(on.material.roughness).ravel().tolist())) > 2  # still a map
+    # the steps of the metallic re-fits count; the map fit's were 40 at most
+    assert on.report["steps"] == sum(h["steps"] for h in on.report["levels"]) + metal["steps"]
+    err_on, err_off = map_rmse(truth, on), map_rmse(truth, off)
+    assert err_on["metallic"] < 0.5 * err_off["metallic"] and err_on["base_color"] < err_off["base_color"], (
+        err_on, err_off)
+
+
+def test_uniform_check_finds_one_roughness_and_keeps_a_binary_metallic_map(monkeypatch):
+    """Uniform roughness and metallic under noise both become one value, near the truth; a
+    metal half beside a dielectric half is kept as a map without a re-fit (its Wald statistic
+    alone), with the same steps and maps as without the check."""
+    base = _checker().base_color
+    truth = Material(base, jnp.zeros((8, 8, 1)), jnp.full((8, 8, 1), 0.4))
+    res = fit_observations(_noisy_checker_obs(truth, seed=1), resolution=8, max_steps=40)
+    check = res.report["uniform_check"]
+    metal, rough = check["metallic"], check["roughness"]
+    assert metal["uniform"] and rough["uniform"], check
+    assert metal["value"] == 0.0 and abs(rough["value"] - 0.4) < 4 * rough["sigma"], check  # measured 0.3992, σ 0.0011
+    np.testing.assert_array_equal(np.asarray(res.material.roughness), np.float32(rough["value"]))
+    assert map_rmse(truth, res)["base_color"] < 0.01
+
+    half = np.zeros((8, 8, 1), np.float32)
+    half[:, :4] = 1.0
+    truth = Material(base, jnp.asarray(half), _checker().roughness)
+    obs = _noisy_checker_obs(truth, seed=1)
+    res = fit_observations(obs, resolution=8, max_steps=40)
+    off = fit_observations(obs, resolution=8, max_steps=40, uniform_check=False)
+    check = res.report["uniform_check"]
+    for name in ("metallic", "roughness"):
+        assert not check[name]["uniform"] and check[name]["wald"] > 4 * check[name]["threshold"], check
+        assert "statistic" not in check[name] and "steps" not in check[name], check
+    assert res.report["steps"] == off.report["steps"]
+    np.testing.assert_array_equal(np.asarray(res.material.metallic), np.asarray(off.material.metallic))
+    assert map_rmse(truth, res)["metallic"] < 0.03  # measured 0.013
+    # re-fitted anyway, the common value loses by far and the map fit is returned as it was
+    monkeypatch.setattr(pbrfit.fit, "WALD_MARGIN", np.inf)
+    forced = fit_observations(obs, resolution=8, max_steps=40)
+    metal = forced.report["uniform_check"]["metallic"]
+    assert not metal["uniform"] and metal["statistic"] > 10 * metal["threshold"] and metal["steps"] > 0, metal
+    np.testing.assert_array_equal(np.asarray(forced.material.metallic), np.asarray(off.material.metallic))
+    np.testing.assert_array_equal(np.asarray(forced.uncertainty), np.asarray(off.uncertainty))
+
+
+def test_uniform_check_says_why_it_was_skipped():
+    skipped = pbrfit.fit._uniform_check_skipped
+    on = np.array([1, 1, 1, 1, 1], np.float32)
+    assert skipped("structured", "l2", 0.0, (8, 8), on) is None
+    assert skipped("structured", "l2", 0.0, (1, 1), on) == "a uniform material"
+    assert skipped("lm", "l2", 0.0, (8, 8), on) == "needs the structured solver"
+    assert "l2 loss" in skipped("structured", "cauchy", 0.0, (8, 8), on)
+    assert "smoothness prior" in skipped("structured", "l2", 0.1, (8, 8), on)
+    assert skipped("structured", "l2", 0.0, (8, 8), np.array([1, 1, 1, 0, 0], np.float32)) == (
+        "neither metallic nor roughness is fitted")
