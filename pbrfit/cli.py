@@ -231,6 +231,10 @@ def _add_fit(sub) -> None:
                         "the better match")
     p.add_argument("--no-search", action="store_true",
                    help="skip the per-texel re-search of metallic and roughness midway through the solve")
+    p.add_argument("--no-uniform-check", action="store_true",
+                   help="keep metallic and roughness as maps even where the images support only one value for "
+                        "them (by default a map the images cannot tell apart from one value, by Akaike's criterion, "
+                        "becomes that value; report.json's uniform_check says what each test found)")
     p.add_argument("--continuation", metavar="W[,W...]",
                    help="weights of the smoothness prior over the first steps, relative to the data's curvature, "
                         f"released before the end (default {_default_continuation()}; 'none' turns it off)")
@@ -336,7 +340,8 @@ def _fit_options(args) -> dict:
     return dict(
         fit=tuple(free), fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
         max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, loss=args.loss, smooth=args.smooth,
-        coarse_to_fine=args.coarse_to_fine, search=not args.no_search, devices=devices, ibl=args.ibl,
+        coarse_to_fine=args.coarse_to_fine, search=not args.no_search, uniform_check=not args.no_uniform_check,
+        devices=devices, ibl=args.ibl,
         pixel_ibl_settings=pixel_ibl_settings, continuation=continuation, pixel_samples=pixel_samples,
         **({} if args.cg_rtol is None else dict(cg_rtol=args.cg_rtol)),
     )
@@ -386,6 +391,8 @@ class _Progress:
             h, w = info["resolution"]
             n = info.get("footprint")  # the auto footprint's two finishes: centres, then samples
             where = "" if n is None else ("  pixel centres" if n == 1 else f"  {n}x{n} samples")
+            if "check" in info:
+                where += f"  uniform {info['check']}?"
             self._live.update(self._task, description=(
                 f"level {info['level']} ({h}x{w}){where} step {info['step']:3d}  loss {info['loss']:.4e}"))
 
@@ -396,9 +403,16 @@ class _Progress:
 
 def _loss_history(steps: list, report: dict) -> list:
     """The convergence plot's (step, loss) points: every step reported, but of the automatic
-    footprint's two finishes (entries tagged "footprint") only the kept one's."""
+    footprint's two finishes (entries tagged "footprint") only the kept one's, and of the uniform
+    check's re-fits (tagged "check") only those of a channel made uniform."""
     kept = report.get("footprint", {}).get("selected")
-    return [dict(step=i, loss=h["loss"]) for i, h in enumerate(h for h in steps if h.get("footprint", kept) == kept)]
+    checks = report.get("uniform_check", {})
+    uniform = {name for name, c in checks.items() if isinstance(c, dict) and c.get("uniform")}
+
+    def plotted(h) -> bool:
+        return h.get("footprint", kept) == kept and h.get("check", None) in uniform | {None}
+
+    return [dict(step=i, loss=h["loss"]) for i, h in enumerate(h for h in steps if plotted(h))]
 
 
 def run_fit(capture, out, options: dict, cache_dir=None, quiet: bool = False):
@@ -457,6 +471,10 @@ def _summary(result, errors) -> str:
                      f"{foot['energies'][other]:.3e} {'at centres' if other == '1' else f'with {other}x{other}'})")
     elif n > 1:
         parts[0] += f", {n}x{n} samples per pixel"
+    uniform = [f"{name} {c['value']:.4g}" for name, c in r.get("uniform_check", {}).items()
+               if isinstance(c, dict) and c.get("uniform")]
+    if uniform:  # the uniform check found no support for these maps in the images
+        parts[0] += ", one value for " + " and ".join(uniform) + " (uniform check)"
     if errors:
         parts.append("RMSE " + ", ".join(f"{k} {v:.4f}" for k, v in errors.items()))
     return "; ".join(parts)

@@ -392,6 +392,10 @@ def test_summary_line_names_the_footprint():
     assert "5.0 s (compile 1.0 s)" in _summary(SimpleNamespace(report=report), {})
     report["times"]["compile_background"] = 6.5
     assert "5.0 s (compile 1.0 s, 6.5 s more overlapped)" in _summary(SimpleNamespace(report=report), {})
+    assert "uniform" not in _summary(SimpleNamespace(report=report), {})
+    report["uniform_check"] = dict(metallic=dict(uniform=True, value=0.0), roughness=dict(uniform=False))
+    assert "30 steps, loss 2.000e+00, one value for metallic 0 (uniform check); " in _summary(
+        SimpleNamespace(report=report), {})
 
 
 def test_loss_history_keeps_the_kept_footprint_only():
@@ -403,6 +407,28 @@ def test_loss_history_keeps_the_kept_footprint_only():
         dict(step=0, loss=9.0), dict(step=1, loss=5.0), dict(step=2, loss=2.0)]
     assert [h["loss"] for h in _loss_history(steps, dict(footprint=dict(selected=1)))] == [9.0, 5.0, 4.0, 3.0]
     assert [h["loss"] for h in _loss_history(steps[:2], {})] == [9.0, 5.0]
+
+
+def test_loss_history_keeps_uniform_check_refits_only_where_kept():
+    from pbrfit.cli import _loss_history
+
+    steps = [dict(loss=9.0), dict(loss=5.0), dict(loss=6.0, check="metallic"), dict(loss=5.5, check="metallic"),
+             dict(loss=7.0, check="roughness")]
+    checks = dict(metallic=dict(uniform=True), roughness=dict(uniform=False))
+    assert [h["loss"] for h in _loss_history(steps, dict(uniform_check=checks))] == [9.0, 5.0, 6.0, 5.5]
+    assert [h["loss"] for h in _loss_history(steps, dict(uniform_check=dict(metallic=dict(uniform=False))))] == [
+        9.0, 5.0]
+    assert [h["loss"] for h in _loss_history(steps[:2], dict(uniform_check=dict(skipped="a uniform material")))] == [
+        9.0, 5.0]
+
+
+def test_no_uniform_check_option_reaches_the_fit():
+    from pbrfit.cli import _fit_options, build_parser
+
+    def options(*extra):
+        return _fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
+
+    assert options()["uniform_check"] is True and options("--no-uniform-check")["uniform_check"] is False
 
 
 def test_cg_rtol_option_reaches_the_fit():
