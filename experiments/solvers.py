@@ -250,6 +250,8 @@ def run(scenes, configs):
                                levels=res.report["levels"], final_loss=res.report["final_loss"])
                     if "footprint" in res.report:
                         row["footprint"] = res.report["footprint"]
+                    if "uniform_check" in res.report:
+                        row["uniform_check"] = res.report["uniform_check"]
                     if "result" in row["levels"][-1]:
                         row["result_message"] = _result_message(row["levels"][-1]["result"])
                 rows.append(row)
