@@ -40,11 +40,14 @@ import pbrfit  # noqa: F401  (sets the XLA flags pbrfit needs before JAX starts)
 
 GRID = dict(solver="structured", init="grid", search=False, continuation=())
 DEFAULT = "structured (default: grid + continuation + search)"
+NO_CHECK = "structured (default, no uniform check)"
 NO_CONTINUATION = "structured (grid + search, no continuation)"
 CONFIGS = {
     # name: fit_observations keyword arguments
     DEFAULT: dict(solver="structured"),
     "structured (default, 100 steps)": dict(solver="structured", max_steps=100),
+    # the default without the uniform check (pbrfit.selection): what the check changes, on one host
+    NO_CHECK: dict(solver="structured", uniform_check=False),
     NO_CONTINUATION: dict(solver="structured", continuation=()),
     "structured (grid + continuation, no search)": dict(solver="structured", search=False),
     "structured (grid, no search)": dict(GRID),
@@ -77,31 +80,31 @@ FOOTPRINT = "structured (default, 2 × 2 pixel samples)"
 AUTO = "structured (default, auto footprint)"
 #: What the noiseless scenes run: every configuration but the smoothness priors and the
 #: footprints, and the oracle.
-COMPARISON = [c for c in CONFIGS if "smooth=" not in c and c not in (FOOTPRINT, AUTO)] + [ORACLE]
+COMPARISON = [c for c in CONFIGS if "smooth=" not in c and c not in (FOOTPRINT, AUTO, NO_CHECK)] + [ORACLE]
 #: name: (data_synth preset, make_scene overrides, configurations to run)
 SCENES = {
-    "peer-plane": ("peer-plane", {}, COMPARISON),
+    "peer-plane": ("peer-plane", {}, COMPARISON + [NO_CHECK]),
     "plane-flash": ("plane-flash", {}, COMPARISON + [FOOTPRINT, ORACLE_FOOTPRINT, AUTO]),
     # the flash capture without noise: what is left is the model's (pixel centres against the
     # 2 x 2 supersampled images) and the solver's
     "plane-flash-noiseless": ("plane-flash", dict(noise=0.0), [DEFAULT, FOOTPRINT, ORACLE, ORACLE_FOOTPRINT, AUTO]),
     # the peer layout as 16-bit sRGB PNGs rendered at pixel centres: what the automatic footprint
     # costs where the centres are right
-    "peer-plane-png": ("peer-plane", dict(image_format="png16"), [DEFAULT, FOOTPRINT, AUTO]),
+    "peer-plane-png": ("peer-plane", dict(image_format="png16"), [DEFAULT, FOOTPRINT, AUTO, NO_CHECK]),
     "sphere-env": ("sphere-env", {}, COMPARISON),
     "spheres-grid": ("spheres-grid", {}, COMPARISON),
     "peer-plane-noisy": ("peer-plane", dict(noise=0.01),
-                         [DEFAULT, NO_CONTINUATION, "structured (grid, no search)",
+                         [DEFAULT, NO_CHECK, NO_CONTINUATION, "structured (grid, no search)",
                           "structured (default, smooth=0.003)", "structured (default, smooth=0.03)", ORACLE]),
     # plane-flash with a third of the noise: three times the signal-to-noise
     "plane-flash-quiet": ("plane-flash", dict(noise=0.01 / 3),
                           [DEFAULT, NO_CONTINUATION, "structured (grid, no search)", ORACLE, FOOTPRINT, AUTO]),
     # the same noise with lights π times brighter (intensity 6π): three times the signal-to-noise
     "peer-plane-noisy-bright": ("peer-plane", dict(noise=0.01, light_intensity=6.0 * math.pi),
-                                [DEFAULT, NO_CONTINUATION, "structured (grid, no search)", ORACLE]),
+                                [DEFAULT, NO_CHECK, NO_CONTINUATION, "structured (grid, no search)", ORACLE]),
     # "1% noise" read as 1% of each value (std proportional to the signal) rather than 1% of a value of 1
     "peer-plane-noisy-relative": ("peer-plane", dict(noise=0.01, noise_model="relative"),
-                                  [DEFAULT, NO_CONTINUATION, ORACLE]),
+                                  [DEFAULT, NO_CHECK, NO_CONTINUATION, ORACLE]),
     "plane-flash-relative": ("plane-flash", dict(noise=0.01, noise_model="relative"),
                              [DEFAULT, NO_CONTINUATION, ORACLE, FOOTPRINT, AUTO]),
 }
@@ -266,6 +269,7 @@ def run(scenes, configs):
 SHORT = {
     DEFAULT: "default",
     "structured (default, 100 steps)": "default (100 steps)",
+    NO_CHECK: "no uniform check",
     NO_CONTINUATION: "no continuation",
     "structured (grid + continuation, no search)": "continuation, no search",
     "structured (grid, no search)": "no search",
@@ -482,15 +486,20 @@ def main():
         print(tables(json.loads(path.read_text())["rows"]))
         return
     rows = run(args.scenes, args.configs)
+    here = machine()
+    for r in rows:  # each row names its host: merged runs may come from different ones
+        r["machine"] = here
     if args.merge and path.exists():
         old = json.loads(path.read_text())
+        for r in old.get("rows", []) if isinstance(old, dict) else []:
+            r.setdefault("machine", old.get("machine"))
         old = old["rows"] if isinstance(old, dict) else old
         new = {(r["scene"], r["config"]) for r in rows}
         kept = [r for r in old if (r["scene"], r["config"]) not in new]
         order = {s: i for i, s in enumerate(SCENES)}
         conf = {c: i for i, c in enumerate(SHORT)}
         rows = sorted(kept + rows, key=lambda r: (order.get(r["scene"], len(order)), conf.get(r["config"], len(conf))))
-    doc = dict(machine=machine(), rows=rows)
+    doc = dict(machine=here, rows=rows)  # this run's host; every row also has its own
     path.write_text(json.dumps(doc, indent=1))
     plot(rows, out / "solvers.png")
 

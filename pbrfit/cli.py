@@ -204,7 +204,8 @@ def _add_fit(sub) -> None:
         flag = name.replace("_", "-")
         p.add_argument(f"--{flag}-from", metavar="DIR", help=f"hold {name} fixed at the map in a material folder")
     p.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER, help=f"default {DEFAULT_SOLVER}")
-    p.add_argument("--max-steps", type=int, help=f"solver steps at the final resolution (default {MAX_STEPS})")
+    p.add_argument("--max-steps", type=int, help=f"solver steps at the final resolution (default {MAX_STEPS}); the uniform check's re-fits "
+                        "come on top")
     p.add_argument("--rtol", type=float, default=1e-6,
                    help="relative stopping tolerance: the structured solver stops at an accepted step that lowers the "
                         "loss by less than this fraction of it; the optimistix solvers' rtol (default 1e-6)")

@@ -54,7 +54,7 @@ from .pixel_ibl import PixelIBLSettings, pixel_ibl
 from .parameters import CHANNELS, FIT_GROUPS, NORMAL_CHANNELS, channel_mask, lower, normal_from_slopes, prior, upper
 from .sharding import pixel_mesh, shard_problem
 from .selection import (NEWTON_STEPS, SELECTABLE, WALD_MARGIN, aic_statistic, newton_value, prefers_uniform,
-                        profile_precision, wald_statistic, weighted_value)
+                        profile_hessian, profile_precision, uniform_direction, wald_statistic, weighted_value)
 from .solvers import (CG_RTOL, LOSSES, Problem, gradient, linearize, normal_blocks, objective, pixel_residuals,
                       structured_lm)
 from .textures import sample_bilinear
@@ -120,8 +120,10 @@ PIXELS_PER_TEXEL = 1.0
 OBSERVATIONS_PER_TEXEL = 8.0
 MAX_RESOLUTION = 2048
 #: The uniform check (``uniform_check=True``, `pbrfit.selection`): steps of each re-fit of the
-#: other channels at a trial common value, and the Newton step on that value, in units of its
-#: standard error, below which the value is final (it moves the test statistic by its square).
+#: other channels at a trial common value (on noisy images they stop at this cap, leaving
+#: E_uniform a little high: the test then leans towards the map, the side that changes nothing),
+#: and the Newton step on that value, in units of its standard error, below which the value is
+#: final (it moves the test statistic by its square).
 REFIT_STEPS = 10
 NEWTON_TOL = 1.0
 
@@ -532,26 +534,27 @@ def _uniform_check_skipped(solver, loss, smooth, final, channels) -> Optional[st
 def _uniform_check(runner, problem: Problem, xs, linearization, channels, seen, num_pixels: int, where: dict):
     """Metallic, then roughness, as one common value where Akaike's criterion prefers it to a map
     (`pbrfit.selection`): (x, linearisation, problem, report, uniform) of the model kept, with
-    ``uniform`` {channel: (value, Σ s_t)} of the channels made uniform."""
+    ``uniform`` {channel: value} of the channels made uniform."""
     channels = np.asarray(channels, np.float32).copy()
     k = len(channels)
     lo, hi = lower(k), upper(k)
     seen_t = np.asarray(seen[: problem.num_texels], bool)
-    n_texels = int(np.sum(seen_t))
+    n_seen = int(np.sum(seen_t))
     blocks_fn, gradient_fn = jax.jit(normal_blocks), jax.jit(gradient)
     r, jac = linearization
     e_map = 0.5 * float(np.sum(np.square(np.asarray(r, np.float64))))
-    sigma2 = residual_variance(e_map, 3 * num_pixels, n_texels * int(np.sum(channels)))
+    sigma2 = residual_variance(e_map, 3 * num_pixels, n_seen * int(np.sum(channels)))
     xs = np.asarray(xs, np.float32)
     report, uniform = {}, {}
     for name, c in SELECTABLE:
         if channels[c] == 0:
             continue
+        s = profile_precision(np.asarray(blocks_fn(jac, problem)), channels > 0, seen_t, c)[seen_t]
+        n_texels = int(np.sum(s > 0))  # the texels whose channel c the images constrain at all
         if n_texels < 2:
-            report[name] = dict(uniform=False, skipped="fewer than two texels seen")
+            report[name] = dict(uniform=False, texels=n_texels, skipped="fewer than two texels constrain it")
             continue
         threshold = 2.0 * (n_texels - 1)
-        s = profile_precision(np.asarray(blocks_fn(jac, problem)), channels > 0, seen_t, c)[seen_t]
         value = weighted_value(xs[seen_t, c], s, float(lo[c]), float(hi[c]))
         wald = wald_statistic(xs[seen_t, c], s, value, sigma2)
         entry = dict(texels=n_texels, threshold=threshold, wald=wald)
@@ -562,7 +565,8 @@ def _uniform_check(runner, problem: Problem, xs, linearization, channels, seen, 
         reduced_channels[c] = 0.0
         free = (seen_t[:, None] * reduced_channels[None, :]).astype(np.float32)
         reduced = dataclasses.replace(problem, free=jax.device_put(free, problem.free.sharding))
-        num_free = n_texels * int(np.sum(reduced_channels))
+        direction = jax.device_put(uniform_direction(seen_t, c, k)[None], problem.free.sharding)
+        num_free = n_seen * int(np.sum(reduced_channels))
         x_red, steps, values = xs.copy(), 0, []
         where["check"] = name
         for i in range(NEWTON_STEPS + 1):
@@ -576,22 +580,20 @@ def _uniform_check(runner, problem: Problem, xs, linearization, channels, seen, 
                 break
             g = float(np.sum(np.asarray(gradient_fn(r_red, jac_red, to_device(x_red, np.float32), problem))[seen_t, c],
                              dtype=np.float64))
-            s_sum = float(np.sum(profile_precision(np.asarray(blocks_fn(jac_red, problem)), channels > 0, seen_t, c)))
-            new = newton_value(value, g, s_sum, float(lo[c]), float(hi[c]))
-            if s_sum > 0 and abs(new - value) <= NEWTON_TOL * math.sqrt(sigma2 / s_sum):
+            curvature = float(np.asarray(profile_hessian(jac_red, reduced, direction))[0, 0])
+            new = newton_value(value, g, curvature, float(lo[c]), float(hi[c]))
+            if not curvature > 0 or abs(new - value) <= NEWTON_TOL * math.sqrt(sigma2 / curvature):
                 break
             value = new
         where.pop("check")
         e_uniform = 0.5 * float(np.sum(np.square(np.asarray(r_red, np.float64))))
         statistic = aic_statistic(e_uniform, e_map, sigma2)
-        s_sum = float(np.sum(profile_precision(np.asarray(blocks_fn(jac_red, problem)), channels > 0, seen_t, c)))
         keep = prefers_uniform(statistic, n_texels)
-        report[name] = dict(entry, uniform=keep, statistic=statistic, value=value, steps=steps, values=values,
-                            sigma=math.sqrt(sigma2 / s_sum) if s_sum > 0 else math.inf)
+        report[name] = dict(entry, uniform=keep, statistic=statistic, value=value, steps=steps, values=values)
         if keep:
             xs, linearization, problem, e_map = np.asarray(x_red, np.float32), (r_red, jac_red), reduced, e_uniform
             jac, channels = jac_red, reduced_channels
-            uniform[c] = (value, s_sum)
+            uniform[c] = value
     return xs, linearization, problem, report, uniform
 
 
@@ -825,8 +827,9 @@ class _Runner:
 
 def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss, smooth, times, t_post, t_start,
             linearization=None, wrap: str = "repeat", uniform: Optional[Mapping] = None):
-    """The result at the fit's x. ``uniform`` {channel: (value, Σ s_t)}: channels fitted as one
-    common value (`_uniform_check`), whose standard error is σ̂ / sqrt(Σ s_t) at every seen texel."""
+    """The result at the fit's x. ``uniform`` {channel: value}: channels fitted as one common value
+    (`_uniform_check`); their standard errors, at every seen texel, are σ̂ sqrt(diag(P⁻¹)) for P
+    their profile curvature matrix (`pbrfit.selection.profile_hessian`)."""
     uniform = dict(uniform or {})
     k = len(channels)
     texel_channels = np.asarray(channels, np.float32).copy()
@@ -843,8 +846,16 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     n_par = int(np.sum(seen)) * int(np.sum(texel_channels)) + len(uniform)
     sigma2 = residual_variance(float(energy), n_res, n_par)
     sigma = block_standard_errors(blocks, texel_channels > 0, seen, sigma2)
-    for c, (_, s_sum) in uniform.items():
-        sigma[:, c] = np.where(seen, math.sqrt(sigma2 / s_sum) if s_sum > 0 else np.inf, np.inf)
+    if uniform:
+        cs = sorted(uniform)
+        directions = np.stack([uniform_direction(seen, c, k) for c in cs])
+        p = np.asarray(profile_hessian(jac, problem, jax.device_put(directions, problem.free.sharding)), np.float64)
+        try:
+            var = np.diag(np.linalg.inv(p)) if np.all(np.linalg.eigvalsh(p) > 0) else np.full(len(cs), np.inf)
+        except np.linalg.LinAlgError:
+            var = np.full(len(cs), np.inf)
+        for c, v in zip(cs, var):
+            sigma[:, c] = np.where(seen, math.sqrt(sigma2 * v) if np.isfinite(v) else np.inf, np.inf)
     sigma = sigma.reshape(final + (k,))
     coverage = coverage_counts(_layout(obs, final, wrap), obs.samples)
     # Per-view renders in image space and PSNR (peak 1: display values).
@@ -986,8 +997,10 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             (base colour with metallic) along. Default on; structured solver, l2 loss and no
             ``smooth`` only (else the report says why it was skipped). The report's
             "uniform_check" entry gives each test's statistic, threshold and outcome; a uniform
-            channel fills its map with the value and its uncertainty with the value's standard
-            error.
+            channel holds the value at every seen texel (unseen ones keep the prior) and its
+            uncertainty the value's standard error. Its re-fits add up to
+            (`NEWTON_STEPS` + 1) × `REFIT_STEPS` steps per channel, counted in the report's
+            "steps" (a rejected test's too).
         devices: a sequence of JAX devices to split the pixels over (`pbrfit.sharding`); default
             None: the default device.
         model: override the `Model` (default `model_for_capture`: the one that rendered the images).
