@@ -55,7 +55,7 @@ from .parameters import CHANNELS, FIT_GROUPS, NORMAL_CHANNELS, channel_mask, low
 from .sharding import pixel_mesh, shard_problem
 from .selection import (NEWTON_STEPS, SELECTABLE, WALD_MARGIN, aic_statistic, newton_value, prefers_uniform,
                         profile_hessian, profile_precision, uniform_direction, wald_statistic, weighted_value)
-from .solvers import (CG_RTOL, LOSSES, Problem, gradient, linearize, normal_blocks, objective, pixel_residuals,
+from .solvers import (CG_RTOL, LOSSES, Problem, linearize, normal_blocks, objective, pixel_residuals,
                       structured_lm)
 from .textures import sample_bilinear
 from .transfer import to_device
@@ -121,9 +121,10 @@ OBSERVATIONS_PER_TEXEL = 8.0
 MAX_RESOLUTION = 2048
 #: The uniform check (``uniform_check=True``, `pbrfit.selection`): steps of each re-fit of the
 #: other channels at a trial common value (on noisy images they stop at this cap, leaving
-#: E_uniform a little high: the test then leans towards the map, the side that changes nothing),
-#: and the Newton step on that value, in units of its standard error, below which the value is
-#: final (it moves the test statistic by its square).
+#: E_uniform a little high, which leans the test towards the map; the re-fits also continue the
+#: map fit's own descent, which leans it the other way where that had not converged), and the
+#: Newton step on that value, in units of its standard error, below which the value is final (it
+#: moves the test statistic by its square).
 REFIT_STEPS = 10
 NEWTON_TOL = 1.0
 
@@ -540,7 +541,7 @@ def _uniform_check(runner, problem: Problem, xs, linearization, channels, seen, 
     lo, hi = lower(k), upper(k)
     seen_t = np.asarray(seen[: problem.num_texels], bool)
     n_seen = int(np.sum(seen_t))
-    blocks_fn, gradient_fn = jax.jit(normal_blocks), jax.jit(gradient)
+    blocks_fn = jax.jit(normal_blocks)
     r, jac = linearization
     e_map = 0.5 * float(np.sum(np.square(np.asarray(r, np.float64))))
     sigma2 = residual_variance(e_map, 3 * num_pixels, n_seen * int(np.sum(channels)))
@@ -567,7 +568,7 @@ def _uniform_check(runner, problem: Problem, xs, linearization, channels, seen, 
         reduced = dataclasses.replace(problem, free=jax.device_put(free, problem.free.sharding))
         direction = jax.device_put(uniform_direction(seen_t, c, k)[None], problem.free.sharding)
         num_free = n_seen * int(np.sum(reduced_channels))
-        x_red, steps, values = xs.copy(), 0, []
+        x_red, steps, values, converged = xs.copy(), 0, [], False
         where["check"] = name
         for i in range(NEWTON_STEPS + 1):
             values.append(value)
@@ -578,18 +579,19 @@ def _uniform_check(runner, problem: Problem, xs, linearization, channels, seen, 
             r_red, jac_red = runner.linearization
             if i == NEWTON_STEPS:
                 break
-            g = float(np.sum(np.asarray(gradient_fn(r_red, jac_red, to_device(x_red, np.float32), problem))[seen_t, c],
-                             dtype=np.float64))
-            curvature = float(np.asarray(profile_hessian(jac_red, reduced, direction))[0, 0])
-            new = newton_value(value, g, curvature, float(lo[c]), float(hi[c]))
-            if not curvature > 0 or abs(new - value) <= NEWTON_TOL * math.sqrt(sigma2 / curvature):
+            p, g = profile_hessian(r_red, jac_red, to_device(x_red, np.float32), reduced, direction)
+            curvature, slope = float(np.asarray(p)[0, 0]), float(np.asarray(g)[0])
+            new = newton_value(value, slope, curvature, float(lo[c]), float(hi[c]))
+            converged = curvature > 0 and abs(new - value) <= NEWTON_TOL * math.sqrt(sigma2 / curvature)
+            if converged or not curvature > 0:
                 break
             value = new
         where.pop("check")
         e_uniform = 0.5 * float(np.sum(np.square(np.asarray(r_red, np.float64))))
         statistic = aic_statistic(e_uniform, e_map, sigma2)
         keep = prefers_uniform(statistic, n_texels)
-        report[name] = dict(entry, uniform=keep, statistic=statistic, value=value, steps=steps, values=values)
+        report[name] = dict(entry, uniform=keep, statistic=statistic, value=value, steps=steps, values=values,
+                            converged=converged)
         if keep:
             xs, linearization, problem, e_map = np.asarray(x_red, np.float32), (r_red, jac_red), reduced, e_uniform
             jac, channels = jac_red, reduced_channels
@@ -849,11 +851,13 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     if uniform:
         cs = sorted(uniform)
         directions = np.stack([uniform_direction(seen, c, k) for c in cs])
-        p = np.asarray(profile_hessian(jac, problem, jax.device_put(directions, problem.free.sharding)), np.float64)
-        try:
-            var = np.diag(np.linalg.inv(p)) if np.all(np.linalg.eigvalsh(p) > 0) else np.full(len(cs), np.inf)
-        except np.linalg.LinAlgError:
-            var = np.full(len(cs), np.inf)
+        p = np.asarray(profile_hessian(r, jac, xj, problem, jax.device_put(directions, problem.free.sharding))[0],
+                       np.float64)
+        if np.all(np.linalg.eigvalsh(p) > 0):
+            var = np.diag(np.linalg.inv(p))
+        else:  # a degenerate pair: each value's σ with the other held
+            d = np.diag(p)
+            var = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), np.inf)
         for c, v in zip(cs, var):
             sigma[:, c] = np.where(seen, math.sqrt(sigma2 * v) if np.isfinite(v) else np.inf, np.inf)
     sigma = sigma.reshape(final + (k,))

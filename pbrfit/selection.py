@@ -23,12 +23,14 @@ the smaller error too.
 The common value is the profile-likelihood estimate: the other channels re-fitted at each
 trial value c, projected Newton steps on c (clipped to the channel's bounds) with
 
-    dE_uniform/dc = Σ_t ∂E/∂x_tc = dᵀ g   (the envelope theorem: the others are at their optimum),
-    d²E_uniform/dc² ≈ dᵀH d − dᵀH_·O (H_OO)⁻¹ H_O· d,
+    dE_uniform/dc ≈ eᵀ ∇E,   d²E_uniform/dc² ≈ eᵀ H e,   e = d − F (Fᵀ H F)⁻¹ Fᵀ H d,
 
 d the direction that moves channel c of every seen texel together, H = JᵀJ the Gauss-Newton
-matrix and O the channels still fitted (`profile_hessian`: the Schur complement, one conjugate-
-gradient solve over the whole map, since neighbouring texels share pixels). The value's standard
+matrix and F the channels still fitted: e moves the common value and re-fits the others to
+first order (`profile_hessian`; eᵀ H e is the Schur complement dᵀHd − dᵀHF (FᵀHF)⁻¹ FᵀHd, one
+conjugate-gradient solve over the whole map, since neighbouring texels share pixels; eᵀ ∇E is
+the envelope theorem's dᵀ∇E where the others are at their optimum, and stays right where a
+re-fit stopped short of it). The value's standard
 error is sqrt(σ̂² / that curvature), or, with both channels uniform, from the inverse of their
 2 × 2 profile matrix. Bounds of the other channels are ignored in it.
 
@@ -37,8 +39,8 @@ their precision-weighted mean c₀ approximates Δ, with s_t = 1 / [(D_t)⁻¹]_
 precision in texel t from its own Gauss-Newton block D_t (`pbrfit.solvers.normal_blocks`, the
 other channels of the texel re-fitted; 0 where `pbrfit.uncertainty` finds the channel
 unconstrained). The blocks leave out what neighbouring texels share, so s_t overstates the
-precision and W overstates Δ (about twice on the tests' scene); a map with W above `WALD_MARGIN`
-times the threshold is kept without re-fitting. That keeps every map of our textured scenes, and
+precision (on the tests' scene W was twice Δ; on the noisy peer planes 0.7 to 1.4 times it); a
+map with W above `WALD_MARGIN` times the threshold is kept without re-fitting. That keeps every map of our textured scenes, and
 also a map that a fit left in a wrong minimum, whose scatter is not noise. Texels with s_t = 0
 count as no parameter in the threshold.
 """
@@ -51,7 +53,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float
 
-from .solvers import Problem, gauss_newton_factors, gn_product, normal_blocks, pcg
+from .solvers import Problem, gauss_newton_factors, gn_product, gradient, normal_blocks, pcg
 from .uncertainty import block_standard_errors
 
 __all__ = ["SELECTABLE", "WALD_MARGIN", "NEWTON_STEPS", "aic_statistic", "prefers_uniform", "profile_precision",
@@ -79,18 +81,25 @@ def profile_precision(blocks: np.ndarray, channels: np.ndarray, seen: np.ndarray
 
 
 @eqx.filter_jit
-def profile_hessian(jac: Float[Array, "R 3 K"], problem: Problem, directions: Float[Array, "U T K"]):
-    """(U, U) Gauss-Newton curvature of E along `directions`, the channels ``problem.free`` holds
-    re-fitted: Dᵀ H D − Dᵀ H F (Fᵀ H F)⁻¹ Fᵀ H D (H = JᵀJ of the pixels, F the free entries), by
-    block-Jacobi preconditioned conjugate gradients over the whole map."""
+def profile_hessian(r: Float[Array, "P 3"], jac: Float[Array, "R 3 K"], x: Float[Array, "T K"], problem: Problem,
+                    directions: Float[Array, "U T K"]):
+    """((U, U), (U,)): the Gauss-Newton curvature and the slope of E along `directions` with the
+    channels ``problem.free`` holds re-fitted to first order.
+
+    Each direction d_u becomes e_u = d_u − F y_u, y_u = (Fᵀ H F)⁻¹ Fᵀ H d_u (H = JᵀJ of the pixels,
+    F the free entries; block-Jacobi preconditioned conjugate gradients over the whole map), and
+    P_uv = e_uᵀ H e_v (= Dᵀ H D − Dᵀ H F (Fᵀ H F)⁻¹ Fᵀ H D, positive semi-definite as computed),
+    g_u = e_uᵀ ∇E: the Newton step on the common values is −P⁻¹ g even where the re-fit of the
+    others stopped short of their optimum."""
     free = problem.free
     k = free.shape[1]
     gp = gauss_newton_factors(jac, problem)
     blocks = normal_blocks(jac, problem)
     diag = jnp.diagonal(blocks, axis1=1, axis2=2)
-    ridge = 1e-6 * jnp.sum(diag * free) / jnp.maximum(jnp.sum(free), 1.0)  # keeps singular blocks invertible
+    # each block's ridge keeps it invertible in float32 where a channel is barely constrained
+    ridge = 1e-5 * jnp.max(diag * free, axis=1) + 1e-12 * jnp.sum(diag * free) / jnp.maximum(jnp.sum(free), 1.0)
     eye = jnp.eye(k, dtype=blocks.dtype)
-    m = free[:, :, None] * free[:, None, :] * (blocks + ridge * eye) + (1.0 - free)[:, :, None] * eye
+    m = free[:, :, None] * free[:, None, :] * (blocks + ridge[:, None, None] * eye) + (1.0 - free)[:, :, None] * eye
     m_inv = jnp.linalg.inv(m)
 
     def matvec(v):
@@ -99,11 +108,12 @@ def profile_hessian(jac: Float[Array, "R 3 K"], problem: Problem, directions: Fl
     def precond(v):
         return jnp.einsum("tij,tj->ti", m_inv, v, precision=lax.Precision.HIGHEST)
 
-    hd = jnp.stack([gn_product(gp, d, problem) for d in directions])
-    solved = jnp.stack([pcg(matvec, free * h, precond, PROFILE_CG_RTOL, PROFILE_CG_STEPS)[0] for h in hd])
-    direct = jnp.einsum("utk,vtk->uv", directions, hd, precision=lax.Precision.HIGHEST)
-    coupled = jnp.einsum("utk,vtk->uv", free * hd, solved, precision=lax.Precision.HIGHEST)
-    return direct - coupled
+    e = jnp.stack([d - free * pcg(matvec, free * gn_product(gp, d, problem), precond, PROFILE_CG_RTOL,
+                                  PROFILE_CG_STEPS)[0] for d in directions])
+    he = jnp.stack([gn_product(gp, v, problem) for v in e])
+    p = jnp.einsum("utk,vtk->uv", e, he, precision=lax.Precision.HIGHEST)
+    g = jnp.einsum("utk,tk->u", e, gradient(r, jac, x, problem), precision=lax.Precision.HIGHEST)
+    return 0.5 * (p + p.T), g
 
 
 def uniform_direction(seen: np.ndarray, c: int, k: int) -> np.ndarray:
@@ -130,7 +140,7 @@ def wald_statistic(values: np.ndarray, precision: np.ndarray, value: float, sigm
 
 
 def newton_value(value: float, gradient_sum: float, curvature: float, lo: float, hi: float) -> float:
-    """One projected Newton step on the common value: clip(c − dᵀg / curvature, lo, hi)."""
+    """One projected Newton step on the common value: clip(c − slope / curvature, lo, hi)."""
     if not curvature > 0:
         return value
     return float(np.clip(value - gradient_sum / curvature, lo, hi))

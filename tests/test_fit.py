@@ -548,6 +548,28 @@ def _noisy_checker_obs(truth, sigma=0.01, seed=0):
                                            for i in _images(VIEWS, truth)])
 
 
+def _dense_profile_sigma(obs, res, uniform):
+    """σ̂ sqrt(diag(P⁻¹)) of the common values of channels `uniform` of a fit of the 8 × 8 maps
+    (every texel seen): P = DᵀHD − DᵀHF (FᵀHF)⁻¹ FᵀHD from the dense H = JᵀJ at the fitted maps,
+    D moving those channels of every texel together, F the other channels."""
+    problem = dataclasses.replace(_texel_problem(_checker()), obs=obs,
+                                  pair_weight=jnp.zeros(len(neighbour_pairs((8, 8)))))
+    x = np.asarray(_stack(res.material))
+    jac = np.asarray(jax.jacfwd(lambda v: pbrfit.solvers.pixel_residuals(v.reshape(-1, 5), problem).ravel())(
+        jnp.asarray(x.ravel())), np.float64)
+    h = jac.T @ jac
+    d = np.zeros((len(uniform), 64, 5))
+    for i, c in enumerate(uniform):
+        d[i, :, c] = 1.0
+    d = d.reshape(len(uniform), -1)
+    f = np.ones((64, 5), bool)
+    f[:, uniform] = False
+    f = f.ravel()
+    hd = h @ d.T
+    p = d @ hd - hd[f].T @ np.linalg.solve(h[np.ix_(f, f)], hd[f])
+    return res.report["residual_sigma"] * np.sqrt(np.diag(np.linalg.inv(p)))
+
+
 def test_uniform_check_makes_an_unsupported_map_one_value():
     """A dielectric under 1% noise: the metallic map fits noise, and base colour follows it
     (diffuse ∝ base · (1 - metallic)); one metallic value fitted from every pixel has no such
@@ -565,22 +587,9 @@ def test_uniform_check_makes_an_unsupported_map_one_value():
     assert np.all(m == np.float32(metal["value"])) and metal["value"] < 0.01
     sigma = np.asarray(on.uncertainty)[..., 3]
     assert np.all(sigma == np.float32(metal["sigma"])) and 0 < metal["sigma"] < 0.01
-    # the value's σ against the dense profile curvature: dᵀHd − dᵀH_F (H_FF)⁻¹ H_F d, H = JᵀJ of
-    # the fitted maps, d moving every texel's metallic, F base colour and roughness re-fitted
-    problem = dataclasses.replace(_texel_problem(truth), obs=obs, pair_weight=jnp.zeros(len(neighbour_pairs((8, 8)))))
-    x = np.asarray(_stack(on.material))
-    jac = np.asarray(jax.jacfwd(lambda v: pbrfit.solvers.pixel_residuals(v.reshape(-1, 5), problem).ravel())(
-        jnp.asarray(x.ravel())), np.float64)
-    h = jac.T @ jac
-    d = np.zeros((64, 5))
-    d[:, 3] = 1.0
-    d = d.ravel()
-    f = np.zeros((64, 5), bool)
-    f[:, [0, 1, 2, 4]] = True
-    f = f.ravel()
-    hd = h @ d
-    profile = d @ hd - hd[f] @ np.linalg.solve(h[np.ix_(f, f)], hd[f])
-    np.testing.assert_allclose(metal["sigma"], on.report["residual_sigma"] / np.sqrt(profile), rtol=0.02)
+    # the value's σ against the dense profile curvature (metallic moved, the rest re-fitted)
+    np.testing.assert_allclose(metal["sigma"], _dense_profile_sigma(obs, on, [3])[0], rtol=0.02)
+    assert metal["converged"] and len(metal["values"]) >= 2, metal  # Newton moved it from the Wald start
     assert len(set(np.asarray(on.material.roughness).ravel().tolist())) > 2  # still a map
     # the steps of the metallic re-fits count; the map fit's were 40 at most
     assert on.report["steps"] == sum(h["steps"] for h in on.report["levels"]) + metal["steps"]
@@ -595,12 +604,15 @@ def test_uniform_check_finds_one_roughness_and_keeps_a_binary_metallic_map(monke
     alone), with the same steps and maps as without the check."""
     base = _checker().base_color
     truth = Material(base, jnp.zeros((8, 8, 1)), jnp.full((8, 8, 1), 0.4))
-    res = fit_observations(_noisy_checker_obs(truth, seed=1), resolution=8, max_steps=40)
+    obs = _noisy_checker_obs(truth, seed=1)
+    res = fit_observations(obs, resolution=8, max_steps=40)
     check = res.report["uniform_check"]
     metal, rough = check["metallic"], check["roughness"]
     assert metal["uniform"] and rough["uniform"], check
     # measured: metallic 0.0003 (σ 0.0010), roughness 0.3995 (σ 0.0014)
     assert metal["value"] < 2 * metal["sigma"] and abs(rough["value"] - 0.4) < 4 * rough["sigma"], check
+    # both σ from the 2 × 2 profile matrix of the two common values, against its dense form
+    np.testing.assert_allclose([metal["sigma"], rough["sigma"]], _dense_profile_sigma(obs, res, [3, 4]), rtol=0.02)
     np.testing.assert_array_equal(np.asarray(res.material.roughness), np.float32(rough["value"]))
     assert map_rmse(truth, res)["base_color"] < 0.01
 
