@@ -402,13 +402,17 @@ class _Progress:
             self._live.stop()
 
 
+def _uniform_channels(report: dict) -> list:
+    """Names of the channels the uniform check made uniform."""
+    return [name for name, c in report.get("uniform_check", {}).items() if isinstance(c, dict) and c.get("uniform")]
+
+
 def _loss_history(steps: list, report: dict) -> list:
     """The convergence plot's (step, loss) points: every step reported, but of the automatic
     footprint's two finishes (entries tagged "footprint") only the kept one's, and of the uniform
     check's re-fits (tagged "check") only those of a channel made uniform."""
     kept = report.get("footprint", {}).get("selected")
-    checks = report.get("uniform_check", {})
-    uniform = {name for name, c in checks.items() if isinstance(c, dict) and c.get("uniform")}
+    uniform = set(_uniform_channels(report))
 
     def plotted(h) -> bool:
         return h.get("footprint", kept) == kept and h.get("check", None) in uniform | {None}
@@ -472,8 +476,7 @@ def _summary(result, errors) -> str:
                      f"{foot['energies'][other]:.3e} {'at centres' if other == '1' else f'with {other}x{other}'})")
     elif n > 1:
         parts[0] += f", {n}x{n} samples per pixel"
-    uniform = [f"{name} {c['value']:.4g}" for name, c in r.get("uniform_check", {}).items()
-               if isinstance(c, dict) and c.get("uniform")]
+    uniform = [f"{name} {r['uniform_check'][name]['value']:.4g}" for name in _uniform_channels(r)]
     if uniform:  # the uniform check found no support for these maps in the images
         parts[0] += ", one value for " + " and ".join(uniform) + " (uniform check)"
     if errors:

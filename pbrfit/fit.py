@@ -54,7 +54,7 @@ from .pixel_ibl import PixelIBLSettings, pixel_ibl
 from .parameters import CHANNELS, FIT_GROUPS, NORMAL_CHANNELS, channel_mask, lower, normal_from_slopes, prior, upper
 from .sharding import pixel_mesh, shard_problem
 from .selection import (NEWTON_STEPS, SELECTABLE, WALD_MARGIN, aic_statistic, newton_value, prefers_uniform,
-                        profile_hessian, profile_precision, uniform_direction, wald_statistic, weighted_value)
+                        profile_hessian, texel_precisions, uniform_direction, wald_statistic, weighted_value)
 from .solvers import (CG_RTOL, LOSSES, Problem, linearize, normal_blocks, objective, pixel_residuals,
                       structured_lm)
 from .textures import sample_bilinear
@@ -547,10 +547,13 @@ def _uniform_check(runner, problem: Problem, xs, linearization, channels, seen, 
     sigma2 = residual_variance(e_map, 3 * num_pixels, n_seen * int(np.sum(channels)))
     xs = np.asarray(xs, np.float32)
     report, uniform = {}, {}
+    precision = None  # per-texel precisions of the model as it stands (recomputed when a channel goes)
     for name, c in SELECTABLE:
         if channels[c] == 0:
             continue
-        s = profile_precision(np.asarray(blocks_fn(jac, problem)), channels > 0, seen_t, c)[seen_t]
+        if precision is None:
+            precision = texel_precisions(np.asarray(blocks_fn(jac, problem)), channels > 0, seen_t)
+        s = precision[seen_t, c]
         n_texels = int(np.sum(s > 0))  # the texels whose channel c the images constrain at all
         if n_texels < 2:
             report[name] = dict(uniform=False, texels=n_texels, skipped="fewer than two texels constrain it")
@@ -568,7 +571,7 @@ def _uniform_check(runner, problem: Problem, xs, linearization, channels, seen, 
         reduced = dataclasses.replace(problem, free=jax.device_put(free, problem.free.sharding))
         direction = jax.device_put(uniform_direction(seen_t, c, k)[None], problem.free.sharding)
         num_free = n_seen * int(np.sum(reduced_channels))
-        x_red, steps, values, converged = xs.copy(), 0, [], False
+        x_red, steps, values, converged = xs, 0, [], False
         where["check"] = name
         for i in range(NEWTON_STEPS + 1):
             values.append(value)
@@ -594,7 +597,7 @@ def _uniform_check(runner, problem: Problem, xs, linearization, channels, seen, 
                             converged=converged)
         if keep:
             xs, linearization, problem, e_map = np.asarray(x_red, np.float32), (r_red, jac_red), reduced, e_uniform
-            jac, channels = jac_red, reduced_channels
+            jac, channels, precision = jac_red, reduced_channels, None
             uniform[c] = value
     return xs, linearization, problem, report, uniform
 

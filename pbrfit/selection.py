@@ -56,7 +56,7 @@ from jaxtyping import Array, Float
 from .solvers import Problem, gauss_newton_factors, gn_product, gradient, normal_blocks, pcg
 from .uncertainty import block_standard_errors
 
-__all__ = ["SELECTABLE", "WALD_MARGIN", "NEWTON_STEPS", "aic_statistic", "prefers_uniform", "profile_precision",
+__all__ = ["SELECTABLE", "WALD_MARGIN", "NEWTON_STEPS", "aic_statistic", "prefers_uniform", "texel_precisions",
            "profile_hessian", "uniform_direction", "wald_statistic", "weighted_value", "newton_value"]
 
 #: Channels the test may make uniform: (name, channel index). Base colour is always a map.
@@ -70,12 +70,13 @@ PROFILE_CG_RTOL = 1e-4
 PROFILE_CG_STEPS = 200
 
 
-def profile_precision(blocks: np.ndarray, channels: np.ndarray, seen: np.ndarray, c: int) -> np.ndarray:
-    """(T,) s_t = 1 / [(D_t)⁻¹]_cc over the fitted channels: channel c's curvature in texel t
+def texel_precisions(blocks: np.ndarray, channels: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """(T, K) s_tc = 1 / [(D_t)⁻¹]_cc over the fitted channels: each channel's curvature in texel t
     with the texel's other fitted channels re-fitted (the Schur complement of its block); 0 for
-    unseen texels and where the block leaves channel c unconstrained (`EIGEN_FLOOR`, as
-    `pbrfit.uncertainty.block_standard_errors` finds it)."""
-    sigma = block_standard_errors(blocks, channels, seen, 1.0)[:, c].astype(np.float64)
+    unseen texels, fixed channels and where the block leaves a channel unconstrained
+    (`EIGEN_FLOOR`, as `pbrfit.uncertainty.block_standard_errors` finds it). One eigen-
+    decomposition of the blocks serves every channel."""
+    sigma = block_standard_errors(blocks, channels, seen, 1.0).astype(np.float64)
     ok = np.isfinite(sigma) & (sigma > 0)
     return np.where(ok, 1.0 / np.where(ok, sigma, 1.0) ** 2, 0.0)
 

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from pbrfit.selection import (aic_statistic, newton_value, prefers_uniform, profile_precision, wald_statistic,
+from pbrfit.selection import (aic_statistic, newton_value, prefers_uniform, texel_precisions, wald_statistic,
                               weighted_value)
 
 
@@ -12,21 +12,21 @@ def _spd_blocks(t=6, k=5, seed=0):
     return np.einsum("tri,trj->tij", a, a) + 0.1 * np.eye(k)
 
 
-def test_profile_precision_is_the_schur_complement_over_the_fitted_channels():
+def test_texel_precisions_are_the_schur_complements_over_the_fitted_channels():
     blocks = _spd_blocks()
     channels = np.array([1, 1, 1, 1, 0], bool)  # roughness held: it does not enter the complement
     seen = np.array([1, 1, 1, 0, 1, 1], bool)
-    s = profile_precision(blocks, channels, seen, 3)
+    s = texel_precisions(blocks, channels, seen)[:, 3]
     others = [0, 1, 2]
     for t in range(len(blocks)):
         d = blocks[t]
         schur = d[3, 3] - d[3, others] @ np.linalg.solve(d[np.ix_(others, others)], d[others, 3])
         np.testing.assert_allclose(s[t], schur if seen[t] else 0.0, rtol=1e-6)  # float32 errors
     # with every channel free the complement is smaller (more to trade against), never larger
-    assert np.all(profile_precision(blocks, np.ones(5, bool), seen, 3)[seen] < s[seen])
+    assert np.all(texel_precisions(blocks, np.ones(5, bool), seen)[seen, 3] < s[seen])
 
 
-def test_profile_precision_of_a_channel_no_pixel_constrains_is_zero():
+def test_texel_precision_of_a_channel_no_pixel_constrains_is_zero():
     blocks = _spd_blocks(t=3)
     blocks[0, 4, :] = blocks[0, :, 4] = 0.0  # texel 0: roughness moves no pixel
     # texel 1: roughness moves the pixels exactly as base R does (a singular block whose row for
@@ -35,7 +35,7 @@ def test_profile_precision_of_a_channel_no_pixel_constrains_is_zero():
     a = rng.normal(size=(8, 5))
     a[:, 4] = a[:, 0]
     blocks[1] = a.T @ a
-    s = profile_precision(blocks, np.ones(5, bool), np.ones(3, bool), 4)
+    s = texel_precisions(blocks, np.ones(5, bool), np.ones(3, bool))[:, 4]
     assert s[0] == 0.0 and s[1] == 0.0 and s[2] > 0.0
 
 
