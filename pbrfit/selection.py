@@ -68,6 +68,13 @@ NEWTON_STEPS = 3
 #: `profile_hessian`'s conjugate gradients: relative residual and iteration cap.
 PROFILE_CG_RTOL = 1e-4
 PROFILE_CG_STEPS = 200
+#: ... its block-Jacobi preconditioner adds this fraction of each block's largest diagonal entry
+#: to the block, which keeps the block invertible in float32 where a channel is barely
+#: constrained (the ridge is in the preconditioner only: the solve is of the exact system) ...
+PRECONDITIONER_RIDGE = 1e-5
+#: ... plus this fraction of the mean diagonal, for a block whose entries are all 0 (a texel
+#: whose other channels no pixel constrains).
+PRECONDITIONER_FLOOR = 1e-12
 
 
 def texel_precisions(blocks: np.ndarray, channels: np.ndarray, seen: np.ndarray) -> np.ndarray:
@@ -97,8 +104,8 @@ def profile_hessian(r: Float[Array, "P 3"], jac: Float[Array, "R 3 K"], x: Float
     gp = gauss_newton_factors(jac, problem)
     blocks = normal_blocks(jac, problem)
     diag = jnp.diagonal(blocks, axis1=1, axis2=2)
-    # each block's ridge keeps it invertible in float32 where a channel is barely constrained
-    ridge = 1e-5 * jnp.max(diag * free, axis=1) + 1e-12 * jnp.sum(diag * free) / jnp.maximum(jnp.sum(free), 1.0)
+    ridge = (PRECONDITIONER_RIDGE * jnp.max(diag * free, axis=1)
+             + PRECONDITIONER_FLOOR * jnp.sum(diag * free) / jnp.maximum(jnp.sum(free), 1.0))
     eye = jnp.eye(k, dtype=blocks.dtype)
     m = free[:, :, None] * free[:, None, :] * (blocks + ridge[:, None, None] * eye) + (1.0 - free)[:, :, None] * eye
     m_inv = jnp.linalg.inv(m)
