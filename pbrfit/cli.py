@@ -204,8 +204,8 @@ def _add_fit(sub) -> None:
         flag = name.replace("_", "-")
         p.add_argument(f"--{flag}-from", metavar="DIR", help=f"hold {name} fixed at the map in a material folder")
     p.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER, help=f"default {DEFAULT_SOLVER}")
-    p.add_argument("--max-steps", type=int, help=f"solver steps at the final resolution (default {MAX_STEPS}); the uniform check's re-fits "
-                        "come on top")
+    p.add_argument("--max-steps", type=int, help=f"solver steps at the final resolution (default {MAX_STEPS}); the repair's and the "
+                        "uniform check's re-fits come on top")
     p.add_argument("--rtol", type=float, default=1e-6,
                    help="relative stopping tolerance: the structured solver stops at an accepted step that lowers the "
                         "loss by less than this fraction of it; the optimistix solvers' rtol (default 1e-6)")
@@ -232,6 +232,10 @@ def _add_fit(sub) -> None:
                         "the better match")
     p.add_argument("--no-search", action="store_true",
                    help="skip the per-texel re-search of metallic and roughness midway through the solve")
+    p.add_argument("--no-repair", action="store_true",
+                   help="skip the repair after the solve (by default texels whose pixels fit worse than the noise "
+                        "explains are started again from their nearest well-fitted neighbour, re-searched and "
+                        "re-solved, kept where the loss falls; report.json's repair says what each pass did)")
     p.add_argument("--no-uniform-check", action="store_true",
                    help="keep metallic and roughness as maps even where the images support only one value for "
                         "them (by default a map the images cannot tell apart from one value, by Akaike's criterion, "
@@ -342,7 +346,7 @@ def _fit_options(args) -> dict:
         fit=tuple(free), fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
         max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, loss=args.loss, smooth=args.smooth,
         coarse_to_fine=args.coarse_to_fine, search=not args.no_search, uniform_check=not args.no_uniform_check,
-        devices=devices, ibl=args.ibl,
+        repair=not args.no_repair, devices=devices, ibl=args.ibl,
         pixel_ibl_settings=pixel_ibl_settings, continuation=continuation, pixel_samples=pixel_samples,
         **({} if args.cg_rtol is None else dict(cg_rtol=args.cg_rtol)),
     )
@@ -392,6 +396,8 @@ class _Progress:
             h, w = info["resolution"]
             n = info.get("footprint")  # the auto footprint's two finishes: centres, then samples
             where = "" if n is None else ("  pixel centres" if n == 1 else f"  {n}x{n} samples")
+            if "repair" in info:
+                where += f"  repair {info['repair']}"
             if "check" in info:
                 where += f"  uniform {info['check']}?"
             self._live.update(self._task, description=(
@@ -409,13 +415,17 @@ def _uniform_channels(report: dict) -> list:
 
 def _loss_history(steps: list, report: dict) -> list:
     """The convergence plot's (step, loss) points: every step reported, but of the automatic
-    footprint's two finishes (entries tagged "footprint") only the kept one's, and of the uniform
-    check's re-fits (tagged "check") only those of a channel made uniform."""
+    footprint's two finishes (entries tagged "footprint") only the kept one's, of the repair's
+    passes (tagged "repair", numbered from 1) only the kept ones', and of the uniform check's
+    re-fits (tagged "check") only those of a channel made uniform."""
     kept = report.get("footprint", {}).get("selected")
     uniform = set(_uniform_channels(report))
+    passes = (report.get("repair") or {}).get("passes", [])
+    repaired = {i + 1 for i, p in enumerate(passes) if p.get("kept")}
 
     def plotted(h) -> bool:
-        return h.get("footprint", kept) == kept and h.get("check", None) in uniform | {None}
+        return (h.get("footprint", kept) == kept and h.get("repair", None) in repaired | {None}
+                and h.get("check", None) in uniform | {None})
 
     return [dict(step=i, loss=h["loss"]) for i, h in enumerate(h for h in steps if plotted(h))]
 
@@ -479,6 +489,10 @@ def _summary(result, errors) -> str:
     uniform = [f"{name} {r['uniform_check'][name]['value']:.4g}" for name in _uniform_channels(r)]
     if uniform:  # the uniform check found no support for these maps in the images
         parts[0] += ", one value for " + " and ".join(uniform) + " (uniform check)"
+    kept = [p for p in (r.get("repair") or {}).get("passes", []) if p.get("kept")]
+    if kept:  # texels a solve had left in a wrong basin, started again
+        parts[0] += (f", repair restarted {sum(p['flagged'] for p in kept)} texels (loss {kept[0]['energy_before']:.3e}"
+                     f" -> {kept[-1]['energy_after']:.3e})")
     if errors:
         parts.append("RMSE " + ", ".join(f"{k} {v:.4f}" for k, v in errors.items()))
     return "; ".join(parts)

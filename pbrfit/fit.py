@@ -14,8 +14,9 @@ solver chosen by ``solver=``:
 - ``"lm"``, ``"gn"``, ``"dogleg"``, ``"bfgs"``, ``"lbfgs"``, ``"ncg"``, ``"adam"``: optimistix
   solvers on the same objective (`pbrfit.optx_solvers`), run through the same schedule.
 
-After the structured solve, the uniform check (``uniform_check=True``) makes metallic, then
-roughness, one common value where Akaike's criterion finds no support for a map in the images
+After the structured solve, a repair (``repair=True``) starts texels whose pixels fit worse than
+the noise explains again from their neighbours (`pbrfit.repair`), and the uniform check
+(``uniform_check=True``) makes metallic, then roughness, one common value where Akaike's criterion finds no support for a map in the images
 (`pbrfit.selection`).
 
 A pixel's footprint: a display-referred capture (sRGB, tone mapped) is fitted both at pixel
@@ -51,6 +52,7 @@ from .observations import (MAX_PIXEL_SAMPLES, Observations, TexelLayout, coverag
                            observations_from_capture, texel_layout, uniform_layout)
 from .optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
 from .pixel_ibl import PixelIBLSettings, pixel_ibl
+from .repair import REPAIR_PASSES, REPAIR_ROUNDS, REPAIR_STEPS, fill_from_nearest, misfit_texels, texel_misfit
 from .parameters import CHANNELS, FIT_GROUPS, NORMAL_CHANNELS, channel_mask, lower, normal_from_slopes, prior, upper
 from .sharding import pixel_mesh, shard_problem
 from .selection import (NEWTON_STEPS, SELECTABLE, WALD_MARGIN, aic_statistic, newton_value, prefers_uniform,
@@ -308,6 +310,7 @@ def fit_observations(
     select_footprint: bool = False,
     background_compile: bool = True,
     uniform_check: bool = True,
+    repair: bool = True,
 ) -> FitResult:
     """Fit maps to prepared `Observations` (see `fit` for the arguments).
 
@@ -487,6 +490,15 @@ def fit_observations(
                     obs, problem, seen = centres, early, centre_seen
             history.append(dict(resolution=list(shape), **info))
             x = xs[:t].reshape(shape + (k,))
+        repaired = None
+        if repair:
+            skipped = _repair_skipped(solver, final, channels)
+            if skipped is not None:
+                repaired = dict(skipped=skipped)
+            else:
+                xs, linearization, repaired = _repair(runner, compiler, problem, xs, linearization, final, seen,
+                                                      channels, num_free, where)
+                x = xs[:t_final].reshape(final + (k,))
         checks, uniform = {}, {}
         if uniform_check:
             skipped = _uniform_check_skipped(solver, loss, smooth, final, channels)
@@ -508,6 +520,9 @@ def fit_observations(
                 checks[name]["sigma"] = float(np.asarray(result.uncertainty)[..., c][seen[:t_final].reshape(final)][0])
         result.report["uniform_check"] = checks
         result.report["steps"] += sum(c.get("steps", 0) for c in checks.values() if isinstance(c, dict))
+    if repair:
+        result.report["repair"] = repaired
+        result.report["steps"] += sum(p.get("steps", 0) for p in repaired.get("passes", ()))
     result.report["continuation"] = annealed
     result.report["held"] = held
     if solver == DEFAULT_SOLVER:
@@ -515,6 +530,64 @@ def fit_observations(
     if footprint is not None:
         result.report["footprint"] = footprint
     return result
+
+
+def _repair_skipped(solver, final, channels) -> Optional[str]:
+    """Why the basin repair does not apply to a fit, or None where it does."""
+    if tuple(final) == (1, 1):
+        return "a uniform material"
+    if solver != DEFAULT_SOLVER:
+        return f"needs the {DEFAULT_SOLVER} solver"
+    if not np.any(np.asarray(channels) > 0):
+        return "no channel is fitted"
+    return None
+
+
+def _energy(residuals, x, problem: Problem) -> float:
+    """The objective at x from its residuals (the prior's term evaluated where it is on)."""
+    if float(problem.smooth) > 0:
+        return float(jax.jit(objective)(to_device(x, np.float32), problem))
+    return 0.5 * float(np.sum(np.square(np.asarray(residuals, np.float64))))
+
+
+def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, channels, num_free: int,
+            where: dict):
+    """Texels the solve left in a wrong basin, started again from their neighbours
+    (`pbrfit.repair`): (x, linearisation, report). Each pass flags the texels whose pixels fit
+    worse than the noise explains, copies into them the nearest unflagged texel's values, runs
+    the coordinate search and `REPAIR_STEPS` steps, and is kept only where the objective falls;
+    passes go on while kept, up to `REPAIR_PASSES`."""
+    t = shape[0] * shape[1]
+    seen_t = np.asarray(seen[:t], bool)
+    obs = problem.obs
+    scale = float(np.mean(np.square(np.asarray(obs.pixel_rows(obs.target), np.float64))))
+    index, weight, free = np.asarray(problem.index), np.asarray(problem.weight), np.asarray(problem.free)
+    classes = to_device(parity_classes(shape))
+    key = ("repair", tuple(shape)) + _problem_key(problem)
+    static = (REPAIR_ROUNDS, bool(channels[3] > 0))
+    xs = np.asarray(xs, np.float32)
+    energy = _energy(linearization[0], xs, problem)
+    passes = []
+    for i in range(REPAIR_PASSES):
+        mean, count = texel_misfit(np.asarray(linearization[0]), index, weight, problem.samples, problem.num_texels)
+        flagged = misfit_texels(mean[:t], count[:t], seen_t, scale)
+        entry = dict(flagged=int(np.sum(flagged)))
+        passes.append(entry)
+        if not np.any(flagged):
+            break
+        y = fill_from_nearest(xs, flagged, seen_t, tuple(shape), free)
+        where["repair"] = i + 1
+        y = _timed(compiler, key, coordinate_search, "repair", to_device(y, np.float32), problem, classes, *static)
+        y, info = runner(to_device(y, np.float32), problem, REPAIR_STEPS, num_free)
+        where.pop("repair")
+        after = runner.linearization
+        e_after = _energy(after[0], y, problem)
+        kept = e_after < energy
+        entry.update(energy_before=energy, energy_after=e_after, steps=info["steps"], kept=bool(kept))
+        if not kept:
+            break
+        xs, linearization, energy = np.asarray(y, np.float32), after, e_after
+    return xs, linearization, dict(passes=passes)
 
 
 def _uniform_check_skipped(solver, loss, smooth, final, channels) -> Optional[str]:
@@ -1008,6 +1081,13 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             uncertainty the value's standard error. Its re-fits add up to
             (`NEWTON_STEPS` + 1) × `REFIT_STEPS` steps per channel, counted in the report's
             "steps" (a rejected test's too).
+        repair: after the solve and before the uniform check, find texels whose pixels fit worse
+            than the noise explains (a cluster of neighbours left in a wrong basin, making up for
+            each other), copy into them the nearest well-fitted texel's values, re-search and
+            re-solve them (`pbrfit.repair`), and keep the result only where the objective falls.
+            Default on; structured solver only. Each pass adds `pbrfit.repair.REPAIR_STEPS`
+            steps, counted in the report's "steps"; the report's "repair" entry gives each
+            pass's flagged texels, objective before and after, and whether it was kept.
         devices: a sequence of JAX devices to split the pixels over (`pbrfit.sharding`); default
             None: the default device.
         model: override the `Model` (default `model_for_capture`: the one that rendered the images).
