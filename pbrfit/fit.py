@@ -16,8 +16,8 @@ solver chosen by ``solver=``:
 
 After the structured solve, a repair (``repair=True``) starts texels whose pixels fit worse than
 the noise explains again from their neighbours (`pbrfit.repair`), and the uniform check
-(``uniform_check=True``) makes metallic, then roughness, one common value where Akaike's criterion finds no support for a map in the images
-(`pbrfit.selection`).
+(``uniform_check=True``) makes metallic, then roughness, one common value where Akaike's
+criterion finds no support for a map in the images (`pbrfit.selection`).
 
 A pixel's footprint: a display-referred capture (sRGB, tone mapped) is fitted both at pixel
 centres and with 2 × 2 samples per pixel, and the fit whose images match better is kept

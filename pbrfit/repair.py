@@ -17,8 +17,13 @@ The repair finds the cluster by its misfit and starts it again from outside:
 2. `fill_from_nearest`: each flagged texel takes the fitted values of the nearest texel that is
    seen and not flagged (the basin of the patch around it).
 3. The fit's coordinate search (`pbrfit.initialisation.coordinate_search`, `REPAIR_ROUNDS`
-   sweeps) and `REPAIR_STEPS` solver steps follow (`pbrfit.fit`), and the result is kept only where its objective is lower
-   than before the repair; up to `REPAIR_PASSES` passes while each is kept.
+   sweeps) and `REPAIR_STEPS` solver steps follow (`pbrfit.fit`), and the result is kept only
+   where its objective is lower than before the repair; up to `REPAIR_PASSES` passes while each
+   is kept.
+
+`texel_misfit` is the host-side twin of `pbrfit.initialisation._texel_scores` (divided by the
+count): it runs once per pass on the solver's residuals, where a jitted scatter would add a
+compile to every fit.
 """
 
 from __future__ import annotations
@@ -27,8 +32,8 @@ import numpy as np
 from jaxtyping import Bool, Float, Int
 from scipy import ndimage
 
-__all__ = ["MISFIT_FACTOR", "MISFIT_FLOOR", "REPAIR_ROUNDS", "REPAIR_STEPS", "REPAIR_PASSES", "texel_misfit", "misfit_texels",
-           "fill_from_nearest"]
+__all__ = ["MISFIT_FACTOR", "MISFIT_FLOOR", "REPAIR_ROUNDS", "REPAIR_STEPS", "REPAIR_PASSES", "texel_misfit",
+           "misfit_texels", "fill_from_nearest"]
 
 #: A texel is flagged where its mean squared residual exceeds this many times the median.
 MISFIT_FACTOR = 10.0
