@@ -233,9 +233,10 @@ def _add_fit(sub) -> None:
     p.add_argument("--no-search", action="store_true",
                    help="skip the per-texel re-search of metallic and roughness midway through the solve")
     p.add_argument("--no-repair", action="store_true",
-                   help="skip the repair after the solve (by default texels whose pixels fit worse than the noise "
-                        "explains are started again from their nearest well-fitted neighbour, re-searched and "
-                        "re-solved, kept where the loss falls; report.json's repair says what each pass did)")
+                   help="skip the repair after the solve (by default well-seen texels whose pixels fit worse than "
+                        "the noise explains are started again from their nearest well-fitted neighbour, re-searched "
+                        "and re-solved with their neighbours, each cluster kept where its pixels fit better and the "
+                        "loss falls; report.json's repair says what each pass did)")
     p.add_argument("--no-uniform-check", action="store_true",
                    help="keep metallic and roughness as maps even where the images support only one value for "
                         "them (by default a map the images cannot tell apart from one value, by Akaike's criterion, "
@@ -491,7 +492,8 @@ def _summary(result, errors) -> str:
         parts[0] += ", one value for " + " and ".join(uniform) + " (uniform check)"
     kept = [p for p in (r.get("repair") or {}).get("passes", []) if p.get("kept")]
     if kept:  # texels a solve had left in a wrong basin, started again
-        parts[0] += (f", repair restarted {sum(p['flagged'] for p in kept)} texels (loss {kept[0]['energy_before']:.3e}"
+        parts[0] += (f", repair re-solved {sum(p['texels_kept'] for p in kept)} texels in "
+                     f"{sum(p['clusters_kept'] for p in kept)} clusters (loss {kept[0]['energy_before']:.3e}"
                      f" -> {kept[-1]['energy_after']:.3e})")
     if errors:
         parts.append("RMSE " + ", ".join(f"{k} {v:.4f}" for k, v in errors.items()))

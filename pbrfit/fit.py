@@ -52,7 +52,9 @@ from .observations import (MAX_PIXEL_SAMPLES, Observations, TexelLayout, coverag
                            observations_from_capture, texel_layout, uniform_layout)
 from .optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
 from .pixel_ibl import PixelIBLSettings, pixel_ibl
-from .repair import REPAIR_PASSES, REPAIR_ROUNDS, REPAIR_STEPS, fill_from_nearest, misfit_texels, texel_misfit
+from .repair import (REPAIR_PASSES, REPAIR_PROGRESS, REPAIR_ROUNDS, REPAIR_STEPS, fill_from_nearest,
+                     identifiable_texels, improved_clusters, misfit_texels, repair_region, texel_misfit,
+                     well_seen_texels)
 from .parameters import CHANNELS, FIT_GROUPS, NORMAL_CHANNELS, channel_mask, lower, normal_from_slopes, prior, upper
 from .sharding import pixel_mesh, shard_problem
 from .selection import (NEWTON_STEPS, SELECTABLE, WALD_MARGIN, aic_statistic, newton_value, prefers_uniform,
@@ -66,6 +68,10 @@ from .uncertainty import block_standard_errors, residual_variance
 __all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "model_for_capture",
            "SOLVERS", "DEFAULT_SOLVER", "IBL_MODES", "CONTINUATION", "SETTLE_STEPS", "RELEASED_STEPS", "continuation_scale", "schedule",
            "footprint_choice", "footprint_energies", "AUTO_PIXEL_SAMPLES", "AUTO_MAX_PIXELS", "PROBE_STEPS"]
+
+#: The per-texel blocks of JᵀJ, one jitted function for the repair, the uniform check, the
+#: preconditioner's scale and the uncertainty (one compile per problem shape).
+_normal_blocks = jax.jit(normal_blocks)
 
 DEFAULT_SOLVER = "structured"
 #: What `fit` may integrate a capture's environment light with (``ibl=``); the first is the default.
@@ -553,15 +559,18 @@ def _energy(residuals, x, problem: Problem) -> float:
 def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, channels, num_free: int,
             where: dict):
     """Texels the solve left in a wrong basin, started again from their neighbours
-    (`pbrfit.repair`): (x, linearisation, report). Each pass flags the texels whose pixels fit
-    worse than the noise explains, copies into them the nearest unflagged texel's values, runs
-    the coordinate search and `REPAIR_STEPS` steps, and is kept only where the objective falls;
-    passes go on while kept, up to `REPAIR_PASSES`."""
+    (`pbrfit.repair`): (x, linearisation, report). Each pass flags the well-determined texels
+    whose pixels fit worse than the noise explains, copies into them the nearest unflagged
+    well-determined texel's values, runs the coordinate search and `REPAIR_STEPS` steps over the
+    flagged texels and their neighbours (all others held), puts back the clusters whose pixels do
+    not fit better (`improved_clusters`), and is kept where the objective then falls; passes go on
+    while one lowers it by more than `REPAIR_PROGRESS`, up to `REPAIR_PASSES`."""
     t = shape[0] * shape[1]
     seen_t = np.asarray(seen[:t], bool)
     obs = problem.obs
     scale = float(np.mean(np.square(np.asarray(obs.pixel_rows(obs.target), np.float64))))
     index, weight, free = np.asarray(problem.index), np.asarray(problem.weight), np.asarray(problem.free)
+    fitted = np.asarray(channels) > 0
     classes = to_device(parity_classes(shape))
     key = ("repair", tuple(shape)) + _problem_key(problem)
     static = (REPAIR_ROUNDS, bool(channels[3] > 0))
@@ -569,24 +578,43 @@ def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, 
     energy = _energy(linearization[0], xs, problem)
     passes = []
     for i in range(REPAIR_PASSES):
-        mean, count = texel_misfit(np.asarray(linearization[0]), index, weight, problem.samples, problem.num_texels)
-        flagged = misfit_texels(mean[:t], count[:t], seen_t, scale)
+        r, jac = linearization
+        mean, count = texel_misfit(np.asarray(r), index, weight, problem.samples, problem.num_texels)
+        trusted = (identifiable_texels(np.asarray(_normal_blocks(jac, problem))[:t], fitted, seen_t)
+                   & well_seen_texels(count[:t], seen_t))
+        flagged = misfit_texels(mean[:t], count[:t], seen_t, scale) & trusted
         entry = dict(flagged=int(np.sum(flagged)))
         passes.append(entry)
         if not np.any(flagged):
             break
-        y = fill_from_nearest(xs, flagged, seen_t, tuple(shape), free)
+        moving = np.zeros(problem.num_texels, bool)
+        moving[:t] = repair_region(flagged, trusted, tuple(shape))
+        region = dataclasses.replace(problem, free=jax.device_put(free * moving[:, None], problem.free.sharding))
+        y = fill_from_nearest(xs, flagged, trusted, tuple(shape), free)
         where["repair"] = i + 1
-        y = _timed(compiler, key, coordinate_search, "repair", to_device(y, np.float32), problem, classes, *static)
-        y, info = runner(to_device(y, np.float32), problem, REPAIR_STEPS, num_free)
+        y = _timed(compiler, key, coordinate_search, "repair", to_device(y, np.float32), region, classes, *static)
+        y, info = runner(to_device(y, np.float32), region, REPAIR_STEPS, num_free)
         where.pop("repair")
+        # residuals and pixel Jacobians do not depend on which texels move: the full problem's
         after = runner.linearization
-        e_after = _energy(after[0], y, problem)
-        kept = e_after < energy
-        entry.update(energy_before=energy, energy_after=e_after, steps=info["steps"], kept=bool(kept))
-        if not kept:
+        better, clusters, improved = improved_clusters(moving, linearization[0], after[0], index, weight,
+                                                       problem.samples)
+        entry.update(moved=int(np.sum(moving)), clusters=clusters, clusters_kept=improved,
+                     texels_kept=int(np.sum(better)), energy_before=energy, steps=info["steps"], kept=False)
+        if improved == 0:
             break
-        xs, linearization, energy = np.asarray(y, np.float32), after, e_after
+        z = np.asarray(y, np.float32)
+        if improved < clusters:  # the other clusters back where they were, linearised there (step 0)
+            z = np.where(better[:, None], z, xs)
+            runner(to_device(z, np.float32), problem, 0, num_free)
+            after = runner.linearization
+        e_after = _energy(after[0], z, problem)
+        entry.update(energy_after=e_after, kept=bool(e_after < energy))
+        if not entry["kept"]:
+            break
+        xs, linearization, energy = z, after, e_after
+        if entry["energy_before"] - e_after <= REPAIR_PROGRESS * entry["energy_before"]:
+            break
     return xs, linearization, dict(passes=passes)
 
 
@@ -614,7 +642,6 @@ def _uniform_check(runner, problem: Problem, xs, linearization, channels, seen, 
     lo, hi = lower(k), upper(k)
     seen_t = np.asarray(seen[: problem.num_texels], bool)
     n_seen = int(np.sum(seen_t))
-    blocks_fn = jax.jit(normal_blocks)
     r, jac = linearization
     e_map = 0.5 * float(np.sum(np.square(np.asarray(r, np.float64))))
     sigma2 = residual_variance(e_map, 3 * num_pixels, n_seen * int(np.sum(channels)))
@@ -625,7 +652,7 @@ def _uniform_check(runner, problem: Problem, xs, linearization, channels, seen, 
         if channels[c] == 0:
             continue
         if precision is None:
-            precision = texel_precisions(np.asarray(blocks_fn(jac, problem)), channels > 0, seen_t)
+            precision = texel_precisions(np.asarray(_normal_blocks(jac, problem)), channels > 0, seen_t)
         s = precision[seen_t, c]
         n_texels = int(np.sum(s > 0))  # the texels whose channel c the images constrain at all
         if n_texels < 2:
@@ -743,7 +770,7 @@ def continuation_scale(jac, problem: Problem) -> float:
     the mean diagonal of the per-texel blocks of JᵀJ (`pbrfit.solvers.normal_blocks`) over the
     free base-colour channels (else over all free channels); 1 where nothing is free or the
     mean is not a positive number."""
-    diag = np.diagonal(np.asarray(jax.jit(normal_blocks)(jac, problem)), axis1=1, axis2=2)
+    diag = np.diagonal(np.asarray(_normal_blocks(jac, problem)), axis1=1, axis2=2)
     free = np.asarray(problem.free) > 0
     cols = slice(0, 3) if free[:, :3].any() else slice(None)
     values = diag[:, cols][free[:, cols]]
@@ -919,7 +946,7 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
         r, jac = linearization
         # (numpy: an eager jnp reduction would compile kernels of its own)
         energy = jax.jit(objective)(xj, problem) if float(problem.smooth) > 0 else 0.5 * np.sum(np.square(np.asarray(r)))
-    blocks = np.asarray(jax.jit(normal_blocks)(jac, problem))
+    blocks = np.asarray(_normal_blocks(jac, problem))
     n_res = 3 * obs.num_pixels
     n_par = int(np.sum(seen)) * int(np.sum(texel_channels)) + len(uniform)
     sigma2 = residual_variance(float(energy), n_res, n_par)
@@ -1081,13 +1108,15 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             uncertainty the value's standard error. Its re-fits add up to
             (`NEWTON_STEPS` + 1) × `REFIT_STEPS` steps per channel, counted in the report's
             "steps" (a rejected test's too).
-        repair: after the solve and before the uniform check, find texels whose pixels fit worse
-            than the noise explains (a cluster of neighbours left in a wrong basin, making up for
-            each other), copy into them the nearest well-fitted texel's values, re-search and
-            re-solve them (`pbrfit.repair`), and keep the result only where the objective falls.
-            Default on; structured solver only. Each pass adds `pbrfit.repair.REPAIR_STEPS`
-            steps, counted in the report's "steps"; the report's "repair" entry gives each
-            pass's flagged texels, objective before and after, and whether it was kept.
+        repair: after the solve and before the uniform check, find the well-determined texels
+            whose pixels fit worse than the noise explains (a cluster of neighbours left in a
+            wrong basin, making up for each other), copy into them the nearest well-fitted
+            texel's values, re-search and re-solve them and their neighbours with every other
+            texel held (`pbrfit.repair`), and keep each cluster whose pixels fit better where the
+            objective then falls. Default on; structured solver only. Each pass adds
+            `pbrfit.repair.REPAIR_STEPS` steps, counted in the report's "steps"; the report's
+            "repair" entry gives each pass's flagged and moved texels, clusters and texels kept,
+            objective before and after, and whether it was kept.
         devices: a sequence of JAX devices to split the pixels over (`pbrfit.sharding`); default
             None: the default device.
         model: override the `Model` (default `model_for_capture`: the one that rendered the images).

@@ -396,6 +396,15 @@ def test_summary_line_names_the_footprint():
     report["uniform_check"] = dict(metallic=dict(uniform=True, value=0.0), roughness=dict(uniform=False))
     assert "30 steps, loss 2.000e+00, one value for metallic 0 (uniform check); " in _summary(
         SimpleNamespace(report=report), {})
+    assert "repair" not in _summary(SimpleNamespace(report=report), {})
+    report["repair"] = dict(passes=[
+        dict(flagged=5, moved=12, clusters=3, clusters_kept=2, texels_kept=8, energy_before=4.0, energy_after=2.5,
+             kept=True),
+        dict(flagged=2, moved=6, clusters=1, clusters_kept=1, texels_kept=6, energy_before=2.5, energy_after=2.0,
+             kept=True),
+        dict(flagged=1, moved=4, clusters=1, clusters_kept=0, texels_kept=0, energy_before=2.0, kept=False)])
+    assert ", repair re-solved 14 texels in 3 clusters (loss 4.000e+00 -> 2.000e+00)" in _summary(
+        SimpleNamespace(report=report), {})
 
 
 def test_loss_history_keeps_the_kept_footprint_only():
@@ -407,6 +416,15 @@ def test_loss_history_keeps_the_kept_footprint_only():
         dict(step=0, loss=9.0), dict(step=1, loss=5.0), dict(step=2, loss=2.0)]
     assert [h["loss"] for h in _loss_history(steps, dict(footprint=dict(selected=1)))] == [9.0, 5.0, 4.0, 3.0]
     assert [h["loss"] for h in _loss_history(steps[:2], {})] == [9.0, 5.0]
+
+
+def test_loss_history_keeps_kept_repair_passes_only():
+    from pbrfit.cli import _loss_history
+
+    steps = [dict(loss=9.0), dict(loss=5.0), dict(loss=3.0, repair=1), dict(loss=4.0, repair=2)]
+    passes = [dict(flagged=3, kept=True), dict(flagged=2, kept=False)]
+    assert [h["loss"] for h in _loss_history(steps, dict(repair=dict(passes=passes)))] == [9.0, 5.0, 3.0]
+    assert [h["loss"] for h in _loss_history(steps, dict(repair=dict(skipped="a uniform material")))] == [9.0, 5.0]
 
 
 def test_loss_history_keeps_uniform_check_refits_only_where_kept():

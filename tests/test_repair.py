@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from pbrfit.repair import fill_from_nearest, misfit_texels, texel_misfit
+from pbrfit.repair import (fill_from_nearest, identifiable_texels, improved_clusters, misfit_texels, repair_region,
+                           texel_misfit)
 
 
 def test_texel_misfit_means_each_texels_reading_rows():
@@ -23,6 +24,63 @@ def test_misfit_texels_flags_outliers_over_the_median_and_floor():
                                   [False, False, False, True, False, False])
     # an exact fit: everything below the floor, nothing flagged
     assert not misfit_texels(mean * 1e-16, count, seen, scale=1.0).any()
+
+
+def test_identifiable_texels_need_every_fitted_channel_constrained():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(4, 8, 5))
+    full = np.einsum("tpi,tpj->tij", a, a)  # rank 5: every channel constrained
+    one_pixel = np.einsum("tpi,tpj->tij", a[:, :1], a[:, :1])  # rank 1: a pixel or two at a silhouette
+    blocks = np.stack([full[0], one_pixel[1], full[2], full[3]])
+    seen = np.array([True, True, True, False])
+    fitted = np.ones(5, bool)
+    np.testing.assert_array_equal(identifiable_texels(blocks, fitted, seen), [True, False, True, False])
+    # a block blind to metallic alone: identifiable once metallic is held, not while it is fitted
+    blind = full[2].copy()
+    blind[3, :] = blind[:, 3] = 0.0
+    blocks[2] = blind
+    assert not identifiable_texels(blocks, fitted, seen)[2]
+    held = fitted.copy()
+    held[3] = False
+    assert identifiable_texels(blocks, held, seen)[2]
+
+
+def test_repair_region_grows_flags_by_one_ring_within_identifiable_texels():
+    flagged = np.zeros(25, bool)
+    flagged[12] = True  # the centre of a 5 x 5 map
+    flagged[4] = True  # a corner: its ring wraps around the edges
+    identifiable = np.ones(25, bool)
+    identifiable[18] = False
+    region = repair_region(flagged, identifiable, (5, 5)).reshape(5, 5)
+    expected = np.zeros((5, 5), bool)
+    expected[1:4, 1:4] = True
+    expected[3, 3] = False  # not identifiable: held
+    for i in (4, 0, 1):
+        for j in (3, 4, 0):
+            expected[i, j] = True
+    np.testing.assert_array_equal(region, expected)
+
+
+def test_improved_clusters_judges_each_cluster_by_its_own_pixels():
+    # texels 0-5 in a row; pixels read neighbours (0,1), (1,2), (4,5), (5,5) and (3,3) with a
+    # zero weight on texel 2; texel 3 is held, so {0, 1, 2} and {4, 5} are the clusters
+    index = np.array([[0, 1, 0, 0], [1, 2, 1, 1], [4, 5, 4, 4], [5, 5, 5, 5], [3, 2, 3, 3]])
+    weight = np.array([[0.5, 0.5, 0, 0], [0.5, 0.5, 0, 0], [0.5, 0.5, 0, 0], [1.0, 0, 0, 0], [1.0, 0, 0, 0]])
+    moving = np.array([True, True, True, False, True, True])
+    before = np.ones((5, 3))
+    after = before.copy()
+    after[0] = 0.0  # cluster {0, 1, 2}: 6 -> 3 + 0 (pixel 1 unchanged)
+    after[2] = 2.0  # cluster {4, 5}: 6 -> 12 + 3, although pixel 3 fits no worse
+    after[4] = 0.0  # pixel 4 reads only the held texel 3: judged in no cluster
+    better, clusters, improved = improved_clusters(moving, before, after, index, weight, 1)
+    assert (clusters, improved) == (2, 1)
+    np.testing.assert_array_equal(better, [True, True, True, False, False, False])
+    # two samples per pixel: pixel 0's rows read (0, 1) and (4, 5), joining the clusters
+    index2 = np.array([[0, 1, 0, 0], [4, 5, 4, 4]])
+    weight2 = np.array([[0.5, 0.5, 0, 0], [0.5, 0.5, 0, 0]])
+    moving2 = np.array([True, True, False, False, True, True])
+    better, clusters, improved = improved_clusters(moving2, np.ones((1, 3)), np.zeros((1, 3)), index2, weight2, 2)
+    assert (clusters, improved) == (1, 1) and np.array_equal(better, moving2)
 
 
 def test_fill_from_nearest_copies_free_channels_of_the_nearest_source():
