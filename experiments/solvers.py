@@ -42,12 +42,15 @@ GRID = dict(solver="structured", init="grid", search=False, continuation=())
 DEFAULT = "structured (default: grid + continuation + search)"
 NO_CHECK = "structured (default, no uniform check)"
 NO_CONTINUATION = "structured (grid + search, no continuation)"
+NO_REPAIR = "structured (default, no repair)"
 CONFIGS = {
     # name: fit_observations keyword arguments
     DEFAULT: dict(solver="structured"),
     "structured (default, 100 steps)": dict(solver="structured", max_steps=100),
     # the default without the uniform check (pbrfit.selection): what the check changes, on one host
     NO_CHECK: dict(solver="structured", uniform_check=False),
+    # the default without the repair of texels left in a wrong basin (pbrfit.repair)
+    NO_REPAIR: dict(solver="structured", repair=False),
     NO_CONTINUATION: dict(solver="structured", continuation=()),
     "structured (grid + continuation, no search)": dict(solver="structured", search=False),
     "structured (grid, no search)": dict(GRID),
@@ -80,19 +83,20 @@ FOOTPRINT = "structured (default, 2 × 2 pixel samples)"
 AUTO = "structured (default, auto footprint)"
 #: What the noiseless scenes run: every configuration but the smoothness priors and the
 #: footprints, and the oracle.
-COMPARISON = [c for c in CONFIGS if "smooth=" not in c and c not in (FOOTPRINT, AUTO, NO_CHECK)] + [ORACLE]
+COMPARISON = [c for c in CONFIGS if "smooth=" not in c and c not in (FOOTPRINT, AUTO, NO_CHECK, NO_REPAIR)] + [ORACLE]
 #: name: (data_synth preset, make_scene overrides, configurations to run)
 SCENES = {
-    "peer-plane": ("peer-plane", {}, COMPARISON + [NO_CHECK]),
+    "peer-plane": ("peer-plane", {}, COMPARISON + [NO_CHECK, NO_REPAIR]),
     "plane-flash": ("plane-flash", {}, COMPARISON + [FOOTPRINT, ORACLE_FOOTPRINT, AUTO]),
     # the flash capture without noise: what is left is the model's (pixel centres against the
     # 2 x 2 supersampled images) and the solver's
-    "plane-flash-noiseless": ("plane-flash", dict(noise=0.0), [DEFAULT, FOOTPRINT, ORACLE, ORACLE_FOOTPRINT, AUTO]),
+    "plane-flash-noiseless": ("plane-flash", dict(noise=0.0),
+                              [DEFAULT, FOOTPRINT, ORACLE, ORACLE_FOOTPRINT, AUTO, NO_REPAIR]),
     # the peer layout as 16-bit sRGB PNGs rendered at pixel centres: what the automatic footprint
     # costs where the centres are right
     "peer-plane-png": ("peer-plane", dict(image_format="png16"), [DEFAULT, FOOTPRINT, AUTO, NO_CHECK]),
-    "sphere-env": ("sphere-env", {}, COMPARISON),
-    "spheres-grid": ("spheres-grid", {}, COMPARISON),
+    "sphere-env": ("sphere-env", {}, COMPARISON + [NO_REPAIR]),
+    "spheres-grid": ("spheres-grid", {}, COMPARISON + [NO_REPAIR]),
     "peer-plane-noisy": ("peer-plane", dict(noise=0.01),
                          [DEFAULT, NO_CHECK, NO_CONTINUATION, "structured (grid, no search)",
                           "structured (default, smooth=0.003)", "structured (default, smooth=0.03)", ORACLE]),
@@ -270,6 +274,7 @@ SHORT = {
     DEFAULT: "default",
     "structured (default, 100 steps)": "default (100 steps)",
     NO_CHECK: "no uniform check",
+    NO_REPAIR: "no repair",
     NO_CONTINUATION: "no continuation",
     "structured (grid + continuation, no search)": "continuation, no search",
     "structured (grid, no search)": "no search",
