@@ -594,23 +594,23 @@ def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, 
         where["repair"] = i + 1
         y = _timed(compiler, key, coordinate_search, "repair", to_device(y, np.float32), region, classes, *static)
         y, info = runner(to_device(y, np.float32), region, REPAIR_STEPS, num_free)
-        where.pop("repair")
         # residuals and pixel Jacobians do not depend on which texels move: the full problem's
         after = runner.linearization
         better, clusters, improved = improved_clusters(moving, linearization[0], after[0], index, weight,
                                                        problem.samples)
-        entry.update(moved=int(np.sum(moving)), clusters=clusters, clusters_kept=improved,
-                     texels_kept=int(np.sum(better)), energy_before=energy, steps=info["steps"], kept=False)
-        if improved == 0:
-            break
         z = np.asarray(y, np.float32)
-        if improved < clusters:  # the other clusters back where they were, linearised there (step 0)
+        if improved and not np.array_equal(better, moving):
+            # the other clusters back where they were, linearised there (step 0, still tagged "repair")
             z = np.where(better[:, None], z, xs)
             runner(to_device(z, np.float32), problem, 0, num_free)
             after = runner.linearization
+        where.pop("repair")
         e_after = _energy(after[0], z, problem)
-        entry.update(energy_after=e_after, kept=bool(e_after < energy))
-        if not entry["kept"]:
+        kept = improved > 0 and e_after < energy
+        entry.update(moved=int(np.sum(moving)), clusters=clusters, clusters_kept=improved if kept else 0,
+                     texels_kept=int(np.sum(better)) if kept else 0, energy_before=energy, energy_after=e_after,
+                     steps=info["steps"], kept=bool(kept))
+        if not kept:
             break
         xs, linearization, energy = z, after, e_after
         if entry["energy_before"] - e_after <= REPAIR_PROGRESS * entry["energy_before"]:

@@ -26,8 +26,8 @@ The repair finds the cluster by its misfit and starts it again from outside:
    texel that is not flagged (the basin of the patch around it).
 3. The fit's coordinate search (`pbrfit.initialisation.coordinate_search`, `REPAIR_ROUNDS`
    sweeps) and `REPAIR_STEPS` solver steps follow (`pbrfit.fit`), moving only the flagged
-   texels and their well-determined neighbours (`repair_region`: the texels that share pixels with
-   them); every other texel keeps its value.
+   texels and their well-determined neighbours (`repair_region`: the eight around each, which a
+   pixel's bilinear taps read together with it); every other texel keeps its value.
 4. `improved_clusters`: the moved texels fall into clusters that share no pixel, so each
    cluster's pixels judge it alone. A cluster is kept where the squared residuals of its pixels
    fell, and the pass is kept where the whole objective then falls; further passes run, up to
@@ -131,8 +131,9 @@ def repair_region(
     flagged: Bool[np.ndarray, " T"], allowed: Bool[np.ndarray, " T"], shape: tuple[int, int],
 ) -> Bool[np.ndarray, " T"]:
     """The texels a repair moves: the flagged ones and their eight neighbours on the (H, W) grid
-    (the texels whose bilinear taps share pixels with them; across the map's edges too, as a
-    repeating wrap reads them), where ``allowed``."""
+    (those a pixel's bilinear taps read together with them; across the map's edges too, as a
+    repeating wrap reads them, whatever the fit's wrap: a texel freed for nothing keeps its value
+    or is put back by `improved_clusters`), where ``allowed``."""
     h, w = shape
     grown = ndimage.maximum_filter(np.asarray(flagged, bool).reshape(h, w), size=3, mode="wrap")
     return grown.reshape(-1) & np.asarray(allowed, bool)

@@ -3,7 +3,7 @@
 import numpy as np
 
 from pbrfit.repair import (fill_from_nearest, identifiable_texels, improved_clusters, misfit_texels, repair_region,
-                           texel_misfit)
+                           texel_misfit, well_seen_texels)
 
 
 def test_texel_misfit_means_each_texels_reading_rows():
@@ -43,6 +43,14 @@ def test_identifiable_texels_need_every_fitted_channel_constrained():
     held = fitted.copy()
     held[3] = False
     assert identifiable_texels(blocks, held, seen)[2]
+
+
+def test_well_seen_texels_need_a_quarter_of_the_median_count():
+    count = np.array([40, 40, 40, 12, 5, 0, 1])
+    seen = np.array([True, True, True, True, True, False, True])
+    # median over the seen texels (40 40 40 12 5 1): 26 -> at least 6.5 reads
+    np.testing.assert_array_equal(well_seen_texels(count, seen), [True, True, True, True, False, False, False])
+    assert not well_seen_texels(count, np.zeros(7, bool)).any()
 
 
 def test_repair_region_grows_flags_by_one_ring_within_identifiable_texels():
