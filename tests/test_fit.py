@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from pbrfit.color import encode
 import pbrfit.fit
@@ -712,3 +713,35 @@ def test_repair_restarts_a_cluster_left_in_a_wrong_basin():
     for p in ran:
         assert p["kept"] == (p["energy_after"] < p["energy_before"] and p["clusters_kept"] > 0)
         assert p["kept"] or p["clusters_kept"] == p["texels_kept"] == 0
+
+
+def test_repair_puts_back_the_clusters_judged_no_better(monkeypatch):
+    """With the rim of the moved region judged no better, its texels keep the solve's values, the
+    inner ones keep the repair's, and the linearisation the fit goes on with is the merged
+    point's: the reported loss is the objective at the returned maps."""
+    truth = _patches(10)
+    obs = observations_from_views(VIEWS, _images(VIEWS, truth))
+    plain = fit_observations(obs, resolution=8, max_steps=40, repair=False, uniform_check=False)
+    judged = {}
+
+    def half(moving, before, after, index, weight, samples):
+        # the moved region's inner texels judged better, its rim (the flagged texels' unflagged
+        # neighbours, mostly) put back
+        moving = np.asarray(moving, bool)
+        inner = ndimage.minimum_filter(moving[:64].reshape(8, 8), size=3, mode="wrap").reshape(-1)
+        better = moving & np.concatenate([inner, np.zeros(moving.size - 64, bool)])
+        judged.update(moving=moving, better=better)
+        return better, 2, 1
+
+    monkeypatch.setattr(pbrfit.fit, "improved_clusters", half)
+    monkeypatch.setattr(pbrfit.fit, "REPAIR_PASSES", 1)
+    res = fit_observations(obs, resolution=8, max_steps=40, uniform_check=False)
+    (p,) = res.report["repair"]["passes"]
+    better, moving = judged["better"][:64], judged["moving"][:64]
+    assert better.any() and (moving & ~better).any()
+    x0, x = np.asarray(_stack(plain.material)), np.asarray(_stack(res.material))
+    np.testing.assert_array_equal(x[~better], x0[~better])
+    assert p["clusters"] == 2 and p["clusters_kept"] == 1 and p["kept"]  # the loss fell 160-fold when written
+    assert p["texels_kept"] == better.sum() and not np.array_equal(x[better], x0[better])
+    energy = float(jax.jit(objective)(jnp.asarray(x), _texel_problem(truth)))
+    np.testing.assert_allclose(res.report["final_loss"], energy, rtol=1e-3)
