@@ -492,8 +492,9 @@ def _summary(result, errors) -> str:
         parts[0] += ", one value for " + " and ".join(uniform) + " (uniform check)"
     kept = [p for p in (r.get("repair") or {}).get("passes", []) if p.get("kept")]
     if kept:  # texels a solve had left in a wrong basin, started again
-        parts[0] += (f", repair re-solved {sum(p['texels_kept'] for p in kept)} texels in "
-                     f"{sum(p['clusters_kept'] for p in kept)} clusters (loss {kept[0]['energy_before']:.3e}"
+        clusters = sum(p["clusters_kept"] for p in kept)
+        parts[0] += (f", repair re-solved {sum(p['texels_kept'] for p in kept)} texels in {clusters} "
+                     f"cluster{'' if clusters == 1 else 's'} (loss {kept[0]['energy_before']:.3e}"
                      f" -> {kept[-1]['energy_after']:.3e})")
     if errors:
         parts.append("RMSE " + ", ".join(f"{k} {v:.4f}" for k, v in errors.items()))

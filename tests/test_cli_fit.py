@@ -405,6 +405,9 @@ def test_summary_line_names_the_footprint():
         dict(flagged=1, moved=4, clusters=1, clusters_kept=0, texels_kept=0, energy_before=2.0, kept=False)])
     assert ", repair re-solved 14 texels in 3 clusters (loss 4.000e+00 -> 2.000e+00)" in _summary(
         SimpleNamespace(report=report), {})
+    report["repair"]["passes"] = report["repair"]["passes"][1:]
+    assert ", repair re-solved 6 texels in 1 cluster (loss 2.500e+00 -> 2.000e+00)" in _summary(
+        SimpleNamespace(report=report), {})
 
 
 def test_loss_history_keeps_the_kept_footprint_only():
