@@ -47,9 +47,9 @@ from scipy.sparse import csgraph
 
 from .uncertainty import block_standard_errors
 
-__all__ = ["MISFIT_FACTOR", "MISFIT_FLOOR", "REPAIR_ROUNDS", "REPAIR_STEPS", "REPAIR_PASSES", "texel_misfit",
-           "WELL_SEEN_FRACTION", "misfit_texels", "identifiable_texels", "well_seen_texels", "repair_region", "fill_from_nearest",
-           "REPAIR_PROGRESS", "improved_clusters"]
+__all__ = ["MISFIT_FACTOR", "MISFIT_FLOOR", "WELL_SEEN_FRACTION", "REPAIR_ROUNDS", "REPAIR_STEPS", "REPAIR_PASSES",
+           "REPAIR_PROGRESS", "texel_misfit", "misfit_texels", "identifiable_texels", "well_seen_texels",
+           "repair_region", "fill_from_nearest", "improved_clusters"]
 
 #: A texel is flagged where its mean squared residual exceeds this many times the median.
 MISFIT_FACTOR = 10.0
