@@ -580,9 +580,11 @@ def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, 
     for i in range(REPAIR_PASSES):
         r, jac = linearization
         mean, count = texel_misfit(np.asarray(r), index, weight, problem.samples, problem.num_texels)
-        trusted = (identifiable_texels(np.asarray(_normal_blocks(jac, problem))[:t], fitted, seen_t)
-                   & well_seen_texels(count[:t], seen_t))
+        trusted = well_seen_texels(count[:t], seen_t)
         flagged = misfit_texels(mean[:t], count[:t], seen_t, scale) & trusted
+        if np.any(flagged):  # the blocks' eigen-decomposition only where something is flagged
+            trusted &= identifiable_texels(np.asarray(_normal_blocks(jac, problem))[:t], fitted, seen_t)
+            flagged &= trusted
         entry = dict(flagged=int(np.sum(flagged)))
         passes.append(entry)
         if not np.any(flagged):
@@ -643,7 +645,7 @@ def _uniform_check(runner, problem: Problem, xs, linearization, channels, seen, 
     seen_t = np.asarray(seen[: problem.num_texels], bool)
     n_seen = int(np.sum(seen_t))
     r, jac = linearization
-    e_map = 0.5 * float(np.sum(np.square(np.asarray(r, np.float64))))
+    e_map = _energy(r, xs, problem)  # no prior here: the check is skipped with one
     sigma2 = residual_variance(e_map, 3 * num_pixels, n_seen * int(np.sum(channels)))
     xs = np.asarray(xs, np.float32)
     report, uniform = {}, {}
@@ -690,7 +692,7 @@ def _uniform_check(runner, problem: Problem, xs, linearization, channels, seen, 
                 break
             value = new
         where.pop("check")
-        e_uniform = 0.5 * float(np.sum(np.square(np.asarray(r_red, np.float64))))
+        e_uniform = _energy(r_red, x_red, reduced)
         statistic = aic_statistic(e_uniform, e_map, sigma2)
         keep = prefers_uniform(statistic, n_texels)
         report[name] = dict(entry, uniform=keep, statistic=statistic, value=value, steps=steps, values=values,
