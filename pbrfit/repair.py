@@ -68,8 +68,8 @@ REPAIR_STEPS = 20
 #: Most repair passes per fit.
 REPAIR_PASSES = 3
 #: A further pass runs only where the one before lowered the objective by more than this
-#: fraction of it (on spheres-grid at 128 x 128, a second and a third pass each gained 2e-5 of
-#: the objective for 20 steps and a search).
+#: fraction of it (on spheres-grid at 128 x 128, after a first pass that took 60%, a second and
+#: a third gained 2e-5 and 2e-6 of the objective, each for a search and 20 steps).
 REPAIR_PROGRESS = 0.01
 
 
