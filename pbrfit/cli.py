@@ -234,9 +234,10 @@ def _add_fit(sub) -> None:
                    help="skip the per-texel re-search of metallic and roughness midway through the solve")
     p.add_argument("--no-repair", action="store_true",
                    help="skip the repair after the solve (by default well-seen texels whose pixels fit worse than "
-                        "the noise explains are started again from their nearest well-fitted neighbour, re-searched "
-                        "and re-solved with their neighbours, each cluster kept where its pixels fit better and the "
-                        "loss falls; report.json's repair says what each pass did)")
+                        "the noise explains, then those out of line with their neighbours, are started again from "
+                        "their nearest well-fitted neighbour, re-searched and re-solved with their neighbours, each "
+                        "cluster kept where its pixels fit better and the loss falls; report.json's repair says what "
+                        "each pass did)")
     p.add_argument("--no-uniform-check", action="store_true",
                    help="keep metallic and roughness as maps even where the images support only one value for "
                         "them (by default a map the images cannot tell apart from one value, by Akaike's criterion, "

@@ -15,7 +15,8 @@ solver chosen by ``solver=``:
   solvers on the same objective (`pbrfit.optx_solvers`), run through the same schedule.
 
 After the structured solve, a repair (``repair=True``) starts texels whose pixels fit worse than
-the noise explains again from their neighbours (`pbrfit.repair`), and the uniform check
+the noise explains, then texels out of line with their neighbours, again from their neighbours
+(`pbrfit.repair`), and the uniform check
 (``uniform_check=True``) makes metallic, then roughness, one common value where Akaike's
 criterion finds no support for a map in the images (`pbrfit.selection`).
 
@@ -52,9 +53,9 @@ from .observations import (MAX_PIXEL_SAMPLES, Observations, TexelLayout, coverag
                            observations_from_capture, texel_layout, uniform_layout)
 from .optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
 from .pixel_ibl import PixelIBLSettings, pixel_ibl
-from .repair import (REPAIR_PASSES, REPAIR_PROGRESS, REPAIR_ROUNDS, REPAIR_STEPS, fill_from_nearest,
-                     identifiable_texels, improved_clusters, misfit_texels, repair_region, texel_misfit,
-                     well_seen_texels)
+from .repair import (OUTLIER_EVIDENCE, REPAIR_PASSES, REPAIR_PROGRESS, REPAIR_ROUNDS, REPAIR_STEPS,
+                     fill_from_nearest, identifiable_texels, improved_clusters, misfit_texels, outlier_texels,
+                     repair_region, texel_misfit, well_seen_texels)
 from .parameters import CHANNELS, FIT_GROUPS, NORMAL_CHANNELS, channel_mask, lower, normal_from_slopes, prior, upper
 from .sharding import pixel_mesh, shard_problem
 from .selection import (NEWTON_STEPS, SELECTABLE, WALD_MARGIN, aic_statistic, newton_value, prefers_uniform,
@@ -559,12 +560,15 @@ def _energy(residuals, x, problem: Problem) -> float:
 def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, channels, num_free: int,
             where: dict):
     """Texels the solve left in a wrong basin, started again from their neighbours
-    (`pbrfit.repair`): (x, linearisation, report). Each pass flags the well-determined texels
-    whose pixels fit worse than the noise explains, copies into them the nearest unflagged
-    well-determined texel's values, runs the coordinate search and `REPAIR_STEPS` steps over the
-    flagged texels and their neighbours (all others held), puts back the clusters whose pixels do
-    not fit better (`improved_clusters`), and is kept where the objective then falls; passes go on
-    while one lowers it by more than `REPAIR_PROGRESS`, up to `REPAIR_PASSES`."""
+    (`pbrfit.repair`): (x, linearisation, report). Each pass flags well-determined texels,
+    copies into them the nearest unflagged well-determined texel's values, runs the coordinate
+    search and `REPAIR_STEPS` steps over the flagged texels and their neighbours (all others
+    held), puts back the clusters whose pixels do not fit better (`improved_clusters`), and is
+    kept where the objective then falls. The misfit passes flag the texels whose pixels fit worse
+    than the noise explains (`misfit_texels`) and go on while one lowers the objective by more
+    than `REPAIR_PROGRESS`, up to `REPAIR_PASSES`; then one pass flags the texels out of line with
+    their neighbours (`outlier_texels`) and keeps a cluster only where its pixels' Σ ||r||² fell
+    by more than `OUTLIER_EVIDENCE` residual variances. Each report entry's "kind" says which."""
     t = shape[0] * shape[1]
     seen_t = np.asarray(seen[:t], bool)
     obs = problem.obs
@@ -576,16 +580,24 @@ def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, 
     static = (REPAIR_ROUNDS, bool(channels[3] > 0))
     xs = np.asarray(xs, np.float32)
     energy = _energy(linearization[0], xs, problem)
-    passes = []
-    for i in range(REPAIR_PASSES):
+    passes, stage, misfit_passes, margin = [], "misfit", 0, 0.0
+    while True:
         r, jac = linearization
         mean, count = texel_misfit(np.asarray(r), index, weight, problem.samples, problem.num_texels)
-        trusted = well_seen_texels(count[:t], seen_t)
-        flagged = misfit_texels(mean[:t], count[:t], seen_t, scale) & trusted
-        if np.any(flagged):  # the blocks' eigen-decomposition only where something is flagged
-            trusted &= identifiable_texels(np.asarray(_normal_blocks(jac, problem))[:t], fitted, seen_t)
-            flagged &= trusted
-        entry = dict(flagged=int(np.sum(flagged)))
+        blocks = np.asarray(_normal_blocks(jac, problem))[:t]
+        trusted = well_seen_texels(count[:t], seen_t) & identifiable_texels(blocks, fitted, seen_t)
+        misfit = misfit_texels(mean[:t], count[:t], seen_t, scale) & trusted
+        if stage == "misfit" and (not np.any(misfit) or misfit_passes == REPAIR_PASSES):
+            stage = "outliers"
+        if stage == "misfit":
+            flagged = misfit
+            misfit_passes += 1
+        else:
+            sigma2 = residual_variance(energy, 3 * obs.num_pixels, num_free)
+            flagged = outlier_texels(xs[:t], block_standard_errors(blocks, fitted, seen_t, sigma2), fitted, trusted,
+                                     tuple(shape))
+            margin = OUTLIER_EVIDENCE * sigma2
+        entry = dict(kind=stage, flagged=int(np.sum(flagged)))
         passes.append(entry)
         if not np.any(flagged):
             break
@@ -593,13 +605,13 @@ def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, 
         moving[:t] = repair_region(flagged, trusted, tuple(shape))
         region = dataclasses.replace(problem, free=jax.device_put(free * moving[:, None], problem.free.sharding))
         y = fill_from_nearest(xs, flagged, trusted, tuple(shape), free)
-        where["repair"] = i + 1
+        where["repair"] = len(passes)
         y = _timed(compiler, key, coordinate_search, "repair", to_device(y, np.float32), region, classes, *static)
         y, info = runner(to_device(y, np.float32), region, REPAIR_STEPS, num_free)
         # residuals and pixel Jacobians do not depend on which texels move: the full problem's
         after = runner.linearization
         better, clusters, improved = improved_clusters(moving, linearization[0], after[0], index, weight,
-                                                       problem.samples)
+                                                       problem.samples, margin)
         z = np.asarray(y, np.float32)
         if improved and not np.array_equal(better, moving):
             # the other clusters back where they were, linearised there (step 0, still tagged "repair")
@@ -612,11 +624,12 @@ def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, 
         entry.update(moved=int(np.sum(moving)), clusters=clusters, clusters_kept=improved if kept else 0,
                      texels_kept=int(np.sum(better)) if kept else 0, energy_before=energy, energy_after=e_after,
                      steps=info["steps"], kept=bool(kept))
-        if not kept:
+        if kept:
+            xs, linearization, energy = z, after, e_after
+        if stage == "outliers":
             break
-        xs, linearization, energy = z, after, e_after
-        if entry["energy_before"] - e_after <= REPAIR_PROGRESS * entry["energy_before"]:
-            break
+        if not kept or entry["energy_before"] - e_after <= REPAIR_PROGRESS * entry["energy_before"]:
+            stage = "outliers"
     return xs, linearization, dict(passes=passes)
 
 
@@ -1115,10 +1128,12 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             wrong basin, making up for each other), copy into them the nearest well-fitted
             texel's values, re-search and re-solve them and their neighbours with every other
             texel held (`pbrfit.repair`), and keep each cluster whose pixels fit better where the
-            objective then falls. Default on; structured solver only. Each pass adds
+            objective then falls; then once more for the texels out of line with their
+            neighbours. Default on; structured solver only. Each pass adds
             `pbrfit.repair.REPAIR_STEPS` steps, counted in the report's "steps"; the report's
-            "repair" entry gives each pass's flagged and moved texels, clusters and texels kept,
-            objective before and after, and whether it was kept.
+            "repair" entry gives each pass's kind ("misfit" or "outliers"), flagged and moved
+            texels, clusters and texels kept, objective before and after, and whether it was
+            kept.
         devices: a sequence of JAX devices to split the pixels over (`pbrfit.sharding`); default
             None: the default device.
         model: override the `Model` (default `model_for_capture`: the one that rendered the images).

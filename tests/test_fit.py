@@ -471,9 +471,9 @@ def test_continuation_is_reported_scales_with_the_data_and_is_released(monkeypat
     assert short.report["continuation"] is None
     off = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + 1, search=False, continuation=())
     monkeypatch.setattr(pbrfit.fit, "RELEASED_STEPS", 1)
-    # (no uniform check: its re-fits would take more steps)
+    # (no uniform check or repair: their re-fits would take more steps)
     held = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + 1, search=False, continuation=(10.0,),
-                            uniform_check=False)
+                            uniform_check=False, repair=False)
     assert off.report["continuation"] is None and held.report["continuation"]["steps"] == SEARCH_AFTER
     # one released step from a prior ten times the data: the checker's edges are still blurred
     assert map_rmse(truth, off)["base_color"] < 1e-5 < 1e-3 < map_rmse(truth, held)["base_color"]
@@ -593,8 +593,9 @@ def test_uniform_check_makes_an_unsupported_map_one_value():
     np.testing.assert_allclose(metal["sigma"], _dense_profile_sigma(obs, on, [3])[0], rtol=0.02)
     assert metal["converged"] and len(metal["values"]) >= 2, metal  # Newton moved it from the Wald start
     assert len(set(np.asarray(on.material.roughness).ravel().tolist())) > 2  # still a map
-    # the steps of the metallic re-fits count; the map fit's were 40 at most
-    assert on.report["steps"] == sum(h["steps"] for h in on.report["levels"]) + metal["steps"]
+    # the steps of the metallic re-fits and of the repair's passes count; the map fit's were 40 at most
+    repaired = sum(p.get("steps", 0) for p in on.report["repair"]["passes"])
+    assert on.report["steps"] == sum(h["steps"] for h in on.report["levels"]) + metal["steps"] + repaired
     err_on, err_off = map_rmse(truth, on), map_rmse(truth, off)
     assert err_on["metallic"] < 0.5 * err_off["metallic"] and err_on["base_color"] < err_off["base_color"], (
         err_on, err_off)
@@ -687,14 +688,17 @@ def _patches(seed, n=8, patch=2):
 def test_repair_restarts_a_cluster_left_in_a_wrong_basin():
     """Patches of random roughness, noiseless: without the repair the fit ends with a cluster of
     texels in a wrong basin (roughness RMSE 0.13 when written; asserted > 0.05); the repair flags
-    it, restarts it from its neighbours and the fit becomes exact. Every pass's report adds up."""
+    it, restarts it from its neighbours and the fit ends close to the truth (exact after the
+    misfit passes and the uniform check; the outlier pass between them lowers the objective from
+    7e-6 to 2e-6 but moves metallic by 2e-4, so the uniform check keeps a metallic map and
+    roughness ends at 0.0011, when written). Every pass's report adds up."""
     truth = _patches(10)
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
     plain = fit_observations(obs, resolution=8, max_steps=40, repair=False)
     assert "repair" not in plain.report and map_rmse(truth, plain)["roughness"] > 0.05
     res = fit_observations(obs, resolution=8, max_steps=40)
     err = map_rmse(truth, res)
-    assert err["roughness"] < 1e-3 and err["base_color"] < 1e-3 and err["metallic"] < 1e-3, err
+    assert err["roughness"] < 3e-3 and err["base_color"] < 1e-3 and err["metallic"] < 1e-3, err
     passes = res.report["repair"]["passes"]
     first = passes[0]
     assert first["kept"] and first["flagged"] > 0 and first["moved"] >= first["flagged"]
@@ -707,12 +711,33 @@ def test_repair_restarts_a_cluster_left_in_a_wrong_basin():
 
     assert res.report["steps"] - checks(res.report) == (plain.report["steps"] - checks(plain.report)
                                                          + sum(p["steps"] for p in ran))
-    for before, after in zip(ran, ran[1:]):  # a pass runs only after a kept one that gained > 1%
+    # misfit passes, then one outlier pass; a misfit pass runs only after a kept one that gained > 1%
+    assert [p["kind"] for p in passes] == ["misfit"] * (len(passes) - 1) + ["outliers"]
+    misfit = [p for p in ran if p["kind"] == "misfit"]
+    for before, after in zip(misfit, misfit[1:]):
         assert before["kept"] and after["energy_before"] == before["energy_after"]
         assert before["energy_before"] - before["energy_after"] > REPAIR_PROGRESS * before["energy_before"]
+    kept = [p for p in ran if p["kept"]]
+    for before, after in zip(kept, kept[1:]):
+        assert after["energy_before"] == before["energy_after"]
     for p in ran:
         assert p["kept"] == (p["energy_after"] < p["energy_before"] and p["clusters_kept"] > 0)
         assert p["kept"] or p["clusters_kept"] == p["texels_kept"] == 0
+
+
+def test_repair_outlier_pass_finds_a_cluster_the_misfit_misses(monkeypatch):
+    """Under noise a wrong basin's misfit hides in the noise; with the misfit test blinded, the
+    outlier pass alone finds the cluster of seed 10's patches (out of line with the patch around
+    it), restarts it and the fit becomes exact."""
+    truth = _patches(10)
+    obs = observations_from_views(VIEWS, _images(VIEWS, truth))
+    monkeypatch.setattr(pbrfit.fit, "misfit_texels", lambda mean, count, seen, scale: np.zeros(len(seen), bool))
+    res = fit_observations(obs, resolution=8, max_steps=40)
+    err = map_rmse(truth, res)
+    assert err["roughness"] < 1e-3 and err["base_color"] < 1e-3, err
+    (p,) = res.report["repair"]["passes"]
+    assert p["kind"] == "outliers" and p["flagged"] > 0 and p["kept"]
+    assert p["energy_after"] < 1e-2 * p["energy_before"]
 
 
 def test_repair_puts_back_the_clusters_judged_no_better(monkeypatch):
@@ -724,7 +749,7 @@ def test_repair_puts_back_the_clusters_judged_no_better(monkeypatch):
     plain = fit_observations(obs, resolution=8, max_steps=40, repair=False, uniform_check=False)
     judged = {}
 
-    def half(moving, before, after, index, weight, samples):
+    def half(moving, before, after, index, weight, samples, margin=0.0):
         # the moved region's inner texels judged better, its rim (the flagged texels' unflagged
         # neighbours, mostly) put back
         moving = np.asarray(moving, bool)
@@ -735,8 +760,10 @@ def test_repair_puts_back_the_clusters_judged_no_better(monkeypatch):
 
     monkeypatch.setattr(pbrfit.fit, "improved_clusters", half)
     monkeypatch.setattr(pbrfit.fit, "REPAIR_PASSES", 1)
+    monkeypatch.setattr(pbrfit.fit, "outlier_texels", lambda x, sigma, channels, trusted, shape: np.zeros(64, bool))
     res = fit_observations(obs, resolution=8, max_steps=40, uniform_check=False)
-    (p,) = res.report["repair"]["passes"]
+    p, last = res.report["repair"]["passes"]
+    assert last == dict(kind="outliers", flagged=0)
     better, moving = judged["better"][:64], judged["moving"][:64]
     assert better.any() and (moving & ~better).any()
     x0, x = np.asarray(_stack(plain.material)), np.asarray(_stack(res.material))

@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from pbrfit.repair import (fill_from_nearest, identifiable_texels, improved_clusters, misfit_texels, repair_region,
-                           texel_misfit, well_seen_texels)
+from pbrfit.repair import (fill_from_nearest, identifiable_texels, improved_clusters, misfit_texels, outlier_texels,
+                           repair_region, texel_misfit, well_seen_texels)
 
 
 def test_texel_misfit_means_each_texels_reading_rows():
@@ -53,6 +53,50 @@ def test_well_seen_texels_need_a_quarter_of_the_median_count():
     assert not well_seen_texels(count, np.zeros(7, bool)).any()
 
 
+def test_outlier_texels_flag_values_out_of_line_with_their_neighbours():
+    # 6 x 6 roughness map at 0.5 with a texel at 0.9 (sure of itself), a texel at 0.9 whose σ
+    # covers the gap, and a texel 0.1 off (under the deviation)
+    k, shape = 5, (6, 6)
+    x = np.full((36, k), 0.5)
+    sigma = np.full((36, k), 0.01)
+    x[1 * 6 + 1, 4] = 0.9
+    x[1 * 6 + 4, 4] = 0.9
+    sigma[1 * 6 + 4, 4] = 0.2
+    x[4 * 6 + 1, 4] = 0.6
+    trusted = np.ones(36, bool)
+    fitted = np.array([True, True, True, False, True])
+    expected = np.zeros(shape, bool)
+    expected[1, 1] = True
+    np.testing.assert_array_equal(outlier_texels(x, sigma, fitted, trusted, shape).reshape(shape), expected)
+    # a held channel is never judged, nor an untrusted texel
+    held = np.array([True, True, True, True, False])
+    assert not outlier_texels(x, sigma, held, trusted, shape).any()
+    untrusted = trusted.copy()
+    untrusted[1 * 6 + 1] = False
+    assert not outlier_texels(x, sigma, fitted, untrusted, shape).any()
+    # untrusted texels are no reference: with its trusted neighbours all 0.9, the texel is in line
+    lone = x.copy()
+    lone[[0, 1, 2, 6, 8, 12, 13, 14], 4] = 0.9
+    others = trusted.copy()
+    others[[0, 1, 2, 6, 12, 13, 14]] = False
+    assert not outlier_texels(lone, sigma, fitted, others, shape).reshape(shape)[1, 1]
+    # rows past the map (padding) are ignored
+    pad = lambda a, v: np.concatenate([a, np.full((4,) + a.shape[1:], v, a.dtype)])
+    np.testing.assert_array_equal(outlier_texels(pad(x, 0.0), pad(sigma, 0.0), fitted, pad(trusted, False), shape),
+                                  expected.reshape(-1))
+
+
+def test_outlier_texels_do_not_compare_across_the_maps_edges():
+    # stripes at 0.9 on the first and last columns of a 4-wide map, 0.5 between: across the
+    # edges (a repeating wrap) the stripe's neighbours are mostly 0.9; within the map, 0.5
+    x = np.full((5, 4, 5), 0.5)
+    x[:, [0, 3], 4] = 0.9
+    flagged = outlier_texels(x.reshape(-1, 5), np.full((20, 5), 0.01), np.ones(5, bool), np.ones(20, bool), (5, 4))
+    expected = np.zeros((5, 4), bool)
+    expected[:, [0, 3]] = True  # corners too: the median of (0.9, 0.5, 0.5) is 0.5
+    np.testing.assert_array_equal(flagged.reshape(5, 4), expected)
+
+
 def test_repair_region_grows_flags_by_one_ring_within_identifiable_texels():
     flagged = np.zeros(25, bool)
     flagged[12] = True  # the centre of a 5 x 5 map
@@ -83,6 +127,10 @@ def test_improved_clusters_judges_each_cluster_by_its_own_pixels():
     better, clusters, improved = improved_clusters(moving, before, after, index, weight, 1)
     assert (clusters, improved) == (2, 1)
     np.testing.assert_array_equal(better, [True, True, True, False, False, False])
+    # with a margin: cluster {0, 1, 2} fell by 3, kept under a margin of 2.9, not of 3
+    assert improved_clusters(moving, before, after, index, weight, 1, margin=2.9)[2] == 1
+    better, _, improved = improved_clusters(moving, before, after, index, weight, 1, margin=3.0)
+    assert improved == 0 and not better.any()
     # two samples per pixel: pixel 0's rows read (0, 1) and (4, 5), joining the clusters
     index2 = np.array([[0, 1, 0, 0], [4, 5, 4, 4]])
     weight2 = np.array([[0.5, 0.5, 0, 0], [0.5, 0.5, 0, 0]])
