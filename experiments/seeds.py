@@ -83,14 +83,16 @@ def table(rows: list[dict]) -> str:
         if not mine:
             continue
         out += [f"### {scene} (targets base / metallic / roughness ≤ {' / '.join(f'{t:g}' for t in target)})", "",
-                "| seed | with the repair | without | within 2σ (%, with) | repair passes (kind flagged → texels kept) "
-                "| wall s (with / without) |", "| ---: | ---: | ---: | ---: | --- | ---: |"]
+                "| seed | with the repair | without | within 2σ (%, with) "
+                "| repair passes (kind flagged → texels kept) | wall s (with / without) |",
+                "| ---: | ---: | ---: | ---: | --- | ---: |"]
         fmt = lambda r: " / ".join(f"{r['rmse'][m]:.4f}" + ("*" if r["rmse"][m] > t else "")
                                    for m, t in zip(MAPS, target))
         for seed in sorted({r["seed"] for r in mine}):
             w = next(r for r in mine if r["seed"] == seed and r["repair"])
             wo = next(r for r in mine if r["seed"] == seed and not r["repair"])
-            passes = ", ".join(f"{p.get('kind', 'misfit')} {p['flagged']} → {p.get('texels_kept', 0) if p.get('kept') else 0}"
+            kept = lambda p: p.get("texels_kept", 0) if p.get("kept") else 0
+            passes = ", ".join(f"{p.get('kind', 'misfit')} {p['flagged']} → {kept(p)}"
                                for p in w["passes"] if p["flagged"]) or "none flagged"
             within = " / ".join(f"{100 * w['within_2sigma'][m]:.0f}" for m in MAPS)
             out.append(f"| {seed} | {fmt(w)} | {fmt(wo)} | {within} | {passes} | {w['wall']:.1f} / {wo['wall']:.1f} |")

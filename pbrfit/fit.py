@@ -594,8 +594,11 @@ def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, 
             misfit_passes += 1
         else:
             sigma2 = residual_variance(energy, 3 * obs.num_pixels, num_free)
-            flagged = outlier_texels(xs[:t], block_standard_errors(blocks, fitted, seen_t, sigma2), fitted, trusted,
-                                     tuple(shape))
+            # the material channels only: a normal map's slopes span a wider range, and bump detail
+            # is out of line with its neighbours by nature
+            material = fitted & (np.arange(fitted.size) < len(CHANNELS))
+            flagged = outlier_texels(xs[:t], block_standard_errors(blocks, fitted, seen_t, sigma2), material,
+                                     trusted, tuple(shape))
             margin = OUTLIER_EVIDENCE * sigma2
         entry = dict(kind=stage, flagged=int(np.sum(flagged)))
         passes.append(entry)

@@ -33,7 +33,7 @@ The repair finds the cluster by its misfit and starts it again from outside:
    fell, and the pass is kept where the whole objective then falls; further passes run, up to
    `REPAIR_PASSES`, while a pass lowers the objective by more than `REPAIR_PROGRESS` of it.
 5. `outlier_texels`: one last pass flags, instead of the misfit, the well-determined texels whose
-   value of some fitted channel lies more than `OUTLIER_DEVIATION` and more than `OUTLIER_Z` of
+   value of some fitted material channel (not a normal map's slopes) lies more than `OUTLIER_DEVIATION` and more than `OUTLIER_Z` of
    its standard errors from the median of its well-determined neighbours, and runs steps 2 to 4
    on them. Under noise a wrong basin's misfit can hide in the noise, and a cluster the misfit
    passes could not move need not show one either; both leave texels out of line with the patch
@@ -89,9 +89,9 @@ REPAIR_PASSES = 3
 #: fraction of it (on spheres-grid at 128 x 128, after a first pass that took 60%, a second and
 #: a third gained 2e-5 and 2e-6 of the objective, each for a search and 20 steps).
 REPAIR_PROGRESS = 0.01
-#: The last pass flags a well-determined texel where a fitted channel lies further than this from
-#: the median of its well-determined neighbours (in the channel's units: roughness, metallic and
-#: base colour all span [0, 1]) ...
+#: The last pass flags a well-determined texel where a fitted material channel lies further than
+#: this from the median of its well-determined neighbours (in the channel's units: roughness,
+#: metallic and base colour all span [0, 1]; a normal map's slopes are not tested) ...
 OUTLIER_DEVIATION = 0.15
 #: ... and further than this many of its standard errors.
 OUTLIER_Z = 3.0
