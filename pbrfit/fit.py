@@ -580,30 +580,23 @@ def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, 
     static = (REPAIR_ROUNDS, bool(channels[3] > 0))
     xs = np.asarray(xs, np.float32)
     energy = _energy(linearization[0], xs, problem)
-    passes, stage, misfit_passes, margin = [], "misfit", 0, 0.0
-    while True:
+    passes = []
+
+    def judged():
+        """(misfit flags, trusted texels, per-texel blocks) at the current linearisation."""
         r, jac = linearization
         mean, count = texel_misfit(np.asarray(r), index, weight, problem.samples, problem.num_texels)
         blocks = np.asarray(_normal_blocks(jac, problem))[:t]
         trusted = well_seen_texels(count[:t], seen_t) & identifiable_texels(blocks, fitted, seen_t)
-        misfit = misfit_texels(mean[:t], count[:t], seen_t, scale) & trusted
-        if stage == "misfit" and (not np.any(misfit) or misfit_passes == REPAIR_PASSES):
-            stage = "outliers"
-        if stage == "misfit":
-            flagged = misfit
-            misfit_passes += 1
-        else:
-            sigma2 = residual_variance(energy, 3 * obs.num_pixels, num_free)
-            # the material channels only: a normal map's slopes span a wider range, and bump detail
-            # is out of line with its neighbours by nature
-            material = fitted & (np.arange(fitted.size) < len(CHANNELS))
-            flagged = outlier_texels(xs[:t], block_standard_errors(blocks, fitted, seen_t, sigma2), material,
-                                     trusted, tuple(shape))
-            margin = OUTLIER_EVIDENCE * sigma2
-        entry = dict(kind=stage, flagged=int(np.sum(flagged)))
+        return misfit_texels(mean[:t], count[:t], seen_t, scale) & trusted, trusted, blocks
+
+    def run_pass(kind, flagged, trusted, margin):
+        """One pass over ``flagged``: its report entry appended, and whether it was kept."""
+        nonlocal xs, linearization, energy
+        entry = dict(kind=kind, flagged=int(np.sum(flagged)))
         passes.append(entry)
         if not np.any(flagged):
-            break
+            return False
         moving = np.zeros(problem.num_texels, bool)
         moving[:t] = repair_region(flagged, trusted, tuple(shape))
         region = dataclasses.replace(problem, free=jax.device_put(free * moving[:, None], problem.free.sharding))
@@ -629,10 +622,25 @@ def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, 
                      steps=info["steps"], kept=bool(kept))
         if kept:
             xs, linearization, energy = z, after, e_after
-        if stage == "outliers":
+        return kept
+
+    misfit, trusted, blocks = judged()
+    for _ in range(REPAIR_PASSES):
+        if not np.any(misfit):
             break
-        if not kept or entry["energy_before"] - e_after <= REPAIR_PROGRESS * entry["energy_before"]:
-            stage = "outliers"
+        before = energy
+        if not run_pass("misfit", misfit, trusted, 0.0):
+            break  # nothing moved: the flags below are those at hand
+        misfit, trusted, blocks = judged()
+        if before - energy <= REPAIR_PROGRESS * before:
+            break
+    sigma2 = residual_variance(energy, 3 * obs.num_pixels, num_free)
+    # the material channels only: a normal map's slopes span a wider range, and bump detail is out
+    # of line with its neighbours by nature
+    material = fitted & (np.arange(fitted.size) < len(CHANNELS))
+    outliers = outlier_texels(xs[:t], block_standard_errors(blocks, fitted, seen_t, sigma2), material, trusted,
+                              tuple(shape))
+    run_pass("outliers", outliers, trusted, OUTLIER_EVIDENCE * sigma2)
     return xs, linearization, dict(passes=passes)
 
 
