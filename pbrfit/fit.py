@@ -53,8 +53,8 @@ from .observations import (MAX_PIXEL_SAMPLES, Observations, TexelLayout, coverag
                            observations_from_capture, texel_layout, uniform_layout)
 from .optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
 from .pixel_ibl import PixelIBLSettings, pixel_ibl
-from .repair import (OUTLIER_EVIDENCE, REPAIR_PASSES, REPAIR_PROGRESS, REPAIR_ROUNDS, REPAIR_STEPS,
-                     fill_from_nearest, identifiable_texels, improved_clusters, misfit_texels, outlier_texels,
+from .repair import (OUTLIER_EVIDENCE, OUTLIER_SPREAD, REPAIR_PASSES, REPAIR_PROGRESS, REPAIR_ROUNDS,
+                     REPAIR_STEPS, fill_from_nearest, identifiable_texels, improved_clusters, misfit_texels, outlier_texels,
                      repair_region, texel_misfit, well_seen_texels)
 from .parameters import CHANNELS, FIT_GROUPS, NORMAL_CHANNELS, channel_mask, lower, normal_from_slopes, prior, upper
 from .sharding import pixel_mesh, shard_problem
@@ -560,15 +560,16 @@ def _energy(residuals, x, problem: Problem) -> float:
 def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, channels, num_free: int,
             where: dict):
     """Texels the solve left in a wrong basin, started again from their neighbours
-    (`pbrfit.repair`): (x, linearisation, report). Each pass flags well-determined texels,
-    copies into them the nearest unflagged well-determined texel's values, runs the coordinate
-    search and `REPAIR_STEPS` steps over the flagged texels and their neighbours (all others
-    held), puts back the clusters whose pixels do not fit better (`improved_clusters`), and is
-    kept where the objective then falls. The misfit passes flag the texels whose pixels fit worse
-    than the noise explains (`misfit_texels`) and go on while one lowers the objective by more
-    than `REPAIR_PROGRESS`, up to `REPAIR_PASSES`; then one pass flags the texels out of line with
-    their neighbours (`outlier_texels`) and keeps a cluster only where its pixels' Σ ||r||² fell
-    by more than `OUTLIER_EVIDENCE` residual variances. Each report entry's "kind" says which."""
+    (`pbrfit.repair`): (x, linearisation, report). Each pass flags texels, copies into them the
+    nearest unflagged one's values, runs the coordinate search and `REPAIR_STEPS` steps over the
+    flagged texels and their neighbours (all others held), puts back the clusters whose pixels do
+    not fit better (`improved_clusters`), and is kept where the objective then falls. The misfit
+    passes flag the well-seen identifiable texels whose pixels fit worse than the noise explains
+    (`misfit_texels`) and go on while one lowers the objective by more than `REPAIR_PROGRESS`, up
+    to `REPAIR_PASSES`; then one pass flags the identifiable texels out of line with their
+    neighbours (`outlier_texels`) and keeps a cluster only where its pixels' Σ ||r||² fell by more
+    than (`OUTLIER_EVIDENCE` + `OUTLIER_SPREAD` √(2p)) residual variances, p its free channels.
+    Each report entry's "kind" says which."""
     t = shape[0] * shape[1]
     seen_t = np.asarray(seen[:t], bool)
     obs = problem.obs
@@ -583,14 +584,16 @@ def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, 
     passes = []
 
     def judged():
-        """(misfit flags, trusted texels, per-texel blocks) at the current linearisation."""
+        """(misfit flags, well-seen identifiable texels, identifiable texels) at the current
+        linearisation."""
         r, jac = linearization
         mean, count = texel_misfit(np.asarray(r), index, weight, problem.samples, problem.num_texels)
         blocks = np.asarray(_normal_blocks(jac, problem))[:t]
-        trusted = well_seen_texels(count[:t], seen_t) & identifiable_texels(blocks, fitted, seen_t)
-        return misfit_texels(mean[:t], count[:t], seen_t, scale) & trusted, trusted, blocks
+        identifiable = identifiable_texels(blocks, fitted, seen_t)
+        trusted = well_seen_texels(count[:t], seen_t) & identifiable
+        return misfit_texels(mean[:t], count[:t], seen_t, scale) & trusted, trusted, identifiable
 
-    def run_pass(kind, flagged, trusted, margin):
+    def run_pass(kind, flagged, trusted, margin, spread=0.0):
         """One pass over ``flagged``: its report entry appended, and whether it was kept."""
         nonlocal xs, linearization, energy
         entry = dict(kind=kind, flagged=int(np.sum(flagged)))
@@ -607,7 +610,7 @@ def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, 
         # residuals and pixel Jacobians do not depend on which texels move: the full problem's
         after = runner.linearization
         better, clusters, improved = improved_clusters(moving, linearization[0], after[0], index, weight,
-                                                       problem.samples, margin)
+                                                       problem.samples, margin, spread, np.sum(free > 0, axis=1))
         z = np.asarray(y, np.float32)
         if improved and not np.array_equal(better, moving):
             # the other clusters back where they were, linearised there (step 0, still tagged "repair")
@@ -624,23 +627,23 @@ def _repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, 
             xs, linearization, energy = z, after, e_after
         return kept
 
-    misfit, trusted, blocks = judged()
+    misfit, trusted, identifiable = judged()
     for _ in range(REPAIR_PASSES):
         if not np.any(misfit):
             break
         before = energy
         if not run_pass("misfit", misfit, trusted, 0.0):
             break  # nothing moved: the flags below are those at hand
-        misfit, trusted, blocks = judged()
+        misfit, trusted, identifiable = judged()
         if before - energy <= REPAIR_PROGRESS * before:
             break
-    sigma2 = residual_variance(energy, 3 * obs.num_pixels, num_free)
     # the material channels only: a normal map's slopes span a wider range, and bump detail is out
-    # of line with its neighbours by nature
+    # of line with its neighbours by nature. Well seen or not: a wrong basin hides in a corner
+    # that few pixels read as well.
     material = fitted & (np.arange(fitted.size) < len(CHANNELS))
-    outliers = outlier_texels(xs[:t], block_standard_errors(blocks, fitted, seen_t, sigma2), material, trusted,
-                              tuple(shape))
-    run_pass("outliers", outliers, trusted, OUTLIER_EVIDENCE * sigma2)
+    sigma2 = residual_variance(energy, 3 * obs.num_pixels, num_free)
+    run_pass("outliers", outlier_texels(xs[:t], material, identifiable, tuple(shape)), identifiable,
+             OUTLIER_EVIDENCE * sigma2, OUTLIER_SPREAD * sigma2)
     return xs, linearization, dict(passes=passes)
 
 

@@ -54,36 +54,65 @@ def test_well_seen_texels_need_a_quarter_of_the_median_count():
 
 
 def test_outlier_texels_flag_values_out_of_line_with_their_neighbours():
-    # 6 x 6 roughness map at 0.5 with a texel at 0.9 (sure of itself), a texel at 0.9 whose σ
-    # covers the gap, and a texel 0.1 off (under the deviation)
+    # 6 x 6 roughness map at 0.5 with a texel at 0.9 and a texel 0.1 off (under the deviation)
     k, shape = 5, (6, 6)
     x = np.full((36, k), 0.5)
-    sigma = np.full((36, k), 0.01)
     x[1 * 6 + 1, 4] = 0.9
-    x[1 * 6 + 4, 4] = 0.9
-    sigma[1 * 6 + 4, 4] = 0.2
     x[4 * 6 + 1, 4] = 0.6
     trusted = np.ones(36, bool)
     fitted = np.array([True, True, True, False, True])
     expected = np.zeros(shape, bool)
     expected[1, 1] = True
-    np.testing.assert_array_equal(outlier_texels(x, sigma, fitted, trusted, shape).reshape(shape), expected)
+    np.testing.assert_array_equal(outlier_texels(x, fitted, trusted, shape).reshape(shape), expected)
     # a held channel is never judged, nor an untrusted texel
     held = np.array([True, True, True, True, False])
-    assert not outlier_texels(x, sigma, held, trusted, shape).any()
+    assert not outlier_texels(x, held, trusted, shape).any()
     untrusted = trusted.copy()
     untrusted[1 * 6 + 1] = False
-    assert not outlier_texels(x, sigma, fitted, untrusted, shape).any()
-    # untrusted texels are no reference: with its trusted neighbours all 0.9, the texel is in line
-    lone = x.copy()
-    lone[[0, 1, 2, 6, 8, 12, 13, 14], 4] = 0.9
+    assert not outlier_texels(x, fitted, untrusted, shape).any()
+    # untrusted texels are no reference: a map at 0.9 with four untrusted texels at 0.5 around
+    # (1, 1) (half its neighbours) flags nothing
+    lone = np.full((36, k), 0.9)
+    lone[[2, 12, 13, 14], 4] = 0.5
     others = trusted.copy()
-    others[[0, 1, 2, 6, 12, 13, 14]] = False
-    assert not outlier_texels(lone, sigma, fitted, others, shape).reshape(shape)[1, 1]
+    others[[2, 12, 13, 14]] = False
+    assert not outlier_texels(lone, fitted, others, shape).any()
+    assert outlier_texels(lone, fitted, trusted, shape).reshape(shape)[1, 1]
     # rows past the map (padding) are ignored
     pad = lambda a, v: np.concatenate([a, np.full((4,) + a.shape[1:], v, a.dtype)])
-    np.testing.assert_array_equal(outlier_texels(pad(x, 0.0), pad(sigma, 0.0), fitted, pad(trusted, False), shape),
-                                  expected.reshape(-1))
+    np.testing.assert_array_equal(outlier_texels(pad(x, 0.0), fitted, pad(trusted, False), shape), expected.reshape(-1))
+
+
+def test_outlier_texels_peel_clusters_whose_texels_outnumber_their_good_neighbours():
+    # a 3 x 3 cluster at 0.05 in a 0.5 map: at first only its corners are out of line with their
+    # neighbours' median; without them, its edges are; then the centre has no unflagged neighbour
+    fitted = np.array([False, False, False, False, True])
+    judge = lambda x: outlier_texels(x.reshape(-1, 5), fitted, np.ones(256, bool), (16, 16)).reshape(16, 16)
+    x = np.full((16, 16, 5), 0.5)
+    x[2:5, 2:5, 4] = 0.05
+    expected = np.zeros((16, 16), bool)
+    expected[2:5, 2:5] = True
+    np.testing.assert_array_equal(judge(x), expected)
+    # in a map's corner a texel has three neighbours: under `OUTLIER_REFERENCES` of them, the median
+    # is over the texels within two
+    x = np.full((16, 16, 5), 0.5)
+    x[:2, :2, 4] = 0.05
+    expected = np.zeros((16, 16), bool)
+    expected[:2, :2] = True
+    np.testing.assert_array_equal(judge(x), expected)
+    # where a first round flags over `OUTLIER_PEEL_SHARE` of the texels (a map of 2 x 2 patches),
+    # it is the only one: peeling would eat the map
+    rng = np.random.default_rng(0)
+    x = np.zeros((8, 8, 5))
+    x[..., 4] = np.kron(rng.uniform(0.08, 0.9, (4, 4)), np.ones((2, 2)))
+    with_peel = outlier_texels(x.reshape(-1, 5), fitted, np.ones(64, bool), (8, 8))
+    first = outlier_texels(x.reshape(-1, 5), fitted, np.ones(64, bool), (8, 8), share=1.0, peels=1)
+    assert first.sum() > 0.1 * 64 and np.array_equal(with_peel, first)
+    assert outlier_texels(x.reshape(-1, 5), fitted, np.ones(64, bool), (8, 8), share=1.0).sum() > first.sum()
+    # a straight edge between two patches is no outlier
+    x = np.full((8, 8, 5), 0.5)
+    x[:, 4:, 4] = 0.8
+    assert not outlier_texels(x.reshape(-1, 5), fitted, np.ones(64, bool), (8, 8)).any()
 
 
 def test_outlier_texels_do_not_compare_across_the_maps_edges():
@@ -91,9 +120,9 @@ def test_outlier_texels_do_not_compare_across_the_maps_edges():
     # edges (a repeating wrap) the stripe's neighbours are mostly 0.9; within the map, 0.5
     x = np.full((5, 4, 5), 0.5)
     x[:, [0, 3], 4] = 0.9
-    flagged = outlier_texels(x.reshape(-1, 5), np.full((20, 5), 0.01), np.ones(5, bool), np.ones(20, bool), (5, 4))
+    flagged = outlier_texels(x.reshape(-1, 5), np.ones(5, bool), np.ones(20, bool), (5, 4))
     expected = np.zeros((5, 4), bool)
-    expected[:, [0, 3]] = True  # corners too: the median of (0.9, 0.5, 0.5) is 0.5
+    expected[:, [0, 3]] = True  # corners too: within two of them, 0.5 is the median
     np.testing.assert_array_equal(flagged.reshape(5, 4), expected)
 
 
@@ -131,6 +160,11 @@ def test_improved_clusters_judges_each_cluster_by_its_own_pixels():
     assert improved_clusters(moving, before, after, index, weight, 1, margin=2.9)[2] == 1
     better, _, improved = improved_clusters(moving, before, after, index, weight, 1, margin=3.0)
     assert improved == 0 and not better.any()
+    # with a spread: cluster {0, 1, 2} has 2 + 2 + 2 free channels (p = 6, √(2p) ≈ 3.46), so it
+    # needs a fall of 0.5 + 0.8 × 3.46 ≈ 3.27 > 3, or 0.5 + 0.7 × 3.46 ≈ 2.92 < 3
+    dof = np.full(6, 2.0)
+    assert improved_clusters(moving, before, after, index, weight, 1, 0.5, 0.8, dof)[2] == 0
+    assert improved_clusters(moving, before, after, index, weight, 1, 0.5, 0.7, dof)[2] == 1
     # two samples per pixel: pixel 0's rows read (0, 1) and (4, 5), joining the clusters
     index2 = np.array([[0, 1, 0, 0], [4, 5, 4, 4]])
     weight2 = np.array([[0.5, 0.5, 0, 0], [0.5, 0.5, 0, 0]])
