@@ -39,8 +39,10 @@ The repair finds the cluster by its misfit and starts it again from outside:
    misfit passes could not move need not show one either; both leave texels out of line with
    the patch around them. A cluster of such texels outnumbers the good neighbours of its inner
    texels, so the test peels it: each round judges the texels left against the unflagged ones
-   only, and a texel whose neighbours are all flagged is flagged with them (while no more than
-   `OUTLIER_PEEL_SHARE` of the texels end up flagged); where fewer than `OUTLIER_REFERENCES`
+   only, and a texel whose neighbours are all flagged is flagged with them (a round after the
+   first only while no more than `OUTLIER_PEEL_SHARE` of the identifiable texels end up
+   flagged; peeling reaches the centre of clusters up to three texels wide whose values lie over
+   0.3 off, and flags wider ones at their corners); where fewer than `OUTLIER_REFERENCES`
    unflagged neighbours remain (a map's corner), the median is over the texels within two. No
    standard error enters the test: a texel in a wrong basin has its σ from that basin. A texel
    that is out of line in the truth (a patch's corner, a scratch) comes back to its value in the
@@ -181,26 +183,43 @@ def well_seen_texels(
     return seen & (count >= fraction * float(np.median(count[seen])))
 
 
-def _window(v, ok, n):
-    """(M, H, W, K) values of the texels within ``n`` of each (not across the map's edges, not
-    itself), NaN where not ``ok``."""
-    h, w = ok.shape
-    okp = np.pad(ok, n, constant_values=False)
-    vp = np.pad(v, ((n, n), (n, n), (0, 0)))
-    return np.stack([np.where(okp[n + dy:n + dy + h, n + dx:n + dx + w, None], vp[n + dy:n + dy + h, n + dx:n + dx + w],
-                              np.nan) for dy in range(-n, n + 1) for dx in range(-n, n + 1) if dy or dx])
+#: Texels whose neighbourhoods `outlier_texels` gathers at once (bounds its memory: 24
+#: neighbours × the judged channels × 8 bytes × this).
+_CHUNK = 1 << 15
 
 
-def _neighbour_count(ok, n):
-    """Per texel, how many ``ok`` texels lie within ``n`` of it (not itself)."""
-    return np.sum(np.isfinite(_window(np.zeros(ok.shape + (1,)), ok, n)[..., 0]), axis=0)
+def _neighbour_count(ok: Bool[np.ndarray, "H W"], n: int) -> Int[np.ndarray, "H W"]:
+    """Per texel, how many ``ok`` texels lie within ``n`` of it (not itself, not across the map's
+    edges)."""
+    kernel = np.ones((2 * n + 1, 2 * n + 1), np.int64)
+    kernel[n, n] = 0
+    return ndimage.convolve(ok.astype(np.int64), kernel, mode="constant", cval=0)
 
 
-def _neighbour_median(v, ok, n):
-    """Per texel, the median of the ``ok`` texels within ``n`` of it, and whether there are any."""
-    ring = _window(v, ok, n)
-    have = np.any(np.isfinite(ring[..., 0]), axis=0)
-    return np.nanmedian(np.where(have[None, ..., None], ring, 0.0), axis=0), have
+def _neighbour_median(
+    v: Float[np.ndarray, "H W K"], ok: Bool[np.ndarray, "H W"], ys: Int[np.ndarray, " N"],
+    xs: Int[np.ndarray, " N"], n: int,
+) -> tuple[Float[np.ndarray, "N K"], Bool[np.ndarray, " N"]]:
+    """At texels (ys, xs), the median of the ``ok`` texels within ``n`` of each (not itself, not
+    across the map's edges; the mean of the middle two for an even count), and whether there are
+    any. Gathered `_CHUNK` texels at a time."""
+    h, w, k = v.shape
+    dy, dx = np.array([(a, b) for a in range(-n, n + 1) for b in range(-n, n + 1) if a or b]).T
+    median = np.zeros((len(ys), k))
+    count = np.zeros(len(ys), np.int64)
+    for s in range(0, len(ys), _CHUNK):
+        y, x = ys[s:s + _CHUNK, None] + dy, xs[s:s + _CHUNK, None] + dx
+        inside = (y >= 0) & (y < h) & (x >= 0) & (x < w)
+        y, x = np.clip(y, 0, h - 1), np.clip(x, 0, w - 1)
+        valid = inside & ok[y, x]
+        vals = np.sort(np.where(valid[..., None], v[y, x], np.inf), axis=1)  # the valid ones first
+        c = valid.sum(axis=1)
+        lo, hi = (np.maximum(c - 1, 0) // 2)[:, None, None], np.minimum(c // 2, len(dy) - 1)[:, None, None]
+        lo, hi = np.broadcast_to(lo, (len(c), 1, k)), np.broadcast_to(hi, (len(c), 1, k))
+        mid = 0.5 * (np.take_along_axis(vals, lo, axis=1) + np.take_along_axis(vals, hi, axis=1))[:, 0]
+        median[s:s + _CHUNK] = np.where(c[:, None] > 0, mid, 0.0)
+        count[s:s + _CHUNK] = c
+    return median, count > 0
 
 
 def outlier_texels(
@@ -211,29 +230,41 @@ def outlier_texels(
     """Trusted texels where some fitted channel c differs by more than ``deviation`` from the
     median of the unflagged trusted texels among its eight neighbours on the (H, W) grid (not
     across the map's edges), or within two of it where fewer than ``references`` of those are
-    left. Peeled in rounds (at most ``peels``, while no more than ``share`` of the trusted texels
-    end up flagged): each judges the texels not yet flagged against the texels not yet flagged,
-    and also flags a texel whose trusted neighbours all are."""
+    left. Peeled in rounds (at most ``peels``; after the first, a round is taken only where no
+    more than ``share`` of the trusted texels end up flagged): each judges the texels not yet
+    flagged against the texels not yet flagged, and also flags a texel whose trusted neighbours
+    all are. Peeling reaches the centre of clusters up to three texels wide whose values lie more
+    than twice ``deviation`` off (at the edge of a 3 × 3 cluster, with its corners flagged, the
+    median is that of three good and three bad values); wider clusters, or closer ones, are
+    flagged at their corners, and the repair's region (one ring around the flags) re-solves more
+    of them."""
     h, w = shape
     t = h * w
     ok = np.asarray(trusted[:t], bool).reshape(h, w)
-    v = np.asarray(x[:t], np.float64).reshape(h, w, -1)
     judged = np.asarray(channels, bool)
-    count = _neighbour_count(ok, 1)
     flagged = np.zeros((h, w), bool)
+    if not np.any(judged):
+        return flagged.reshape(-1)
+    v = np.asarray(x[:t], np.float64).reshape(h, w, -1)[..., judged]
+    count = _neighbour_count(ok, 1)
+    # a texel's judgement depends only on the texels within two of it: after the first round only
+    # those near the texels the last round flagged can change
+    candidates = ok
     for _ in range(peels):
         reference = ok & ~flagged
-        median, have = _neighbour_median(v, reference, 1)
-        wide, wide_have = _neighbour_median(v, reference, 2)
-        few = _neighbour_count(reference, 1) < references
-        median = np.where(few[..., None], wide, median)
-        have = np.where(few, wide_have, have)
-        out = have[..., None] & (np.abs(v - median) > deviation) & judged
+        ys, xs = np.nonzero(reference & candidates)
+        median, have = _neighbour_median(v, reference, ys, xs, 1)
+        few = _neighbour_count(reference, 1)[ys, xs] < references
+        if np.any(few):
+            median[few], have[few] = _neighbour_median(v, reference, ys[few], xs[few], 2)
+        out = have & np.any(np.abs(v[ys, xs] - median) > deviation, axis=-1)
         enclosed = (count > 0) & (_neighbour_count(ok & flagged, 1) == count)
-        new = reference & (np.any(out, axis=-1) | enclosed)
+        new = np.zeros((h, w), bool)
+        new[ys, xs] = out | enclosed[ys, xs]
         if not np.any(new) or (np.any(flagged) and np.sum(flagged | new) > share * np.sum(ok)):
             break
         flagged |= new
+        candidates = ndimage.maximum_filter(new, size=5, mode="constant", cval=False)
     return flagged.reshape(-1)
 
 
@@ -273,11 +304,12 @@ def fill_from_nearest(
 def improved_clusters(
     moving: Bool[np.ndarray, " T"], before: Float[np.ndarray, "P C"], after: Float[np.ndarray, "P C"],
     index: Int[np.ndarray, "R 4"], weight: Float[np.ndarray, "R 4"], samples: int, margin: float = 0.0,
-    spread: float = 0.0, dof: Optional[Float[np.ndarray, " T"]] = None,
+    spread: float = 0.0, dof: Optional[Int[np.ndarray, " T"]] = None,
 ) -> tuple[Bool[np.ndarray, " T"], int, int]:
     """(the moving texels whose cluster's pixels fit better after than before, by more than
     ``margin`` + ``spread`` √(2 p) in Σ ||r_p||² (p: the sum of ``dof``, each texel's free
-    channels, over the cluster), the number of clusters, how many of them fit better).
+    channels (default 1 each), over the cluster), the number of clusters, how many of them fit
+    better).
 
     A cluster is a connected component of the graph on the moving texels that joins two texels
     where one pixel reads both (any sample, any bilinear tap with positive weight): clusters share
@@ -309,7 +341,8 @@ def improved_clusters(
     e_after = np.bincount(pixel_cluster[on], weights=err(after), minlength=n)
     threshold = margin
     if spread > 0:
-        p = np.bincount(cluster[read], weights=np.asarray(dof, np.float64)[read], minlength=n)
+        dof = np.ones(t) if dof is None else np.asarray(dof, np.float64)
+        p = np.bincount(cluster[read], weights=dof[read], minlength=n)
         threshold = margin + spread * np.sqrt(2.0 * p)
     better = e_after < e_before - threshold
     return read & better[np.maximum(cluster, 0)], n, int(np.sum(better))

@@ -109,6 +109,14 @@ def test_outlier_texels_peel_clusters_whose_texels_outnumber_their_good_neighbou
     first = outlier_texels(x.reshape(-1, 5), fitted, np.ones(64, bool), (8, 8), share=1.0, peels=1)
     assert first.sum() > 0.1 * 64 and np.array_equal(with_peel, first)
     assert outlier_texels(x.reshape(-1, 5), fitted, np.ones(64, bool), (8, 8), share=1.0).sum() > first.sum()
+    # a round after the first that would flag more than the share is not taken: the 3 x 3 cluster
+    # (its 4 corners first, 4 of 256 texels, then its 4 edges) stops at its corners under 7 / 256
+    x = np.full((16, 16, 5), 0.5)
+    x[2:5, 2:5, 4] = 0.05
+    corners = np.zeros((16, 16), bool)
+    corners[2:5:2, 2:5:2] = True
+    np.testing.assert_array_equal(outlier_texels(x.reshape(-1, 5), fitted, np.ones(256, bool), (16, 16),
+                                                 share=7 / 256).reshape(16, 16), corners)
     # a straight edge between two patches is no outlier
     x = np.full((8, 8, 5), 0.5)
     x[:, 4:, 4] = 0.8
@@ -160,11 +168,15 @@ def test_improved_clusters_judges_each_cluster_by_its_own_pixels():
     assert improved_clusters(moving, before, after, index, weight, 1, margin=2.9)[2] == 1
     better, _, improved = improved_clusters(moving, before, after, index, weight, 1, margin=3.0)
     assert improved == 0 and not better.any()
-    # with a spread: cluster {0, 1, 2} has 2 + 2 + 2 free channels (p = 6, √(2p) ≈ 3.46), so it
-    # needs a fall of 0.5 + 0.8 × 3.46 ≈ 3.27 > 3, or 0.5 + 0.7 × 3.46 ≈ 2.92 < 3
-    dof = np.full(6, 2.0)
+    # with a spread: cluster {0, 1, 2} has 1 + 2 + 3 free channels (p = 6, √(2p) ≈ 3.46; the
+    # held texel 3's 100 and cluster {4, 5}'s are not its), so it needs a fall of
+    # 0.5 + 0.8 × 3.46 ≈ 3.27 > 3, or 0.5 + 0.7 × 3.46 ≈ 2.92 < 3
+    dof = np.array([1, 2, 3, 100, 4, 5])
     assert improved_clusters(moving, before, after, index, weight, 1, 0.5, 0.8, dof)[2] == 0
     assert improved_clusters(moving, before, after, index, weight, 1, 0.5, 0.7, dof)[2] == 1
+    # one free channel per texel by default: p = 3, 0.5 + 1.4 × 2.45 ≈ 3.93 > 3, 0.5 + 1.0 × 2.45 < 3
+    assert improved_clusters(moving, before, after, index, weight, 1, 0.5, 1.4)[2] == 0
+    assert improved_clusters(moving, before, after, index, weight, 1, 0.5, 1.0)[2] == 1
     # two samples per pixel: pixel 0's rows read (0, 1) and (4, 5), joining the clusters
     index2 = np.array([[0, 1, 0, 0], [4, 5, 4, 4]])
     weight2 = np.array([[0.5, 0.5, 0, 0], [0.5, 0.5, 0, 0]])
