@@ -88,10 +88,10 @@ def table(rows: list[dict]) -> str:
                 "| ---: | ---: | ---: | ---: | --- | ---: |"]
         fmt = lambda r: " / ".join(f"{r['rmse'][m]:.4f}" + ("*" if r["rmse"][m] > t else "")
                                    for m, t in zip(MAPS, target))
+        kept = lambda p: p.get("texels_kept", 0) if p.get("kept") else 0
         for seed in sorted({r["seed"] for r in mine}):
             w = next(r for r in mine if r["seed"] == seed and r["repair"])
             wo = next(r for r in mine if r["seed"] == seed and not r["repair"])
-            kept = lambda p: p.get("texels_kept", 0) if p.get("kept") else 0
             passes = ", ".join(f"{p.get('kind', 'misfit')} {p['flagged']} → {kept(p)}"
                                for p in w["passes"] if p["flagged"]) or "none flagged"
             within = " / ".join(f"{100 * w['within_2sigma'][m]:.0f}" for m in MAPS)

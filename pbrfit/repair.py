@@ -214,9 +214,8 @@ def _neighbour_median(
         valid = inside & ok[y, x]
         vals = np.sort(np.where(valid[..., None], v[y, x], np.inf), axis=1)  # the valid ones first
         c = valid.sum(axis=1)
-        lo, hi = (np.maximum(c - 1, 0) // 2)[:, None, None], np.minimum(c // 2, len(dy) - 1)[:, None, None]
-        lo, hi = np.broadcast_to(lo, (len(c), 1, k)), np.broadcast_to(hi, (len(c), 1, k))
-        mid = 0.5 * (np.take_along_axis(vals, lo, axis=1) + np.take_along_axis(vals, hi, axis=1))[:, 0]
+        middle = lambda i: np.take_along_axis(vals, np.broadcast_to(i[:, None, None], (len(c), 1, k)), axis=1)[:, 0]
+        mid = 0.5 * (middle(np.maximum(c - 1, 0) // 2) + middle(c // 2))  # c // 2 < c <= len(dy)
         median[s:s + _CHUNK] = np.where(c[:, None] > 0, mid, 0.0)
         count[s:s + _CHUNK] = c
     return median, count > 0
