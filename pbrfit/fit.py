@@ -60,11 +60,12 @@ from .parameters import CHANNELS, FIT_GROUPS, NORMAL_CHANNELS, channel_mask, low
 from .sharding import pixel_mesh, shard_problem
 from .selection import (NEWTON_STEPS, SELECTABLE, WALD_MARGIN, aic_statistic, newton_value, prefers_uniform,
                         profile_hessian, texel_precisions, uniform_direction, wald_statistic, weighted_value)
-from .solvers import (CG_RTOL, LOSSES, Problem, linearize, normal_blocks, objective, pixel_residuals,
-                      structured_lm)
+from .solvers import (CG_RTOL, LOSSES, Problem, linearize, neighbour_blocks, normal_blocks, objective,
+                      pixel_residuals, structured_lm)
 from .textures import sample_bilinear
 from .transfer import to_device
-from .uncertainty import block_standard_errors, residual_variance
+from .uncertainty import (MAX_UNCERTAINTY_RADIUS, WINDOW_RADIUS, residual_variance, window_radii,
+                          window_standard_errors)
 
 __all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "model_for_capture",
            "SOLVERS", "DEFAULT_SOLVER", "IBL_MODES", "CONTINUATION", "SETTLE_STEPS", "RELEASED_STEPS", "continuation_scale", "schedule",
@@ -73,6 +74,8 @@ __all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rm
 #: The per-texel blocks of JᵀJ, one jitted function for the repair, the uniform check, the
 #: preconditioner's scale and the uncertainty (one compile per problem shape).
 _normal_blocks = jax.jit(normal_blocks)
+#: The blocks between neighbouring texels, for the uncertainty's windows (one compile per map size).
+_neighbour_blocks = jax.jit(neighbour_blocks, static_argnums=2)
 
 DEFAULT_SOLVER = "structured"
 #: What `fit` may integrate a capture's environment light with (``ibl=``); the first is the default.
@@ -146,8 +149,9 @@ class FitResult:
         material: the fitted maps (`pbrfit.material.Material`; 1 × 1 for a uniform fit), with a
             tangent-space normal map when normals are fitted.
         uncertainty: (H, W, K) one-sigma errors (base R, G, B, metallic, roughness, and the
-            normal's slopes s_x, s_y when normals are fitted); 0 for fixed channels, +inf for
-            texels no view sees.
+            normal's slopes s_x, s_y when normals are fitted), each texel's with the texels of
+            its window free (``uncertainty_radius``); 0 for fixed channels, +inf for texels no
+            view sees.
         coverage: (H, W) pixel observations per texel (0 = never seen; such texels keep `PRIOR`).
         report: model, solver, steps, times (setup / compile / solve), final loss, per-view PSNR,
             devices, the levels run and the uniform check's tests.
@@ -318,6 +322,7 @@ def fit_observations(
     background_compile: bool = True,
     uniform_check: bool = True,
     repair: bool = True,
+    uncertainty_radius: int = WINDOW_RADIUS,
 ) -> FitResult:
     """Fit maps to prepared `Observations` (see `fit` for the arguments).
 
@@ -342,6 +347,10 @@ def fit_observations(
         raise ValueError(f"maps must be 'texture' or 'none', got {maps!r}")
     if not 0.0 < cg_rtol < 1.0:
         raise ValueError(f"cg_rtol must be in (0, 1), got {cg_rtol}")
+    if isinstance(uncertainty_radius, bool) or not isinstance(uncertainty_radius, (int, np.integer)) \
+            or not 0 <= uncertainty_radius <= MAX_UNCERTAINTY_RADIUS:
+        raise ValueError(f"uncertainty_radius must be an integer from 0 to {MAX_UNCERTAINTY_RADIUS}, "
+                         f"got {uncertainty_radius!r}")
     _check_normals(model, fit)
     fixed = dict(fixed or {})
     # what the caller held (before the model's own: a model without the metal lobe holds metallic 0)
@@ -520,7 +529,8 @@ def fit_observations(
 
     t_post = time.perf_counter()
     result = _finish(obs, problem, x, final, channels, seen[:t_final], model, solver, history, loss, smooth,
-                     dict(setup=setup_time, **clock), t_post, t_start, linearization, wrap, uniform)
+                     dict(setup=setup_time, **clock), t_post, t_start, linearization, wrap, uniform,
+                     int(uncertainty_radius))
     if uniform_check:
         for name, c in SELECTABLE:  # the value's σ as uncertainty holds it: the kept fit's residual variance
             if checks.get(name, {}).get("uniform"):
@@ -960,10 +970,13 @@ class _Runner:
 
 
 def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss, smooth, times, t_post, t_start,
-            linearization=None, wrap: str = "repeat", uniform: Optional[Mapping] = None):
-    """The result at the fit's x. ``uniform`` {channel: value}: channels fitted as one common value
-    (`_uniform_check`); their standard errors, at every seen texel, are σ̂ sqrt(diag(P⁻¹)) for P
-    their profile curvature matrix (`pbrfit.selection.profile_hessian`)."""
+            linearization=None, wrap: str = "repeat", uniform: Optional[Mapping] = None,
+            uncertainty_radius: int = WINDOW_RADIUS):
+    """The result at the fit's x. The maps' standard errors come from each texel's window of
+    ``uncertainty_radius`` (`pbrfit.uncertainty.window_standard_errors`; 0: its own block).
+    ``uniform`` {channel: value}: channels fitted as one common value (`_uniform_check`); their
+    standard errors, at every seen texel, are σ̂ sqrt(diag(P⁻¹)) for P their profile curvature
+    matrix (`pbrfit.selection.profile_hessian`)."""
     uniform = dict(uniform or {})
     k = len(channels)
     texel_channels = np.asarray(channels, np.float32).copy()
@@ -979,7 +992,9 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     n_res = 3 * obs.num_pixels
     n_par = int(np.sum(seen)) * int(np.sum(texel_channels)) + len(uniform)
     sigma2 = residual_variance(float(energy), n_res, n_par)
-    sigma = block_standard_errors(blocks, texel_channels > 0, seen, sigma2)
+    radius = max(window_radii(tuple(final), uncertainty_radius))
+    couplings = np.asarray(_neighbour_blocks(jac, problem, tuple(final))) if radius > 0 else None
+    sigma = window_standard_errors(blocks, couplings, tuple(final), texel_channels > 0, seen, sigma2, radius)
     if uniform:
         cs = sorted(uniform)
         directions = np.stack([uniform_direction(seen, c, k) for c in cs])
@@ -1040,6 +1055,8 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
         times={name: float(v) for name, v in times.items()},
         wall_time=float(times["setup"] + time.perf_counter() - t_start),
         devices=sorted(str(d) for d in problem.obs.target.sharding.device_set),
+        uncertainty=dict(radius=int(uncertainty_radius), window=[2 * r + 1 for r in window_radii(tuple(final),
+                                                                                               uncertainty_radius)]),
     )
     if tuple(final) == (1, 1):  # a uniform material: the five numbers and their standard errors
         report["material"] = dict(base_color=[float(v) for v in x[0, 0, 0:3]], metallic=float(x[0, 0, 3]),
@@ -1148,6 +1165,12 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             "repair" entry gives each pass's kind ("misfit" or "outliers"), flagged and moved
             texels, clusters and texels kept, objective before and after, and whether it was
             kept.
+        uncertainty_radius: the standard errors of ``uncertainty`` are each texel's with the
+            (2 r + 1)² texels around it free as well, from the normal matrix's blocks
+            (`pbrfit.uncertainty.window_standard_errors`): 0 takes the texel's own block alone
+            (its neighbours held: optimistic, pixels read four texels at once), default
+            `pbrfit.uncertainty.WINDOW_RADIUS` (1), at most `MAX_UNCERTAINTY_RADIUS`. The
+            report's "uncertainty" entry gives the radius and the window used.
         devices: a sequence of JAX devices to split the pixels over (`pbrfit.sharding`); default
             None: the default device.
         model: override the `Model` (default `model_for_capture`: the one that rendered the images).

@@ -52,6 +52,7 @@ from typing import Callable, Optional
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 from jaxtyping import Array, Float, Int
 
@@ -63,7 +64,7 @@ from .parameters import lower, normal_from_slopes, upper
 from .render import shade
 
 __all__ = ["Problem", "LOSSES", "shading_normal", "pixel_residuals", "residuals", "linearize", "objective", "structured_lm",
-           "normal_blocks", "gauss_newton_factors", "LMStats"]
+           "normal_blocks", "neighbour_blocks", "NEIGHBOUR_OFFSETS", "gauss_newton_factors", "LMStats"]
 
 #: Robust losses, as residual transforms r -> r sqrt(ρ(r²)/r²) (so the objective stays a sum of squares).
 LOSSES = ("l2", "huber", "cauchy")
@@ -311,6 +312,66 @@ def normal_blocks(jac: Float[Array, "R 3 K"], problem: Problem) -> Float[Array, 
     texel = jnp.zeros(p * taps, index.dtype).at[segment].set(index.reshape(-1))  # unused segments: B = 0
     bb = jnp.einsum("sci,scq->siq", b, b, precision=lax.Precision.HIGHEST)
     return jax.ops.segment_sum(bb, texel, num_segments=problem.num_texels)
+
+
+#: The grid offsets (di, dj) of the coupling blocks `neighbour_blocks` keeps: half of the eight
+#: neighbours, the block towards the other half being a transpose (A_(t, t-o) = A_(t-o, t)ᵀ).
+NEIGHBOUR_OFFSETS = ((0, 1), (1, -1), (1, 0), (1, 1))
+
+
+def _grid_step(d, n: int):
+    """A difference of grid coordinates, wrapped on a ring of n, as -1, 0 or 1; 2 where the two
+    are further apart, or where n = 2 makes +1 and -1 the same texel."""
+    d = jnp.mod(d, n)
+    if n == 1:
+        return jnp.zeros_like(d)
+    near = jnp.where(d == 0, 0, jnp.where(d == 1, 1, jnp.where(d == n - 1, -1, 2)))
+    return jnp.where((n == 2) & (d == 1), 2, near)
+
+
+def neighbour_blocks(jac: Float[Array, "R 3 K"], problem: Problem, shape: tuple[int, int]) -> Float[Array, "T 4 K K"]:
+    """Off-diagonal K × K blocks of JᵀJ (pixels only, no prior) between neighbouring texels of
+    the (H, W) map, flat index t = i W + j:
+
+        C_(t,o) = A_(t, t+o) = Σ_p Σ_(a: t_a = t) Σ_(b: t_b = t+o) A_aᵀ A_b,
+
+    for the offsets o of `NEIGHBOUR_OFFSETS` (grid steps wrapped around the map, as the "repeat"
+    sampler reads it), over every ordered pair (a, b) of pixel p's 4 S taps, A_a = w_a J_(p,s_a).
+    With `normal_blocks`' diagonal blocks these are every block of JᵀJ whose texels lie within
+    one step of each other; pairs of a pixel's taps further apart (a pixel footprint wider than a
+    texel) are left out. The texel pairs of one pixel are visited half at a time (one scan step
+    per unordered tap pair), so memory stays that of the taps' Jacobians and of the result."""
+    h, w = shape
+    p, taps = problem.num_pixels, 4 * problem.samples
+    k = jac.shape[-1]
+    index = problem.index.reshape(p, taps)
+    a = (problem.weight[:, :, None, None] * jac[:, None]).reshape(p, taps, 3, k)
+    dump = len(NEIGHBOUR_OFFSETS)  # the slot of pairs not kept
+    table = np.full((3, 3), dump, np.int32)  # (di + 1, dj + 1) -> slot
+    for n, (di, dj) in enumerate(NEIGHBOUR_OFFSETS):
+        table[di + 1, dj + 1] = n
+    table = jnp.asarray(table)
+
+    def code(ta, tb):
+        di, dj = _grid_step(tb // w - ta // w, h), _grid_step(tb % w - ta % w, w)
+        far = (di == 2) | (dj == 2)
+        return jnp.where(far, dump, table[jnp.clip(di, -1, 1) + 1, jnp.clip(dj, -1, 1) + 1])
+
+    pairs = jnp.asarray(np.array([(i, j) for i in range(taps) for j in range(i + 1, taps)], np.int32))
+
+    def step(acc, pair):
+        ta, tb = index[:, pair[0]], index[:, pair[1]]
+        g = jnp.einsum("pci,pcj->pij", a[:, pair[0]], a[:, pair[1]], precision=lax.Precision.HIGHEST)
+        forward, backward = code(ta, tb), code(tb, ta)
+        # a pair is stored once: from a towards b where b - a is a kept offset, else from b as Gᵀ
+        use_forward = forward != dump
+        slot = jnp.where(use_forward, ta * (dump + 1) + forward, tb * (dump + 1) + backward)
+        g = jnp.where(use_forward[:, None, None], g, jnp.swapaxes(g, 1, 2))
+        return acc.at[slot].add(g), None
+
+    acc = jnp.zeros((problem.num_texels * (dump + 1), k, k), jac.dtype)
+    acc, _ = lax.scan(step, acc, pairs)
+    return acc.reshape(problem.num_texels, dump + 1, k, k)[:, :dump]
 
 
 def gradient(r, jac, x, problem: Problem) -> Float[Array, "T K"]:

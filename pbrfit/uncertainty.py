@@ -5,9 +5,20 @@ covariance of the estimate is σ² (JᵀJ)⁻¹ (e.g. Nocedal & Wright, "Numeric
 2nd ed., section 10.3; Hartley & Zisserman, section 5.2). We keep the per-texel 5 × 5 diagonal
 blocks D_t of JᵀJ (`pbrfit.solvers.normal_blocks`) restricted to the fitted channels, invert
 them, and scale by the residual variance σ̂² = 2 E / (residuals - parameters). Inverting a block
-ignores the coupling between neighbouring texels through shared pixels, which makes the errors
-somewhat optimistic; `experiments/solvers.py` checks their calibration (the fraction of texels
-within 2σ of the truth).
+alone gives each texel's error with its neighbours held at their values: pixels read four texels
+at once (bilinear filtering), so a texel trades off against its neighbours, and the errors come
+out optimistic (the conditional variance, not the marginal one).
+
+`window_standard_errors` takes that coupling in: for each texel it builds the normal matrix of
+the (2r + 1)² texels around it from the diagonal blocks and the neighbour blocks
+(`pbrfit.solvers.neighbour_blocks`), and inverts it. The texel's block of that inverse is
+(D_t - B_t S_t⁻¹ B_tᵀ)⁻¹, with S_t the other texels' matrix and B_t their coupling to t (a Schur
+complement): the texel's error with the window's other texels free and the texels beyond it
+held. For a positive semi-definite JᵀJ the errors grow with r, from the per-texel blocks' (r = 0)
+towards the marginal σ² diag((JᵀJ)⁻¹) of the whole map (Cottle, "Manifestations of the Schur
+complement", Linear Algebra Appl. 8, 1974: the inverse of a principal submatrix is bounded by the
+same block of the whole inverse). `experiments/uncertainty.py` measures the calibration of each r
+against the spread of repeated fits under fresh noise.
 
 A direction the images do not constrain (a channel no view separates, e.g. roughness where no
 highlight is ever seen) has a tiny eigenvalue: its σ is large, and +inf when the eigenvalue is
@@ -18,11 +29,22 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["EIGEN_FLOOR", "block_standard_errors", "residual_variance"]
+__all__ = ["EIGEN_FLOOR", "MAX_UNCERTAINTY_RADIUS", "WINDOW_RADIUS", "block_standard_errors", "residual_variance", "window_precisions",
+           "window_radii", "window_standard_errors"]
 
 #: Eigenvalues below this fraction of a block's largest count as unconstrained (float32 round-off
 #: of JᵀJ sits near 1e-7 relative; 1e-10 in the float64 inversion keeps only exact degeneracies).
 EIGEN_FLOOR = 1e-10
+#: The default window radius of `window_standard_errors` (`fit`'s ``uncertainty_radius``).
+WINDOW_RADIUS = 1
+#: The largest radius `fit` takes: a window of (2 r + 1)² texels costs ((2 r + 1)² K)³ per texel
+#: (r = 3: 49 texels, 245 × 245 with K = 5).
+MAX_UNCERTAINTY_RADIUS = 3
+#: Ridge added to the window's Jacobi-scaled matrix (unit diagonal) before it is solved: keeps a
+#: direction no pixel constrains (whose coupling is zero as well) from making it singular.
+WINDOW_RIDGE = 1e-9
+#: Bytes of window matrices assembled at once (float64).
+_WINDOW_CHUNK_BYTES = 1 << 26
 
 
 def residual_variance(loss: float, residual_count: int, parameter_count: int) -> float:
@@ -54,3 +76,89 @@ def block_standard_errors(blocks: np.ndarray, channels: np.ndarray, seen: np.nda
     out = np.sqrt(sigma2 * np.sum(contrib, axis=2))
     out = np.where(seen[:, None], out, np.inf)
     return np.where(free, out, 0.0).astype(np.float32)
+
+
+def window_radii(shape: tuple[int, int], radius: int) -> tuple[int, int]:
+    """The window's half sizes (r_i, r_j) on an (H, W) map: at most `radius`, and small enough
+    that the window's texels are distinct and that none of them is a neighbour of another through
+    the map's wrap unless it is one inside the window (2 r + 2 <= H)."""
+    h, w = shape
+    return max(0, min(radius, (h - 2) // 2)), max(0, min(radius, (w - 2) // 2))
+
+
+def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[int, int], channels: np.ndarray,
+                      seen: np.ndarray, radius: int) -> np.ndarray:
+    """(T, K, K) precision of each texel's channels with the other texels of its window free:
+    P_t = D_t - B_t S_t⁻¹ B_tᵀ (float64), from the diagonal blocks D (T, K, K), the neighbour
+    blocks C (T, 4, K, K) of `pbrfit.solvers.neighbour_blocks`, the (K,) fitted-channel mask and
+    the (T,) observed-texel mask. Fixed channels and unobserved texels take no part (their rows
+    are replaced by the identity). S is Jacobi-scaled and gets a `WINDOW_RIDGE` before the solve."""
+    h, w = shape
+    t, k = blocks.shape[0], blocks.shape[1]
+    ri, rj = window_radii(shape, radius)
+    # the texel itself first, so that its channels are the window matrix's first K rows
+    offsets = [(0, 0)] + [(di, dj) for di in range(-ri, ri + 1) for dj in range(-rj, rj + 1) if (di, dj) != (0, 0)]
+    n = len(offsets)
+    if n == 1:
+        return np.asarray(blocks, np.float64)
+    from .solvers import NEIGHBOUR_OFFSETS
+
+    codes = {o: q for q, o in enumerate(NEIGHBOUR_OFFSETS)}
+    # each (a, b) block of a window's matrix: D of texel a, C of texel a towards b, or C of b
+    # towards a transposed (blocks further apart are zero)
+    diag_ab, ahead, behind = [], [], []  # (a, b), and (a, b, code) for the other two
+    for a, (ai, aj) in enumerate(offsets):
+        for b, (bi, bj) in enumerate(offsets):
+            rel = (bi - ai, bj - aj)
+            if rel == (0, 0):
+                diag_ab.append((a, b))
+            elif rel in codes:
+                ahead.append((a, b, codes[rel]))
+            elif (-rel[0], -rel[1]) in codes:
+                behind.append((a, b, codes[(-rel[0], -rel[1])]))
+    diag_ab, ahead, behind = (np.array(v, np.intp) for v in (diag_ab, ahead, behind))
+    q = len(NEIGHBOUR_OFFSETS)
+    blocks = np.asarray(blocks)
+    flat = np.asarray(couplings).reshape(t * q, k, k)
+    free = np.asarray(channels, bool)
+    seen = np.asarray(seen, bool)
+    rows, cols = np.divmod(np.arange(t), w)
+    out = np.empty((t, k, k))
+    chunk = max(1, _WINDOW_CHUNK_BYTES // (8 * n * n * k * k))
+    for lo in range(0, t, chunk):
+        ts = np.arange(lo, min(t, lo + chunk))
+        u = np.stack([((rows[ts] + di) % h) * w + (cols[ts] + dj) % w for di, dj in offsets], axis=1)  # (c, n)
+        m = np.zeros((len(ts), n, n, k, k))
+        m[:, diag_ab[:, 0], diag_ab[:, 1]] = blocks[u[:, diag_ab[:, 0]]]
+        m[:, ahead[:, 0], ahead[:, 1]] = flat[u[:, ahead[:, 0]] * q + ahead[:, 2]]
+        m[:, behind[:, 0], behind[:, 1]] = np.swapaxes(flat[u[:, behind[:, 1]] * q + behind[:, 2]], -1, -2)
+        m = m.transpose(0, 1, 3, 2, 4).reshape(len(ts), n * k, n * k)
+        on = (seen[u][:, :, None] & free[None, None, :]).reshape(len(ts), n * k)
+        m = np.where(on[:, :, None] & on[:, None, :], m, 0.0)
+        diag = np.diagonal(m, axis1=1, axis2=2)
+        live = on & (diag > 0)  # a row of JᵀJ with a zero diagonal is zero (positive semi-definite)
+        scale = 1.0 / np.sqrt(np.where(live, diag, 1.0))
+        m *= scale[:, :, None]
+        m *= scale[:, None, :]
+        m[:, np.arange(n * k), np.arange(n * k)] = 1.0  # rows that take no part: the identity
+        s = m[:, k:, k:] + WINDOW_RIDGE * np.eye((n - 1) * k)
+        b = m[:, :k, k:]
+        p = m[:, :k, :k] - b @ np.linalg.solve(s, np.swapaxes(b, 1, 2))
+        p = 0.5 * (p + np.swapaxes(p, 1, 2))
+        keep = live[:, :k]
+        out[ts] = np.where(keep[:, :, None] & keep[:, None, :], p / scale[:, :k, None] / scale[:, None, :k], 0.0)
+    return out
+
+
+def window_standard_errors(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[int, int], channels: np.ndarray,
+                           seen: np.ndarray, sigma2: float, radius: int = WINDOW_RADIUS) -> np.ndarray:
+    """(T, K) one-sigma errors with each texel's (2 r + 1)² window free (`window_precisions`),
+    as `block_standard_errors` reads a block; never below the per-texel blocks' own (which
+    they bound from below in exact arithmetic: where the neighbour blocks leave out couplings
+    between texels further apart, the window's matrix is not exactly JᵀJ's). ``radius`` 0 gives
+    `block_standard_errors`."""
+    own = block_standard_errors(blocks, channels, seen, sigma2)
+    if radius <= 0:
+        return own
+    precisions = window_precisions(blocks, couplings, shape, channels, seen, radius)
+    return np.maximum(block_standard_errors(precisions, channels, seen, sigma2), own)

@@ -154,6 +154,9 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--cg-rtol", "1.5"], "--cg-rtol: must be a number in (0, 1), got 1.5"),
         (["--cg-rtol", "nan"], "--cg-rtol: must be a number in (0, 1), got nan"),
         (["--cg-rtol", "0.01", "--solver", "lm"], "--cg-rtol: only the structured solver uses it, not --solver lm"),
+        (["--uncertainty-radius", "-1"], "--uncertainty-radius: must be an integer from 0 to 3, got -1"),
+        (["--uncertainty-radius", "4"], "--uncertainty-radius: must be an integer from 0 to 3, got 4"),
+        (["--uncertainty-radius", "one"], "argument --uncertainty-radius: invalid int value: 'one'"),
         (["--metallic", "0.5", "--fit", "metallic,roughness"], "--fit: lists metallic, which --metallic holds fixed"),
         (["--resolution", "abc"], "argument --resolution: invalid int value: 'abc'"),
         (["--solver", "bogus"], "argument --solver: invalid choice: 'bogus'"),
@@ -460,6 +463,17 @@ def test_cg_rtol_option_reaches_the_fit():
 
     assert options("--cg-rtol", "0.01")["cg_rtol"] == 0.01
     assert "cg_rtol" not in options()  # the library's default, CG_RTOL
+
+
+def test_uncertainty_radius_option_reaches_the_fit():
+    from pbrfit.cli import _fit_options, build_parser
+
+    def options(*extra):
+        return _fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
+
+    assert options("--uncertainty-radius", "0")["uncertainty_radius"] == 0
+    assert options("--uncertainty-radius", "2")["uncertainty_radius"] == 2
+    assert "uncertainty_radius" not in options()  # the library's default, WINDOW_RADIUS
 
 
 @pytest.mark.parametrize("error", [MemoryError("Unable to allocate 74.5 GiB for an array"),

@@ -160,6 +160,24 @@ def test_uncertainty_grows_when_views_are_removed():
     assert np.all(full.uncertainty[..., 3] == 0)  # metallic held fixed
 
 
+def test_uncertainty_window_widens_the_per_texel_errors():
+    """The default uncertainty frees each texel's 3 × 3 window (`pbrfit.uncertainty`): the same
+    maps, errors at least the per-texel blocks' and clearly wider where neighbours share pixels."""
+    truth = _checker()
+    rng = np.random.default_rng(3)
+    imgs = [i + rng.normal(0, 0.01, i.shape).astype(np.float32) for i in _images(VIEWS, truth)]
+    obs = observations_from_views(VIEWS, imgs)
+    fits = {r: fit_observations(obs, resolution=8, max_steps=20, uncertainty_radius=r) for r in (0, 1)}
+    for r, f in fits.items():
+        assert f.report["uncertainty"] == dict(radius=r, window=[2 * r + 1] * 2)
+    np.testing.assert_array_equal(np.asarray(fits[0].material.base_color), np.asarray(fits[1].material.base_color))
+    seen = fits[0].coverage > 0
+    own, window = fits[0].uncertainty[seen][:, :3], fits[1].uncertainty[seen][:, :3]
+    assert np.all(window >= own) and np.median(window / own) > 1.05
+    with pytest.raises(ValueError, match="uncertainty_radius"):
+        fit_observations(obs, resolution=8, uncertainty_radius=4)
+
+
 def test_fixed_channels_stay_fixed():
     truth = _checker()
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))

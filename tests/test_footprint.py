@@ -19,8 +19,8 @@ from pbrfit.io import read_material
 from pbrfit.observations import coverage_counts, observations_from_capture, pixel_offsets, texel_layout
 from pbrfit.scene import load_capture
 from pbrfit.sharding import pad_observations, pad_pixel_rows
-from pbrfit.solvers import (Problem, gauss_newton_factors, gn_product, gradient, linearize, normal_blocks,
-                            pixel_residuals)
+from pbrfit.solvers import (NEIGHBOUR_OFFSETS, Problem, gauss_newton_factors, gn_product, gradient, linearize,
+                            neighbour_blocks, normal_blocks, pixel_residuals)
 
 MAP = (8, 8)
 
@@ -120,6 +120,39 @@ def test_structure_is_exact_with_samples(capture, loss):
     assert np.all(np.asarray(r2[60:]) == 0.0) and np.all(np.asarray(jac2[240:]) == 0.0)
     np.testing.assert_allclose(np.asarray(normal_blocks(jac2, bigger)), np.asarray(normal_blocks(jac, problem)),
                                rtol=1e-6, atol=1e-6 * scale)
+
+
+@pytest.mark.parametrize("samples", [1, 2])
+def test_neighbour_blocks_are_those_of_the_dense_matrix(capture, samples):
+    """The blocks of JᵀJ between neighbouring texels (`neighbour_blocks`), wrapped around the map,
+    against the dense Jacobian: with 2 × 2 samples the taps of different samples pair up too."""
+    obs = observations_from_capture(capture, pixel_samples=samples)
+    keep = np.flatnonzero(np.asarray(obs.view_index) == 0)[: samples * samples * 150]
+    obs = dataclasses.replace(obs, **{k: getattr(obs, k)[keep] for k in
+                                      ("normal", "tangent", "view", "light_l", "light_radiance", "uv", "exposure",
+                                       "target", "view_index", "pixel")})
+    problem = _problem(obs, capture)
+    t = problem.num_texels
+    x = jnp.asarray(np.random.default_rng(2).uniform(0.1, 0.9, (t, 5)), jnp.float32)
+    _, jac, _ = jax.jit(linearize)(x, problem)
+    dense = np.asarray(jax.jacfwd(lambda v: pixel_residuals(v, problem).reshape(-1))(x), np.float64).reshape(-1, t * 5)
+    jtj = dense.T @ dense
+    got = np.asarray(jax.jit(neighbour_blocks, static_argnums=2)(jac, problem, MAP))
+    h, w = MAP
+    want = np.stack([[jtj[5 * s:5 * s + 5, 5 * u:5 * u + 5] for u in
+                      (((s // w + di) % h) * w + (s % w + dj) % w for di, dj in NEIGHBOUR_OFFSETS)] for s in range(t)])
+    scale = np.abs(jtj).max()
+    assert np.abs(want).max() > 0.1 * scale  # the pixels couple neighbours strongly
+    np.testing.assert_allclose(got, want, atol=1e-6 * scale)
+    # these and the diagonal blocks hold all of JᵀJ at pixel centres; with samples, a pixel's taps
+    # can lie two texels apart, and the blocks left out are small (here 7e-4 of the largest)
+    near = np.zeros((t, t), bool)
+    for s in range(t):
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                near[s, ((s // w + di) % h) * w + (s % w + dj) % w] = True
+    blocks = np.abs(jtj).reshape(t, 5, t, 5).max(axis=(1, 3))
+    assert blocks[~near].max() <= (1e-6 if samples == 1 else 1e-2) * scale
 
 
 _FITS = {}

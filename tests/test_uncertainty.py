@@ -1,0 +1,135 @@
+"""Standard errors from the normal matrix's blocks (`pbrfit.uncertainty`), on random normal
+matrices of pixels that read four neighbouring texels, built densely here."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pbrfit.solvers import NEIGHBOUR_OFFSETS
+from pbrfit.uncertainty import block_standard_errors, window_precisions, window_radii, window_standard_errors
+
+
+def _normal_matrix(shape, k, pixels, seed, wrap=True):
+    """(JᵀJ dense (T K, T K), its diagonal blocks (T, K, K), its neighbour blocks (T, 4, K, K) laid
+    out as `pbrfit.solvers.neighbour_blocks` gives them) for random pixels, each reading the four
+    texels around a random point with bilinear weights through a random 3 × K Jacobian. Without
+    ``wrap`` no pixel reads across the map's edge."""
+    h, w = shape
+    t = h * w
+    rng = np.random.default_rng(seed)
+    jac = np.zeros((3 * pixels, t * k))
+    for p in range(pixels):
+        i, j = (rng.integers(h), rng.integers(w)) if wrap else (rng.integers(h - 1), rng.integers(w - 1))
+        fy, fx = rng.random(2)
+        jp = rng.normal(size=(3, k))
+        for di, dj, weight in ((0, 0, (1 - fy) * (1 - fx)), (0, 1, (1 - fy) * fx), (1, 0, fy * (1 - fx)), (1, 1, fy * fx)):
+            u = ((i + di) % h) * w + (j + dj) % w
+            jac[3 * p:3 * p + 3, u * k:(u + 1) * k] += weight * jp
+    a = jac.T @ jac
+
+    def block(s, u):
+        return a[s * k:(s + 1) * k, u * k:(u + 1) * k]
+
+    diag = np.stack([block(s, s) for s in range(t)])
+    coupling = np.stack([[block(s, ((s // w + di) % h) * w + (s % w + dj) % w) for di, dj in NEIGHBOUR_OFFSETS]
+                         for s in range(t)])
+    return a, diag, coupling
+
+
+def test_window_radii_keep_the_window_inside_the_map():
+    assert window_radii((64, 64), 1) == (1, 1)
+    assert window_radii((64, 32), 3) == (3, 3)
+    assert window_radii((4, 5), 2) == (1, 1)  # 2 r + 2 <= H: no texel of the window is another's wrapped neighbour
+    assert window_radii((3, 3), 1) == (0, 0)
+    assert window_radii((1, 8), 1) == (0, 1)
+    assert window_radii((1, 1), 2) == (0, 0)
+
+
+def test_radius_zero_is_the_per_texel_blocks():
+    _, diag, coupling = _normal_matrix((5, 6), 3, 200, seed=0)
+    channels, seen = np.ones(3, bool), np.ones(30, bool)
+    np.testing.assert_array_equal(window_standard_errors(diag, coupling, (5, 6), channels, seen, 2.0, radius=0),
+                                  block_standard_errors(diag, channels, seen, 2.0))
+    # a map too small for any window falls back to the blocks as well
+    _, diag3, coupling3 = _normal_matrix((3, 3), 3, 60, seed=1)
+    np.testing.assert_array_equal(window_standard_errors(diag3, coupling3, (3, 3), channels, np.ones(9, bool), 1.0),
+                                  block_standard_errors(diag3, channels, np.ones(9, bool), 1.0))
+
+
+@pytest.mark.parametrize("radius", [1, 2])
+def test_window_is_the_inverse_of_its_part_of_the_matrix(radius):
+    """σ² of a texel is σ̂² times the diagonal of the inverse of JᵀJ restricted to the texel's
+    window (wrapping around the map), at the texel's channels: inside the map and on its edges."""
+    shape, k, sigma2 = (6, 7), 3, 0.5
+    a, diag, coupling = _normal_matrix(shape, k, 400, seed=2)
+    got = window_standard_errors(diag, coupling, shape, np.ones(k, bool), np.ones(42, bool), sigma2, radius)
+    h, w = shape
+    for s in (0, 6, 17, 24, 41):
+        i, j = divmod(s, w)
+        texels = [((i + di) % h) * w + (j + dj) % w for di in range(-radius, radius + 1)
+                  for dj in range(-radius, radius + 1)]
+        cols = np.concatenate([np.arange(u * k, (u + 1) * k) for u in texels])
+        inverse = np.linalg.inv(a[np.ix_(cols, cols)])
+        c = texels.index(s)
+        want = np.sqrt(sigma2 * np.diag(inverse)[c * k:(c + 1) * k])
+        np.testing.assert_allclose(got[s], want, rtol=1e-6)
+
+
+def test_errors_grow_with_the_window_towards_the_marginal():
+    """Per-texel blocks <= radius 1 <= radius 2 <= the marginal σ of the whole matrix, and the
+    wider window is the closer."""
+    shape, k = (8, 8), 3
+    a, diag, coupling = _normal_matrix(shape, k, 300, seed=3, wrap=False)
+    channels, seen = np.ones(k, bool), np.ones(64, bool)
+    marginal = np.sqrt(np.diag(np.linalg.inv(a))).reshape(64, k)
+    sigmas = [window_standard_errors(diag, coupling, shape, channels, seen, 1.0, r) for r in (0, 1, 2)]
+    for lo, hi in zip(sigmas, sigmas[1:] + [marginal]):
+        assert np.all(lo <= hi * (1 + 1e-9))
+    ratios = [np.median(s / marginal) for s in sigmas]
+    assert ratios[0] < ratios[1] < ratios[2] <= 1.0 and ratios[0] < 0.9 and ratios[2] > 0.97, ratios
+
+
+def test_fixed_unseen_and_unconstrained_channels():
+    """A fixed channel has σ 0, an unseen texel +inf; a channel no pixel constrains at one texel
+    is +inf there and leaves its neighbours' errors finite."""
+    shape, k = (6, 6), 3
+    a, diag, coupling = _normal_matrix(shape, k, 300, seed=4)
+    unseen, blind = 14, 21  # texel 21's channel 2 is read by no pixel
+    for t, cs in ((unseen, slice(None)), (blind, slice(2, 3))):
+        diag[t][cs, :] = 0.0
+        diag[t][:, cs] = 0.0
+    for t in range(36):
+        for q, (di, dj) in enumerate(NEIGHBOUR_OFFSETS):
+            u = ((t // 6 + di) % 6) * 6 + (t % 6 + dj) % 6
+            if t == unseen:
+                coupling[t, q] = 0.0
+            if u == unseen:
+                coupling[t, q] = 0.0
+            if t == blind:
+                coupling[t, q, 2, :] = 0.0
+            if u == blind:
+                coupling[t, q, :, 2] = 0.0
+    seen = np.ones(36, bool)
+    seen[unseen] = False
+    channels = np.array([True, False, True])
+    got = window_standard_errors(diag, coupling, shape, channels, seen, 1.0, radius=1)
+    assert np.all(got[:, 1] == 0.0)
+    assert np.all(np.isinf(got[unseen, [0, 2]]))
+    assert np.isinf(got[blind, 2]) and np.isfinite(got[blind, 0])
+    others = np.setdiff1d(np.arange(36), [unseen, blind])
+    assert np.all(np.isfinite(got[others][:, [0, 2]]))
+    own = block_standard_errors(diag, channels, seen, 1.0)
+    assert np.all(got[others][:, [0, 2]] >= own[others][:, [0, 2]])
+    # next to the unseen texel: the window's matrix without it and without the fixed channel
+    zeroed = a.copy()
+    for t, cs in ((unseen, [0, 1, 2]), (blind, [2])):
+        for c in cs:
+            zeroed[3 * t + c, :] = zeroed[:, 3 * t + c] = 0.0
+    s = 15
+    texels = [((s // 6 + di) % 6) * 6 + (s % 6 + dj) % 6 for di in (-1, 0, 1) for dj in (-1, 0, 1)]
+    cols = [3 * u + c for u in texels if u != unseen for c in (0, 2) if not (u == blind and c == 2)]
+    inverse = np.linalg.inv(zeroed[np.ix_(cols, cols)])
+    np.testing.assert_allclose(got[s, [0, 2]], np.sqrt(np.diag(inverse)[[cols.index(3 * s), cols.index(3 * s + 2)]]),
+                               rtol=1e-6)
+    assert np.all(np.isfinite(window_precisions(diag, coupling, shape, channels, seen, 1)))
