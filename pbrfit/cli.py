@@ -240,8 +240,9 @@ def _add_fit(sub) -> None:
                         "each pass did)")
     p.add_argument("--uncertainty-radius", type=int, default=None, metavar="R",
                    help="uncertainty.exr: each texel's standard error with the (2R+1) x (2R+1) texels around it "
-                        "free as well (from 0 to 3, default 1; 0: its own block of the normal matrix, the neighbours held, "
-                        "about 15%% optimistic; 2: within 0.1%% of the whole matrix's on a small map; see the README)")
+                        "free as well (0, 1 or 2; default 1; 0: its own block of the normal matrix, the neighbours "
+                        "held, about 10-15%% too small on the peer scene; 2: within 0.1%% of the whole matrix's on a "
+                        "small map, about 4 times the cost; see the README)")
     p.add_argument("--no-uniform-check", action="store_true",
                    help="keep metallic and roughness as maps even where the images support only one value for "
                         "them (by default a map the images cannot tell apart from one value, by Akaike's criterion, "

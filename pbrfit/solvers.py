@@ -339,15 +339,22 @@ def neighbour_blocks(jac: Float[Array, "R 3 K"], problem: Problem, shape: tuple[
     sampler reads it), over every ordered pair (a, b) of pixel p's 4 S taps, A_a = w_a J_(p,s_a).
     With `normal_blocks`' diagonal blocks these are every block of JᵀJ whose texels lie within
     one step of each other; pairs of a pixel's taps further apart (a pixel footprint wider than a
-    texel) are left out. The texel pairs of one pixel are visited half at a time (one scan step
-    per unordered tap pair), so memory stays that of the taps' Jacobians and of the result."""
+    texel) are left out. On a map one texel high (or wide) a step across it leads back to the
+    texel's own row, and those offsets' blocks stay zero; on one two texels high, +1 and -1 are
+    the same texel, and the pairs across are left out (`pbrfit.uncertainty.window_radii` gives
+    such an axis no window). One scan step per unordered pair of taps (6 at pixel centres, 120 with 2 × 2 samples)
+    takes each pixel's two Jacobians from ``jac`` and scatter-adds their product: memory is that
+    of the result. (With pixels split over devices, each step sums the result over them.)"""
     h, w = shape
-    p, taps = problem.num_pixels, 4 * problem.samples
+    p, samples = problem.num_pixels, problem.samples
+    taps = 4 * samples
     k = jac.shape[-1]
+    t = problem.num_texels
     index = problem.index.reshape(p, taps)
-    a = (problem.weight[:, :, None, None] * jac[:, None]).reshape(p, taps, 3, k)
-    dump = len(NEIGHBOUR_OFFSETS)  # the slot of pairs not kept
-    table = np.full((3, 3), dump, np.int32)  # (di + 1, dj + 1) -> slot
+    weight = problem.weight.reshape(p, taps)
+    jac = _by_pixel(jac, problem)  # (P, S, 3, K)
+    slots = len(NEIGHBOUR_OFFSETS)
+    table = np.full((3, 3), -1, np.int32)  # (di + 1, dj + 1) -> offset number, -1 = not kept
     for n, (di, dj) in enumerate(NEIGHBOUR_OFFSETS):
         table[di + 1, dj + 1] = n
     table = jnp.asarray(table)
@@ -355,23 +362,27 @@ def neighbour_blocks(jac: Float[Array, "R 3 K"], problem: Problem, shape: tuple[
     def code(ta, tb):
         di, dj = _grid_step(tb // w - ta // w, h), _grid_step(tb % w - ta % w, w)
         far = (di == 2) | (dj == 2)
-        return jnp.where(far, dump, table[jnp.clip(di, -1, 1) + 1, jnp.clip(dj, -1, 1) + 1])
+        return jnp.where(far, -1, table[jnp.clip(di, -1, 1) + 1, jnp.clip(dj, -1, 1) + 1])
 
     pairs = jnp.asarray(np.array([(i, j) for i in range(taps) for j in range(i + 1, taps)], np.int32))
 
     def step(acc, pair):
-        ta, tb = index[:, pair[0]], index[:, pair[1]]
-        g = jnp.einsum("pci,pcj->pij", a[:, pair[0]], a[:, pair[1]], precision=lax.Precision.HIGHEST)
+        a, b = pair[0], pair[1]
+        ta, tb = index[:, a], index[:, b]
+        ja = weight[:, a, None, None] * jac[:, a // 4]
+        jb = weight[:, b, None, None] * jac[:, b // 4]
+        g = jnp.einsum("pci,pcj->pij", ja, jb, precision=lax.Precision.HIGHEST)
         forward, backward = code(ta, tb), code(tb, ta)
-        # a pair is stored once: from a towards b where b - a is a kept offset, else from b as Gᵀ
-        use_forward = forward != dump
-        slot = jnp.where(use_forward, ta * (dump + 1) + forward, tb * (dump + 1) + backward)
+        # a pair is stored once: from a towards b where b - a is a kept offset, else from b as Gᵀ;
+        # pairs of one texel (the diagonal blocks) and pairs further apart go out of range
+        use_forward = forward >= 0
+        slot = jnp.where(use_forward, ta * slots + forward, jnp.where(backward >= 0, tb * slots + backward, t * slots))
         g = jnp.where(use_forward[:, None, None], g, jnp.swapaxes(g, 1, 2))
-        return acc.at[slot].add(g), None
+        return acc.at[slot].add(g, mode="drop"), None
 
-    acc = jnp.zeros((problem.num_texels * (dump + 1), k, k), jac.dtype)
+    acc = jnp.zeros((t * slots, k, k), jac.dtype)
     acc, _ = lax.scan(step, acc, pairs)
-    return acc.reshape(problem.num_texels, dump + 1, k, k)[:, :dump]
+    return acc.reshape(t, slots, k, k)
 
 
 def gradient(r, jac, x, problem: Problem) -> Float[Array, "T K"]:

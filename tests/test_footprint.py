@@ -122,8 +122,9 @@ def test_structure_is_exact_with_samples(capture, loss):
                                rtol=1e-6, atol=1e-6 * scale)
 
 
-@pytest.mark.parametrize("samples", [1, 2])
-def test_neighbour_blocks_are_those_of_the_dense_matrix(capture, samples):
+@pytest.mark.parametrize("samples, shape, wrap", [(1, MAP, "repeat"), (2, MAP, "repeat"), (1, (4, 3), "repeat"),
+                                                  (2, (5, 6), "clamp")])
+def test_neighbour_blocks_are_those_of_the_dense_matrix(capture, samples, shape, wrap):
     """The blocks of JᵀJ between neighbouring texels (`neighbour_blocks`), wrapped around the map,
     against the dense Jacobian: with 2 × 2 samples the taps of different samples pair up too."""
     obs = observations_from_capture(capture, pixel_samples=samples)
@@ -131,14 +132,16 @@ def test_neighbour_blocks_are_those_of_the_dense_matrix(capture, samples):
     obs = dataclasses.replace(obs, **{k: getattr(obs, k)[keep] for k in
                                       ("normal", "tangent", "view", "light_l", "light_radiance", "uv", "exposure",
                                        "target", "view_index", "pixel")})
-    problem = _problem(obs, capture)
-    t = problem.num_texels
+    t = shape[0] * shape[1]
+    layout = texel_layout(obs, shape, wrap)
+    problem = dataclasses.replace(_problem(obs, capture), index=layout.index, weight=layout.weight,
+                                  free=jnp.ones((t, 5)))
     x = jnp.asarray(np.random.default_rng(2).uniform(0.1, 0.9, (t, 5)), jnp.float32)
     _, jac, _ = jax.jit(linearize)(x, problem)
     dense = np.asarray(jax.jacfwd(lambda v: pixel_residuals(v, problem).reshape(-1))(x), np.float64).reshape(-1, t * 5)
     jtj = dense.T @ dense
-    got = np.asarray(jax.jit(neighbour_blocks, static_argnums=2)(jac, problem, MAP))
-    h, w = MAP
+    got = np.asarray(jax.jit(neighbour_blocks, static_argnums=2)(jac, problem, shape))
+    h, w = shape
     want = np.stack([[jtj[5 * s:5 * s + 5, 5 * u:5 * u + 5] for u in
                       (((s // w + di) % h) * w + (s % w + dj) % w for di, dj in NEIGHBOUR_OFFSETS)] for s in range(t)])
     scale = np.abs(jtj).max()
@@ -153,6 +156,8 @@ def test_neighbour_blocks_are_those_of_the_dense_matrix(capture, samples):
                 near[s, ((s // w + di) % h) * w + (s % w + dj) % w] = True
     blocks = np.abs(jtj).reshape(t, 5, t, 5).max(axis=(1, 3))
     assert blocks[~near].max() <= (1e-6 if samples == 1 else 1e-2) * scale
+    if wrap == "clamp":  # no pixel reads across the edge: the wrapped neighbours' blocks are zero
+        assert np.all(got[w - 1::w, 0] == 0.0) and np.all(got[(h - 1) * w:, 2] == 0.0)
 
 
 _FITS = {}

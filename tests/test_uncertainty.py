@@ -13,7 +13,9 @@ from pbrfit.uncertainty import block_standard_errors, window_precisions, window_
 def _normal_matrix(shape, k, pixels, seed, wrap=True):
     """(JᵀJ dense (T K, T K), its diagonal blocks (T, K, K), its neighbour blocks (T, 4, K, K) laid
     out as `pbrfit.solvers.neighbour_blocks` gives them) for random pixels, each reading the four
-    texels around a random point with bilinear weights through a random 3 × K Jacobian. Without
+    texels around a random point with bilinear weights, each tap through the pixel's 3 × K Jacobian
+    plus some of its own (as a pixel's samples have: the blocks between texels are then not
+    symmetric). Without
     ``wrap`` no pixel reads across the map's edge."""
     h, w = shape
     t = h * w
@@ -23,15 +25,17 @@ def _normal_matrix(shape, k, pixels, seed, wrap=True):
         i, j = (rng.integers(h), rng.integers(w)) if wrap else (rng.integers(h - 1), rng.integers(w - 1))
         fy, fx = rng.random(2)
         jp = rng.normal(size=(3, k))
-        for di, dj, weight in ((0, 0, (1 - fy) * (1 - fx)), (0, 1, (1 - fy) * fx), (1, 0, fy * (1 - fx)), (1, 1, fy * fx)):
+        taps = ((0, 0, (1 - fy) * (1 - fx)), (0, 1, (1 - fy) * fx), (1, 0, fy * (1 - fx)), (1, 1, fy * fx))
+        for di, dj, weight in taps:
             u = ((i + di) % h) * w + (j + dj) % w
-            jac[3 * p:3 * p + 3, u * k:(u + 1) * k] += weight * jp
+            jac[3 * p:3 * p + 3, u * k:(u + 1) * k] += weight * (jp + 0.3 * rng.normal(size=(3, k)))
     a = jac.T @ jac
 
     def block(s, u):
         return a[s * k:(s + 1) * k, u * k:(u + 1) * k]
 
     diag = np.stack([block(s, s) for s in range(t)])
+    assert np.abs(block(0, 1) - block(0, 1).T).max() > 1e-3 * np.abs(block(0, 1)).max()
     coupling = np.stack([[block(s, ((s // w + di) % h) * w + (s % w + dj) % w) for di, dj in NEIGHBOUR_OFFSETS]
                          for s in range(t)])
     return a, diag, coupling
@@ -132,4 +136,7 @@ def test_fixed_unseen_and_unconstrained_channels():
     inverse = np.linalg.inv(zeroed[np.ix_(cols, cols)])
     np.testing.assert_allclose(got[s, [0, 2]], np.sqrt(np.diag(inverse)[[cols.index(3 * s), cols.index(3 * s + 2)]]),
                                rtol=1e-6)
-    assert np.all(np.isfinite(window_precisions(diag, coupling, shape, channels, seen, 1)))
+    # the precisions themselves: none for the unseen texel or the blind channel, finite elsewhere
+    p = window_precisions(diag, coupling, shape, channels, seen, 1)
+    assert np.all(np.isfinite(p)) and np.all(p[unseen] == 0.0)
+    assert np.all(p[blind, 2, :] == 0.0) and np.all(p[blind, :, 2] == 0.0) and p[blind, 0, 0] > 0.0
