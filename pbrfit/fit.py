@@ -973,7 +973,8 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
             linearization=None, wrap: str = "repeat", uniform: Optional[Mapping] = None,
             uncertainty_radius: int = WINDOW_RADIUS):
     """The result at the fit's x. The maps' standard errors come from each texel's window of
-    ``uncertainty_radius`` (`pbrfit.uncertainty.window_standard_errors`; 0: its own block).
+    ``uncertainty_radius`` (`pbrfit.uncertainty.window_standard_errors`; 0: its own block), with
+    the channels that sit on a bound held for the others' errors.
     ``uniform`` {channel: value}: channels fitted as one common value (`_uniform_check`); their
     standard errors, at every seen texel, are σ̂ sqrt(diag(P⁻¹)) for P their profile curvature
     matrix (`pbrfit.selection.profile_hessian`)."""
@@ -994,7 +995,9 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     sigma2 = residual_variance(float(energy), n_res, n_par)
     radius = max(window_radii(tuple(final), uncertainty_radius))
     couplings = np.asarray(_neighbour_blocks(jac, problem, tuple(final))) if radius > 0 else None
-    sigma = window_standard_errors(blocks, couplings, tuple(final), texel_channels > 0, seen, sigma2, radius)
+    xt = np.asarray(x, np.float32).reshape(-1, k)
+    pinned = (xt <= lower(k)) | (xt >= upper(k))  # on a bound: the projected solver holds them
+    sigma = window_standard_errors(blocks, couplings, tuple(final), texel_channels > 0, seen, sigma2, radius, pinned)
     if uniform:
         cs = sorted(uniform)
         directions = np.stack([uniform_direction(seen, c, k) for c in cs])

@@ -97,7 +97,7 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
                       seen: np.ndarray, radius: int) -> np.ndarray:
     """(T, K, K) precision of each texel's channels with the other texels of its window free:
     P_t = D_t - B_t S_t⁻¹ B_tᵀ (float64), from the diagonal blocks D (T, K, K), the neighbour
-    blocks C (T, 4, K, K) of `pbrfit.solvers.neighbour_blocks`, the (K,) fitted-channel mask and
+    blocks C (T, 4, K, K) of `pbrfit.solvers.neighbour_blocks`, the (K,) or (T, K) fitted-channel mask and
     the (T,) observed-texel mask. Fixed channels and unobserved texels take no part (their rows
     are replaced by the identity). S is Jacobi-scaled and gets a `WINDOW_RIDGE` before the solve."""
     h, w = shape
@@ -140,7 +140,7 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
         m[:, ahead[:, 0], ahead[:, 1]] = flat[u[:, ahead[:, 0]] * q + ahead[:, 2]]
         m[:, behind[:, 0], behind[:, 1]] = np.swapaxes(flat[u[:, behind[:, 1]] * q + behind[:, 2]], -1, -2)
         m = m.transpose(0, 1, 3, 2, 4).reshape(len(ts), n * k, n * k)
-        on = (seen[u][:, :, None] & free[None, None, :]).reshape(len(ts), n * k)
+        on = (seen[u][:, :, None] & np.broadcast_to(free, (t, k))[u]).reshape(len(ts), n * k)
         m = np.where(on[:, :, None] & on[:, None, :], m, 0.0)
         diag = np.diagonal(m, axis1=1, axis2=2)
         live = on & (diag > 0)  # a row of JᵀJ with a zero diagonal is zero (positive semi-definite)
@@ -158,14 +158,25 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
 
 
 def window_standard_errors(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[int, int], channels: np.ndarray,
-                           seen: np.ndarray, sigma2: float, radius: int = WINDOW_RADIUS) -> np.ndarray:
+                           seen: np.ndarray, sigma2: float, radius: int = WINDOW_RADIUS,
+                           pinned: np.ndarray | None = None) -> np.ndarray:
     """(T, K) one-sigma errors with each texel's (2 r + 1)² window free (`window_precisions`),
     as `block_standard_errors` reads a block; never below the per-texel blocks' own (which
     they bound from below in exact arithmetic: where the neighbour blocks leave out couplings
     between texels further apart, the window's matrix is not exactly JᵀJ's). ``radius`` 0 gives
-    `block_standard_errors`."""
-    own = block_standard_errors(blocks, channels, seen, sigma2)
+    `block_standard_errors`. ``channels`` is (K,) or per texel (T, K).
+
+    ``pinned`` (T, K), optional: fitted channels that sit on a bound of their range, where a
+    projected solver holds them (metallic at 0 or 1, a base colour at 1). The other channels'
+    errors are then those with the pinned ones held, as the solver's estimate is; a pinned
+    channel's own error stays that with every channel free (its estimate is one-sided)."""
+    free = np.broadcast_to(np.asarray(channels, bool), np.asarray(blocks).shape[:2])
+    if pinned is not None and np.any(pinned & free):
+        everyone = window_standard_errors(blocks, couplings, shape, free, seen, sigma2, radius)
+        held = window_standard_errors(blocks, couplings, shape, free & ~pinned, seen, sigma2, radius)
+        return np.where(pinned & free, everyone, held)
+    own = block_standard_errors(blocks, free, seen, sigma2)
     if radius <= 0:
         return own
-    precisions = window_precisions(blocks, couplings, shape, channels, seen, radius)
-    return np.maximum(block_standard_errors(precisions, channels, seen, sigma2), own)
+    precisions = window_precisions(blocks, couplings, shape, free, seen, radius)
+    return np.maximum(block_standard_errors(precisions, free, seen, sigma2), own)

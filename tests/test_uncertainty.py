@@ -140,3 +140,29 @@ def test_fixed_unseen_and_unconstrained_channels():
     p = window_precisions(diag, coupling, shape, channels, seen, 1)
     assert np.all(np.isfinite(p)) and np.all(p[unseen] == 0.0)
     assert np.all(p[blind, 2, :] == 0.0) and np.all(p[blind, :, 2] == 0.0) and p[blind, 0, 0] > 0.0
+
+
+def test_channels_on_a_bound_are_held_for_the_others():
+    """A channel pinned on a bound (where the projected solver holds it) is held for the other
+    channels' errors, at its own texel and in its neighbours' windows; its own error stays the
+    free one."""
+    shape, k = (6, 6), 3
+    a, diag, coupling = _normal_matrix(shape, k, 300, seed=5)
+    channels, seen = np.ones(k, bool), np.ones(36, bool)
+    pinned = np.zeros((36, k), bool)
+    pinned[14, 0] = pinned[15, 2] = True
+    free = window_standard_errors(diag, coupling, shape, channels, seen, 1.0, 1)
+    got = window_standard_errors(diag, coupling, shape, channels, seen, 1.0, 1, pinned)
+    np.testing.assert_array_equal(got[pinned], free[pinned])
+    for s in (14, 15, 21):  # texel 21 has both pinned texels in its window
+        texels = [((s // 6 + di) % 6) * 6 + (s % 6 + dj) % 6 for di in (-1, 0, 1) for dj in (-1, 0, 1)]
+        cols = [3 * u + c for u in texels for c in range(k) if not pinned[u, c]]
+        inverse = np.linalg.inv(a[np.ix_(cols, cols)])
+        mine = [c for c in range(k) if not pinned[s, c]]
+        want = np.sqrt(np.diag(inverse)[[cols.index(3 * s + c) for c in mine]])
+        np.testing.assert_allclose(got[s, mine], want, rtol=1e-6)
+        assert np.all(got[s, mine] <= free[s, mine] * (1 + 1e-9))
+    far = np.ones(36, bool)
+    far[[t for s in (14, 15) for t in [((s // 6 + di) % 6) * 6 + (s % 6 + dj) % 6 for di in (-1, 0, 1)
+                                       for dj in (-1, 0, 1)]]] = False
+    np.testing.assert_array_equal(got[far], free[far])  # windows without a pinned channel: unchanged
