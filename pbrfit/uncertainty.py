@@ -24,6 +24,11 @@ median 83% of the marginal σ, r = 1 98% and r = 2 99.9%.
 `experiments/uncertainty.py` measures the calibration of each r against the spread of repeated
 fits under fresh noise.
 
+A channel that sits on a bound of its range is held by the projected solver
+(`pbrfit.solvers`): `window_standard_errors` then holds it for the other channels' errors as
+well (``pinned``). Counted as free, a binary metallic map at 0 and 1 widened base colour's σ
+on the flash scene until the fits scattered by 0.62 σ (experiments/uncertainty.md).
+
 A direction the images do not constrain (a channel no view separates, e.g. roughness where no
 highlight is ever seen) has a tiny eigenvalue: its σ is large, and +inf when the eigenvalue is
 below `EIGEN_FLOOR` of the block's largest. Fixed channels get 0, unobserved texels +inf.
