@@ -15,6 +15,7 @@ from __future__ import annotations
 import io as _io
 import json
 import struct
+import urllib.parse
 from pathlib import Path
 
 import numpy as np
@@ -68,7 +69,16 @@ def _load_gltf_keeping_uv(path: Path):
         return trimesh.load_scene(_io.BytesIO(data), file_type="glb", process=False)
     tree = json.loads(data)
     _gltf_default_material(tree)
-    resolver = trimesh.resolvers.FilePathResolver(str(path.parent))
+    for kind in ("buffers", "images"):  # glTF URIs are percent-encoded (RFC 3986); the resolver takes file names
+        for entry in tree.get(kind) or []:
+            uri = entry.get("uri") if isinstance(entry, dict) else None
+            if isinstance(uri, str) and not uri.startswith("data:"):
+                entry["uri"] = urllib.parse.unquote(uri)
+    # the URIs are relative to the file and may lead out of its folder ("../buffers/a.bin")
+    try:
+        resolver = trimesh.resolvers.FilePathResolver(str(path.parent), allow_anywhere=True)
+    except TypeError:  # an older trimesh: no such option, and no such restriction
+        resolver = trimesh.resolvers.FilePathResolver(str(path.parent))
     return trimesh.load_scene(
         _io.BytesIO(json.dumps(tree).encode()), file_type="gltf", resolver=resolver, process=False
     )

@@ -164,6 +164,42 @@ def _copy_into(src: Path, root_out: Path, rel: str) -> None:
     shutil.copyfile(src, dst)
 
 
+def _copy_mesh(src: Path, root_out: Path, rel: str) -> list[str]:
+    """Copy the capture's mesh to ``rel`` in the output, with the files a ``.gltf`` refers to
+    (buffers, images: URIs relative to it, percent-encoded): each lands at the same place relative
+    to the copy, or, where that would leave the output folder, in ``<stem>_files/`` beside it
+    with its URI rewritten. Returns the output paths written (relative to ``root_out``)."""
+    if src.suffix.lower() != ".gltf":
+        _copy_into(src, root_out, rel)
+        return [rel]
+    from urllib.parse import quote, unquote
+
+    try:
+        doc = json.loads(src.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise CaptureError(f"{src}: cannot read the glTF file to copy it: {err}") from None
+    here = os.path.dirname(rel)
+    written = [rel]
+    for kind in ("buffers", "images"):
+        for i, entry in enumerate(doc.get(kind) or []):
+            uri = entry.get("uri") if isinstance(entry, dict) else None
+            if not isinstance(uri, str) or uri.startswith("data:"):
+                continue
+            source = src.parent / unquote(uri)
+            if not source.is_file():  # an image the mesh loader did without: left as it was
+                continue
+            target = _inside(os.path.join(here, unquote(uri)), "")
+            if not target:
+                target = os.path.join(here, f"{src.stem}_files", f"{kind}_{i}_{source.name}")
+                entry["uri"] = quote(os.path.relpath(target, here or ".").replace(os.sep, "/"))
+            _copy_into(source, root_out, target)
+            written.append(target)
+    dst = root_out / rel
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    dst.write_text(json.dumps(doc), encoding="utf-8")
+    return written
+
+
 def write_rendered_capture(
     capture,
     renders: Sequence[tuple[np.ndarray, np.ndarray]],
@@ -178,7 +214,8 @@ def write_rendered_capture(
     the input frame, with an alpha channel of 1 where the mesh covers the pixel; file types
     that hold no alpha (`NO_ALPHA_SUFFIXES`: Radiance HDR, JPEG) get RGB and the same coverage
     as an 8-bit mask at ``masks/<file_path>.png`` (suffix kept: ``masks/images/0.jpg.png``),
-    named by the frame's ``mask_path``. The mesh and environment files are copied beside it.
+    named by the frame's ``mask_path``. The mesh and environment files are copied beside it,
+    a ``.gltf`` mesh with the buffers and images it names (`_copy_mesh`).
     A path that leaves the capture's folder (``..``) or is absolute is written inside the output
     instead (frame i at ``frames/<i>_<name>``, the mesh at ``mesh<suffix>``, the environment at
     ``environment<suffix>``) and capture.json names it there; so is a frame whose path another
@@ -196,7 +233,7 @@ def write_rendered_capture(
         tmp = Path(tmp)
         mesh_rel = _inside(raw.get("mesh", capture.mesh_path.name), "mesh" + capture.mesh_path.suffix)
         raw["mesh"] = mesh_rel
-        _copy_into(capture.mesh_path, tmp, mesh_rel)
+        mesh_files = _copy_mesh(capture.mesh_path, tmp, mesh_rel)
         if environment_file is not None:
             env_rel = "environment" + Path(environment_file).suffix
             _copy_into(Path(environment_file), tmp, env_rel)
@@ -210,7 +247,7 @@ def write_rendered_capture(
             _copy_into(env_file, tmp, env_rel)
         if lights_json is not None:
             raw["lights"] = lights_json
-        taken = {os.path.normcase(mesh_rel)}
+        taken = {os.path.normcase(f) for f in mesh_files}
         if raw.get("environment"):
             taken.add(os.path.normcase(raw["environment"]["file"]))
         for i, (frame, entry, (image, alpha)) in enumerate(zip(capture.frames, raw["frames"], renders)):

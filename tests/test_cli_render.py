@@ -163,3 +163,50 @@ def test_render_writes_paths_that_leave_the_capture_inside_its_output(tmp_path, 
     assert len(rendered.frames) == 2 and all(f.mask.any() for f in rendered.frames)
     assert not (tmp_path / "shared" / "frames").exists() and sorted(p.name for p in tmp_path.iterdir()) == sorted(
         ["cache", "cap", "meshes", "out", "shared"])
+
+
+def test_render_copies_the_files_a_gltf_mesh_names(tmp_path, monkeypatch):
+    """A .gltf keeps its buffers in files beside it (or anywhere, by relative URI): the render
+    output copies them with the mesh, rewriting a URI that would leave the output, so that the
+    rendered folder loads, and fits, again."""
+    import trimesh
+
+    from pbrfit.scene import load_capture
+
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    cap = tmp_path / "cap"
+    assert main(["synth", "peer-plane", "--out", str(cap), "--size", "16", "--views", "2", "--texture-size", "4",
+                 "--quiet"]) == 0
+    data = json.loads((cap / "capture.json").read_text())
+    files = trimesh.load(cap / data["mesh"]).export(file_type="gltf")
+    (name_gltf,) = [n for n in files if n.endswith(".gltf")]
+    doc = json.loads(files[name_gltf])
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    for i, buffer in enumerate(doc["buffers"]):
+        (outside / f"buffer {i}.bin").write_bytes(files[buffer["uri"]])
+        buffer["uri"] = f"../outside/buffer%20{i}.bin"  # leaves the capture's folder, percent-encoded
+    (cap / "mesh.gltf").write_text(json.dumps(doc))
+    data["mesh"] = "mesh.gltf"
+    (cap / "capture.json").write_text(json.dumps(data))
+    before = load_capture(cap)
+    out = tmp_path / "out"
+    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--quiet"]) == 0
+    written = json.loads((out / "mesh.gltf").read_text())
+    for i, buffer in enumerate(written["buffers"]):
+        assert buffer["uri"] == f"mesh_files/buffers_{i}_buffer%20{i}.bin"
+        assert (out / "mesh_files" / f"buffers_{i}_buffer {i}.bin").read_bytes() == (
+            outside / f"buffer {i}.bin").read_bytes()
+    rendered = load_capture(out)
+    np.testing.assert_array_equal(np.asarray(rendered.mesh.vertices), np.asarray(before.mesh.vertices))
+    # a URI that stays inside lands at the same place relative to the copy
+    (cap / "bufs").mkdir()
+    for i, buffer in enumerate(doc["buffers"]):
+        (cap / "bufs" / f"b{i}.bin").write_bytes((outside / f"buffer {i}.bin").read_bytes())
+        buffer["uri"] = f"bufs/b{i}.bin"
+    (cap / "mesh.gltf").write_text(json.dumps(doc))
+    out2 = tmp_path / "out2"
+    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out2), "--quiet"]) == 0
+    assert [b["uri"] for b in json.loads((out2 / "mesh.gltf").read_text())["buffers"]] == [
+        b["uri"] for b in doc["buffers"]]
+    assert (out2 / "bufs" / "b0.bin").is_file() and len(load_capture(out2).frames) == 2
