@@ -343,9 +343,7 @@ def light_from_json(d: Any, where: str) -> Light:
     range_ = _number(d, "range", where, 0.0)
     if range_ < 0:
         raise CaptureError(f"{_loc(where, 'range')}: negative range {range_!r} (0 means infinite)")
-    if kind == "directional":
-        if range_ != 0:
-            raise CaptureError(f"{_loc(where, 'range')}: range applies only to point and spot lights")
+    if kind == "directional":  # KHR_lights_punctual: range is for point and spot lights only, unused here
         return directional_light(_direction(d, where), color, intensity)
     position = _triple(d, "position", where)
     if kind == "point":

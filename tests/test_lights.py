@@ -141,6 +141,18 @@ def test_json_defaults_follow_khr():
     assert float(spot.intensity) == 1.0 and float(spot.range) == 0.0
 
 
+def test_directional_light_ignores_range():
+    """KHR_lights_punctual: range is defined for point and spot lights only; a directional light
+    that carries one (exporters write it for every light) is the same light without it."""
+    with_range = light_from_json({"type": "directional", "direction": [0, -1, 0], "intensity": 2.0, "range": 3}, "l")
+    without = light_from_json({"type": "directional", "direction": [0, -1, 0], "intensity": 2.0}, "l")
+    pts = np.array([[0.0, 0.0, 0.0], [0.0, 50.0, 0.0]], np.float32)
+    from pbrfit.render import light_arrays
+
+    for a, b in zip(light_arrays([with_range], pts), light_arrays([without], pts)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 @pytest.mark.parametrize(
     "d, fragment",
     [
@@ -152,7 +164,7 @@ def test_json_defaults_follow_khr():
         ({"type": "point", "position": [0, 0]}, "lights[1].position: expected 3 numbers"),
         ({"type": "point", "position": [0, 0, 0], "range": -2}, "lights[1].range: negative range"),
         ({"type": "directional", "direction": [0, 0, 0]}, "lights[1].direction: zero vector"),
-        ({"type": "directional", "direction": [0, 0, 1], "range": 3}, "range applies only to point and spot"),
+        ({"type": "directional", "direction": [0, 0, 1], "range": -3}, "lights[1].range: negative range"),
         ({"type": "spot", "position": [0, 0, 0], "direction": [0, 0, 1], "inner_cone_angle": 0.5,
           "outer_cone_angle": 0.4}, "cone angles must satisfy"),
         ({"type": "point", "position": [0, 0, 0], "intensity": "x"}, "lights[1].intensity: expected a finite number"),
