@@ -91,7 +91,9 @@ PBRFIT_TOP_LEVEL_KEYS = (
 NERF_TOP_LEVEL_KEYS = (
     "camera_angle_y", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2", "is_fisheye", "camera_model",
     "aabb_scale", "scale", "offset", "applied_transform", "applied_scale", "ply_file_path",
-    "integer_depth_scale", "enable_depth_loading", "sharpen",
+    "integer_depth_scale", "enable_depth_loading", "sharpen", "up", "aabb", "render_aabb",
+    "n_extra_learnable_dims", "white_transparent", "black_transparent", "orientation_override",
+    "fisheye_crop_radius",
 )  # fmt: skip
 PBRFIT_FRAME_KEYS = ("file_path", "transform_matrix", "mask_path", "lights", "exposure",
                      "fl_x", "fl_y", "cx", "cy", "extras")  # fmt: skip

@@ -199,6 +199,10 @@ def test_nerf_transforms_json_with_mesh(tmp_path):
     rgba[:2, :, 3] = 0.0
     write_image(root / "train" / "r_0.png", rgba, "uint8")
     data = {"camera_angle_x": ANGLE_X, "mesh": "mesh.obj", "aabb_scale": 4,
+            # instant-ngp-style keys besides (none of them changes the cameras)
+            "up": [0, 0, 1], "aabb": [[-1, -1, -1], [1, 1, 1]], "render_aabb": [[-1, -1, -1], [1, 1, 1]],
+            "n_extra_learnable_dims": 0, "white_transparent": True, "black_transparent": False,
+            "orientation_override": 0, "fisheye_crop_radius": 0,
             "frames": [{"file_path": "./train/r_0", "rotation": 0.012,
                         "transform_matrix": c2w_looking_at_quad()}]}  # fmt: skip
     (root / "transforms_train.json").write_text(json.dumps(data))
