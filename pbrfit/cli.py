@@ -7,6 +7,7 @@ on stderr, ``pbrfit: error: <what and where>``, and exit status 2; nothing is ha
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from typing import Optional, Sequence
 
@@ -82,6 +83,8 @@ def _cache_dir(args):
 def _cmd_render(args) -> int:
     import time
 
+    import numpy as np
+
     from .io import check_not_inside, check_output_dir, needs_texture_coordinates, read_material
     from .mesh import check_uv_layout
     from .scene import load_capture
@@ -97,6 +100,12 @@ def _cmd_render(args) -> int:
         check_uv_layout(capture.mesh, f"{capture.json_path}: mesh")
     lights_json = load_lights_override(args.lights) if args.lights else None
     capture = apply_overrides(capture, args.environment, lights_json)
+    if capture.environment is None and not any(
+            float(light.intensity) * float(np.max(np.asarray(light.color))) > 0.0
+            for frame in capture.frames for light in frame.lights):
+        where = "--lights" if lights_json is not None else str(capture.json_path)
+        raise CaptureError(f"{where}: no light: no environment and every light is off, so every render would be "
+                           "black (give --lights or --environment)")
     renders = render_capture(capture, material, cache_dir=_cache_dir(args))
     write_rendered_capture(capture, renders, args.out, args.environment, lights_json)
     if not args.quiet:
@@ -136,6 +145,7 @@ def _add_synth(sub) -> None:
 
 
 def _cmd_synth(args) -> int:
+    import math
     from pathlib import Path
 
     from data_synth.presets import make_scene
@@ -143,16 +153,16 @@ def _cmd_synth(args) -> int:
 
     from .io import check_output_dir
 
-    bounds = (("size", 1, MAX_SIZE), ("views", 1, None), ("supersample", 1, None), ("texture_size", 1, MAX_SIZE),
-              ("ibl_samples", 1, None), ("seed", 0, None))
+    bounds = (("size", 1, MAX_SIZE), ("views", 1, MAX_VIEWS), ("supersample", 1, MAX_SUPERSAMPLE),
+              ("texture_size", 1, MAX_SIZE), ("ibl_samples", 1, None), ("seed", 0, None))
     for name, low, high in bounds:
         value = getattr(args, name)
         if value is not None and value < low:
             raise CaptureError(f"--{name.replace('_', '-')}: must be at least {low}, got {value}")
         if value is not None and high is not None and value > high:
             raise CaptureError(f"--{name.replace('_', '-')}: must be at most {high}, got {value}")
-    if args.noise is not None and not args.noise >= 0:
-        raise CaptureError(f"--noise: must be a number >= 0, got {args.noise}")
+    if args.noise is not None and not (math.isfinite(args.noise) and args.noise >= 0):
+        raise CaptureError(f"--noise: must be a finite number >= 0, got {args.noise}")
     out = Path(args.out)
     check_output_dir(out, "capture")
     overrides = dict(
@@ -598,7 +608,23 @@ def _default_continuation() -> str:
 
 #: The largest image side (`synth --size`) and map side (`--resolution`, `--texture-size`) taken.
 MAX_SIZE = 8192
-_LESS = "use a smaller --resolution (or fewer or smaller images)"
+#: The most cameras `synth --views` renders, and the largest `synth --supersample`.
+MAX_VIEWS = 1024
+MAX_SUPERSAMPLE = 16
+#: What to make smaller when a command runs out of memory.
+_LESS = {"fit": "use a smaller --resolution (or fewer or smaller images)",
+         "render": "use smaller or fewer images, or a smaller material",
+         "synth": "use a smaller --size, --views, --supersample or --texture-size",
+         "demo": "free some memory (the demo needs about 2 GB)"}
+
+
+class _Terminated(BaseException):
+    """SIGTERM, raised in the main thread: unwinds like KeyboardInterrupt (outputs under a
+    temporary name are removed on the way out)."""
+
+
+def _raise_terminated(signum, frame):
+    raise _Terminated()
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -611,6 +637,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.command is None:
         parser.print_help()
         return EXIT_USAGE
+    # a `kill` (SIGTERM) unwinds like Ctrl-C, so that half-written outputs are removed
+    try:
+        previous = signal.signal(signal.SIGTERM, _raise_terminated)
+        installed = True
+    except ValueError:  # not the main thread: signals stay as they are
+        previous, installed = None, False
     try:
         _enable_compilation_cache(args)
         return _COMMANDS[args.command](args)
@@ -624,11 +656,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             raise
         from .io import _first_line
 
-        print(f"pbrfit: error: out of memory: {_first_line(str(err))}; {_LESS}", file=sys.stderr)
+        hint = _LESS.get(args.command, "use smaller inputs")
+        print(f"pbrfit: error: out of memory: {_first_line(str(err))}; {hint}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("pbrfit: interrupted", file=sys.stderr)
         return 130
+    except _Terminated:
+        print("pbrfit: terminated", file=sys.stderr)
+        return 143
+    finally:
+        if installed:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
 
 if __name__ == "__main__":  # pragma: no cover

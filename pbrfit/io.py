@@ -119,9 +119,11 @@ def check_output_dir(final_dir: str | os.PathLike, kind: str) -> Path:
     """Refuse an output folder that writing would destroy; return it as an absolute path.
 
     `final_dir` may be missing, an empty folder, or a folder an earlier pbrfit command of the
-    same `kind` (`OUTPUT_KINDS`) wrote, marked by `OUTPUT_MARKER`; that one is replaced. A file,
-    any other folder (a user's capture, photos, home), and the current folder or one above it
-    are `CaptureError`.
+    same `kind` (`OUTPUT_KINDS`) wrote, marked by `OUTPUT_MARKER`; that one is replaced, unless
+    it holds files the command did not write (the marker lists them; a user's notes saved into
+    an earlier output would go with it). A file, any other folder (a user's capture, photos,
+    home), the current folder or one above it, and a place no folder can be made in (under a
+    file, or without write permission) are `CaptureError`.
     """
     what = OUTPUT_KINDS[kind]
     final_dir = Path(os.path.abspath(final_dir))
@@ -129,17 +131,44 @@ def check_output_dir(final_dir: str | os.PathLike, kind: str) -> Path:
     if final_dir == cwd or final_dir in cwd.parents:
         raise CaptureError(f"{final_dir}: is the current folder or holds it; choose another output folder")
     if not final_dir.exists():
+        _check_creatable(final_dir)
         return final_dir
     if not final_dir.is_dir():
         raise CaptureError(f"{final_dir}: exists and is not a folder; choose another output folder")
+    _check_creatable(final_dir)
     if any(final_dir.iterdir()):
         marker = final_dir / OUTPUT_MARKER
-        if not marker.is_file() or marker.read_text().strip() != kind:
+        lines = marker.read_text().splitlines() if marker.is_file() else []
+        if not lines or lines[0].strip() != kind:
             raise CaptureError(
                 f"{final_dir}: exists and is not a {what} (no {OUTPUT_MARKER} of kind {kind!r}); "
                 "refusing to replace it, choose another output folder or remove it"
             )
+        if len(lines) > 1:  # the files it wrote (markers before the list name none)
+            written = {line for line in lines[1:] if line}
+            extra = sorted(p for p in _relative_files(final_dir) if p not in written and p != OUTPUT_MARKER)
+            if extra:
+                shown = ", ".join(extra[:3]) + (f" and {len(extra) - 3} more" if len(extra) > 3 else "")
+                raise CaptureError(f"{final_dir}: holds files pbrfit did not write ({shown}); refusing to replace "
+                                   "it, move them out or choose another output folder")
     return final_dir
+
+
+def _relative_files(folder: Path) -> list[str]:
+    """Every file under `folder`, as '/'-separated paths relative to it."""
+    return [p.relative_to(folder).as_posix() for p in folder.rglob("*") if not p.is_dir()]
+
+
+def _check_creatable(final_dir: Path) -> None:
+    """`CaptureError` unless `final_dir`'s nearest existing ancestor is a folder this process
+    may write in (the output is built beside `final_dir` and renamed into place)."""
+    parent = final_dir.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise CaptureError(f"{final_dir}: {parent} is not a folder; choose another output folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise CaptureError(f"{final_dir}: cannot write in {parent} (permission denied); choose another output folder")
 
 
 def check_not_inside(folder: str | os.PathLike, out_dir: str | os.PathLike, role: str) -> None:
@@ -166,12 +195,15 @@ def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optio
         raise CaptureError(f"{final_dir}: already exists")
     if kind is not None:
         check_output_dir(final_dir, kind)
-    final_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".tmp", dir=final_dir.parent))
+    try:
+        final_dir.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".tmp", dir=final_dir.parent))
+    except OSError as err:
+        raise CaptureError(f"{final_dir}: cannot create the output folder: {err.strerror or err}") from None
     try:
         yield tmp
-        if kind is not None:
-            (tmp / OUTPUT_MARKER).write_text(kind + "\n")
+        if kind is not None:  # the kind, then the files written (`check_output_dir`)
+            (tmp / OUTPUT_MARKER).write_text("\n".join([kind] + sorted(_relative_files(tmp))) + "\n")
         os.chmod(tmp, _DIR_MODE)
         if final_dir.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".old", dir=final_dir.parent))

@@ -271,15 +271,37 @@ def _loc(where: str, key: str) -> str:
     return f"{where}: {key}" if where.endswith(".json") else f"{where}.{key}"
 
 
+#: The largest magnitude a number of a capture may have: the solve runs in float32.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def _shown(value, limit: int = 40) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _as_float(value, loc: str, what: str = "a finite number") -> float:
+    """`value` (a JSON number) as a float, or `CaptureError` at `loc`: not a number (bools and
+    strings are not), not finite, or beyond float32's range (an integer of 400 digits, 1e40)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise CaptureError(f"{loc}: expected {what}, got {_shown(value)}")
+    try:
+        f = float(value)
+    except OverflowError:
+        f = math.inf
+    if not math.isfinite(f):
+        raise CaptureError(f"{loc}: expected {what}, got {_shown(value)}")
+    if abs(f) > FLOAT32_MAX:
+        raise CaptureError(f"{loc}: {_shown(value)} is beyond float32's range (|x| <= 3.4e38)")
+    return f
+
+
 def _number(d: Mapping[str, Any], key: str, where: str, default: float | None) -> float:
     if key not in d:
         if default is None:
             raise CaptureError(f"{where}: missing key '{key}'")
         return float(default)
-    value = d[key]
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise CaptureError(f"{_loc(where, key)}: expected a finite number, got {value!r}")
-    return float(value)
+    return _as_float(d[key], _loc(where, key))
 
 
 def _triple(d: Mapping[str, Any], key: str, where: str, default=None) -> np.ndarray:
@@ -288,15 +310,14 @@ def _triple(d: Mapping[str, Any], key: str, where: str, default=None) -> np.ndar
             raise CaptureError(f"{where}: missing key '{key}'")
         return np.asarray(default, dtype=np.float64)
     value = d[key]
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise CaptureError(f"{_loc(where, key)}: expected 3 numbers, got {value!r}") from None
-    if arr.shape != (3,) or any(isinstance(v, bool) for v in value):
-        raise CaptureError(f"{_loc(where, key)}: expected 3 numbers, got {value!r}")
-    if not np.all(np.isfinite(arr)):
-        raise CaptureError(f"{_loc(where, key)}: values must be finite, got {value!r}")
-    return arr
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if not isinstance(value, (list, tuple)) or len(value) != 3 or any(
+            isinstance(v, bool) or not isinstance(v, (int, float)) for v in value):
+        raise CaptureError(f"{_loc(where, key)}: expected 3 numbers, got {_shown(value)}")
+    if not all(math.isfinite(float(v)) if not isinstance(v, int) else True for v in value):
+        raise CaptureError(f"{_loc(where, key)}: values must be finite, got {_shown(value)}")
+    return np.array([_as_float(v, _loc(where, key), "finite numbers") for v in value], np.float64)
 
 
 def _direction(d: Mapping[str, Any], where: str) -> np.ndarray:

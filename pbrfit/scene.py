@@ -58,7 +58,7 @@ import numpy as np
 from .errors import CaptureError
 from .gbuffer import Camera
 from .io import _LDR_MAX, ImageInfo, _srgb_decode, data_window_mask, read_image, read_image_info
-from .lights import Light, _loc, _number, _triple, color_and_intensity, flash_light, light_from_json
+from .lights import FLOAT32_MAX, Light, _loc, _number, _triple, color_and_intensity, flash_light, light_from_json
 from .mesh import load_mesh
 
 __all__ = [
@@ -115,6 +115,10 @@ _SRGB_FORMATS = ("png", "jpeg")
 _MIN_UNPREMULTIPLY_ALPHA = 1.0 / 256.0
 # The last row of a camera-to-world matrix must be (0, 0, 0, 1) to this tolerance.
 _AFFINE_ROW_TOL = 1e-6
+#: The largest |cos| between two camera axes (columns of the rotation, normalised) taken as perpendicular.
+_ORTHONORMAL_TOL = 1e-3
+#: The largest |exposure| in EV a frame may have: 2^64 ≈ 1.8e19 leaves float32 room for the radiance.
+MAX_EXPOSURE = 64.0
 
 
 @dataclass(frozen=True)
@@ -272,6 +276,8 @@ def _read_json(path: Path) -> dict:
         raw = json.loads(text)
     except json.JSONDecodeError as err:
         raise CaptureError(f"{path}: invalid JSON at line {err.lineno} column {err.colno}: {err.msg}") from None
+    except RecursionError:
+        raise CaptureError(f"{path}: invalid capture: JSON nested too deeply") from None
     if not isinstance(raw, dict):
         raise CaptureError(f"{path}: expected a JSON object at the top level, got {type(raw).__name__}")
     return raw
@@ -282,16 +288,39 @@ def _matrix(frame: Mapping, where: str) -> np.ndarray:
     if "transform_matrix" not in frame:
         raise CaptureError(f"{where}: missing key 'transform_matrix'")
     value = frame["transform_matrix"]
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if isinstance(value, (list, tuple)) and all(isinstance(row, (list, tuple)) for row in value) and any(
+            isinstance(v, bool) or not isinstance(v, (int, float)) for row in value for v in row):
+        bad = next(v for row in value for v in row if isinstance(v, bool) or not isinstance(v, (int, float)))
+        raise CaptureError(f"{_loc(where, 'transform_matrix')}: expected a 4x4 array of numbers, got {bad!r} in it")
     try:
         m = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CaptureError(f"{_loc(where, 'transform_matrix')}: expected a 4x4 array of numbers") from None
     if m.shape != (4, 4):
         raise CaptureError(f"{_loc(where, 'transform_matrix')}: expected shape 4x4, got {'x'.join(map(str, m.shape)) or 'a scalar'}")
     if not np.all(np.isfinite(m)):
         raise CaptureError(f"{_loc(where, 'transform_matrix')}: non-finite values")
+    if np.max(np.abs(m)) > FLOAT32_MAX:
+        raise CaptureError(f"{_loc(where, 'transform_matrix')}: values beyond float32's range (|x| <= 3.4e38)")
     if np.max(np.abs(m[3] - [0.0, 0.0, 0.0, 1.0])) > _AFFINE_ROW_TOL:
         raise CaptureError(f"{_loc(where, 'transform_matrix')}: last row must be [0, 0, 0, 1], got {m[3].tolist()}")
+    # a camera's axes: a scale on them (a scaled camera object in Blender) changes no ray and is
+    # taken out; axes that are not perpendicular (a shear) or a mirrored (left-handed) frame are no camera
+    norms = np.linalg.norm(m[:3, :3], axis=0)
+    if np.min(norms) < 1e-12:
+        raise CaptureError(f"{_loc(where, 'transform_matrix')}: a camera axis (rotation column) is zero")
+    axes = m[:3, :3] / norms
+    gram = axes.T @ axes
+    if np.max(np.abs(gram - np.eye(3))) > _ORTHONORMAL_TOL:
+        raise CaptureError(f"{_loc(where, 'transform_matrix')}: the camera's axes (rotation columns) are not "
+                           f"perpendicular (largest |cos| between two {np.max(np.abs(gram - np.eye(3))):.3g})")
+    if np.linalg.det(axes) < 0:
+        raise CaptureError(f"{_loc(where, 'transform_matrix')}: the camera's axes are mirrored (a left-handed "
+                           "frame); expected +X right, +Y up, looking down -Z")
+    m = m.copy()
+    m[:3, :3] = axes
     return m
 
 
@@ -459,6 +488,9 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
     if flash is not None:
         lights = lights + (flash_light(c2w, *flash),)
     exposure = base_exposure + _number(frame_raw, "exposure", where, 0.0)
+    if abs(exposure) > MAX_EXPOSURE:  # 2^EV times a radiance would leave float32's range
+        raise CaptureError(f"{_loc(where, 'exposure')}: exposure {exposure:g} EV (with images.exposure) is beyond "
+                           f"±{MAX_EXPOSURE:g} EV")
     return Frame(
         file_path=file_path, image=image, mask=mask, saturated=saturated, nonfinite=nonfinite,
         mask_source=mask_source, camera=camera,

@@ -121,10 +121,20 @@ def test_render_refuses_to_write_over_its_own_capture_and_takes_inline_lights(tm
     assert main(["synth", "peer-plane", "--out", str(inner), "--size", "8", "--views", "1", "--texture-size", "4",
                  "--quiet"]) == 0
     assert main(["render", str(inner), "--material", str(inner / "truth"), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err  # (refused first as holding files the render did not write)
+    assert "holds files pbrfit did not write (inner/" in err and (inner / "capture.json").is_file()
+    (out / ".pbrfit-output").write_text("capture\n")  # a marker that lists no files: the capture check refuses
+    assert main(["render", str(inner), "--material", str(inner / "truth"), "--out", str(out), "--quiet"]) == 2
     assert "holds the capture being rendered" in capsys.readouterr().err and (inner / "capture.json").is_file()
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o2"), "--lights",
                  "[{bad"]) == 2
     assert "--lights: invalid JSON" in capsys.readouterr().err
+    # no light and no environment: every render would be black
+    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o3"), "--lights",
+                 "[]"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--lights: no light: no environment and every light is off" in err[0]
+    assert not (tmp_path / "o3").exists()
 
 
 def test_render_writes_paths_that_leave_the_capture_inside_its_output(tmp_path, monkeypatch):

@@ -97,10 +97,40 @@ def test_atomic_dir_success_failure_and_overwrite(tmp_path):
     (out / "y").unlink()
     with atomic_dir(out, kind="fit") as d:  # empty: replaced, and marked
         (d / "report.json").write_text("{}")
-    assert (out / OUTPUT_MARKER).read_text().strip() == "fit"
+    assert (out / OUTPUT_MARKER).read_text().splitlines() == ["fit", "report.json"]  # the kind, the files
     with atomic_dir(out, kind="fit") as d:  # an earlier output of the kind: replaced
         (d / "report.json").write_text("[]")
+        (d / "views").mkdir()
+        (d / "views" / "0.png").write_text("")
     assert (out / "report.json").read_text() == "[]"
+    assert (out / OUTPUT_MARKER).read_text().splitlines() == ["fit", "report.json", "views/0.png"]
+    # ... unless a file it did not write was saved into it since: that would go with it
+    (out / "views" / "my notes.txt").write_text("keep me")
+    with pytest.raises(CaptureError, match=r"holds files pbrfit did not write \(views/my notes.txt\)"):
+        with atomic_dir(out, kind="fit") as d:
+            (d / "report.json").write_text("{}")
+    assert (out / "views" / "my notes.txt").read_text() == "keep me" and (out / "report.json").read_text() == "[]"
+    (out / "views" / "my notes.txt").unlink()
+    (out / OUTPUT_MARKER).write_text("fit\n")  # a marker that lists no files (older pbrfit): replaced as before
+    (out / "other.txt").write_text("")
+    with atomic_dir(out, kind="fit") as d:
+        (d / "report.json").write_text("{}")
+    assert not (out / "other.txt").exists()
+    # a place where no folder can be made: refused before any work, one line
+    (tmp_path / "plain").write_text("")
+    with pytest.raises(CaptureError, match="plain is not a folder"):
+        check_output_dir(tmp_path / "plain" / "sub" / "out", "fit")
+    with pytest.raises(CaptureError, match="plain is not a folder"):
+        with atomic_dir(tmp_path / "plain" / "out", kind="fit"):
+            pass
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o500)
+    if not os.access(locked, os.W_OK):  # (root may write anywhere)
+        with pytest.raises(CaptureError, match="permission denied"):
+            check_output_dir(locked / "out", "fit")
+    with pytest.raises(CaptureError, match="cannot create the output folder"):
+        with atomic_dir(tmp_path / "plain" / "x"):  # no kind: no check first, the mkdir's error
+            pass
     with pytest.raises(CaptureError, match="kind 'capture'"):  # another kind: refused
         check_output_dir(out, "capture")
     (tmp_path / "f").write_text("")

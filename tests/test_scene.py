@@ -317,6 +317,15 @@ MALFORMED = {
     "lens distortion": (lambda d, r: d.update(k1=0.1), "capture.json: k1: lens distortion is not supported"),
     "fisheye": (lambda d, r: d.update(is_fisheye=True), "capture.json: is_fisheye: fisheye cameras are not supported"),
     "lights not a list": (lambda d, r: d.update(lights={"type": "point"}), "capture.json: lights: expected a list of lights"),
+    "integer beyond float": (lambda d, r: _frame0(d).update(exposure=10 ** 400), "capture.json: frames[0].exposure: expected a finite number, got 1000000"),
+    "beyond float32": (lambda d, r: d["lights"][0].update(intensity=1e40), "capture.json: lights[0].intensity: 1e+40 is beyond float32's range"),
+    "position beyond float32": (lambda d, r: d["lights"][0].update(position=[1e39, 0, 3]), "capture.json: lights[0].position: 1e+39 is beyond float32's range"),
+    "exposure overflows": (lambda d, r: _frame0(d).update(exposure=200), "capture.json: frames[0].exposure: exposure 200.5 EV (with images.exposure) is beyond ±64 EV"),
+    "matrix beyond float32": (lambda d, r: _frame0(d)["transform_matrix"][0].__setitem__(3, 1e39), "capture.json: frames[0].transform_matrix: values beyond float32's range"),
+    "matrix string": (lambda d, r: _frame0(d)["transform_matrix"][0].__setitem__(0, "1.0"), "capture.json: frames[0].transform_matrix: expected a 4x4 array of numbers, got '1.0' in it"),
+    "matrix shear": (lambda d, r: _frame0(d)["transform_matrix"][0].__setitem__(1, _frame0(d)["transform_matrix"][0][1] + 0.5), "capture.json: frames[0].transform_matrix: the camera's axes (rotation columns) are not perpendicular"),
+    "matrix mirrored": (lambda d, r: [row.__setitem__(0, -row[0]) for row in _frame0(d)["transform_matrix"][:3]], "capture.json: frames[0].transform_matrix: the camera's axes are mirrored"),
+    "JSON nested too deeply": (lambda d, r: _write_text(r, "capture.json", "[" * 100000 + "]" * 100000), "capture.json: invalid capture: JSON nested too deeply"),
 }  # fmt: skip
 
 
@@ -334,6 +343,17 @@ def test_malformed_capture(tmp_path, case):
     message = str(info.value)
     assert fragment in message, message
     assert "\n" not in message
+
+
+def test_a_scaled_camera_frame_is_the_same_camera(tmp_path):
+    """A scale on the camera's axes (a scaled camera object in Blender) changes no ray."""
+    data = base_capture_dict()
+    plain = load_capture(write_capture(tmp_path / "a", data))
+    m = np.array(_frame0(data)["transform_matrix"], float)
+    m[:3, :3] *= np.array([2.0, 0.5, 3.0])
+    _frame0(data)["transform_matrix"] = m.tolist()
+    scaled = load_capture(write_capture(tmp_path / "b", data))
+    np.testing.assert_allclose(scaled.frames[0].camera.c2w, plain.frames[0].camera.c2w, atol=1e-12)
 
 
 def test_capture_path_not_found(tmp_path):

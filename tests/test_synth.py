@@ -428,10 +428,34 @@ def test_cli_synth_writes_and_refuses_bad_input(tmp_path, capsys):
     assert "--noise" in capsys.readouterr().err
     for extra, message in ((["--seed", "-1"], "--seed: must be at least 0"),
                            (["--size", "200000"], "--size: must be at most 8192"),
-                           (["--texture-size", "200000"], "--texture-size: must be at most 8192")):
+                           (["--texture-size", "200000"], "--texture-size: must be at most 8192"),
+                           (["--views", "100000000"], "--views: must be at most 1024"),
+                           (["--supersample", "100000"], "--supersample: must be at most 16"),
+                           (["--noise", "inf"], "--noise: must be a finite number >= 0, got inf"),
+                           (["--out", str(tmp_path / "c" / "capture.json" / "x")], "capture.json is not a folder")):
         assert main(["synth", "peer-plane", "--out", str(tmp_path / "x"), *extra]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and message in err[0] and not (tmp_path / "x").exists()
+    # a kill (SIGTERM) midway removes what was half written, as Ctrl-C does
+    import os
+    import signal
+
+    import pbrfit.io
+
+    real = pbrfit.io.write_image
+
+    def killed(*a, **k):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return real(*a, **k)
+
+    pbrfit.io.write_image = killed
+    try:
+        assert main(["synth", "peer-plane", "--out", str(tmp_path / "k"), "--size", "16", "--views", "2"]) == 143
+    finally:
+        pbrfit.io.write_image = real
+    assert capsys.readouterr().err.strip() == "pbrfit: terminated"
+    assert not any(p.name.startswith((".k.", "k")) for p in tmp_path.iterdir())
+    assert signal.getsignal(signal.SIGTERM) is not None
     other = tmp_path / "mine"
     other.mkdir()
     (other / "precious.txt").write_text("keep")
