@@ -17,10 +17,17 @@ texels of all draws, for base colour (R, G, B together) and roughness:
 
 Metallic is left out: its truth is 0, on the bound, where errors are one-sided.
 
-    python experiments/uncertainty.py [--draws 8] [--radii 0 1 2]
+Each draw is fitted once per ``--noise-levels`` entry as well: ``uniform`` (plain least squares,
+the default of `pbrfit.fit`) and ``estimated`` (`pbrfit.noise`: a second fit weighted by the
+noise level function of the first's residuals). ``--noise-models`` adds ``poisson_gaussian``
+(shot noise of std 0.01 at a value of 1 plus read noise of 0.0025, `data_synth.noise`).
 
-Writes experiments/results/uncertainty.json and prints the table of experiments/uncertainty.md.
-About 10 minutes on a 2-core CPU.
+    python experiments/uncertainty.py [--draws 8] [--radii 0 1 2] [--noise-models gaussian relative]
+        [--noise-levels uniform]
+
+Writes experiments/results/uncertainty.json (a run replaces the rows it measures and keeps the
+others; each row names the commit it was measured at) and prints the table of
+experiments/uncertainty.md. About 10 minutes on a 2-core CPU with the defaults.
 """
 
 from __future__ import annotations
@@ -37,6 +44,7 @@ import numpy as np
 import pbrfit  # noqa: F401  (sets the XLA flags pbrfit needs before JAX starts)
 
 NOISE_MODELS = ("gaussian", "relative")
+NOISE_LEVELS = ("uniform",)
 SIGMA = 0.01
 #: name: channels of the (H, W, 5) maps and uncertainty
 CHANNELS = {"base_color": [0, 1, 2], "roughness": [4]}
@@ -47,7 +55,7 @@ def _stack(material) -> np.ndarray:
                            np.asarray(material.roughness)], axis=-1)
 
 
-def run(draws: int, radii) -> list[dict]:
+def run(draws: int, radii, noise_models=NOISE_MODELS, noise_levels=NOISE_LEVELS) -> list[dict]:
     from data_synth.noise import add_noise
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
@@ -61,31 +69,63 @@ def run(draws: int, radii) -> list[dict]:
         synthesize(make_scene("peer-plane", seed=0), cap_dir)
         clean = load_capture(cap_dir)
         truth = _stack(read_material(cap_dir / "truth"))
-        for model in NOISE_MODELS:
-            fits = {r: [] for r in radii}
+        runs = [(level, r) for level in noise_levels for r in radii]
+        for model in noise_models:
+            fits = {run: [] for run in runs}
             for draw in range(draws):
                 rng = np.random.default_rng([draw, 0x0CA1])
                 frames = [dataclasses.replace(f, image=add_noise(f.image, SIGMA, rng, model)) for f in clean.frames]
                 capture = dataclasses.replace(clean, frames=frames)
-                maps = None
-                for r in radii:
+                maps = {}
+                for level, r in runs:
                     t0 = time.perf_counter()
-                    res = fit(capture, resolution=64, uncertainty_radius=r, cache_dir=Path(tmp) / "cache")
+                    res = fit(capture, resolution=64, uncertainty_radius=r, noise_level=level,
+                              cache_dir=Path(tmp) / "cache")
                     wall = time.perf_counter() - t0
                     x = _stack(res.material)
-                    if maps is None:
-                        maps = x
-                    elif not np.array_equal(x, maps):
+                    if level not in maps:
+                        maps[level] = x
+                    elif not np.array_equal(x, maps[level]):
                         raise RuntimeError(f"{model} draw {draw}: the maps differ between radii")
-                    fits[r].append(dict(x=x, sigma=np.asarray(res.uncertainty), seen=res.coverage > 0, wall=wall,
-                                        post=res.report["times"]["post"]))
-                print(f"{model} draw {draw}: " + ", ".join(f"r={r} {fits[r][-1]['wall']:.1f} s" for r in radii),
-                      flush=True)
-            for r in radii:
-                rows.append(dict(noise=model, radius=r, draws=draws, **_scores(fits[r], truth),
-                                 post_s=float(np.median([f["post"] for f in fits[r]])),
-                                 wall_s=float(np.median([f["wall"] for f in fits[r]]))))
+                    fits[level, r].append(dict(x=x, sigma=np.asarray(res.uncertainty), seen=res.coverage > 0,
+                                               wall=wall, post=res.report["times"]["post"]))
+                print(f"{model} draw {draw}: " + ", ".join(
+                    f"{level} r={r} {fits[level, r][-1]['wall']:.1f} s" for level, r in runs), flush=True)
+            for level, r in runs:
+                f = fits[level, r]
+                rows.append(dict(noise=model, noise_level=level, radius=r, draws=draws, commit=_commit(),
+                                 **_scores(f, truth), post_s=float(np.median([x["post"] for x in f])),
+                                 wall_s=float(np.median([x["wall"] for x in f]))))
     return rows
+
+
+def _commit() -> str:
+    """The repository's commit (with "+" when the working tree differs from it), or "unknown"."""
+    import subprocess
+
+    here = Path(__file__).parent
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True,
+                              check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                               capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+" if dirty else "")
+
+
+def _key(row: dict) -> tuple:
+    return row["noise"], row.get("noise_level", "uniform"), row["radius"]
+
+
+def merge(old: list[dict], new: list[dict]) -> list[dict]:
+    """The rows of `old` that `new` does not measure again, then `new`'s, ordered by noise model,
+    noise level and radius."""
+    fresh = {_key(r) for r in new}
+    rows = [r for r in old if _key(r) not in fresh] + list(new)
+    order = {m: i for i, m in enumerate(("gaussian", "relative", "poisson_gaussian"))}
+    return sorted(rows, key=lambda r: (order.get(r["noise"], 9), r.get("noise_level", "uniform") != "uniform",
+                                       r["radius"]))
 
 
 def _scores(fits: list[dict], truth: np.ndarray) -> dict:
@@ -103,14 +143,16 @@ def _scores(fits: list[dict], truth: np.ndarray) -> dict:
 
 
 def table(rows: list[dict]) -> str:
-    out = ["| noise | radius | within 2σ (%): base / roughness | median \\|error\\| / σ | spread / σ "
-           "| median post s |",
-           "| --- | ---: | ---: | ---: | ---: | ---: |"]
+    out = ["| noise | noise level | radius | within 2σ (%): base / roughness | median \\|error\\| / σ | spread / σ "
+           "| RMSE: base / roughness | median post s | median wall s | at |",
+           "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
     for r in rows:
         b, g = r["base_color"], r["roughness"]
-        out.append(f"| {r['noise']} | {r['radius']} | {100 * b['within_2sigma']:.1f} / {100 * g['within_2sigma']:.1f} "
+        out.append(f"| {r['noise']} | {r.get('noise_level', 'uniform')} | {r['radius']} "
+                   f"| {100 * b['within_2sigma']:.1f} / {100 * g['within_2sigma']:.1f} "
                    f"| {b['median_z']:.3f} / {g['median_z']:.3f} | {b['spread']:.3f} / {g['spread']:.3f} "
-                   f"| {r['post_s']:.2f} |")
+                   f"| {b['rmse']:.4f} / {g['rmse']:.4f} | {r['post_s']:.2f} | {r['wall_s']:.1f} "
+                   f"| {r.get('commit', '666df53')} |")
     out.append("")
     out.append("A Gaussian error with an honest σ: 95.4% within 2σ, median |error| / σ 0.674, spread / σ 1.")
     return "\n".join(out)
@@ -120,6 +162,9 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--draws", type=int, default=8)
     parser.add_argument("--radii", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--noise-models", nargs="+", default=list(NOISE_MODELS),
+                        choices=["gaussian", "relative", "poisson_gaussian"])
+    parser.add_argument("--noise-levels", nargs="+", default=list(NOISE_LEVELS), choices=["uniform", "estimated"])
     parser.add_argument("--out", default=str(Path(__file__).parent / "results"))
     parser.add_argument("--table", action="store_true", help="print uncertainty.md's table from uncertainty.json")
     args = parser.parse_args()
@@ -129,7 +174,9 @@ def main():
         return
     from solvers import machine  # experiments/solvers.py: the host and package versions
 
-    rows = run(args.draws, args.radii)
+    rows = run(args.draws, args.radii, args.noise_models, args.noise_levels)
+    if path.is_file():
+        rows = merge(json.loads(path.read_text())["rows"], rows)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(dict(machine=machine(), rows=rows), indent=1))

@@ -191,6 +191,7 @@ _FIT_NAMES = _MAP_NAMES + ("normal",)
 
 def _add_fit(sub) -> None:
     from .fit import DEFAULT_SOLVER, IBL_MODES, MAX_STEPS, SOLVERS
+    from .noise import NOISE_LEVELS
     from .observations import MAX_PIXEL_SAMPLES
     from .pixel_ibl import PixelIBLSettings
     from .solvers import LOSSES
@@ -253,6 +254,13 @@ def _add_fit(sub) -> None:
                         "free as well (0, 1 or 2; default 1; 0: its own block of the normal matrix, the neighbours "
                         "held, about 10-15%% too small on the peer scene; 2: within 0.1%% of the whole matrix's on a "
                         "small map, about 4 times the cost; see the README)")
+    p.add_argument("--noise-level", choices=NOISE_LEVELS, default="uniform",
+                   help="uniform (default): every residual weighs alike (plain least squares, the likeliest fit "
+                        "when the noise does not depend on the value); estimated: the noise level as a function "
+                        "of the value is measured from a first fit's residuals, and a second fit from its maps "
+                        "weighs each residual by the inverse of the level at its value (for shot noise, or noise "
+                        "proportional to the signal; about twice the time; report.json's noise_level gives the "
+                        "level function)")
     p.add_argument("--no-uniform-check", action="store_true",
                    help="keep metallic and roughness as maps even where the images support only one value for "
                         "them (by default a map the images cannot tell apart from one value, by Akaike's criterion, "
@@ -367,7 +375,7 @@ def _fit_options(args) -> dict:
         fit=tuple(free), fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
         max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, loss=args.loss, smooth=args.smooth,
         coarse_to_fine=args.coarse_to_fine, search=not args.no_search, uniform_check=not args.no_uniform_check,
-        repair=not args.no_repair, devices=devices, ibl=args.ibl,
+        repair=not args.no_repair, noise_level=args.noise_level, devices=devices, ibl=args.ibl,
         pixel_ibl_settings=pixel_ibl_settings, continuation=continuation, pixel_samples=pixel_samples,
         **({} if args.cg_rtol is None else dict(cg_rtol=args.cg_rtol)),
         **({} if args.uncertainty_radius is None else dict(uncertainty_radius=args.uncertainty_radius)),
@@ -420,6 +428,8 @@ class _Progress:
             where = "" if n is None else ("  pixel centres" if n == 1 else f"  {n}x{n} samples")
             if "repair" in info:
                 where += f"  repair {info['repair']}"
+            if info.get("weighted"):
+                where += "  weighted"
             if "check" in info:
                 where += f"  uniform {info['check']}?"
             self._live.update(self._task, description=(
@@ -439,7 +449,11 @@ def _loss_history(steps: list, report: dict) -> list:
     """The convergence plot's (step, loss) points: every step reported, but of the automatic
     footprint's two finishes (entries tagged "footprint") only the kept one's, of the repair's
     passes (tagged "repair", numbered from 1) only the kept ones', and of the uniform check's
-    re-fits (tagged "check") only those of a channel made uniform."""
+    re-fits (tagged "check") only those of a channel made uniform. With an estimated noise level
+    only the weighted fit's steps (tagged "weighted"): its loss is of the weighted residuals, and
+    the first fit's footprint, repair and checks are not the report's."""
+    if any(h.get("weighted") for h in steps):
+        steps = [h for h in steps if h.get("weighted")]
     kept = report.get("footprint", {}).get("selected")
     uniform = set(_uniform_channels(report))
     passes = (report.get("repair") or {}).get("passes", [])
@@ -517,6 +531,10 @@ def _summary(result, errors) -> str:
         parts[0] += (f", repair re-solved {sum(p['texels_kept'] for p in kept)} texels in {clusters} "
                      f"cluster{'' if clusters == 1 else 's'} (loss {kept[0]['energy_before']:.3e}"
                      f" -> {kept[-1]['energy_after']:.3e})")
+    level = r.get("noise_level") or {}
+    if level.get("mode") == "estimated":  # two fits: the second weighted by the first's noise level
+        parts[0] += (f", weighted by the estimated noise level ({min(level['sigma']):.2g} to "
+                     f"{max(level['sigma']):.2g}; first fit loss {level['first_fit']['final_loss']:.3e})")
     if errors:
         parts.append("RMSE " + ", ".join(f"{k} {v:.4f}" for k, v in errors.items()))
     return "; ".join(parts)

@@ -24,6 +24,11 @@ A pixel's footprint: a display-referred capture (sRGB, tone mapped) is fitted bo
 centres and with 2 × 2 samples per pixel, and the fit whose images match better is kept
 (``pixel_samples="auto"``, `footprint_choice`); linear images are fitted at pixel centres.
 
+The images' noise: plain least squares by default (``noise_level="uniform"``); with
+``noise_level="estimated"`` a second fit weighs each residual by the inverse of the noise
+level the first fit's residuals show at its value (`pbrfit.noise`): for shot noise, or noise
+proportional to the signal.
+
 Pixels can be split over several devices (``devices=``, `pbrfit.sharding`). The result carries
 the maps, per-texel standard errors (`pbrfit.uncertainty`), per-texel coverage, the fitted
 renders of every view and a report.
@@ -51,6 +56,7 @@ from .material import Material
 from .model import Model
 from .observations import (MAX_PIXEL_SAMPLES, Observations, TexelLayout, coverage_counts, neighbour_pairs,
                            observations_from_capture, texel_layout, uniform_layout)
+from .noise import NOISE_LEVELS, estimate_noise_level
 from .optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
 from .pixel_ibl import PixelIBLSettings, pixel_ibl
 from .repair import (OUTLIER_EVIDENCE, OUTLIER_SPREAD, REPAIR_PASSES, REPAIR_PROGRESS, REPAIR_ROUNDS,
@@ -323,6 +329,7 @@ def fit_observations(
     uniform_check: bool = True,
     repair: bool = True,
     uncertainty_radius: int = WINDOW_RADIUS,
+    noise_level: str = "uniform",
 ) -> FitResult:
     """Fit maps to prepared `Observations` (see `fit` for the arguments).
 
@@ -336,6 +343,77 @@ def fit_observations(
     pixels' footprint). With the structured solver the samples stop after their first
     `PROBE_STEPS` when these do not yet fit better than the centres' whole finish. The report's
     "footprint" entry gives both energies, the steps and the choice."""
+    if noise_level not in NOISE_LEVELS:
+        raise ValueError(f"noise_level must be one of {', '.join(NOISE_LEVELS)}, got {noise_level!r}")
+    kwargs = {name: value for name, value in locals().items() if name not in ("obs", "noise_level")}  # the arguments
+    if noise_level == "uniform":
+        result, _ = _fit_pass(obs, **kwargs)
+        result.report["noise_level"] = dict(mode="uniform")
+        return result
+    return _fit_weighted(obs, kwargs)
+
+
+def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
+    """``noise_level="estimated"`` (`pbrfit.noise`): a plain fit, the noise level function of its
+    residuals, and a second fit from the first's maps with each residual weighted by
+    σ_ref / σ(v̂) at the first fit's value v̂. The second fit runs the final level only, without
+    the continuation (it starts in the first fit's basins) and on the pixel footprint the first
+    chose; where that is several samples per pixel, its start and search run on the centres,
+    weighted at the level of their targets. Executables compiled for the first fit serve the
+    second. The report is the second fit's, with both fits' steps and times, and a
+    "noise_level" entry: the level function and the first fit's steps, loss and residual σ."""
+    t_start = time.perf_counter()
+    clock = dict(compile=0.0, solve=0.0)
+    compiler = _Compiler(clock, kwargs["background_compile"])
+    first, x = _fit_pass(obs, compiler=compiler, **kwargs)
+    footprint = first.report.get("footprint")
+    centres = kwargs["centres"]
+    kept = centres if (obs.samples > 1 and footprint is not None and footprint.get("selected") == 1) else obs
+    vidx = np.asarray(kept.pixel_rows(kept.view_index))
+    pix = np.asarray(kept.pixel_rows(kept.pixel))
+    values = np.zeros((kept.num_pixels, 3), np.float32)
+    for view in range(len(first.images)):
+        sel = vidx == view
+        values[sel] = first.images[view].reshape(-1, 3)[pix[sel]]
+    target = np.asarray(kept.pixel_rows(kept.target))
+    n_res = values.size
+    n_par = len(first.report["fitted"]) * first.report["observed_texels"]
+    level = estimate_noise_level(values, values - target, dof_scale=n_res / max(n_res - n_par, 1))
+    weights = np.repeat(level.weights(values), kept.samples, axis=0)
+    weighted = dataclasses.replace(kept, residual_weight=to_device(weights, np.float32))
+    second_centres = None
+    if kept.samples > 1 and centres is not None:
+        second_centres = dataclasses.replace(
+            centres, residual_weight=to_device(level.weights(np.asarray(centres.target)), np.float32))
+    progress = kwargs["progress"]
+    second_kwargs = dict(kwargs, centres=second_centres, select_footprint=False, start=x, coarse_to_fine=False,
+                         continuation=None, setup_time=0.0,
+                         progress=None if progress is None else (lambda info: progress(dict(info, weighted=True))))
+    if kept is centres and kwargs["model"].ibl == "per_pixel":  # the centres' own integrals
+        second_kwargs["ibl"] = kwargs["centre_ibl"]
+    if second_centres is None:
+        second_kwargs["centre_ibl"] = None
+    second, _ = _fit_pass(weighted, compiler=compiler, **second_kwargs)
+    report = second.report
+    report["times"] = dict(report["times"], setup=float(kwargs["setup_time"]),
+                           post=first.report["times"].get("post", 0.0) + report["times"].get("post", 0.0))
+    report["wall_time"] = float(kwargs["setup_time"] + time.perf_counter() - t_start)
+    report["steps"] += first.report["steps"]
+    if footprint is not None:
+        report["footprint"] = footprint
+    report["noise_level"] = dict(mode="estimated", **level.describe(), first_fit=dict(
+        steps=first.report["steps"], final_loss=first.report["final_loss"],
+        residual_sigma=first.report["residual_sigma"], psnr=first.report["psnr"]))
+    return second
+
+
+def _fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, solver, max_steps, coarse_steps, rtol,
+              atol, cg_rtol, loss, loss_scale, smooth, coarse_to_fine, init, search, continuation, devices,
+              level_factor, wrap, progress, setup_time, centres, centre_ibl, select_footprint, background_compile,
+              uniform_check, repair, uncertainty_radius, start=None, compiler=None) -> tuple[FitResult, np.ndarray]:
+    """One fit (`fit_observations`): the result and the final (T, K) texel values. ``start``:
+    (T, K) values to start from at the final level (no grid start, no coarser levels);
+    ``compiler``: a `_Compiler` shared with another pass (its clock collects both passes' times)."""
     t_start = time.perf_counter()
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
@@ -365,7 +443,7 @@ def fit_observations(
     else:
         res = default_resolution(obs) if resolution is None else resolution
         final = (int(res), int(res)) if np.isscalar(res) else tuple(int(r) for r in res)
-    levels = schedule(final, level_factor) if coarse_to_fine else [final]
+    levels = schedule(final, level_factor) if coarse_to_fine and start is None else [final]
     t_final = final[0] * final[1]
     max_steps = MAX_STEPS if max_steps is None else int(max_steps)
     pairs_final = neighbour_pairs(final)
@@ -379,14 +457,15 @@ def fit_observations(
     continuation = () if continuation is None else tuple(float(w) for w in np.ravel(continuation))
     if any(not (math.isfinite(w) and w >= 0) for w in continuation):
         raise ValueError(f"continuation weights must be finite and >= 0, got {continuation}")
-    x = None
+    x = None if start is None else np.asarray(start, np.float32).reshape(final + (k,))
     history = []
     annealed = footprint = None
-    clock = dict(compile=0.0, solve=0.0)
+    if compiler is None:
+        compiler = _Compiler(dict(compile=0.0, solve=0.0), background_compile)
+    clock = compiler.clock
     where = dict(level=0, resolution=levels[0])
     cb = None if progress is None else (
         lambda step, value: progress(dict(where, step=int(step), loss=float(value))))
-    compiler = _Compiler(clock, background_compile)
     runner = _Runner(solver, rtol, atol, cb, compiler, cg_rtol)
     try:
         for level, shape in enumerate(levels):
@@ -401,7 +480,7 @@ def fit_observations(
             fixed_x[:t] = _fixed_values(fixed, shape, k).reshape(t, k)
             x0 = fixed_x.copy()
             if x is not None:
-                up = _upsample(x, shape).reshape(t, k)
+                up = (x if x.shape[:2] == tuple(shape) else _upsample(x, shape)).reshape(t, k)
                 x0[:t] = np.where(channels[None, :] > 0, up, x0[:t])
             x0[:t] = np.where(seen[:t, None], x0[:t], fixed_x[:t])
             last = level == len(levels) - 1
@@ -418,7 +497,7 @@ def fit_observations(
             if mesh is not None:
                 problem = shard_problem(problem, mesh)
             early = problem  # the start, the continuation's steps and the search
-            if centres is not None and obs.samples > 1 and (last or (level == 0 and init == "grid")):
+            if centres is not None and obs.samples > 1 and (last or (level == 0 and init == "grid" and start is None)):
                 lay = _layout(centres, shape, wrap)
                 # the texels the centres see are free here (as in a fit of centres alone); texels only
                 # samples read keep their start until the samples' steps, and texels only centres read
@@ -446,7 +525,7 @@ def fit_observations(
                 compiler.prefetch(search_key, coordinate_search, x0, early, classes, *search_static)
             if early is not problem:
                 runner.prefetch(x0, problem, num_free)
-            if level == 0 and init == "grid":
+            if level == 0 and init == "grid" and start is None:
                 x0 = to_device(np.asarray(_timed(compiler, ("grid",) + _problem_key(early), grid_initialise, "init",
                                                  x0, early)), np.float32)
             xs, info = x0, None
@@ -546,7 +625,7 @@ def fit_observations(
         result.report["cg_rtol"] = float(cg_rtol)
     if footprint is not None:
         result.report["footprint"] = footprint
-    return result
+    return result, np.asarray(xs, np.float32)[:t_final]
 
 
 def _repair_skipped(solver, final, channels) -> Optional[str]:
@@ -1018,6 +1097,7 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     else:
         plain = dataclasses.replace(problem, loss="l2")
         resid = np.asarray(jax.jit(pixel_residuals)(xj, plain))[: obs.num_pixels]
+    resid = resid / np.asarray(obs.pixel_rows(obs.residual_weight))  # image units (weights are > 0)
     target = np.asarray(obs.pixel_rows(obs.target))
     values = resid + target
     vidx = np.asarray(obs.pixel_rows(obs.view_index))
@@ -1176,6 +1256,15 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             report's "uncertainty" entry gives the radius and the window used.
         devices: a sequence of JAX devices to split the pixels over (`pbrfit.sharding`); default
             None: the default device.
+        noise_level: "uniform" (default: every residual weighs alike, the likeliest fit where
+            the noise does not depend on the value) or "estimated" (`pbrfit.noise`: the first
+            fit's residuals give the noise level as a function of the value, σ(v), and a second
+            fit, started from the first, weighs each residual by σ_ref / σ(v̂) at the first
+            fit's value, σ_ref the median level; for noise that grows with the signal, at about
+            twice the cost). The report's "noise_level" entry gives the mode, and for
+            "estimated" the level function and the first fit's steps and loss; "final_loss" and
+            "residual_sigma" are then the weighted residuals' (in units of σ_ref), the PSNR the
+            images'.
         model: override the `Model` (default `model_for_capture`: the one that rendered the images).
         background_compile: compile the structured solver and the search for each problem in a
             background thread as soon as their shapes are known, overlapping the grid start and

@@ -12,8 +12,8 @@ at metallic 1), so
 For every candidate (m, r) we render each pixel with its slope in b (one forward-mode pass),
 solve the base colours of all texels jointly by linear least squares in linear radiance (the
 targets decoded from sRGB and the tone map; `_solve_base_joint`), score the candidate by the
-image-space residual of the pixels that read each texel, and keep each texel's best candidate.
-Channels held fixed keep their values. This costs one forward-mode render and a few
+image-space residual (times `Observations.residual_weight`) of the pixels that read each texel,
+and keep each texel's best candidate. Channels held fixed keep their values. This costs one forward-mode render and a few
 conjugate-gradient iterations per candidate; the structured solver refines from there.
 
 The base colours are solved jointly because a pixel averages four texels: solved texel by
@@ -221,7 +221,7 @@ def grid_initialise(x_fixed, problem: Problem):
         base_t = jnp.where(base_free, base_t, x_fixed[:, :3])
         b_p = sample_texels(jnp.concatenate([base_t, x_fixed[:, 3:]], axis=1), problem)[:, :3]
         value = encode(l0 + b_p * a, obs.exposure[:, None], obs.tonemap, obs.color_space)
-        err = jnp.sum((value - obs.target) ** 2, axis=1)
+        err = jnp.sum(((value - obs.target) * obs.residual_weight) ** 2, axis=1)
         score = _scatter((problem.weight * err[:, None])[:, :, None], problem)[:, 0]
         return base_t, score
 
@@ -374,7 +374,7 @@ def coordinate_search(x, problem: Problem, classes, rounds: int = 1, blend: bool
             # the class texel's base colour, times its weight `share`
             xb = trial(row[0], rough, base_t)
             value = encode(l0 + class_value(base_t) * a, obs.exposure[:, None], obs.tonemap, obs.color_space)
-            resid = robust_residual(value - obs.target, problem.loss, problem.loss_scale)
+            resid = robust_residual((value - obs.target) * obs.residual_weight, problem.loss, problem.loss_scale)
             return base_t, _texel_scores(jnp.sum(resid * resid, axis=1), problem) + _prior_scores(xb, problem)
 
         bases, scores = jax.lax.map(candidate, cands)

@@ -45,8 +45,8 @@ __all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "observations_from_vie
 #: Largest n of n × n samples per pixel (`observations_from_capture`): memory and time grow as n².
 MAX_PIXEL_SAMPLES = 4
 #: The per-pixel fields of `Observations` (leading axis: rows, P × samples).
-PIXEL_FIELDS = ("normal", "tangent", "view", "light_l", "light_radiance", "uv", "exposure", "target", "view_index",
-                "pixel")
+PIXEL_FIELDS = ("normal", "tangent", "view", "light_l", "light_radiance", "uv", "exposure", "target",
+                "residual_weight", "view_index", "pixel")
 
 
 class Observations(eqx.Module):
@@ -63,6 +63,9 @@ class Observations(eqx.Module):
         exposure: (P,) exposure in EV of the pixel's frame.
         target: (P, 3) the image's values (linear, or sRGB-encoded display values when
             ``color_space == "srgb"``, i.e. the space residuals are taken in).
+        residual_weight: (P, 3) the factor on each value's residual: σ_ref / σ_p for a noise level
+            σ_p that depends on the value (`pbrfit.noise`), 1 where the noise is uniform (the
+            default: plain least squares).
         view_index: (P,) which view each pixel belongs to.
         pixel: (P,) flat pixel index in its view.
         shapes: (H, W) of each view (static).
@@ -78,6 +81,7 @@ class Observations(eqx.Module):
     uv: Float[Array, "P 2"]
     exposure: Float[Array, " P"]
     target: Float[Array, "P 3"]
+    residual_weight: Float[Array, "P 3"]
     view_index: Int[Array, " P"]
     pixel: Int[Array, " P"]
     shapes: tuple = eqx.field(static=True)
@@ -172,6 +176,7 @@ def observations_from_views(
         parts["uv"].append(np.asarray(vi.uv)[rows])
         parts["exposure"].append(np.full(rows.shape[0], ev, np.float32))
         parts["target"].append(img[pix[rows]])
+        parts["residual_weight"].append(np.ones((rows.shape[0], 3), np.float32))
         parts["view_index"].append(np.full(rows.shape[0], k, np.int32))
         parts["pixel"].append(pix[rows].astype(np.int32))
     cat = {k: np.concatenate(v, axis=0) for k, v in parts.items()}

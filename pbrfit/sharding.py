@@ -21,7 +21,8 @@ samples per pixel, so that no pixel's samples straddle two devices). `pad_observ
 inert pixels: normal +z, view -z (so n·v = -1 < 0, where `pbrfit.render.shade` returns exactly 0 for
 the punctual lights and the split-sum environment alike, through a `jnp.where` whose forward-
 mode tangent is exactly 0 too), lights of zero radiance along +x (n·l = 0, v·l = 0: no
-singular half vector even in the branch `where` discards), uv 0, exposure 0 and target 0.
+singular half vector even in the branch `where` discards), uv 0, exposure 0, target 0 and
+residual weight 0.
 Every tone map and both colour spaces send radiance 0 to 0 (`pbrfit.color.encode`; the
 ACES Hill fit maps 0 slightly below 0 and clips), and every robust loss keeps r = 0 at 0, so a
 padded pixel's residual and Jacobian are exactly zero: E(x), its gradient and the normal
@@ -89,7 +90,7 @@ def _padded_pixel_fields(obs: Observations, multiple: int) -> dict:
     if extra == 0:
         return {}
     fills = dict(normal=PAD_NORMAL, tangent=PAD_TANGENT, view=PAD_VIEW, light_l=PAD_LIGHT, light_radiance=0.0, uv=0.0, exposure=0.0,
-                 target=0.0, view_index=-1, pixel=-1)
+                 target=0.0, residual_weight=0.0, view_index=-1, pixel=-1)
     return {name: _append(getattr(obs, name), extra, fills[name]) for name in PIXEL_FIELDS}
 
 

@@ -3,10 +3,12 @@
 Objective (images' own space, see `pbrfit.observations`), for texel values x (T, K), K = 5
 channels (`pbrfit.parameters`), or 7 when tangent-space normals are fitted too:
 
-    E(x) = 1/2 Σ_p ||ρ̃(encode(shade(m_p(x))) - target_p)||² + smooth/2 Σ_(a,b) ||x_a - x_b||²
+    E(x) = 1/2 Σ_p ||ρ̃(w_p ⊙ (encode(shade(m_p(x))) - target_p))||² + smooth/2 Σ_(a,b) ||x_a - x_b||²
 
 where m_p(x) = Σ_k w_pk x_(t_pk) is the bilinear sample of pixel p (four texels t_pk, weights
-w_pk) and ρ̃ the residual transform of the robust loss (identity for "l2"). With S samples per
+w_pk), w_p the pixel's residual weights (`Observations.residual_weight`: 1, or the inverse of a
+noise level that depends on the value, `pbrfit.noise`) and ρ̃ the residual transform of the
+robust loss (identity for "l2"). With S samples per
 pixel (`pbrfit.observations`, pixel footprints) shade(m_p(x)) becomes the mean linear radiance
 of the pixel's samples, 1/S Σ_s shade_s(m_ps(x)), each sample s with its own geometry and its
 own four texels.
@@ -161,16 +163,18 @@ def _sample_radiance(m, normal, tangent, view, light_l, light_radiance, *lobes, 
     )[0]
 
 
-def _value_residual(rad, exposure, target, problem: Problem):
-    """Residual (3,) of one pixel from its (mean) linear radiance (3,)."""
+def _value_residual(rad, exposure, target, residual_weight, problem: Problem):
+    """Residual (3,) of one pixel from its (mean) linear radiance (3,), weighted by the inverse of
+    its noise level (`Observations.residual_weight`) before the robust loss."""
     obs = problem.obs
     value = encode(rad, exposure, obs.tonemap, obs.color_space)
-    return robust_residual(value - target, problem.loss, problem.loss_scale)
+    return robust_residual((value - target) * residual_weight, problem.loss, problem.loss_scale)
 
 
-def _pixel_residual(m, exposure, target, *sample_args, problem: Problem):
+def _pixel_residual(m, exposure, target, residual_weight, *sample_args, problem: Problem):
     """Residual (3,) of a pixel shaded at one sample from its sampled (K,) material values."""
-    return _value_residual(_sample_radiance(m, *sample_args, problem=problem), exposure, target, problem)
+    return _value_residual(_sample_radiance(m, *sample_args, problem=problem), exposure, target, residual_weight,
+                           problem)
 
 
 def _sample_args(problem: Problem):
@@ -180,9 +184,15 @@ def _sample_args(problem: Problem):
     return args + ((problem.ibl.table,) if problem.model.ibl == "per_pixel" else ())
 
 
+def _value_args(obs: Observations):
+    """Per-pixel arguments of `_value_residual` after the radiance (each pixel's first sample row)."""
+    return obs.pixel_rows(obs.exposure), obs.pixel_rows(obs.target), obs.pixel_rows(obs.residual_weight)
+
+
 def _pixel_args(problem: Problem):
     """Per-row arguments of `_pixel_residual` after the material values."""
-    return (problem.obs.exposure, problem.obs.target) + _sample_args(problem)
+    obs = problem.obs
+    return (obs.exposure, obs.target, obs.residual_weight) + _sample_args(problem)
 
 
 def _by_pixel(a, problem: Problem):
@@ -210,8 +220,8 @@ def pixel_residuals(x: Float[Array, "T K"], problem: Problem) -> Float[Array, "P
     rad = jax.vmap(lambda mm, *a: _sample_radiance(mm, *a, problem=problem))(m, *_sample_args(problem))
     obs = problem.obs
     mean = jnp.mean(_by_pixel(rad, problem), axis=1)
-    f = jax.vmap(lambda rr, e, t: _value_residual(rr, e, t, problem))
-    return f(mean, obs.pixel_rows(obs.exposure), obs.pixel_rows(obs.target))
+    f = jax.vmap(lambda rr, e, t, w: _value_residual(rr, e, t, w, problem))
+    return f(mean, *_value_args(obs))
 
 
 def _smooth_residuals(x, problem: Problem):
@@ -254,9 +264,8 @@ def _linearize_samples(m, problem: Problem):
     sample = lambda mm, *a: _value_and_jacfwd(lambda v: _sample_radiance(v, *a, problem=problem), mm)  # noqa: E731
     rad, jrad = jax.vmap(sample)(m, *_sample_args(problem))
     mean = jnp.mean(_by_pixel(rad, problem), axis=1)
-    pixel = lambda rr, e, t: _value_and_jacfwd(lambda v: _value_residual(v, e, t, problem), rr)  # noqa: E731
-    obs = problem.obs
-    r, jenc = jax.vmap(pixel)(mean, obs.pixel_rows(obs.exposure), obs.pixel_rows(obs.target))
+    pixel = lambda rr, e, t, w: _value_and_jacfwd(lambda v: _value_residual(v, e, t, w, problem), rr)  # noqa: E731
+    r, jenc = jax.vmap(pixel)(mean, *_value_args(problem.obs))
     jac = jnp.einsum("pab,psbk->psak", jenc, _by_pixel(jrad, problem), precision=lax.Precision.HIGHEST)
     return r, jac.reshape(jrad.shape) / problem.samples
 

@@ -49,6 +49,34 @@ def test_fit_writes_the_spec_output(capture, tmp_path, monkeypatch):
     assert plot.shape == (320, 520, 3) and plot.min() < 0.5 < plot.max()  # drawn, not blank
 
 
+def test_fit_with_an_estimated_noise_level(capture, tmp_path, monkeypatch, capsys):
+    """Two fits, the second weighted by the first's noise level: report.json says so, the summary
+    line too. On sRGB images the first fit chooses the pixel footprint, and the second keeps it."""
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    noisy = tmp_path / "noisy"
+    assert main(["synth", "peer-plane", "--out", str(noisy), "--size", "32", "--views", "3", "--texture-size", "8",
+                 "--noise", "0.02", "--noise-model", "relative", "--format", "png16", "--quiet"]) == 0
+    out = tmp_path / "out"
+    assert main(["fit", str(noisy), "--out", str(out), "--resolution", "8", "--max-steps", "8",
+                 "--noise-level", "estimated"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    level = report["noise_level"]
+    assert level["mode"] == "estimated" and len(level["sigma"]) == len(level["values"]) >= 1
+    assert report["steps"] > level["first_fit"]["steps"] > 0
+    assert report["footprint"]["selected"] in (1, 2) and report["pixel_samples"] == report["footprint"]["selected"]
+    assert "weighted by the estimated noise level" in capsys.readouterr().out
+    assert max(report["truth_rmse"].values()) < 0.1, report["truth_rmse"]
+
+
+def test_noise_level_option_reaches_the_fit():
+    from pbrfit.cli import _fit_options, build_parser
+
+    def options(*extra):
+        return _fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
+
+    assert options()["noise_level"] == "uniform" and options("--noise-level", "estimated")["noise_level"] == "estimated"
+
+
 def test_fit_with_normals_writes_normal_png(capture, tmp_path, monkeypatch):
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
     out = tmp_path / "out"
@@ -160,6 +188,7 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--metallic", "0.5", "--fit", "metallic,roughness"], "--fit: lists metallic, which --metallic holds fixed"),
         (["--resolution", "abc"], "argument --resolution: invalid int value: 'abc'"),
         (["--solver", "bogus"], "argument --solver: invalid choice: 'bogus'"),
+        (["--noise-level", "poisson"], "argument --noise-level: invalid choice: 'poisson'"),
         (["--cache", "__FILE__"], "exists and is not a folder"),
         (["--ibl", "per_pixel", "--fit", "base_color,normal"], "--ibl per_pixel: fitted normals need --ibl split_sum"),
         (["--ibl", "per_pixel", "--ibl-samples", "0"], "--ibl-samples: must be >= 1, got 0"),
@@ -422,6 +451,17 @@ def test_loss_history_keeps_the_kept_footprint_only():
         dict(step=0, loss=9.0), dict(step=1, loss=5.0), dict(step=2, loss=2.0)]
     assert [h["loss"] for h in _loss_history(steps, dict(footprint=dict(selected=1)))] == [9.0, 5.0, 4.0, 3.0]
     assert [h["loss"] for h in _loss_history(steps[:2], {})] == [9.0, 5.0]
+
+
+def test_loss_history_keeps_the_weighted_fit_only():
+    from pbrfit.cli import _loss_history
+
+    steps = [dict(loss=9.0), dict(loss=5.0, footprint=1), dict(loss=4.0, footprint=2), dict(loss=3.0, repair=1),
+             dict(loss=2.5, weighted=True), dict(loss=2.0, weighted=True, repair=1)]
+    report = dict(footprint=dict(selected=2), repair=dict(passes=[dict(kept=True)]))
+    assert [h["loss"] for h in _loss_history(steps, report)] == [2.5, 2.0]
+    assert [h["step"] for h in _loss_history(steps, report)] == [0, 1]
+    assert [h["loss"] for h in _loss_history(steps[:4], report)] == [9.0, 4.0, 3.0]
 
 
 def test_loss_history_keeps_kept_repair_passes_only():

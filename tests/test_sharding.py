@@ -64,6 +64,7 @@ def _problem(pixels=PIXELS, tonemap="none", color_space="linear", loss="l2", mod
         uv=jnp.asarray(rng.random((pixels, 2)), jnp.float32),
         exposure=jnp.asarray(rng.choice([-0.5, 0.0, 0.5], pixels), jnp.float32),
         target=jnp.asarray(rng.random((pixels, 3)), jnp.float32),
+        residual_weight=jnp.asarray(rng.uniform(0.5, 2.0, (pixels, 3)), jnp.float32),
         view_index=jnp.asarray(np.arange(pixels) % views, jnp.int32),
         pixel=jnp.asarray(np.arange(pixels) // views, jnp.int32),
         shapes=((1, -(-pixels // views)),) * views,
