@@ -140,7 +140,7 @@ def _add_synth(sub) -> None:
     p.add_argument("--ibl", choices=("split_sum", "monte_carlo"), default="split_sum",
                    help="environment light: split_sum (default; pbrfit's renderer) or monte_carlo (the reference "
                         "integrator: ground truth, as a path tracer renders it)")
-    p.add_argument("--ibl-samples", type=int, default=1024, help="monte_carlo: sample steps per pixel sample (default 1024)")
+    p.add_argument("--ibl-samples", type=int, help="monte_carlo: sample steps per pixel sample (default 1024)")
     p.add_argument("--quiet", action="store_true", help="print nothing on success")
 
 
@@ -163,6 +163,10 @@ def _cmd_synth(args) -> int:
             raise CaptureError(f"--{name.replace('_', '-')}: must be at most {high}, got {value}")
     if args.noise is not None and not (math.isfinite(args.noise) and args.noise >= 0):
         raise CaptureError(f"--noise: must be a finite number >= 0, got {args.noise}")
+    if args.ibl_samples is not None and args.ibl != "monte_carlo":
+        raise CaptureError("--ibl-samples: only --ibl monte_carlo uses it")
+    if args.mesh is not None and args.shape is not None:
+        raise CaptureError("--shape: --mesh gives the mesh already; give one of the two")
     out = Path(args.out)
     check_output_dir(out, "capture")
     overrides = dict(
@@ -171,8 +175,11 @@ def _cmd_synth(args) -> int:
         mesh=args.mesh, shape=args.shape,
     )  # fmt: skip
     scene = make_scene(args.preset, args.seed, **overrides)
-    if args.ibl == "monte_carlo" and scene.model.ibl is not None:
-        scene = scene.replace(model=scene.model.replace(ibl="monte_carlo"), mc_samples=args.ibl_samples)
+    if args.ibl == "monte_carlo":
+        if scene.model.ibl is None:
+            raise CaptureError(f"--ibl monte_carlo: preset {args.preset} has no environment light to integrate")
+        samples = 1024 if args.ibl_samples is None else args.ibl_samples
+        scene = scene.replace(model=scene.model.replace(ibl="monte_carlo"), mc_samples=samples)
     result = synthesize(scene, out)
     if not args.quiet:
         h, w = scene.truth.shape

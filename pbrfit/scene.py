@@ -117,6 +117,8 @@ _MIN_UNPREMULTIPLY_ALPHA = 1.0 / 256.0
 _AFFINE_ROW_TOL = 1e-6
 #: The largest |cos| between two camera axes (columns of the rotation, normalised) taken as perpendicular.
 _ORTHONORMAL_TOL = 1e-3
+#: Camera axes whose lengths are within this of 1 are taken as they are (not renormalised).
+_UNIT_TOL = 1e-9
 #: The largest |exposure| in EV a frame may have: 2^64 ≈ 1.8e19 leaves float32 room for the radiance.
 MAX_EXPOSURE = 64.0
 
@@ -319,8 +321,9 @@ def _matrix(frame: Mapping, where: str) -> np.ndarray:
     if np.linalg.det(axes) < 0:
         raise CaptureError(f"{_loc(where, 'transform_matrix')}: the camera's axes are mirrored (a left-handed "
                            "frame); expected +X right, +Y up, looking down -Z")
-    m = m.copy()
-    m[:3, :3] = axes
+    if np.max(np.abs(norms - 1.0)) > _UNIT_TOL:  # (a unit frame as given: its values unchanged)
+        m = m.copy()
+        m[:3, :3] = axes
     return m
 
 

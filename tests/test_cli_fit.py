@@ -107,8 +107,13 @@ def test_uniform_fit_writes_one_texel_maps(capture, tmp_path, monkeypatch):
     assert report["material"]["roughness"] == pytest.approx(0.5) and report["material_sigma"]["roughness"] == 0.0
     assert 0.0 <= report["material"]["metallic"] <= 1.0 and report["material_sigma"]["base_color"][0] > 0.0
     assert report["held"] == {"roughness": {"source": "value", "value": 0.5}}
-    # a second fit to the same folder replaces the first (it holds report.json)
+    # a second fit to the same folder replaces the first, files the first wrote and this one does
+    # not included (as the marker lists them), but not a file someone saved into it since
+    marker = out / ".pbrfit-output"
     (out / "stale.txt").write_text("from the first fit")
+    assert main(["fit", str(capture), "--out", str(out), "--maps", "none", "--quiet"]) == 2
+    assert (out / "stale.txt").is_file()
+    marker.write_text(marker.read_text() + "stale.txt\n")
     assert main(["fit", str(capture), "--out", str(out), "--maps", "none", "--quiet"]) == 0
     assert not (out / "stale.txt").exists() and (out / "report.json").is_file()
     assert json.loads((out / "report.json").read_text())["held"] == {}

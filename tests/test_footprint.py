@@ -16,7 +16,7 @@ import pytest
 from pbrfit.fit import PROBE_STEPS, SEARCH_AFTER, fit, map_rmse, model_for_capture
 from pbrfit.gbuffer import Camera, compute_gbuffer
 from pbrfit.io import read_material
-from pbrfit.observations import coverage_counts, observations_from_capture, pixel_offsets, texel_layout
+from pbrfit.observations import PIXEL_FIELDS, coverage_counts, observations_from_capture, pixel_offsets, texel_layout
 from pbrfit.scene import load_capture
 from pbrfit.sharding import pad_observations, pad_pixel_rows
 from pbrfit.solvers import (NEIGHBOUR_OFFSETS, Problem, gauss_newton_factors, gn_product, gradient, linearize,
@@ -89,9 +89,7 @@ def test_structure_is_exact_with_samples(capture, loss):
     taps' Jacobians summed per texel before squaring."""
     obs = observations_from_capture(capture, pixel_samples=2)
     keep = np.flatnonzero(np.asarray(obs.view_index) == 0)[: 4 * 60]
-    obs = dataclasses.replace(obs, **{k: getattr(obs, k)[keep] for k in
-                                      ("normal", "tangent", "view", "light_l", "light_radiance", "uv", "exposure",
-                                       "target", "view_index", "pixel")})
+    obs = dataclasses.replace(obs, **{k: getattr(obs, k)[keep] for k in PIXEL_FIELDS})
     problem = _problem(obs, capture, loss)
     t = problem.num_texels
     x = jnp.asarray(np.random.default_rng(0).uniform(0.1, 0.9, (t, 5)), jnp.float32)
@@ -129,9 +127,7 @@ def test_neighbour_blocks_are_those_of_the_dense_matrix(capture, samples, shape,
     against the dense Jacobian: with 2 × 2 samples the taps of different samples pair up too."""
     obs = observations_from_capture(capture, pixel_samples=samples)
     keep = np.flatnonzero(np.asarray(obs.view_index) == 0)[: samples * samples * 150]
-    obs = dataclasses.replace(obs, **{k: getattr(obs, k)[keep] for k in
-                                      ("normal", "tangent", "view", "light_l", "light_radiance", "uv", "exposure",
-                                       "target", "view_index", "pixel")})
+    obs = dataclasses.replace(obs, **{k: getattr(obs, k)[keep] for k in PIXEL_FIELDS})
     t = shape[0] * shape[1]
     layout = texel_layout(obs, shape, wrap)
     problem = dataclasses.replace(_problem(obs, capture), index=layout.index, weight=layout.weight,

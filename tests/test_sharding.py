@@ -26,7 +26,7 @@ from jax.sharding import PartitionSpec
 from pbrfit.color import COLOR_SPACES, TONEMAPS, encode
 from pbrfit.ibl import IBLTables
 from pbrfit.model import Model
-from pbrfit.observations import Observations, coverage_counts, neighbour_pairs, texel_layout
+from pbrfit.observations import PIXEL_FIELDS, Observations, coverage_counts, neighbour_pairs, texel_layout
 from pbrfit.render import shade
 from pbrfit.sharding import (PAD_LIGHT, PAD_NORMAL, PAD_VIEW, PIXEL_AXIS, pad_layout, pad_observations, pad_pixel_rows,
                              padded_size, pixel_mesh, shard_problem)
@@ -64,7 +64,7 @@ def _problem(pixels=PIXELS, tonemap="none", color_space="linear", loss="l2", mod
         uv=jnp.asarray(rng.random((pixels, 2)), jnp.float32),
         exposure=jnp.asarray(rng.choice([-0.5, 0.0, 0.5], pixels), jnp.float32),
         target=jnp.asarray(rng.random((pixels, 3)), jnp.float32),
-        residual_weight=jnp.asarray(rng.uniform(0.5, 2.0, (pixels, 3)), jnp.float32),
+        residual_weight=jnp.ones((pixels, 3), jnp.float32),
         view_index=jnp.asarray(np.arange(pixels) % views, jnp.int32),
         pixel=jnp.asarray(np.arange(pixels) // views, jnp.int32),
         shapes=((1, -(-pixels // views)),) * views,
@@ -238,6 +238,18 @@ def _multi_device_report() -> dict:
         residual_diff=float(jnp.max(jnp.abs(r[:real] - r_sh[:real]))),
         padded_residual=float(jnp.max(jnp.abs(r_sh[real:]))), padded_jacobian=float(jnp.max(jnp.abs(jac_sh[real:]))),
     )
+    # residual weights (`pbrfit.noise`) go with their pixels; padded pixels' are 0
+    w = jnp.asarray(np.random.default_rng(7).uniform(0.2, 5.0, (real, 3)), jnp.float32)
+    weighted = dataclasses.replace(problem, obs=dataclasses.replace(problem.obs, residual_weight=w))
+    lin = jax.jit(linearize)
+    r_w, jac_w, _ = lin(x, weighted)
+    r_w_sh, jac_w_sh, _ = lin(x, shard_problem(weighted, mesh))
+    out.update(
+        weighted_residual_diff=float(jnp.max(jnp.abs(r_w - r_w_sh[:real]))),
+        weighted_jacobian_diff=float(jnp.max(jnp.abs(jac_w - jac_w_sh[:real]))),
+        weighted_scale_diff=float(jnp.max(jnp.abs(r_w - w * r))),
+        weighted_padded=float(jnp.max(jnp.abs(r_w_sh[real:]))),
+    )
     blocks = jax.jit(normal_blocks)(jac, problem)
     blocks_sh = jax.jit(normal_blocks)(jac_sh, sharded)
     out["blocks_rel_diff"] = float(jnp.max(jnp.abs(blocks - blocks_sh)) / jnp.max(jnp.abs(blocks)))
@@ -258,8 +270,7 @@ def _multi_device_report() -> dict:
     # Four samples per pixel: whole pixels per device (rows padded to 4 x 4 x 251), same fit.
     base = problem.obs
     jitter = np.tile([[-0.01, -0.01], [0.01, -0.01], [-0.01, 0.01], [0.01, 0.01]], (base.num_pixels, 1))
-    rows = {name: np.repeat(np.asarray(getattr(base, name)), 4, axis=0) for name in
-            ("normal", "tangent", "view", "light_l", "light_radiance", "uv", "exposure", "target", "view_index", "pixel")}
+    rows = {name: np.repeat(np.asarray(getattr(base, name)), 4, axis=0) for name in PIXEL_FIELDS}
     rows["uv"] = rows["uv"] + jitter.astype(np.float32)
     sampled = dataclasses.replace(base, samples=4, **{k: jnp.asarray(v) for k, v in rows.items()})
     layout = texel_layout(sampled, MAP)
@@ -322,6 +333,8 @@ def test_structured_lm_sharded_over_four_cpu_devices():
     np.testing.assert_allclose(rep["objective"], rep["loss"][0], rtol=1e-5)
     assert rep["residual_spec"] == rep["want_spec"] and rep["residual_rows"] == 1004, rep
     assert rep["residual_diff"] <= 1e-5 and rep["padded_residual"] == 0.0 and rep["padded_jacobian"] == 0.0, rep
+    assert rep["weighted_residual_diff"] <= 1e-5 and rep["weighted_jacobian_diff"] <= 1e-4, rep
+    assert rep["weighted_scale_diff"] <= 1e-5 and rep["weighted_padded"] == 0.0, rep
     assert rep["blocks_rel_diff"] <= 3e-5, rep  # each at its own run's final x (x_diff apart)
     assert rep["search_diff"] <= 1e-5, rep
     assert rep["fit_devices"] == DEVICES, rep

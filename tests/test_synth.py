@@ -432,6 +432,8 @@ def test_cli_synth_writes_and_refuses_bad_input(tmp_path, capsys):
                            (["--views", "100000000"], "--views: must be at most 1024"),
                            (["--supersample", "100000"], "--supersample: must be at most 16"),
                            (["--noise", "inf"], "--noise: must be a finite number >= 0, got inf"),
+                           (["--ibl-samples", "64"], "--ibl-samples: only --ibl monte_carlo uses it"),
+                           (["--ibl", "monte_carlo"], "--ibl monte_carlo: preset peer-plane has no environment"),
                            (["--out", str(tmp_path / "c" / "capture.json" / "x")], "capture.json is not a folder")):
         assert main(["synth", "peer-plane", "--out", str(tmp_path / "x"), *extra]) == 2
         err = capsys.readouterr().err.strip().splitlines()
@@ -463,4 +465,7 @@ def test_cli_synth_writes_and_refuses_bad_input(tmp_path, capsys):
     assert (other / "precious.txt").read_text() == "keep" and len(list(other.iterdir())) == 1
     assert main(["synth", "mesh-env", "--out", str(tmp_path / "m"), "--mesh", str(tmp_path / "none.obj")]) == 2
     assert not (tmp_path / "m").exists()
+    capsys.readouterr()
+    assert main(["synth", "mesh-env", "--out", str(tmp_path / "m"), "--mesh", "a.obj", "--shape", "box"]) == 2
+    assert "--shape: --mesh gives the mesh already" in capsys.readouterr().err and not (tmp_path / "m").exists()
 
