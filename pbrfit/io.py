@@ -310,15 +310,43 @@ def _info(path: Path, spec, file_format: str) -> ImageInfo:
     )
 
 
-def _open_image(path: Path, where: str | None):
+@contextlib.contextmanager
+def _held_stderr(sink: list) -> Iterator[None]:
+    """Hold what C libraries write to the process's standard error (file descriptor 2) meanwhile,
+    and append it to `sink`: libpng prints "libpng error: ..." itself before OpenImageIO reports
+    the failure, which pbrfit words as one line of its own. Where standard error has no file
+    descriptor (a test's capture), nothing is held."""
+    import sys
+
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):
+        yield
+        return
+    sys.stderr.flush()
+    saved = os.dup(fd)
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), fd)
+        try:
+            yield
+        finally:
+            os.dup2(saved, fd)
+            os.close(saved)
+            held.seek(0)
+            sink.append(held.read().decode("utf-8", "replace"))
+
+
+def _open_image(path: Path, where: str | None, printed: Optional[list] = None):
     """An open OpenImageIO ImageInput (alpha unassociated), or `CaptureError` naming the file."""
     oiio = _oiio()
     prefix = f"{where}: " if where else ""
     if not path.is_file():
         raise CaptureError(f"{prefix}image file not found: {path}")
-    inp = oiio.ImageInput.open(str(path), _unassociated_config())
+    printed = [] if printed is None else printed
+    with _held_stderr(printed):
+        inp = oiio.ImageInput.open(str(path), _unassociated_config())
     if inp is None:
-        raise CaptureError(f"{prefix}cannot read image {path}: {_first_line(oiio.geterror())}")
+        raise CaptureError(f"{prefix}cannot read image {path}: {_first_line(oiio.geterror() or ''.join(printed))}")
     return inp
 
 
@@ -342,16 +370,19 @@ def read_image(path: str | os.PathLike, where: str | None = None) -> tuple[np.nd
     oiio = _oiio()
     path = Path(path)
     prefix = f"{where}: " if where else ""
-    inp = _open_image(path, where)
+    printed = []  # what the format's library printed itself (libpng: "libpng error: ...")
+    inp = _open_image(path, where, printed)
     try:
         spec = inp.spec()
-        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        with _held_stderr(printed):
+            pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
         error = inp.geterror()
         file_format = inp.format_name()
     finally:
         inp.close()
     if pixels is None or not isinstance(pixels, np.ndarray) or pixels.size == 0:
-        raise CaptureError(f"{prefix}cannot read image {path}: {_first_line(error or oiio.geterror())}")
+        raise CaptureError(f"{prefix}cannot read image {path}: "
+                           f"{_first_line(error or oiio.geterror() or ''.join(printed))}")
     pixels = np.asarray(pixels, dtype=np.float32)
     if pixels.ndim == 2:
         pixels = pixels[:, :, None]
@@ -537,7 +568,13 @@ def read_map(directory: str | os.PathLike, name: str) -> np.ndarray:
         raise CaptureError(f"material folder not found: {directory}")
     exr, png = directory / f"{name}.exr", directory / ("base_color.png" if name == "base_color" else "metallic_roughness.png")
     if exr.is_file():
-        pixels = _read_whole_exr(exr)
+        pixels, info = _read_whole_exr(exr)
+        if name != "base_color":  # one channel; a grey RGB(A) one holds it in each colour channel alike
+            colour = [c for c in range(pixels.shape[-1]) if c != info.alpha_channel][:3]
+            if len(colour) > 1 and not np.array_equal(pixels[..., colour], np.repeat(pixels[..., colour[:1]],
+                                                                                      len(colour), axis=-1)):
+                raise CaptureError(f"{exr}: {name} must be one channel; found {pixels.shape[-1]} channels that "
+                                   "differ (channels " + ", ".join(info.channel_names) + ")")
         values, source = (_channels(pixels, 3, exr) if name == "base_color" else pixels[..., :1]), exr
     elif png.is_file():
         pixels = _channels(read_image(png)[0], 3, png)
@@ -551,13 +588,14 @@ def read_map(directory: str | os.PathLike, name: str) -> np.ndarray:
     return _checked_map(values, source, name)
 
 
-def _read_whole_exr(path: Path) -> np.ndarray:
-    """A material map's OpenEXR pixels; a cropped one (data window inside the display window) is refused."""
+def _read_whole_exr(path: Path) -> tuple[np.ndarray, ImageInfo]:
+    """A material map's OpenEXR pixels and info; a cropped one (data window inside the display
+    window) is refused."""
     pixels, info = read_image(path)
     if info.data_window is not None:
         raise CaptureError(f"{path}: the data window does not fill the display window (a cropped OpenEXR); "
                            "write the whole texture")
-    return pixels
+    return pixels, info
 
 
 def _checked_map(values: np.ndarray, source: Path, name: str, top: Optional[float] = 1.0) -> np.ndarray:
@@ -592,10 +630,10 @@ def read_material(directory: str | os.PathLike):
     occlusion = emissive = None
     if has("occlusion.exr"):
         path = directory / "occlusion.exr"
-        occlusion = _checked_map(_read_whole_exr(path)[..., :1], path, "occlusion")
+        occlusion = _checked_map(_read_whole_exr(path)[0][..., :1], path, "occlusion")
     if has("emissive.exr"):  # linear radiance: no upper bound
         path = directory / "emissive.exr"
-        emissive = _checked_map(_channels(_read_whole_exr(path), 3, path), path, "emissive", top=None)
+        emissive = _checked_map(_channels(_read_whole_exr(path)[0], 3, path), path, "emissive", top=None)
     return Material(
         base_color=base, metallic=metallic, roughness=roughness,
         normal=normal, occlusion=occlusion, emissive=emissive,

@@ -274,6 +274,30 @@ def test_fit_missing_capture_exits_2(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_a_truncated_png_is_one_line_of_error(tmp_path):
+    """libpng prints its own "libpng error: ..." to the process's standard error before
+    OpenImageIO fails: the command's error stays one line (its own, naming the file)."""
+    import os
+    import subprocess
+    import sys
+
+    cap = tmp_path / "cap"
+    assert main(["synth", "peer-plane", "--out", str(cap), "--size", "16", "--views", "1", "--texture-size", "4",
+                 "--format", "png8", "--quiet"]) == 0
+    frame = cap / json.loads((cap / "capture.json").read_text())["frames"][0]["file_path"]
+    data = frame.read_bytes()
+    frame.write_bytes(data[: len(data) // 2])
+    out = tmp_path / "out"
+    env = dict(os.environ, PBRFIT_CACHE=str(tmp_path / "cache"))
+    proc = subprocess.run([sys.executable, "-c", "import sys; from pbrfit.cli import main; sys.exit(main())",
+                           "fit", str(cap), "--out", str(out), "--quiet"],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 2, proc.stderr
+    err = proc.stderr.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pbrfit: error: ") and str(frame) in err[0], proc.stderr
+    assert not out.exists()
+
+
 def test_fit_a_capture_mixing_exr_and_png_frames(tmp_path, monkeypatch):
     # color space by file type, frame by frame (the spec's default): two of four frames re-saved
     # as 16-bit sRGB PNGs; the maps are still recovered exactly

@@ -299,6 +299,17 @@ def test_read_map_refuses_non_finite_and_out_of_range_values(tmp_path):
         read_map(tmp_path, "base_color")
 
 
+def test_read_map_takes_a_grey_rgb_map_and_refuses_one_whose_channels_differ(tmp_path):
+    grey = np.full((2, 3, 3), 0.3, np.float32)
+    write_image(tmp_path / "roughness.exr", grey)
+    np.testing.assert_array_equal(read_map(tmp_path, "roughness"), grey[..., :1])
+    grey[0, 0, 2] = 0.7
+    write_image(tmp_path / "roughness.exr", grey)
+    with pytest.raises(CaptureError, match="roughness.exr: roughness must be one channel; found 3 channels that "
+                                           r"differ \(channels R, G, B\)"):
+        read_map(tmp_path, "roughness")
+
+
 def test_read_map_reads_one_map_alone(tmp_path):
     # --metallic-from DIR: a folder holding only metallic.exr is enough
     write_image(tmp_path / "metallic.exr", np.full((2, 3, 1), 0.25, np.float32))
