@@ -110,8 +110,9 @@ IMAGE_SUFFIXES = (".exr", ".hdr", ".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bm
 _TRY_SUFFIXES = (".png", ".exr")
 _LINEAR_FORMATS = ("openexr", "hdr")
 _SRGB_FORMATS = ("png", "jpeg")
-# Premultiplied colour is divided by alpha only from this coverage up: below it the colour holds
-# too little of the surface to recover (and the division could overflow float32).
+# Premultiplied integer colour (a TIFF's) is divided by alpha only from this coverage up: below
+# it the colour's few codes hold too little of the surface to recover. Float colour (OpenEXR)
+# is divided wherever alpha is nonzero, the spec's "nonzero = use the pixel".
 _MIN_UNPREMULTIPLY_ALPHA = 1.0 / 256.0
 # The last row of a camera-to-world matrix must be (0, 0, 0, 1) to this tolerance.
 _AFFINE_ROW_TOL = 1e-6
@@ -444,9 +445,10 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
     camera = _camera(raw, frame_raw, c2w, width, height, where, name, file_path)
 
     rgb = _rgb(pixels, info, f"{where}.file_path")
+    least_alpha = _MIN_UNPREMULTIPLY_ALPHA if info.is_ldr else float(np.finfo(np.float32).tiny)
     if info.associated_alpha:  # premultiplied (EXR): partly covered pixels get the surface's color back
         alpha = pixels[..., info.alpha_channel : info.alpha_channel + 1]
-        partial = (alpha >= _MIN_UNPREMULTIPLY_ALPHA) & (alpha < 1.0)
+        partial = (alpha >= least_alpha) & (alpha < 1.0)
         rgb = np.where(partial, rgb / np.where(partial, alpha, 1.0), rgb).astype(np.float32)
     color_space = color_space_override or _default_color_space(info)
     saturated = np.zeros((height, width), bool)
@@ -468,8 +470,8 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
         mask_source = "file"
     elif info.alpha_channel is not None:
         alpha = pixels[..., info.alpha_channel]
-        # premultiplied colour under an alpha too small to divide by (above) stays darkened: not used
-        mask = alpha >= _MIN_UNPREMULTIPLY_ALPHA if info.associated_alpha else _nonzero(alpha)
+        # premultiplied integer colour under an alpha too small to divide by (above) stays darkened: not used
+        mask = alpha >= least_alpha if info.associated_alpha else _nonzero(alpha)
         mask_source = "alpha"
     else:
         mask_source = "none"

@@ -388,6 +388,7 @@ def test_premultiplied_exr_edge_pixels_are_unpremultiplied(tmp_path):
     alpha = np.ones((H, W, 1), np.float32)
     alpha[0] = 0.0
     alpha[1, :4] = 0.25  # partly covered: stored premultiplied, 0.6 * 0.25
+    alpha[2, :2] = 0.002  # barely covered, still "nonzero = use the pixel"
     root = _single_frame(tmp_path, "img.exr", np.concatenate([rgb * alpha, alpha], -1), "float")
     frame = load_capture(root).frames[0]
     np.testing.assert_allclose(frame.image[1:], 0.6, rtol=1e-6)
@@ -479,15 +480,18 @@ def test_mask_values_other_than_zero_use_the_pixel(tmp_path):
     assert not used[:, :2].any() and not used[0, 5] and used[1:, 2:].all()
 
 
-def test_premultiplied_alpha_too_small_to_divide_by_is_masked_out(tmp_path):
+def test_premultiplied_float_colour_is_used_under_any_nonzero_alpha(tmp_path):
+    """Float colour is divided by any nonzero alpha (the spec: nonzero = use the pixel); integer
+    colour (a premultiplied TIFF's) only from 1/256 up, below which its few codes hold no colour."""
     rgba = np.full((H, W, 4), 1.0, np.float32)
-    rgba[0, :, 3] = 1e-3  # below 1/256: its colour cannot be recovered
+    rgba[0, :, 3] = 1e-3
     rgba[0, :, :3] = 1e-3 * 0.5
     rgba[1, :, 3] = 0.5  # partly covered: the colour is divided by alpha
     rgba[1, :, :3] = 0.25
+    rgba[2, :, 3] = 0.0
     frame = load_capture(_single_frame(tmp_path, "img.exr", rgba, "float")).frames[0]
-    assert not frame.mask[0].any() and frame.mask[1:].all()
-    np.testing.assert_allclose(frame.image[1], 0.5)
+    assert frame.mask[:2].all() and not frame.mask[2].any() and frame.mask[3:].all()
+    np.testing.assert_allclose(frame.image[:2], 0.5, rtol=1e-6)
 
 
 def _write_cropped_exr(path, crop, origin, display):
