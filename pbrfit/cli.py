@@ -100,12 +100,13 @@ def _cmd_render(args) -> int:
         check_uv_layout(capture.mesh, f"{capture.json_path}: mesh")
     lights_json = load_lights_override(args.lights) if args.lights else None
     capture = apply_overrides(capture, args.environment, lights_json)
-    if capture.environment is None and not any(
+    emissive = getattr(material, "emissive", None)
+    if capture.environment is None and (emissive is None or not np.any(np.asarray(emissive) > 0)) and not any(
             float(light.intensity) * float(np.max(np.asarray(light.color))) > 0.0
             for frame in capture.frames for light in frame.lights):
         where = "--lights" if lights_json is not None else str(capture.json_path)
-        raise CaptureError(f"{where}: no light: no environment and every light is off, so every render would be "
-                           "black (give --lights or --environment)")
+        raise CaptureError(f"{where}: no light: no environment, every light is off and the material emits none, "
+                           "so every render would be black (give --lights or --environment)")
     renders = render_capture(capture, material, cache_dir=_cache_dir(args))
     write_rendered_capture(capture, renders, args.out, args.environment, lights_json)
     if not args.quiet:

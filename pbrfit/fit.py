@@ -359,22 +359,17 @@ def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
     σ_ref / σ(v̂) at the first fit's value v̂. The second fit runs the final level only, without
     the continuation (it starts in the first fit's basins) and on the pixel footprint the first
     chose; where that is several samples per pixel, its start and search run on the centres,
-    weighted at the level of their targets. Executables compiled for the first fit serve the
-    second. The report is the second fit's, with both fits' steps and times, and a
-    "noise_level" entry: the level function and the first fit's steps, loss and residual σ."""
+    weighted at the first fit's values too (at their targets' level where a centre's samples
+    were not all on the mesh). Executables compiled for the first fit serve the second. The
+    report is the second fit's, with both fits' steps and times, and a "noise_level" entry: the
+    level function and the first fit's steps, loss, residual σ, levels and continuation."""
     t_start = time.perf_counter()
-    clock = dict(compile=0.0, solve=0.0)
-    compiler = _Compiler(clock, kwargs["background_compile"])
-    first, x = _fit_pass(obs, compiler=compiler, **kwargs)
+    shared = {}
+    first, x = _fit_pass(obs, shared=shared, **kwargs)
     footprint = first.report.get("footprint")
     centres = kwargs["centres"]
     kept = centres if (obs.samples > 1 and footprint is not None and footprint.get("selected") == 1) else obs
-    vidx = np.asarray(kept.pixel_rows(kept.view_index))
-    pix = np.asarray(kept.pixel_rows(kept.pixel))
-    values = np.zeros((kept.num_pixels, 3), np.float32)
-    for view in range(len(first.images)):
-        sel = vidx == view
-        values[sel] = first.images[view].reshape(-1, 3)[pix[sel]]
+    values, fitted = _fitted_values(first, kept)
     target = np.asarray(kept.pixel_rows(kept.target))
     n_res = values.size
     n_par = len(first.report["fitted"]) * first.report["observed_texels"]
@@ -382,18 +377,19 @@ def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
     weights = np.repeat(level.weights(values), kept.samples, axis=0)
     weighted = dataclasses.replace(kept, residual_weight=to_device(weights, np.float32))
     second_centres = None
-    if kept.samples > 1 and centres is not None:
-        second_centres = dataclasses.replace(
-            centres, residual_weight=to_device(level.weights(np.asarray(centres.target)), np.float32))
-    progress = kwargs["progress"]
+    if kept.samples > 1 and centres is not None:  # the same pixels, and a few more where a sample missed
+        at, seen = _fitted_values(first, centres)
+        at = np.where(seen[:, None], at, np.asarray(centres.target))  # (those at their target's level)
+        second_centres = dataclasses.replace(centres, residual_weight=to_device(level.weights(at), np.float32))
+    shared["where"].clear()
+    shared["where"]["weighted"] = True  # every step from here on reports it
     second_kwargs = dict(kwargs, centres=second_centres, select_footprint=False, start=x, coarse_to_fine=False,
-                         continuation=None, setup_time=0.0,
-                         progress=None if progress is None else (lambda info: progress(dict(info, weighted=True))))
+                         continuation=None, setup_time=0.0)
     if kept is centres and kwargs["model"].ibl == "per_pixel":  # the centres' own integrals
         second_kwargs["ibl"] = kwargs["centre_ibl"]
     if second_centres is None:
         second_kwargs["centre_ibl"] = None
-    second, _ = _fit_pass(weighted, compiler=compiler, **second_kwargs)
+    second, _ = _fit_pass(weighted, shared=shared, **second_kwargs)
     report = second.report
     report["times"] = dict(report["times"], setup=float(kwargs["setup_time"]),
                            post=first.report["times"].get("post", 0.0) + report["times"].get("post", 0.0))
@@ -403,17 +399,34 @@ def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
         report["footprint"] = footprint
     report["noise_level"] = dict(mode="estimated", **level.describe(), first_fit=dict(
         steps=first.report["steps"], final_loss=first.report["final_loss"],
-        residual_sigma=first.report["residual_sigma"], psnr=first.report["psnr"]))
+        residual_sigma=first.report["residual_sigma"], psnr=first.report["psnr"], levels=first.report["levels"],
+        continuation=first.report["continuation"]))
     return second
+
+
+def _fitted_values(result: FitResult, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
+    """(P, 3) the fitted render's value at each pixel of `obs` (its first sample row's view and
+    pixel), and (P,) whether the fit rendered that pixel (0 where not)."""
+    vidx = np.asarray(obs.pixel_rows(obs.view_index))
+    pix = np.asarray(obs.pixel_rows(obs.pixel))
+    values = np.zeros((obs.num_pixels, 3), np.float32)
+    rendered = np.zeros(obs.num_pixels, bool)
+    for view in range(len(result.images)):
+        sel = vidx == view
+        values[sel] = result.images[view].reshape(-1, 3)[pix[sel]]
+        rendered[sel] = result.masks[view].reshape(-1)[pix[sel]]
+    return values, rendered
 
 
 def _fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, solver, max_steps, coarse_steps, rtol,
               atol, cg_rtol, loss, loss_scale, smooth, coarse_to_fine, init, search, continuation, devices,
               level_factor, wrap, progress, setup_time, centres, centre_ibl, select_footprint, background_compile,
-              uniform_check, repair, uncertainty_radius, start=None, compiler=None) -> tuple[FitResult, np.ndarray]:
+              uniform_check, repair, uncertainty_radius, start=None, shared=None) -> tuple[FitResult, np.ndarray]:
     """One fit (`fit_observations`): the result and the final (T, K) texel values. ``start``:
     (T, K) values to start from at the final level (no grid start, no coarser levels);
-    ``compiler``: a `_Compiler` shared with another pass (its clock collects both passes' times)."""
+    ``shared``: a dict that keeps the solver runner, its compiler (whose clock collects every
+    pass's times) and the progress callback's ``where`` from one pass to the next (empty: this
+    pass makes them)."""
     t_start = time.perf_counter()
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
@@ -460,13 +473,20 @@ def _fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, so
     x = None if start is None else np.asarray(start, np.float32).reshape(final + (k,))
     history = []
     annealed = footprint = None
-    if compiler is None:
+    if shared is None:
+        shared = {}
+    if "runner" not in shared:
+        where = dict(level=0, resolution=levels[0])
+        cb = None if progress is None else (
+            lambda step, value: progress(dict(where, step=int(step), loss=float(value))))
         compiler = _Compiler(dict(compile=0.0, solve=0.0), background_compile)
+        shared.update(where=where, runner=_Runner(solver, rtol, atol, cb, compiler, cg_rtol))
+    # (an executable keeps the callback it was compiled with: a later pass reports through the
+    # same one, so it tells that callback where it is through the same `where`)
+    where, runner = shared["where"], shared["runner"]
+    where.update(level=0, resolution=levels[0])
+    compiler = runner.compiler
     clock = compiler.clock
-    where = dict(level=0, resolution=levels[0])
-    cb = None if progress is None else (
-        lambda step, value: progress(dict(where, step=int(step), loss=float(value))))
-    runner = _Runner(solver, rtol, atol, cb, compiler, cg_rtol)
     try:
         for level, shape in enumerate(levels):
             where.update(level=level, resolution=tuple(shape))

@@ -180,6 +180,24 @@ def check_not_inside(folder: str | os.PathLike, out_dir: str | os.PathLike, role
 
 
 @contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM held back meanwhile (delivered on the way out), where the platform and
+    thread can (POSIX, the main thread)."""
+    import signal
+    import threading
+
+    held = {signal.SIGINT, signal.SIGTERM}
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+@contextlib.contextmanager
 def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optional[str] = None) -> Iterator[Path]:
     """Yield a temporary folder beside ``final_dir``; rename it to ``final_dir`` on success.
 
@@ -208,12 +226,13 @@ def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optio
         if final_dir.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".old", dir=final_dir.parent))
             try:
-                os.replace(final_dir, old / "d")
-                try:
-                    os.replace(tmp, final_dir)
-                except BaseException:
-                    os.replace(old / "d", final_dir)  # the earlier output goes back
-                    raise
+                with _signals_held():  # Ctrl-C or a kill between the two renames would lose both folders
+                    os.replace(final_dir, old / "d")
+                    try:
+                        os.replace(tmp, final_dir)
+                    except BaseException:
+                        os.replace(old / "d", final_dir)  # the earlier output goes back
+                        raise
             finally:
                 shutil.rmtree(old, ignore_errors=True)
         else:

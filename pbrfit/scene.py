@@ -446,10 +446,15 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
 
     rgb = _rgb(pixels, info, f"{where}.file_path")
     least_alpha = _MIN_UNPREMULTIPLY_ALPHA if info.is_ldr else float(np.finfo(np.float32).tiny)
+    overflow = np.zeros((height, width), bool)
     if info.associated_alpha:  # premultiplied (EXR): partly covered pixels get the surface's color back
         alpha = pixels[..., info.alpha_channel : info.alpha_channel + 1]
         partial = (alpha >= least_alpha) & (alpha < 1.0)
-        rgb = np.where(partial, rgb / np.where(partial, alpha, 1.0), rgb).astype(np.float32)
+        with np.errstate(over="ignore"):
+            divided = np.where(partial, rgb / np.where(partial, alpha, 1.0), rgb).astype(np.float32)
+        # a colour too bright for float32 once divided by a tiny alpha: not used (the file holds no NaN)
+        overflow = np.all(np.isfinite(rgb), axis=-1) & ~np.all(np.isfinite(divided), axis=-1)
+        rgb = np.where(overflow[..., None], 0.0, divided).astype(np.float32)
     color_space = color_space_override or _default_color_space(info)
     saturated = np.zeros((height, width), bool)
     if info.is_ldr:
@@ -477,6 +482,7 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
         mask_source = "none"
         mask = np.ones((height, width), bool)
     mask &= data_window_mask(info)  # a cropped OpenEXR: the display window's empty part is not observed
+    mask &= ~overflow
 
     bad = ~np.all(np.isfinite(rgb), axis=-1)
     nonfinite = bad & mask  # an error only if the mesh covers one (known after ray casting)

@@ -133,7 +133,7 @@ def test_render_refuses_to_write_over_its_own_capture_and_takes_inline_lights(tm
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o3"), "--lights",
                  "[]"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--lights: no light: no environment and every light is off" in err[0]
+    assert len(err) == 1 and "--lights: no light: no environment, every light is off and the material emits" in err[0]
     assert not (tmp_path / "o3").exists()
 
 

@@ -145,6 +145,24 @@ def test_atomic_dir_success_failure_and_overwrite(tmp_path):
     check_not_inside(tmp_path / "outer", tmp_path / "out", "capture")  # a sibling whose name extends it
 
 
+def test_signals_are_held_while_an_output_is_swapped_in():
+    """A Ctrl-C or kill between moving the earlier output aside and renaming the new one in
+    would lose both: the swap holds the signals, which arrive right after it."""
+    import signal
+
+    from pbrfit.io import _signals_held
+
+    got = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: got.append(signum))
+    try:
+        with _signals_held():
+            os.kill(os.getpid(), signal.SIGTERM)
+            assert got == []
+        assert got == [signal.SIGTERM]
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 # --- images -------------------------------------------------------------------------------------
 def test_single_channel_2d_round_trip_guards_oiio_bug(tmp_path):
     # OpenImageIO garbles a 2-D array passed to write_image; write_image must pass (H, W, 1).

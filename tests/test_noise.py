@@ -117,7 +117,11 @@ def relative_noise_obs():
 def test_estimated_noise_level_fit_weighs_by_the_level(relative_noise_obs):
     obs = relative_noise_obs
     plain = fit_observations(obs, resolution=8, max_steps=20)
-    est = fit_observations(obs, resolution=8, max_steps=20, noise_level="estimated")
+    steps = []
+    est = fit_observations(obs, resolution=8, max_steps=20, noise_level="estimated", progress=steps.append)
+    # the second fit's steps say so, the first's do not (though it reuses the first's executables)
+    tagged = [bool(h.get("weighted")) for h in steps]
+    assert 0 < tagged.index(True) and all(tagged[tagged.index(True):]), tagged
     assert plain.report["noise_level"] == dict(mode="uniform")
     level = est.report["noise_level"]
     assert level["mode"] == "estimated" and level["floor"] == NOISE_FLOOR

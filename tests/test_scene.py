@@ -489,8 +489,10 @@ def test_premultiplied_float_colour_is_used_under_any_nonzero_alpha(tmp_path):
     rgba[1, :, 3] = 0.5  # partly covered: the colour is divided by alpha
     rgba[1, :, :3] = 0.25
     rgba[2, :, 3] = 0.0
+    rgba[3, :2, 3], rgba[3, :2, :3] = 1e-38, 5.0  # too bright for float32 once divided: not used
     frame = load_capture(_single_frame(tmp_path, "img.exr", rgba, "float")).frames[0]
-    assert frame.mask[:2].all() and not frame.mask[2].any() and frame.mask[3:].all()
+    assert frame.mask[:2].all() and not frame.mask[2].any() and frame.mask[4:].all()
+    assert not frame.mask[3, :2].any() and frame.mask[3, 2:].all() and np.all(np.isfinite(frame.image))
     np.testing.assert_allclose(frame.image[:2], 0.5, rtol=1e-6)
 
 
