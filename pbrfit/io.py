@@ -130,13 +130,10 @@ def check_output_dir(final_dir: str | os.PathLike, kind: str) -> Path:
     cwd = Path.cwd()
     if final_dir == cwd or final_dir in cwd.parents:
         raise CaptureError(f"{final_dir}: is the current folder or holds it; choose another output folder")
-    if not final_dir.exists():
-        _check_creatable(final_dir)
-        return final_dir
-    if not final_dir.is_dir():
+    if final_dir.exists() and not final_dir.is_dir():
         raise CaptureError(f"{final_dir}: exists and is not a folder; choose another output folder")
     _check_creatable(final_dir)
-    if any(final_dir.iterdir()):
+    if final_dir.exists() and any(final_dir.iterdir()):
         marker = final_dir / OUTPUT_MARKER
         lines = marker.read_text().splitlines() if marker.is_file() else []
         if not lines or lines[0].strip() != kind:
@@ -181,20 +178,35 @@ def check_not_inside(folder: str | os.PathLike, out_dir: str | os.PathLike, role
 
 @contextlib.contextmanager
 def _signals_held() -> Iterator[None]:
-    """SIGINT and SIGTERM held back meanwhile (delivered on the way out), where the platform and
-    thread can (POSIX, the main thread)."""
+    """SIGINT and SIGTERM held back meanwhile and handled on the way out, as their handlers would
+    have (Ctrl-C's KeyboardInterrupt, `pbrfit.cli`'s SIGTERM, or the default action). Python runs
+    signal handlers in the main thread whichever thread the signal reached, so their handlers are
+    swapped for ones that only note the signal (a thread's signal mask would not do: another
+    thread, a compile's or XLA's, takes a signal the main thread blocks). Elsewhere than in the
+    main thread nothing is held."""
     import signal
     import threading
 
-    held = {signal.SIGINT, signal.SIGTERM}
-    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    caught = []
+    previous = {}
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        handler = signal.getsignal(signum)
+        if handler is not None:  # (None: a handler not set from Python, left as it is)
+            previous[signum] = signal.signal(signum, lambda number, frame: caught.append(number))
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        for signum in caught:
+            handler = previous[signum]
+            if callable(handler):
+                handler(signum, None)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(signum)
 
 
 @contextlib.contextmanager
@@ -590,8 +602,8 @@ def read_map(directory: str | os.PathLike, name: str) -> np.ndarray:
         pixels, info = _read_whole_exr(exr)
         if name != "base_color":  # one channel; a grey RGB(A) one holds it in each colour channel alike
             colour = [c for c in range(pixels.shape[-1]) if c != info.alpha_channel][:3]
-            if len(colour) > 1 and not np.array_equal(pixels[..., colour], np.repeat(pixels[..., colour[:1]],
-                                                                                      len(colour), axis=-1)):
+            colours = pixels[..., colour]
+            if len(colour) > 1 and not np.array_equal(colours, np.broadcast_to(colours[..., :1], colours.shape)):
                 raise CaptureError(f"{exr}: {name} must be one channel; found {pixels.shape[-1]} channels that "
                                    "differ (channels " + ", ".join(info.channel_names) + ")")
         values, source = (_channels(pixels, 3, exr) if name == "base_color" else pixels[..., :1]), exr
