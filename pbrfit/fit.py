@@ -369,7 +369,7 @@ def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
     footprint = first.report.get("footprint")
     centres = kwargs["centres"]
     kept = centres if (obs.samples > 1 and footprint is not None and footprint.get("selected") == 1) else obs
-    values, fitted = _fitted_values(first, kept)
+    values, _ = _fitted_values(first, kept)  # (every pixel of the kept footprint was rendered)
     target = np.asarray(kept.pixel_rows(kept.target))
     n_res = values.size
     n_par = len(first.report["fitted"]) * first.report["observed_texels"]

@@ -13,8 +13,9 @@ For every candidate (m, r) we render each pixel with its slope in b (one forward
 solve the base colours of all texels jointly by linear least squares in linear radiance (the
 targets decoded from sRGB and the tone map; `_solve_base_joint`), score the candidate by the
 image-space residual (times `Observations.residual_weight`) of the pixels that read each texel,
-and keep each texel's best candidate. Channels held fixed keep their values. This costs one forward-mode render and a few
-conjugate-gradient iterations per candidate; the structured solver refines from there.
+and keep each texel's best candidate. Channels held fixed keep their values. This costs one
+forward-mode render and a few conjugate-gradient iterations per candidate; the structured solver
+refines from there.
 
 The base colours are solved jointly because a pixel averages four texels: solved texel by
 texel, as if each pixel showed only the texel being solved, a texel at an edge of the base

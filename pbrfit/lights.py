@@ -315,7 +315,7 @@ def _triple(d: Mapping[str, Any], key: str, where: str, default=None) -> np.ndar
     if not isinstance(value, (list, tuple)) or len(value) != 3 or any(
             isinstance(v, bool) or not isinstance(v, (int, float)) for v in value):
         raise CaptureError(f"{_loc(where, key)}: expected 3 numbers, got {_shown(value)}")
-    if not all(math.isfinite(float(v)) if not isinstance(v, int) else True for v in value):
+    if any(isinstance(v, float) and not math.isfinite(v) for v in value):
         raise CaptureError(f"{_loc(where, key)}: values must be finite, got {_shown(value)}")
     return np.array([_as_float(v, _loc(where, key), "finite numbers") for v in value], np.float64)
 

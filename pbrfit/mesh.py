@@ -22,7 +22,7 @@ import numpy as np
 
 from .errors import CaptureError
 
-__all__ = ["load_mesh"]
+__all__ = ["gltf_file_uris", "load_mesh"]
 
 _GLB_MAGIC = 0x46546C67
 _CHUNK_JSON = 0x4E4F534A
@@ -48,6 +48,17 @@ def _gltf_default_material(tree: dict) -> bool:
     return True
 
 
+def gltf_file_uris(tree: dict):
+    """The buffers and images of a parsed glTF that live in files: (kind, index, entry, relative
+    file name) for each, its URI percent-decoded (glTF URIs are RFC 3986 references, relative to
+    the .gltf); embedded ones (``data:``) are left out."""
+    for kind in ("buffers", "images"):
+        for i, entry in enumerate(tree.get(kind) or []):
+            uri = entry.get("uri") if isinstance(entry, dict) else None
+            if isinstance(uri, str) and not uri.startswith("data:"):
+                yield kind, i, entry, urllib.parse.unquote(uri)
+
+
 def _load_gltf_keeping_uv(path: Path):
     import trimesh
 
@@ -69,11 +80,8 @@ def _load_gltf_keeping_uv(path: Path):
         return trimesh.load_scene(_io.BytesIO(data), file_type="glb", process=False)
     tree = json.loads(data)
     _gltf_default_material(tree)
-    for kind in ("buffers", "images"):  # glTF URIs are percent-encoded (RFC 3986); the resolver takes file names
-        for entry in tree.get(kind) or []:
-            uri = entry.get("uri") if isinstance(entry, dict) else None
-            if isinstance(uri, str) and not uri.startswith("data:"):
-                entry["uri"] = urllib.parse.unquote(uri)
+    for _, _, entry, name in gltf_file_uris(tree):  # the resolver takes file names
+        entry["uri"] = name
     # the URIs are relative to the file and may lead out of its folder ("../buffers/a.bin")
     try:
         resolver = trimesh.resolvers.FilePathResolver(str(path.parent), allow_anywhere=True)

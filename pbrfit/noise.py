@@ -42,8 +42,8 @@ import dataclasses
 import numpy as np
 from jaxtyping import Float
 
-__all__ = ["NOISE_LEVELS", "NOISE_BINS", "NOISE_FLOOR", "MEDIAN_CHI2", "MIN_BIN_COUNT", "NoiseLevel",
-           "estimate_noise_level"]
+__all__ = ["NOISE_LEVELS", "NOISE_BINS", "NOISE_FLOOR", "MEDIAN_CHI2", "MIN_BIN_COUNT", "SHAPE_FIT_FLOOR",
+           "SHAPE_SCALE_FLOOR", "NoiseLevel", "estimate_noise_level"]
 
 #: How `fit` treats the images' noise: "uniform" (plain least squares) or "estimated" (a second
 #: fit weighted by the first fit's noise level function).
@@ -56,6 +56,18 @@ MIN_BIN_COUNT = 200
 MEDIAN_CHI2 = 0.454936423119572
 #: Lowest noise level, relative to the median one (the largest weight is 1 / NOISE_FLOOR).
 NOISE_FLOOR = 0.1
+#: In the shape's fit, relative to the bins' variances, a bin's variance counts as at least this
+#: fraction of the largest: a bin of exact residuals (variance 0) would otherwise weigh infinitely.
+SHAPE_FIT_FLOOR = 1e-6
+#: Where the second pass divides the squared residuals by the shape's variance, that variance is
+#: held at or above this fraction of its largest (a shape c v² vanishes at v = 0).
+SHAPE_SCALE_FLOOR = 1e-12
+
+
+def _shape_variance(shape, v):
+    """The shape's variance a + b v + c v² at v, for ``shape`` = (a, b, c)."""
+    a, b, c = (float(t) for t in shape)
+    return a + b * v + c * v * v
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,16 +94,12 @@ class NoiseLevel:
     shape: np.ndarray
     reference: float
 
-    def _shape(self, v) -> np.ndarray:
-        a, b, c = (float(t) for t in self.shape)
-        return a + b * v + c * v * v
-
     def __call__(self, v) -> np.ndarray:
         """σ(v) = sqrt(s(v) ρ(v)), at least `NOISE_FLOOR` σ_ref."""
         v = np.asarray(v, np.float64)
-        at_bins = self._shape(self.values)
+        at_bins = _shape_variance(self.shape, self.values)
         if np.all(at_bins > 0.0):
-            var = self._shape(v) * np.interp(v, self.values, np.square(self.sigma) / at_bins)
+            var = _shape_variance(self.shape, v) * np.interp(v, self.values, np.square(self.sigma) / at_bins)
         else:  # no shape (or one that vanishes at a bin): the variances themselves interpolated
             var = np.interp(v, self.values, np.square(self.sigma))
         return np.maximum(np.sqrt(np.maximum(var, 0.0)), NOISE_FLOOR * self.reference)
@@ -136,7 +144,7 @@ def _quadratic_shape(values, var):
     var = np.asarray(var, np.float64)
     if not np.max(var) > 0.0:
         return None
-    scale = np.maximum(var, 1e-6 * np.max(var))
+    scale = np.maximum(var, SHAPE_FIT_FLOOR * np.max(var))
     basis = np.stack([np.ones_like(values), values, values * values], axis=1) / scale[:, None]
     target = var / scale
     best, best_cost = None, np.inf
@@ -177,15 +185,14 @@ def estimate_noise_level(values, residuals, bins: int = NOISE_BINS, dof_scale: f
     order = np.argsort(v, kind="stable")
     v, r2 = v[order], np.square(r[order])
     count = max(1, min(int(bins), v.size // MIN_BIN_COUNT))
-    centres, var = _bin_levels(v, r2, count)
-    shape = _quadratic_shape(centres, var)
-    if shape is None:  # residuals exactly 0: no level to weigh by, so weights of 1
-        return NoiseLevel(centres, np.ones_like(var), np.zeros(3), 1.0)
-    first = shape[0] + shape[1] * v + shape[2] * v * v  # the level varies within a bin: once more relative to it
-    centres, var = _bin_levels(v, r2, count, scale=np.maximum(first, 1e-12 * float(np.max(first))))
-    shape = _quadratic_shape(centres, var)
-    if shape is None:
-        return NoiseLevel(centres, np.ones_like(var), np.zeros(3), 1.0)
+    scale = None
+    for _ in range(2):  # the second time relative to the first shape (the level varies within a bin)
+        centres, var = _bin_levels(v, r2, count, scale)
+        shape = _quadratic_shape(centres, var)
+        if shape is None:  # residuals exactly 0: no level to weigh by, so weights of 1
+            return NoiseLevel(centres, np.ones_like(var), np.zeros(3), 1.0)
+        first = _shape_variance(shape, v)
+        scale = np.maximum(first, SHAPE_SCALE_FLOOR * float(np.max(first)))
     sigma = np.sqrt(var * float(dof_scale))
     shape = shape * float(dof_scale)
     reference = float(np.median(NoiseLevel(centres, sigma, shape, reference=0.0)(v)))

@@ -120,6 +120,8 @@ _AFFINE_ROW_TOL = 1e-6
 _ORTHONORMAL_TOL = 1e-3
 #: Camera axes whose lengths are within this of 1 are taken as they are (not renormalised).
 _UNIT_TOL = 1e-9
+#: A camera axis (rotation column) shorter than this is zero: it has no direction to normalise.
+_AXIS_FLOOR = 1e-12
 #: The largest |exposure| in EV a frame may have: 2^64 ≈ 1.8e19 leaves float32 room for the radiance.
 MAX_EXPOSURE = 64.0
 
@@ -293,10 +295,11 @@ def _matrix(frame: Mapping, where: str) -> np.ndarray:
     value = frame["transform_matrix"]
     if isinstance(value, np.ndarray):
         value = value.tolist()
-    if isinstance(value, (list, tuple)) and all(isinstance(row, (list, tuple)) for row in value) and any(
-            isinstance(v, bool) or not isinstance(v, (int, float)) for row in value for v in row):
-        bad = next(v for row in value for v in row if isinstance(v, bool) or not isinstance(v, (int, float)))
-        raise CaptureError(f"{_loc(where, 'transform_matrix')}: expected a 4x4 array of numbers, got {bad!r} in it")
+    if isinstance(value, (list, tuple)) and all(isinstance(row, (list, tuple)) for row in value):
+        bad = [v for row in value for v in row if isinstance(v, bool) or not isinstance(v, (int, float))]
+        if bad:
+            raise CaptureError(f"{_loc(where, 'transform_matrix')}: expected a 4x4 array of numbers, "
+                               f"got {bad[0]!r} in it")
     try:
         m = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):
@@ -312,7 +315,7 @@ def _matrix(frame: Mapping, where: str) -> np.ndarray:
     # a camera's axes: a scale on them (a scaled camera object in Blender) changes no ray and is
     # taken out; axes that are not perpendicular (a shear) or a mirrored (left-handed) frame are no camera
     norms = np.linalg.norm(m[:3, :3], axis=0)
-    if np.min(norms) < 1e-12:
+    if np.min(norms) < _AXIS_FLOOR:
         raise CaptureError(f"{_loc(where, 'transform_matrix')}: a camera axis (rotation column) is zero")
     axes = m[:3, :3] / norms
     gram = axes.T @ axes

@@ -172,7 +172,9 @@ def _copy_mesh(src: Path, root_out: Path, rel: str) -> list[str]:
     if src.suffix.lower() != ".gltf":
         _copy_into(src, root_out, rel)
         return [rel]
-    from urllib.parse import quote, unquote
+    from urllib.parse import quote
+
+    from .mesh import gltf_file_uris
 
     try:
         doc = json.loads(src.read_text(encoding="utf-8"))
@@ -180,20 +182,16 @@ def _copy_mesh(src: Path, root_out: Path, rel: str) -> list[str]:
         raise CaptureError(f"{src}: cannot read the glTF file to copy it: {err}") from None
     here = os.path.dirname(rel)
     written = [rel]
-    for kind in ("buffers", "images"):
-        for i, entry in enumerate(doc.get(kind) or []):
-            uri = entry.get("uri") if isinstance(entry, dict) else None
-            if not isinstance(uri, str) or uri.startswith("data:"):
-                continue
-            source = src.parent / unquote(uri)
-            if not source.is_file():  # an image the mesh loader did without: left as it was
-                continue
-            target = _inside(os.path.join(here, unquote(uri)), "")
-            if not target:
-                target = os.path.join(here, f"{src.stem}_files", f"{kind}_{i}_{source.name}")
-                entry["uri"] = quote(os.path.relpath(target, here or ".").replace(os.sep, "/"))
-            _copy_into(source, root_out, target)
-            written.append(target)
+    for kind, i, entry, name in list(gltf_file_uris(doc)):
+        source = src.parent / name
+        if not source.is_file():  # an image the mesh loader did without: left as it was
+            continue
+        target = _inside(os.path.join(here, name), "")
+        if not target:
+            target = os.path.join(here, f"{src.stem}_files", f"{kind}_{i}_{source.name}")
+            entry["uri"] = quote(os.path.relpath(target, here or ".").replace(os.sep, "/"))
+        _copy_into(source, root_out, target)
+        written.append(target)
     dst = root_out / rel
     dst.parent.mkdir(parents=True, exist_ok=True)
     dst.write_text(json.dumps(doc), encoding="utf-8")
