@@ -122,6 +122,11 @@ def test_estimated_noise_level_fit_weighs_by_the_level(relative_noise_obs):
     # the second fit's steps say so, the first's do not (though it reuses the first's executables)
     tagged = [bool(h.get("weighted")) for h in steps]
     assert 0 < tagged.index(True) and all(tagged[tagged.index(True):]), tagged
+    # the second fit starts in the first's repaired basins: it runs no repair of its own, and
+    # reports the first's
+    assert not any(h.get("repair") for h in steps if h.get("weighted"))
+    assert any(h.get("repair") for h in steps if not h.get("weighted"))
+    assert est.report["repair"] == plain.report["repair"]
     assert plain.report["noise_level"] == dict(mode="uniform")
     level = est.report["noise_level"]
     assert level["mode"] == "estimated" and level["floor"] == NOISE_FLOOR
