@@ -298,6 +298,8 @@ def _fit_options(args) -> dict:
     for name in free:
         if name not in _FIT_NAMES:
             raise CaptureError(f"--fit: unknown map {name!r} (expected some of {', '.join(_FIT_NAMES)})")
+        if free.count(name) > 1:
+            raise CaptureError(f"--fit: lists {name} twice")
     fixed = {}
     if args.base_color is not None:
         try:

@@ -166,6 +166,7 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
     [
         (["--fit", "normals"], "unknown map 'normals'"),
         (["--fit", "albedo"], "unknown map 'albedo'"),
+        (["--fit", "roughness,base_color,roughness"], "--fit: lists roughness twice"),
         (["--roughness", "1.5"], "--roughness: expected a value in [0, 1], got 1.5"),
         (["--base-color", "1,2"], "--base-color: expected R,G,B in [0, 1], got '1,2'"),
         (["--fit", "roughness", "--roughness", "0.3"], "--fit: lists roughness, which --roughness holds fixed"),
