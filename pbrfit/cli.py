@@ -535,13 +535,14 @@ def _summary(result, errors) -> str:
     uniform = [f"{name} {r['uniform_check'][name]['value']:.4g}" for name in _uniform_channels(r)]
     if uniform:  # the uniform check found no support for these maps in the images
         parts[0] += ", one value for " + " and ".join(uniform) + " (uniform check)"
+    level = r.get("noise_level") or {}
     kept = [p for p in (r.get("repair") or {}).get("passes", []) if p.get("kept")]
-    if kept:  # texels a solve had left in a wrong basin, started again
+    if kept:  # texels a solve had left in a wrong basin, started again (estimated: in the first fit)
         clusters = sum(p["clusters_kept"] for p in kept)
-        parts[0] += (f", repair re-solved {sum(p['texels_kept'] for p in kept)} texels in {clusters} "
+        whose = "the first fit's " if level.get("mode") == "estimated" else ""
+        parts[0] += (f", {whose}repair re-solved {sum(p['texels_kept'] for p in kept)} texels in {clusters} "
                      f"cluster{'' if clusters == 1 else 's'} (loss {kept[0]['energy_before']:.3e}"
                      f" -> {kept[-1]['energy_after']:.3e})")
-    level = r.get("noise_level") or {}
     if level.get("mode") == "estimated":  # two fits: the second weighted by the first's noise level
         parts[0] += (f", weighted by the estimated noise level ({min(level['sigma']):.2g} to "
                      f"{max(level['sigma']):.2g}; first fit loss {level['first_fit']['final_loss']:.3e})")

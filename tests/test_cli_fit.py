@@ -470,6 +470,11 @@ def test_summary_line_names_the_footprint():
     report["repair"]["passes"] = report["repair"]["passes"][1:]
     assert ", repair re-solved 6 texels in 1 cluster (loss 2.500e+00 -> 2.000e+00)" in _summary(
         SimpleNamespace(report=report), {})
+    # --noise-level estimated: the repair was the first fit's, whose loss the summary gives too
+    report["noise_level"] = dict(mode="estimated", sigma=[0.01, 0.02], first_fit=dict(final_loss=2.0))
+    assert (", the first fit's repair re-solved 6 texels in 1 cluster (loss 2.500e+00 -> 2.000e+00), weighted by "
+            "the estimated noise level (0.01 to 0.02; first fit loss 2.000e+00)") in _summary(
+        SimpleNamespace(report=report), {})
 
 
 def test_loss_history_keeps_the_kept_footprint_only():
