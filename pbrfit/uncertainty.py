@@ -137,28 +137,33 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
     rows, cols = np.divmod(np.arange(t), w)
     out = np.empty((t, k, k))
     chunk = max(1, _WINDOW_CHUNK_BYTES // (8 * n * n * k * k))
+    rest = np.arange(k, n * k)
     for lo in range(0, t, chunk):
         ts = np.arange(lo, min(t, lo + chunk))
         u = np.stack([((rows[ts] + di) % h) * w + (cols[ts] + dj) % w for di, dj in offsets], axis=1)  # (c, n)
-        m = np.zeros((len(ts), n, n, k, k))
-        m[:, diag_ab[:, 0], diag_ab[:, 1]] = blocks[u[:, diag_ab[:, 0]]]
-        m[:, ahead[:, 0], ahead[:, 1]] = flat[u[:, ahead[:, 0]] * q + ahead[:, 2]]
-        m[:, behind[:, 0], behind[:, 1]] = np.swapaxes(flat[u[:, behind[:, 1]] * q + behind[:, 2]], -1, -2)
-        m = m.transpose(0, 1, 3, 2, 4).reshape(len(ts), n * k, n * k)
+        # assembled in place as (c, n, K, n, K), the layout of the (c, n K, n K) window matrix: the
+        # (a, b) blocks, indexed by two arrays around a slice, take values shaped (pairs, c, K, K)
+        m = np.zeros((len(ts), n, k, n, k))
+        m[:, diag_ab[:, 0], :, diag_ab[:, 1]] = np.moveaxis(blocks[u[:, diag_ab[:, 0]]], 1, 0)
+        m[:, ahead[:, 0], :, ahead[:, 1]] = np.moveaxis(flat[u[:, ahead[:, 0]] * q + ahead[:, 2]], 1, 0)
+        m[:, behind[:, 0], :, behind[:, 1]] = np.moveaxis(
+            np.swapaxes(flat[u[:, behind[:, 1]] * q + behind[:, 2]], -1, -2), 1, 0)
+        m = m.reshape(len(ts), n * k, n * k)
         on = (seen[u][:, :, None] & np.broadcast_to(free, (t, k))[u]).reshape(len(ts), n * k)
-        m = np.where(on[:, :, None] & on[:, None, :], m, 0.0)
         diag = np.diagonal(m, axis1=1, axis2=2)
         live = on & (diag > 0)  # a row of JᵀJ with a zero diagonal is zero (positive semi-definite)
-        scale = 1.0 / np.sqrt(np.where(live, diag, 1.0))
+        # Jacobi scaling, 0 for the rows that take no part (zeroed, then the identity's)
+        scale = np.where(live, 1.0 / np.sqrt(np.where(live, diag, 1.0)), 0.0)
         m *= scale[:, :, None]
         m *= scale[:, None, :]
-        m[:, np.arange(n * k), np.arange(n * k)] = 1.0  # rows that take no part: the identity
-        s = m[:, k:, k:] + WINDOW_RIDGE * np.eye((n - 1) * k)
+        m[:, np.arange(k), np.arange(k)] = 1.0  # the unit diagonal
+        m[:, rest, rest] = 1.0 + WINDOW_RIDGE  # and S's, with the ridge
         b = m[:, :k, k:]
-        p = m[:, :k, :k] - b @ np.linalg.solve(s, np.swapaxes(b, 1, 2))
+        p = m[:, :k, :k] - b @ np.linalg.solve(m[:, k:, k:], np.swapaxes(b, 1, 2))
         p = 0.5 * (p + np.swapaxes(p, 1, 2))
         keep = live[:, :k]
-        out[ts] = np.where(keep[:, :, None] & keep[:, None, :], p / scale[:, :k, None] / scale[:, None, :k], 0.0)
+        own = np.where(keep, scale[:, :k], 1.0)
+        out[ts] = np.where(keep[:, :, None] & keep[:, None, :], p / own[:, :, None] / own[:, None, :], 0.0)
     return out
 
 
