@@ -47,7 +47,7 @@ EIGEN_FLOOR = 1e-10
 #: The default window radius of `window_standard_errors` (`fit`'s ``uncertainty_radius``).
 WINDOW_RADIUS = 1
 #: The largest radius `fit` takes: a window of (2 r + 1)² texels costs about ((2 r + 1)² K)³ / 3
-#: per texel, host float64 (K = 5 on this 2-core CPU: r = 1 0.16 s and r = 2 about 1.4 s for a
+#: per texel, host float64 (K = 5 on this 2-core CPU: r = 1 0.12 s and r = 2 about 1 s for a
 #: 64² map, 256 times that at 1024²; r = 3 would take hours at 256²).
 MAX_UNCERTAINTY_RADIUS = 2
 #: Ridge added to the window's Jacobi-scaled matrix (unit diagonal) before it is solved: keeps a
