@@ -460,8 +460,8 @@ def _loss_history(steps: list, report: dict) -> list:
     footprint's two finishes (entries tagged "footprint") only the kept one's, of the repair's
     passes (tagged "repair", numbered from 1) only the kept ones', and of the uniform check's
     re-fits (tagged "check") only those of a channel made uniform. With an estimated noise level
-    only the weighted fit's steps (tagged "weighted"): its loss is of the weighted residuals, and
-    the first fit's footprint, repair and checks are not the report's."""
+    only the weighted fit's steps (tagged "weighted"): its loss is of the weighted residuals, on
+    another scale than the first fit's."""
     if any(h.get("weighted") for h in steps):
         steps = [h for h in steps if h.get("weighted")]
     kept = report.get("footprint", {}).get("selected")

@@ -356,43 +356,34 @@ def fit_observations(
 def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
     """``noise_level="estimated"`` (`pbrfit.noise`): a plain fit, the noise level function of its
     residuals, and a second fit from the first's maps with each residual weighted by
-    σ_ref / σ(v̂) at the first fit's value v̂. The second fit runs the final level only, without
-    the continuation (it starts in the first fit's basins) and on the pixel footprint the first
-    chose; where that is several samples per pixel, its first steps run on the centres,
-    weighted at the first fit's values too (at their targets' level where a centre's samples
-    were not all on the mesh). The first fit's coordinate search and repair have already put
-    its texels in their basins, so the second runs neither (on the flash scene with relative
-    noise that took the estimated fit from 155 s to 98 s, the maps the same to within 0.001);
-    it keeps the uniform check, whose outcome the weights may change. Executables compiled for
-    the first fit serve the second. The report is the second fit's, with both fits' steps and
-    times, the first fit's "repair" entry, and a "noise_level" entry: the level function and the
-    first fit's steps, loss, residual σ, levels and continuation."""
+    σ_ref / σ(v̂) at the first fit's value v̂. The second fit runs the final level on the pixel
+    footprint the first chose, with the uniform check (whose outcome the weights may change)
+    but without the continuation, the coordinate search, the repair or steps on pixel centres:
+    it starts in the basins the first fit found (on the flash scene with relative noise,
+    running the search and repair again took the estimated fit to 155 s against 98 s, the maps
+    the same to within 0.001). Executables compiled for the first fit serve the second. The
+    report is the second fit's, with both fits' steps and times, the first fit's "repair" entry,
+    and a "noise_level" entry: the level function and the first fit's steps, loss, residual σ,
+    levels and continuation."""
     t_start = time.perf_counter()
     shared = {}
     first, x = _fit_pass(obs, shared=shared, **kwargs)
     footprint = first.report.get("footprint")
     centres = kwargs["centres"]
     kept = centres if (obs.samples > 1 and footprint is not None and footprint.get("selected") == 1) else obs
-    values, _ = _fitted_values(first, kept)  # (every pixel of the kept footprint was rendered)
+    values = _fitted_values(first, kept)
     target = np.asarray(kept.pixel_rows(kept.target))
     n_res = values.size
     n_par = len(first.report["fitted"]) * first.report["observed_texels"]
     level = estimate_noise_level(values, values - target, dof_scale=n_res / max(n_res - n_par, 1))
     weights = np.repeat(level.weights(values), kept.samples, axis=0)
     weighted = dataclasses.replace(kept, residual_weight=to_device(weights, np.float32))
-    second_centres = None
-    if kept.samples > 1 and centres is not None:  # the same pixels, and a few more where a sample missed
-        at, seen = _fitted_values(first, centres)
-        at = np.where(seen[:, None], at, np.asarray(centres.target))  # (those at their target's level)
-        second_centres = dataclasses.replace(centres, residual_weight=to_device(level.weights(at), np.float32))
     shared["where"].clear()
     shared["where"]["weighted"] = True  # every step from here on reports it
-    second_kwargs = dict(kwargs, centres=second_centres, select_footprint=False, start=x, coarse_to_fine=False,
-                         continuation=None, search=False, repair=False, setup_time=0.0)
+    second_kwargs = dict(kwargs, centres=None, centre_ibl=None, select_footprint=False, start=x,
+                         coarse_to_fine=False, continuation=None, search=False, repair=False, setup_time=0.0)
     if kept is centres and kwargs["model"].ibl == "per_pixel":  # the centres' own integrals
         second_kwargs["ibl"] = kwargs["centre_ibl"]
-    if second_centres is None:
-        second_kwargs["centre_ibl"] = None
     second, _ = _fit_pass(weighted, shared=shared, **second_kwargs)
     report = second.report
     report["times"] = dict(report["times"], setup=float(kwargs["setup_time"]),
@@ -410,18 +401,16 @@ def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
     return second
 
 
-def _fitted_values(result: FitResult, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
+def _fitted_values(result: FitResult, obs: Observations) -> np.ndarray:
     """(P, 3) the fitted render's value at each pixel of `obs` (its first sample row's view and
-    pixel), and (P,) whether the fit rendered that pixel (0 where not)."""
+    pixel; `obs` is the footprint the fit kept, every pixel of which it rendered)."""
     vidx = np.asarray(obs.pixel_rows(obs.view_index))
     pix = np.asarray(obs.pixel_rows(obs.pixel))
     values = np.zeros((obs.num_pixels, 3), np.float32)
-    rendered = np.zeros(obs.num_pixels, bool)
     for view in range(len(result.images)):
         sel = vidx == view
         values[sel] = result.images[view].reshape(-1, 3)[pix[sel]]
-        rendered[sel] = result.masks[view].reshape(-1)[pix[sel]]
-    return values, rendered
+    return values
 
 
 def _fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, solver, max_steps, coarse_steps, rtol,

@@ -130,11 +130,15 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
                 behind.append((a, b, codes[(-rel[0], -rel[1])]))
     diag_ab, ahead, behind = (np.array(v, np.intp) for v in (diag_ab, ahead, behind))
     q = len(NEIGHBOUR_OFFSETS)
-    blocks = np.asarray(blocks)
-    flat = np.asarray(couplings).reshape(t * q, k, k)
     free = np.asarray(channels, bool)
     seen = np.asarray(seen, bool)
     rows, cols = np.divmod(np.arange(t), w)
+    # rows and columns that take no part are zeroed here, so that nothing in them (a non-finite
+    # derivative of a fixed channel) reaches the window's solve
+    part = seen[:, None] & np.broadcast_to(free, (t, k))  # (T, K)
+    towards = np.stack([((rows + di) % h) * w + (cols + dj) % w for di, dj in NEIGHBOUR_OFFSETS], axis=1)
+    blocks = np.where(part[:, :, None] & part[:, None, :], blocks, 0.0)
+    flat = np.where(part[:, None, :, None] & part[towards][:, :, None, :], couplings, 0.0).reshape(t * q, k, k)
     out = np.empty((t, k, k))
     chunk = max(1, _WINDOW_CHUNK_BYTES // (8 * n * n * k * k))
     rest = np.arange(k, n * k)
@@ -149,10 +153,10 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
         m[:, behind[:, 0], :, behind[:, 1]] = np.moveaxis(
             np.swapaxes(flat[u[:, behind[:, 1]] * q + behind[:, 2]], -1, -2), 1, 0)
         m = m.reshape(len(ts), n * k, n * k)
-        on = (seen[u][:, :, None] & np.broadcast_to(free, (t, k))[u]).reshape(len(ts), n * k)
+        on = part[u].reshape(len(ts), n * k)
         diag = np.diagonal(m, axis1=1, axis2=2)
         live = on & (diag > 0)  # a row of JᵀJ with a zero diagonal is zero (positive semi-definite)
-        # Jacobi scaling, 0 for the rows that take no part (zeroed, then the identity's)
+        # Jacobi scaling, 0 for the rows that take no part (the identity's, below)
         scale = np.where(live, 1.0 / np.sqrt(np.where(live, diag, 1.0)), 0.0)
         m *= scale[:, :, None]
         m *= scale[:, None, :]

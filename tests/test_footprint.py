@@ -183,6 +183,21 @@ def test_supersampled_capture_fitted_exactly_with_pixel_samples(capture, capture
         assert msk.any() and np.abs(img[msk] - tgt[msk]).max() < 0.02
 
 
+def test_estimated_noise_level_on_the_automatic_footprint(capture, capture_dir):
+    """--noise-level estimated on a supersampled capture: the first fit keeps 2 × 2 samples, and
+    the weighted second fit runs on them alone (no centres' steps, search or repair), from the
+    first fit's maps, which it keeps as exact as the plain fit."""
+    steps = []
+    res = fit(capture, resolution=MAP[0], pixel_samples="auto", noise_level="estimated", progress=steps.append)
+    assert res.report["footprint"]["selected"] == 2 and res.report["pixel_samples"] == 2
+    weighted = [h for h in steps if h.get("weighted")]
+    assert weighted and not any(h.get("footprint") or h.get("repair") for h in weighted), weighted
+    assert res.report["noise_level"]["mode"] == "estimated"
+    assert res.report["steps"] > res.report["noise_level"]["first_fit"]["steps"]
+    got = map_rmse(read_material(capture_dir / "truth"), res)
+    assert got["base_color"] < 2e-3 and got["metallic"] < 5e-3 and got["roughness"] < 1e-2, got
+
+
 def test_pixel_samples_with_per_pixel_ibl(tmp_path, monkeypatch):
     """Per-pixel IBL integrals are computed for the samples and for the pixel centres the
     start runs on, in one pass, and each problem gets its own rows."""
