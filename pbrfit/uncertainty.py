@@ -75,7 +75,7 @@ def block_standard_errors(blocks: np.ndarray, channels: np.ndarray, seen: np.nda
     blocks = np.asarray(blocks, np.float64)
     free = np.broadcast_to(np.asarray(channels, bool), blocks.shape[:2])
     seen = np.asarray(seen, bool)
-    mask2 = free[:, :, None] & free[:, None, :]
+    mask2 = free[:, :, None] & free[:, None, :] & seen[:, None, None]  # (nothing of an unseen texel is read)
     eye = np.eye(blocks.shape[1])
     b = np.where(mask2, blocks, 0.0) + np.where(free, 0.0, 1.0)[:, :, None] * eye
     e, v = np.linalg.eigh(b)

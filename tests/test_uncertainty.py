@@ -166,3 +166,25 @@ def test_channels_on_a_bound_are_held_for_the_others():
     far[[t for s in (14, 15) for t in [((s // 6 + di) % 6) * 6 + (s % 6 + dj) % 6 for di in (-1, 0, 1)
                                        for dj in (-1, 0, 1)]]] = False
     np.testing.assert_array_equal(got[far], free[far])  # windows without a pinned channel: unchanged
+
+
+def test_non_finite_values_outside_the_fit_do_not_reach_the_others():
+    """A fixed channel's derivatives and an unseen texel's blocks take no part: NaN or inf there
+    leaves every other texel's precision and error as with zeros."""
+    shape, k = (6, 6), 3
+    _, diag, coupling = _normal_matrix(shape, k, 300, seed=5)
+    channels = np.array([True, False, True])
+    seen = np.ones(36, bool)
+    seen[20] = False
+    clean = window_precisions(diag, coupling, shape, channels, seen, 1)
+    diag, coupling = diag.copy(), coupling.copy()
+    diag[:, 1, :] = diag[:, :, 1] = np.nan  # the fixed channel
+    coupling[:, :, 1, :] = coupling[:, :, :, 1] = np.nan
+    diag[20] = np.inf  # the unseen texel, and its couplings both ways
+    coupling[20] = np.inf
+    for q, (di, dj) in enumerate(NEIGHBOUR_OFFSETS):
+        coupling[((20 // 6 - di) % 6) * 6 + (20 % 6 - dj) % 6, q] = -np.inf
+    np.testing.assert_array_equal(window_precisions(diag, coupling, shape, channels, seen, 1), clean)
+    sigma = window_standard_errors(diag, coupling, shape, channels, seen, 1.0, 1)
+    assert np.all(sigma[:, 1] == 0.0) and np.all(np.isinf(sigma[20, [0, 2]]))
+    assert np.all(np.isfinite(np.delete(sigma, 20, axis=0)))
