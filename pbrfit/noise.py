@@ -62,6 +62,9 @@ SHAPE_FIT_FLOOR = 1e-6
 #: Where the second pass divides the squared residuals by the shape's variance, that variance is
 #: held at or above this fraction of its largest (a shape c v² vanishes at v = 0).
 SHAPE_SCALE_FLOOR = 1e-12
+#: Per bin, how much lower (in squared relative misfit) a subset of the shape's terms must fit
+#: to be preferred to a simpler one tried before it: exact fits differ by round-off only.
+_SHAPE_TIE = 1e-12
 
 
 def _shape_variance(shape, v):
@@ -105,8 +108,11 @@ class NoiseLevel:
         return np.maximum(np.sqrt(np.maximum(var, 0.0)), NOISE_FLOOR * self.reference)
 
     def weights(self, v: Float[np.ndarray, "*shape"]) -> Float[np.ndarray, "*shape"]:
-        """σ_ref / σ(v) (float32): each residual's factor; median 1 over the fit's values."""
-        return (self.reference / self(v)).astype(np.float32)
+        """σ_ref / σ(v) (float32): each residual's factor; median 1 over the fit's values (1 at a
+        value that is not a number)."""
+        with np.errstate(invalid="ignore"):
+            w = self.reference / self(v)
+        return np.where(np.isnan(w), 1.0, w).astype(np.float32)
 
     def describe(self) -> dict:
         """JSON-ready: the bins' values and levels, the shape, the reference level and the floor."""
@@ -140,7 +146,9 @@ def _bin_levels(v, r2, count: int, scale=None):
 def _quadratic_shape(values, var):
     """(a, b, c) >= 0 of the variance a + b v + c v² (read noise, shot noise, noise proportional to
     the value) closest to the bins' variances in relative terms, or None where no bin has any
-    (the best of the non-negative subsets of the three terms, each by least squares)."""
+    (the best of the non-negative subsets of the three terms, each by least squares; of subsets
+    that fit about as well, the simplest: one bin gives a constant, not a slope that round-off
+    happened to favour)."""
     var = np.asarray(var, np.float64)
     if not np.max(var) > 0.0:
         return None
@@ -153,7 +161,7 @@ def _quadratic_shape(values, var):
         if np.any(coef < 0.0):
             continue
         cost = float(np.sum(np.square(basis[:, subset] @ coef - target)))
-        if cost < best_cost:
+        if cost < best_cost - _SHAPE_TIE * len(values):
             best = np.zeros(3)
             best[list(subset)] = coef
             best_cost = cost

@@ -61,6 +61,16 @@ def test_noise_level_floor_flat_stretches_and_edge_cases():
     # few residuals: fewer bins, at least one
     assert len(estimate_noise_level(v[: 3 * MIN_BIN_COUNT], r[: 3 * MIN_BIN_COUNT]).values) == 3
     assert len(estimate_noise_level(v[:10], r[:10]).values) == 1
+    # one bin says nothing of how the level changes with the value: a constant level, weights of
+    # 1 (every one of these draws once gave a slope that round-off favoured)
+    for seed in (14, 93, 107, 113, 122):
+        rng = np.random.default_rng(seed)
+        v1, r1 = rng.uniform(0.0, 1.0, MIN_BIN_COUNT + 100), rng.normal(0.0, 0.01, MIN_BIN_COUNT + 100)
+        one = estimate_noise_level(v1, r1)
+        assert len(one.values) == 1 and one.shape[1] == one.shape[2] == 0.0, one.shape
+        np.testing.assert_allclose(one.weights(np.array([0.0, 0.5, 1.0, 5.0])), 1.0, rtol=1e-6)
+    # a value that is not a number (a render's NaN) gets weight 1
+    assert est.weights(np.array([np.nan]))[0] == 1.0
     # an exact fit: no level to weigh by, every weight 1
     exact = estimate_noise_level(v, np.zeros_like(v))
     np.testing.assert_array_equal(exact.weights(v), np.ones(v.shape, np.float32))
