@@ -374,7 +374,8 @@ def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
     values = _fitted_values(first, kept)
     target = np.asarray(kept.pixel_rows(kept.target))
     n_res = values.size
-    n_par = len(first.report["fitted"]) * first.report["observed_texels"]
+    uniform = sum(1 for c in first.report.get("uniform_check", {}).values() if isinstance(c, dict) and c.get("uniform"))
+    n_par = (len(first.report["fitted"]) - uniform) * first.report["observed_texels"] + uniform  # as `_finish` counts
     level = estimate_noise_level(values, values - target, dof_scale=n_res / max(n_res - n_par, 1))
     weights = np.repeat(level.weights(values), kept.samples, axis=0)
     weighted = dataclasses.replace(kept, residual_weight=to_device(weights, np.float32))
