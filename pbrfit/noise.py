@@ -17,8 +17,8 @@ is estimated robustly as median(r²) / `MEDIAN_CHI2` (the median of a squared st
 so that a cluster of texels the fit left in a wrong basin does not inflate it. A smooth shape
 a + b v + c v² (a, b, c >= 0: read noise, shot noise, noise proportional to the value) is fitted
 to the bins, the bins are measured once more relative to it (which takes out the level's change
-within a bin), and σ²(v) is the shape times the bins' ratios to it, interpolated between them
-(`NoiseLevel`): a non-parametric noise level function (as in C. Liu et al., "Automatic
+within a bin), and σ²(v) is the bins' variances interpolated in proportion to the shape between
+them, and the shape times the end bins' ratios to it beyond them (`NoiseLevel`): a non-parametric noise level function (as in C. Liu et al., "Automatic
 estimation and removal of noise from a single image", IEEE TPAMI 2008, there per intensity bin
 of the image itself) that follows the shape into the darkest and brightest values. The
 second fit, started from the first, weighs each value's residual by w = σ_ref / σ(v̂)
@@ -77,11 +77,14 @@ def _shape_variance(shape, v):
 class NoiseLevel:
     """A noise level function σ(v) of the value v in the images' own space.
 
-    σ²(v) = s(v) ρ(v): a smooth shape s(v) = a + b v + c v² (read noise, shot noise, noise
-    proportional to the value; a, b, c >= 0) times ρ(v), the bins' ratios of their measured
-    variance to the shape's, interpolated linearly between the bins and held beyond the end ones.
-    Where the shape is the noise's law, ρ is flat and σ(v) follows that law into the darkest and
-    brightest values; where it is not, ρ bends it through every bin. σ is floored at
+    σ²(v) = s(v) V(v) / S(v), with a smooth shape s(v) = a + b v + c v² (read noise, shot
+    noise, noise proportional to the value; a, b, c >= 0) and V, S the linear interpolations of
+    the bins' measured variances and of the shape's variances at the bins (held beyond the end
+    bins). At a bin it is the bin's variance; between two it follows the shape's curvature and,
+    s being convex, stays at or below the straight line between their variances (the shape times
+    the interpolated ratio V / S would overshoot both bins where one of them fits the shape
+    badly); beyond the end bins it is the shape times their ratio, so where the shape is the
+    noise's law σ(v) follows that law into the darkest and brightest values. σ is floored at
     `NOISE_FLOOR` σ_ref.
 
     Attributes:
@@ -98,11 +101,12 @@ class NoiseLevel:
     reference: float
 
     def __call__(self, v) -> np.ndarray:
-        """σ(v) = sqrt(s(v) ρ(v)), at least `NOISE_FLOOR` σ_ref."""
+        """σ(v) = sqrt(s(v) V(v) / S(v)), at least `NOISE_FLOOR` σ_ref."""
         v = np.asarray(v, np.float64)
         at_bins = _shape_variance(self.shape, self.values)
         if np.all(at_bins > 0.0):
-            var = _shape_variance(self.shape, v) * np.interp(v, self.values, np.square(self.sigma) / at_bins)
+            var = (_shape_variance(self.shape, v) * np.interp(v, self.values, np.square(self.sigma))
+                   / np.interp(v, self.values, at_bins))
         else:  # no shape (or one that vanishes at a bin): the variances themselves interpolated
             var = np.interp(v, self.values, np.square(self.sigma))
         return np.maximum(np.sqrt(np.maximum(var, 0.0)), NOISE_FLOOR * self.reference)

@@ -69,6 +69,14 @@ def test_noise_level_floor_flat_stretches_and_edge_cases():
         one = estimate_noise_level(v1, r1)
         assert len(one.values) == 1 and one.shape[1] == one.shape[2] == 0.0, one.shape
         np.testing.assert_allclose(one.weights(np.array([0.0, 0.5, 1.0, 5.0])), 1.0, rtol=1e-6)
+    # a dark bin the shape fits badly (noisier than the law the rest follow): between it and the
+    # next bin the level stays within theirs (the shape times the interpolated ratio overshot both
+    # by 2.5 times here)
+    rng = np.random.default_rng(2)
+    vd = np.concatenate([rng.uniform(0.0, 1e-3, 2000), rng.uniform(0.01, 1.0, 30000)])
+    dark = estimate_noise_level(vd, rng.normal(0.0, 1.0, vd.size) * np.where(vd < 1e-3, 2e-3, 0.01 * vd))
+    gap = np.linspace(dark.values[0], dark.values[1], 50)
+    assert np.all(dark(gap) <= max(dark.sigma[:2]) * (1 + 1e-9)), (dark(gap).max(), dark.sigma[:2])
     # a value that is not a number (a render's NaN) gets weight 1
     assert est.weights(np.array([np.nan]))[0] == 1.0
     # an exact fit: no level to weigh by, every weight 1
