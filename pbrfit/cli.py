@@ -267,7 +267,7 @@ def _add_fit(sub) -> None:
                         "when the noise does not depend on the value); estimated: the noise level as a function "
                         "of the value is measured from a first fit's residuals, and a second fit from its maps "
                         "weighs each residual by the inverse of the level at its value (for shot noise, or noise "
-                        "proportional to the signal; 1.2 to 1.5 times the time; report.json's noise_level gives the "
+                        "proportional to the signal; 1.1 to 1.5 times the time; report.json's noise_level gives the "
                         "level function)")
     p.add_argument("--no-uniform-check", action="store_true",
                    help="keep metallic and roughness as maps even where the images support only one value for "

@@ -1276,7 +1276,7 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             the noise does not depend on the value) or "estimated" (`pbrfit.noise`: the first
             fit's residuals give the noise level as a function of the value, σ(v), and a second
             fit, started from the first, weighs each residual by σ_ref / σ(v̂) at the first
-            fit's value, σ_ref the median level; for noise that grows with the signal, at 1.2 to
+            fit's value, σ_ref the median level; for noise that grows with the signal, at 1.1 to
             1.5 times the cost). The report's "noise_level" entry gives the mode, and for
             "estimated" the level function and the first fit's steps and loss; "final_loss" and
             "residual_sigma" are then the weighted residuals' (in units of σ_ref), the PSNR the
