@@ -100,8 +100,8 @@ def _cmd_render(args) -> int:
         check_uv_layout(capture.mesh, f"{capture.json_path}: mesh")
     lights_json = load_lights_override(args.lights) if args.lights else None
     capture = apply_overrides(capture, args.environment, lights_json)
-    emissive = getattr(material, "emissive", None)
-    if capture.environment is None and (emissive is None or not np.any(np.asarray(emissive) > 0)) and not any(
+    emits = material.emissive is not None and np.any(np.asarray(material.emissive) > 0)
+    if capture.environment is None and not emits and not any(
             float(light.intensity) * float(np.max(np.asarray(light.color))) > 0.0
             for frame in capture.frames for light in frame.lights):
         where = "--lights" if lights_json is not None else str(capture.json_path)
@@ -450,11 +450,6 @@ class _Progress:
             self._live.stop()
 
 
-def _uniform_channels(report: dict) -> list:
-    """Names of the channels the uniform check made uniform."""
-    return [name for name, c in report.get("uniform_check", {}).items() if isinstance(c, dict) and c.get("uniform")]
-
-
 def _loss_history(steps: list, report: dict) -> list:
     """The convergence plot's (step, loss) points: every step reported, but of the automatic
     footprint's two finishes (entries tagged "footprint") only the kept one's, of the repair's
@@ -462,10 +457,12 @@ def _loss_history(steps: list, report: dict) -> list:
     re-fits (tagged "check") only those of a channel made uniform. With an estimated noise level
     only the weighted fit's steps (tagged "weighted"): its loss is of the weighted residuals, on
     another scale than the first fit's."""
+    from .fit import uniform_channels
+
     if any(h.get("weighted") for h in steps):
         steps = [h for h in steps if h.get("weighted")]
     kept = report.get("footprint", {}).get("selected")
-    uniform = set(_uniform_channels(report))
+    uniform = set(uniform_channels(report))
     passes = (report.get("repair") or {}).get("passes", [])
     repaired = {i + 1 for i, p in enumerate(passes) if p.get("kept")}
 
@@ -515,7 +512,7 @@ def run_fit(capture, out, options: dict, cache_dir=None, quiet: bool = False):
 
 
 def _summary(result, errors) -> str:
-    from .fit import compile_summary
+    from .fit import compile_summary, uniform_channels
 
     r = result.report
     h, w = r["resolution"]
@@ -532,7 +529,7 @@ def _summary(result, errors) -> str:
                      f"{foot['energies'][other]:.3e} {'at centres' if other == '1' else f'with {other}x{other}'})")
     elif n > 1:
         parts[0] += f", {n}x{n} samples per pixel"
-    uniform = [f"{name} {r['uniform_check'][name]['value']:.4g}" for name in _uniform_channels(r)]
+    uniform = [f"{name} {r['uniform_check'][name]['value']:.4g}" for name in uniform_channels(r)]
     if uniform:  # the uniform check found no support for these maps in the images
         parts[0] += ", one value for " + " and ".join(uniform) + " (uniform check)"
     level = r.get("noise_level") or {}

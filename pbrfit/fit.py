@@ -75,7 +75,8 @@ from .uncertainty import (MAX_UNCERTAINTY_RADIUS, WINDOW_RADIUS, residual_varian
 
 __all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "model_for_capture",
            "SOLVERS", "DEFAULT_SOLVER", "IBL_MODES", "CONTINUATION", "SETTLE_STEPS", "RELEASED_STEPS", "continuation_scale", "schedule",
-           "footprint_choice", "footprint_energies", "AUTO_PIXEL_SAMPLES", "AUTO_MAX_PIXELS", "PROBE_STEPS"]
+           "footprint_choice", "footprint_energies", "AUTO_PIXEL_SAMPLES", "AUTO_MAX_PIXELS", "PROBE_STEPS",
+           "uniform_channels"]
 
 #: The per-texel blocks of JᵀJ, one jitted function for the repair, the uniform check, the
 #: preconditioner's scale and the uncertainty (one compile per problem shape).
@@ -255,6 +256,12 @@ def _fixed_values(fixed: Mapping, shape: tuple[int, int], k: int = 5) -> np.ndar
     return out
 
 
+def uniform_channels(report: dict) -> list[str]:
+    """Names of the channels a fit's uniform check made one common value (its report's
+    "uniform_check" entries with ``uniform``)."""
+    return [name for name, c in report.get("uniform_check", {}).items() if isinstance(c, dict) and c.get("uniform")]
+
+
 def held_report(fit: Sequence[str], fixed: Optional[Mapping]) -> dict:
     """What each material map not fitted was held at, for the report: ``{"source": "value",
     "value": v}`` (a number, or R, G, B), ``{"source": "map", "shape": [H, W], "mean": m}`` or,
@@ -374,7 +381,7 @@ def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
     values = _fitted_values(first, kept)
     target = np.asarray(kept.pixel_rows(kept.target))
     n_res = values.size
-    uniform = sum(1 for c in first.report.get("uniform_check", {}).values() if isinstance(c, dict) and c.get("uniform"))
+    uniform = len(uniform_channels(first.report))
     n_par = (len(first.report["fitted"]) - uniform) * first.report["observed_texels"] + uniform  # as `_finish` counts
     level = estimate_noise_level(values, values - target, dof_scale=n_res / max(n_res - n_par, 1))
     weights = np.repeat(level.weights(values), kept.samples, axis=0)

@@ -18,9 +18,10 @@ so that a cluster of texels the fit left in a wrong basin does not inflate it. A
 a + b v + c v² (a, b, c >= 0: read noise, shot noise, noise proportional to the value) is fitted
 to the bins, the bins are measured once more relative to it (which takes out the level's change
 within a bin), and σ²(v) is the bins' variances interpolated in proportion to the shape between
-them, and the shape times the end bins' ratios to it beyond them (`NoiseLevel`): a non-parametric noise level function (as in C. Liu et al., "Automatic
-estimation and removal of noise from a single image", IEEE TPAMI 2008, there per intensity bin
-of the image itself) that follows the shape into the darkest and brightest values. The
+them, and the shape times the end bins' ratios to it beyond them (`NoiseLevel`): a
+non-parametric noise level function (as in C. Liu et al., "Automatic estimation and removal of
+noise from a single image", IEEE TPAMI 2008, there per intensity bin of the image itself) that
+follows the shape into the darkest and brightest values. The
 second fit, started from the first, weighs each value's residual by w = σ_ref / σ(v̂)
 (`NoiseLevel.weights`), σ_ref the median of σ(v̂) over the residuals, so that the weights' median
 is 1 and the loss keeps its scale: weighted least squares with estimated weights ("feasible

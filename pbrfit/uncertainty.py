@@ -133,10 +133,14 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
     free = np.asarray(channels, bool)
     seen = np.asarray(seen, bool)
     rows, cols = np.divmod(np.arange(t), w)
+
+    def texels(at, steps):  # (len(at), len(steps)): the texels the steps lead to, wrapped
+        return np.stack([((rows[at] + di) % h) * w + (cols[at] + dj) % w for di, dj in steps], axis=1)
+
     # rows and columns that take no part are zeroed here, so that nothing in them (a non-finite
     # derivative of a fixed channel) reaches the window's solve
     part = seen[:, None] & np.broadcast_to(free, (t, k))  # (T, K)
-    towards = np.stack([((rows + di) % h) * w + (cols + dj) % w for di, dj in NEIGHBOUR_OFFSETS], axis=1)
+    towards = texels(slice(None), NEIGHBOUR_OFFSETS)
     blocks = np.where(part[:, :, None] & part[:, None, :], blocks, 0.0)
     flat = np.where(part[:, None, :, None] & part[towards][:, :, None, :], couplings, 0.0).reshape(t * q, k, k)
     out = np.empty((t, k, k))
@@ -144,7 +148,7 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
     rest = np.arange(k, n * k)
     for lo in range(0, t, chunk):
         ts = np.arange(lo, min(t, lo + chunk))
-        u = np.stack([((rows[ts] + di) % h) * w + (cols[ts] + dj) % w for di, dj in offsets], axis=1)  # (c, n)
+        u = texels(ts, offsets)  # (c, n)
         # assembled in place as (c, n, K, n, K), the layout of the (c, n K, n K) window matrix: the
         # (a, b) blocks, indexed by two arrays around a slice, take values shaped (pairs, c, K, K)
         m = np.zeros((len(ts), n, k, n, k))
