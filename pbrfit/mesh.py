@@ -8,10 +8,24 @@ Rules pinned here (tests in ``tests/test_scene.py``):
   format: trimesh's loaders return v = 0 at the bottom for both OBJ (as stored) and glTF
   (TEXCOORD_0 flipped on load), so `load_mesh` flips v back. A glTF primitive without a
   material still keeps its TEXCOORD_0 (trimesh would drop it).
+* A glTF attribute stored as normalized integers (KHR_mesh_quantization, as gltfpack writes
+  them) is read as the values it stands for (trimesh would read the raw integers): component c
+  of an unsigned byte or short is c / 255 or c / 65535, of a signed one max(c / 127, -1) or
+  max(c / 32767, -1) (the extension's README, "Encoding quantized data").
+* A texture transform (KHR_texture_transform) on a primitive's material applies to its
+  TEXCOORD_0: the maps are read at uv' = T R S uv, with the extension's offset o, rotation r
+  and scale s (its README's GLSL, whose rotation matrix has the columns (cos r, sin r) and
+  (-sin r, cos r)): u' = o_u + s_u u cos r - s_v v sin r, v' = o_v + s_u u sin r + s_v v cos r.
+  It is taken from the first of the material's textures that reads TEXCOORD_0, in the order
+  baseColorTexture, metallicRoughnessTexture, normalTexture, occlusionTexture, emissiveTexture:
+  base colour and metallic-roughness are the maps pbrfit fits, and a quantizing writer gives
+  every texture of a material the same transform. The uv `load_mesh` returns (and material.glb
+  holds) are the transformed ones.
 """
 
 from __future__ import annotations
 
+import base64
 import io as _io
 import json
 import struct
@@ -19,6 +33,7 @@ import urllib.parse
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import Float
 
 from .errors import CaptureError
 
@@ -26,6 +41,7 @@ __all__ = ["gltf_file_uris", "load_mesh"]
 
 _GLB_MAGIC = 0x46546C67
 _CHUNK_JSON = 0x4E4F534A
+_CHUNK_BIN = 0x004E4942
 
 
 def _gltf_default_material(tree: dict) -> bool:
@@ -59,27 +75,210 @@ def gltf_file_uris(tree: dict):
                 yield kind, i, entry, urllib.parse.unquote(uri)
 
 
+# --- glTF attributes trimesh reads raw: normalized integers, texture transforms ------------------
+#: Normalized integer component types (glTF componentType): (dtype, divisor, signed).
+_NORMALIZED = {5120: (np.int8, 127.0, True), 5121: (np.uint8, 255.0, False),
+               5122: (np.int16, 32767.0, True), 5123: (np.uint16, 65535.0, False)}
+_COMPONENT_DTYPES = {**{k: v[0] for k, v in _NORMALIZED.items()}, 5125: np.uint32, 5126: np.float32}
+_TYPE_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+#: The textures whose KHR_texture_transform is TEXCOORD_0's, in order of preference.
+_TRANSFORM_TEXTURES = (("pbrMetallicRoughness", "baseColorTexture"),
+                       ("pbrMetallicRoughness", "metallicRoughnessTexture"),
+                       (None, "normalTexture"), (None, "occlusionTexture"), (None, "emissiveTexture"))
+_FLOAT = 5126
+
+
+def _read_view(tree: dict, buffer, view_index: int, offset: int, component: int, count: int, width: int):
+    """(count, width) components of glTF type ``component`` from a buffer view, ``offset`` bytes
+    in, following its byteStride; ``buffer(i)`` gives buffer i's bytes."""
+    view = tree["bufferViews"][view_index]
+    dtype = np.dtype(_COMPONENT_DTYPES[component]).newbyteorder("<")
+    size = dtype.itemsize * width
+    stride = int(view.get("byteStride") or size)
+    start = int(view.get("byteOffset", 0)) + int(offset)
+    need = (count - 1) * stride + size if count else 0
+    data = buffer(view["buffer"])
+    if int(offset) + need > int(view["byteLength"]) or start + need > len(data):
+        raise ValueError(f"bufferView {view_index} is shorter than an accessor reads from it")
+    raw = np.frombuffer(data, np.uint8, count=need, offset=start)
+    rows = np.lib.stride_tricks.as_strided(raw, (count, size), (stride, 1))
+    return np.ascontiguousarray(rows).view(dtype).reshape(count, width)
+
+
+def _read_accessor(tree: dict, buffer, index: int) -> np.ndarray:
+    """An accessor's values as float64 (count, width): sparse entries applied, normalized
+    integers divided out (`_NORMALIZED`)."""
+    acc = tree["accessors"][index]
+    component, count, width = acc["componentType"], int(acc["count"]), _TYPE_WIDTHS[acc["type"]]
+    if "bufferView" in acc:
+        values = _read_view(tree, buffer, acc["bufferView"], acc.get("byteOffset", 0), component, count, width)
+    else:
+        values = np.zeros((count, width), _COMPONENT_DTYPES[component])
+    sparse = acc.get("sparse")
+    if sparse:
+        values = values.copy()
+        ind, val, n = sparse["indices"], sparse["values"], int(sparse["count"])
+        rows = _read_view(tree, buffer, ind["bufferView"], ind.get("byteOffset", 0), ind["componentType"], n, 1)
+        values[rows[:, 0]] = _read_view(tree, buffer, val["bufferView"], val.get("byteOffset", 0), component, n,
+                                        width)
+    values = values.astype(np.float64)
+    if acc.get("normalized") and component in _NORMALIZED:
+        _, divisor, signed = _NORMALIZED[component]
+        values = values / divisor
+        if signed:
+            values = np.maximum(values, -1.0)
+    return values
+
+
+def _texture_transform(tree: dict, primitive: dict):
+    """(offset, rotation, scale) of the KHR_texture_transform that maps the primitive's
+    TEXCOORD_0 (`_TRANSFORM_TEXTURES`), or None."""
+    materials = tree.get("materials") or []
+    index = primitive.get("material")
+    if not isinstance(index, int) or not 0 <= index < len(materials):
+        return None
+    material = materials[index]
+    for group, key in _TRANSFORM_TEXTURES:
+        info = (material.get(group) or {}).get(key) if group else material.get(key)
+        if not isinstance(info, dict):
+            continue
+        transform = (info.get("extensions") or {}).get("KHR_texture_transform")
+        if (transform or {}).get("texCoord", info.get("texCoord", 0)) != 0:
+            continue
+        if transform is None:
+            return None
+        return (tuple(float(x) for x in transform.get("offset", (0.0, 0.0))), float(transform.get("rotation", 0.0)),
+                tuple(float(x) for x in transform.get("scale", (1.0, 1.0))))
+    return None
+
+
+def apply_texture_transform(uv: Float[np.ndarray, "n 2"], offset, rotation: float, scale) -> Float[np.ndarray, "n 2"]:
+    """KHR_texture_transform: uv' = T R S uv, u' = o_u + s_u u cos r - s_v v sin r,
+    v' = o_v + s_u u sin r + s_v v cos r (glTF orientation, v = 0 at the image's top row)."""
+    su, sv = uv[:, 0] * scale[0], uv[:, 1] * scale[1]
+    c, s = np.cos(rotation), np.sin(rotation)
+    return np.column_stack([offset[0] + c * su - s * sv, offset[1] + s * su + c * sv])
+
+
+def _gltf_float_attributes(tree: dict, buffer, target: int, start: int) -> bytes:
+    """Rewrite the primitives' POSITION, NORMAL and TEXCOORD_0 attributes that trimesh would
+    misread (normalized integers) or that a texture transform maps as new float32 accessors,
+    their data in buffer ``target`` from byte ``start`` on: returns that data (b"" when no
+    attribute needs it; the caller stores it)."""
+    blob = bytearray()
+    made = {}
+    for mesh in tree.get("meshes") or []:
+        for primitive in mesh.get("primitives") or []:
+            attributes = primitive.get("attributes") or {}
+            for name in ("POSITION", "NORMAL", "TEXCOORD_0"):
+                index = attributes.get(name)
+                if not isinstance(index, int):
+                    continue
+                acc = tree["accessors"][index]
+                transform = _texture_transform(tree, primitive) if name == "TEXCOORD_0" else None
+                normalized = bool(acc.get("normalized")) and acc.get("componentType") in _NORMALIZED
+                if not normalized and transform is None:
+                    continue
+                if (index, transform) not in made:
+                    values = _read_accessor(tree, buffer, index)
+                    if transform is not None:
+                        values = apply_texture_transform(values[:, :2], *transform)
+                    data = np.ascontiguousarray(values, dtype="<f4")
+                    blob += b"\0" * (-(start + len(blob)) % 4)
+                    tree["bufferViews"].append({"buffer": target, "byteOffset": start + len(blob),
+                                                "byteLength": data.nbytes})
+                    blob += data.tobytes()
+                    entry = {"bufferView": len(tree["bufferViews"]) - 1, "componentType": _FLOAT,
+                             "count": int(len(data)), "type": acc["type"] if transform is None else "VEC2"}
+                    if len(data):
+                        entry.update(min=data.min(axis=0).tolist(), max=data.max(axis=0).tolist())
+                    tree["accessors"].append(entry)
+                    made[(index, transform)] = len(tree["accessors"]) - 1
+                attributes[name] = made[(index, transform)]
+    return bytes(blob)
+
+
+def _buffer_reader(tree: dict, folder: Path, binary=None):
+    """buffer(i): glTF buffer i's bytes (a GLB's BIN chunk for a buffer 0 without a uri, else
+    its uri: base64 data or a file relative to ``folder``), each read once."""
+    cache = {}
+
+    def buffer(i: int) -> bytes:
+        if i not in cache:
+            entry = tree["buffers"][i]
+            uri = entry.get("uri")
+            if uri is None:
+                if i != 0 or binary is None:
+                    raise ValueError(f"buffer {i} has neither a uri nor a GLB BIN chunk")
+                cache[i] = binary
+            elif uri.startswith("data:"):
+                head, _, payload = uri.partition(",")
+                if not head.endswith(";base64"):
+                    raise ValueError(f"buffer {i}: a data: uri that is not base64")
+                cache[i] = base64.b64decode(payload)
+            else:
+                cache[i] = (folder / urllib.parse.unquote(uri)).read_bytes()
+        return cache[i]
+
+    return buffer
+
+
+def _glb_chunks(data: bytes):
+    """(version, JSON tree, BIN chunk or None) of a GLB file."""
+    magic, version, _ = struct.unpack_from("<III", data, 0)
+    if magic != _GLB_MAGIC:
+        raise ValueError("not a GLB file (bad magic)")
+    json_len, chunk_type = struct.unpack_from("<II", data, 12)
+    if chunk_type != _CHUNK_JSON:
+        raise ValueError("first GLB chunk is not JSON")
+    tree = json.loads(data[20 : 20 + json_len])
+    at, binary = 20 + json_len, None
+    while binary is None and at + 8 <= len(data):  # the first BIN chunk (other kinds are skipped)
+        length, kind = struct.unpack_from("<II", data, at)
+        if kind == _CHUNK_BIN:
+            binary = data[at + 8 : at + 8 + length]
+        at += 8 + length
+    return version, tree, binary
+
+
+def _glb_from_chunks(version: int, tree: dict, binary) -> bytes:
+    js = json.dumps(tree).encode()
+    js += b" " * (-len(js) % 4)
+    chunks = struct.pack("<II", len(js), _CHUNK_JSON) + js
+    if binary is not None:
+        binary = bytes(binary) + b"\0" * (-len(binary) % 4)
+        chunks += struct.pack("<II", len(binary), _CHUNK_BIN) + binary
+    return struct.pack("<III", _GLB_MAGIC, version, 12 + len(chunks)) + chunks
+
+
 def _load_gltf_keeping_uv(path: Path):
     import trimesh
 
     data = path.read_bytes()
     if path.suffix.lower() == ".glb":
-        magic, version, _ = struct.unpack_from("<III", data, 0)
-        if magic != _GLB_MAGIC:
-            raise ValueError("not a GLB file (bad magic)")
-        json_len, chunk_type = struct.unpack_from("<II", data, 12)
-        if chunk_type != _CHUNK_JSON:
-            raise ValueError("first GLB chunk is not JSON")
-        tree = json.loads(data[20 : 20 + json_len])
-        if _gltf_default_material(tree):
-            js = json.dumps(tree).encode()
-            js += b" " * (-len(js) % 4)
-            rest = data[20 + json_len :]
-            header = struct.pack("<III", magic, version, 12 + 8 + len(js) + len(rest))
-            data = header + struct.pack("<II", len(js), _CHUNK_JSON) + js + rest
+        version, tree, binary = _glb_chunks(data)
+        changed = _gltf_default_material(tree)
+        buffers = tree.setdefault("buffers", [])
+        if binary is not None and buffers and "uri" not in buffers[0]:  # new data goes into the BIN chunk
+            blob = _gltf_float_attributes(tree, _buffer_reader(tree, path.parent, binary), 0, len(binary))
+            if blob:
+                binary = binary + blob
+                buffers[0]["byteLength"] = len(binary)
+        else:
+            blob = _gltf_float_attributes(tree, _buffer_reader(tree, path.parent, binary), len(buffers), 0)
+            if blob:
+                buffers.append({"byteLength": len(blob),
+                                "uri": "data:application/octet-stream;base64," + base64.b64encode(blob).decode()})
+        if changed or blob:
+            data = _glb_from_chunks(version, tree, binary)
         return trimesh.load_scene(_io.BytesIO(data), file_type="glb", process=False)
     tree = json.loads(data)
     _gltf_default_material(tree)
+    buffers = tree.setdefault("buffers", [])
+    blob = _gltf_float_attributes(tree, _buffer_reader(tree, path.parent), len(buffers), 0)
+    if blob:
+        buffers.append({"byteLength": len(blob),
+                        "uri": "data:application/octet-stream;base64," + base64.b64encode(blob).decode()})
     for _, _, entry, name in gltf_file_uris(tree):  # the resolver takes file names
         entry["uri"] = name
     # the URIs are relative to the file and may lead out of its folder ("../buffers/a.bin")

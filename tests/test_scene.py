@@ -1,6 +1,7 @@
 import json
 import math
 import shutil
+import struct
 
 import numpy as np
 import pytest
@@ -135,6 +136,110 @@ def test_scene_nodes_are_concatenated_with_transforms(tmp_path):
     np.testing.assert_allclose(blocks[1], QUAD_POSITIONS + [2, 0, 0])
     np.testing.assert_allclose(mesh.visual.uv, np.concatenate([QUAD_UV_GLTF] * 2))
     np.testing.assert_array_equal(mesh.faces[2:], [[4, 5, 6], [4, 6, 7]])
+
+
+# --- glTF attributes stored as integers, and texture transforms -----------------------------------
+def _quantized_quad(path, uv_values, uv_component, uv_stride=None, positions_short=False, transform=None,
+                    external=False, sparse_uv=None):
+    """The quad written by hand with TEXCOORD_0 stored as normalized integers of glTF type
+    ``uv_component`` (5121 unsigned byte, 5123 unsigned short) with an optional byteStride,
+    positions optionally as normalized signed shorts, an optional KHR_texture_transform on the
+    base colour texture, as .glb or (``external``) .gltf with a .bin file."""
+    divisor = {5121: 255, 5123: 65535}[uv_component]
+    dtype = {5121: np.uint8, 5123: np.uint16}[uv_component]
+    uv_q = np.round(np.asarray(uv_values) * divisor).astype(dtype)
+    if uv_stride:  # pad each element to the stride
+        padded = np.zeros((len(uv_q), uv_stride), np.uint8)
+        padded[:, :uv_q.itemsize * 2] = uv_q.view(np.uint8).reshape(len(uv_q), -1)
+        uv_bytes = padded.tobytes()
+    else:
+        uv_bytes = uv_q.tobytes()
+    if positions_short:
+        pos_bytes = np.round(QUAD_POSITIONS * 32767).astype(np.int16)
+        pos_bytes = np.concatenate([pos_bytes, np.zeros((4, 1), np.int16)], axis=1).tobytes()  # 8-byte stride
+        pos_acc = {"componentType": 5122, "normalized": True}
+    else:
+        pos_bytes, pos_acc = QUAD_POSITIONS.tobytes(), {"componentType": 5126}
+    faces = np.array([[0, 1, 2], [0, 2, 3]], np.uint32).tobytes()
+    blob = pos_bytes + uv_bytes + faces
+    views = [{"buffer": 0, "byteOffset": 0, "byteLength": len(pos_bytes)},
+             {"buffer": 0, "byteOffset": len(pos_bytes), "byteLength": len(uv_bytes)},
+             {"buffer": 0, "byteOffset": len(pos_bytes) + len(uv_bytes), "byteLength": len(faces)}]
+    if positions_short:
+        views[0]["byteStride"] = 8
+    if uv_stride:
+        views[1]["byteStride"] = uv_stride
+    uv_acc = {"bufferView": 1, "componentType": uv_component, "normalized": True, "count": 4, "type": "VEC2"}
+    if sparse_uv is not None:  # vertex sparse_uv[0] gets uv sparse_uv[1]
+        idx = np.array([sparse_uv[0]], np.uint32).tobytes()
+        val = np.round(np.asarray(sparse_uv[1]) * divisor).astype(dtype).tobytes()
+        val += b"\0" * (-len(val) % 4)
+        views += [{"buffer": 0, "byteOffset": len(blob), "byteLength": 4},
+                  {"buffer": 0, "byteOffset": len(blob) + 4, "byteLength": len(val)}]
+        blob += idx + val
+        uv_acc["sparse"] = {"count": 1, "indices": {"bufferView": 3, "componentType": 5125},
+                            "values": {"bufferView": 4}}
+    accessors = [{"bufferView": 0, "count": 4, "type": "VEC3", **pos_acc}, uv_acc,
+                 {"bufferView": 2, "componentType": 5125, "count": 6, "type": "SCALAR"}]
+    texture_info = {"index": 0}
+    if transform is not None:
+        texture_info["extensions"] = {"KHR_texture_transform": transform}
+    tree = {"asset": {"version": "2.0"}, "extensionsUsed": ["KHR_mesh_quantization", "KHR_texture_transform"],
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2,
+                                        "material": 0}]}],
+            "materials": [{"pbrMetallicRoughness": {"baseColorTexture": texture_info}}],
+            "textures": [{}], "nodes": [{"mesh": 0}], "scenes": [{"nodes": [0]}], "scene": 0,
+            "buffers": [{"byteLength": len(blob)}], "bufferViews": views, "accessors": accessors}
+    if external:
+        (path.parent / "quad data.bin").write_bytes(blob)
+        tree["buffers"][0]["uri"] = "quad%20data.bin"
+        path.write_text(json.dumps(tree))
+        return path
+    js = json.dumps(tree).encode()
+    js += b" " * (-len(js) % 4)
+    blob += b"\0" * (-len(blob) % 4)
+    path.write_bytes(struct.pack("<III", 0x46546C67, 2, 28 + len(js) + len(blob))
+                     + struct.pack("<II", len(js), 0x4E4F534A) + js + struct.pack("<II", len(blob), 0x004E4942) + blob)
+    return path
+
+
+@pytest.mark.parametrize("component, stride, suffix, positions_short", [
+    (5123, None, "glb", False), (5121, 4, "glb", True), (5123, None, "gltf", True)])
+def test_normalized_integer_attributes_read_as_their_values(tmp_path, component, stride, suffix, positions_short):
+    # KHR_mesh_quantization: trimesh alone reads the integers (uv 65535, positions 32767).
+    path = _quantized_quad(tmp_path / f"q.{suffix}", QUAD_UV_GLTF, component, stride, positions_short,
+                           external=suffix == "gltf")
+    mesh = load_mesh(path)
+    step = 1.0 / {5121: 255, 5123: 65535}[component]
+    np.testing.assert_allclose(mesh.visual.uv, QUAD_UV_GLTF, atol=step)
+    np.testing.assert_allclose(mesh.vertices, QUAD_POSITIONS, atol=1.0 / 32767)
+    np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [0, 2, 3]])
+
+
+def test_sparse_normalized_texture_coordinates(tmp_path):
+    # vertex 3's stored uv (0, 0.25) is replaced by the sparse entry (0.5, 0.5)
+    mesh = load_mesh(_quantized_quad(tmp_path / "s.glb", QUAD_UV_GLTF, 5123, sparse_uv=(3, [0.5, 0.5])))
+    expected = QUAD_UV_GLTF.copy()
+    expected[3] = [0.5, 0.5]
+    np.testing.assert_allclose(mesh.visual.uv, expected, atol=1e-4)
+
+
+def test_texture_transform_maps_texture_coordinates(tmp_path):
+    # KHR_texture_transform's README: uv' = T R S uv with R's columns (cos r, sin r), (-sin r, cos r).
+    # At r = pi/2: u' = o_u - s_v v, v' = o_v + s_u u.
+    transform = {"offset": [0.5, 0.125], "rotation": math.pi / 2, "scale": [0.5, 0.25]}
+    mesh = load_mesh(_quantized_quad(tmp_path / "t.glb", QUAD_UV_GLTF, 5123, transform=transform))
+    u, v = QUAD_UV_GLTF[:, 0], QUAD_UV_GLTF[:, 1]
+    expected = np.column_stack([0.5 - 0.25 * v, 0.125 + 0.5 * u])
+    np.testing.assert_allclose(mesh.visual.uv, expected, atol=1e-4)
+    # offset and scale alone (the dequantization transform a quantizing writer stores)
+    transform = {"offset": [-0.25, 0.5], "scale": [2.0, 0.5]}
+    mesh = load_mesh(_quantized_quad(tmp_path / "o.glb", QUAD_UV_GLTF, 5123, transform=transform))
+    np.testing.assert_allclose(mesh.visual.uv, np.column_stack([-0.25 + 2 * u, 0.5 + 0.5 * v]), atol=1e-4)
+    # a transform for another texture coordinate set leaves TEXCOORD_0 alone
+    transform = {"offset": [0.5, 0.5], "texCoord": 1}
+    mesh = load_mesh(_quantized_quad(tmp_path / "n.glb", QUAD_UV_GLTF, 5123, transform=transform))
+    np.testing.assert_allclose(mesh.visual.uv, QUAD_UV_GLTF, atol=1e-4)
 
 
 def test_mesh_whose_texture_coordinates_span_no_area_is_refused_for_maps(tmp_path):
@@ -609,3 +714,4 @@ def test_mesh_with_non_finite_values_or_an_unknown_format_is_refused(tmp_path):
     (tmp_path / "m.xyz").write_text("0 0 0\n")
     with pytest.raises(CaptureError, match="unsupported mesh format '.xyz'; pbrfit reads .glb, .gltf, .obj"):
         load_mesh(tmp_path / "m.xyz")
+
