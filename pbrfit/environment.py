@@ -90,7 +90,7 @@ def load_environment(path, world_up: str = "+y", intensity: float = 1.0,
     values are clamped to 0 (radiance is not negative). Raises `CaptureError` naming the file when
     it cannot be read, is not an image, or holds NaN or inf pixels.
     """
-    from .io import read_image
+    from .io import color_channels, read_image
 
     path = Path(path)
     if world_up not in WORLD_UPS:
@@ -99,12 +99,13 @@ def load_environment(path, world_up: str = "+y", intensity: float = 1.0,
         raise CaptureError(f"{path}: environment intensity must be a finite number >= 0, got {intensity!r}")
     if not path.is_file():
         raise CaptureError(f"{path}: environment file not found")
-    pixels, _ = read_image(path, "environment")  # a cropped OpenEXR is placed in its display window
+    pixels, info = read_image(path, "environment")  # a cropped OpenEXR is placed in its display window
     if pixels.shape[-1] == 1:
         pixels = np.repeat(pixels, 3, axis=-1)
     elif pixels.shape[-1] == 2:
         raise CaptureError(f"{path}: environment has 2 channels; expected 1, 3 or 4")
-    pixels = pixels[..., :3]
+    else:  # R, G, B by name (one layer of a layered OpenEXR), else the first three
+        pixels = pixels[..., color_channels(info, "environment")]
     bad = ~np.isfinite(pixels)
     if bad.any():
         row, col = (int(i) for i in np.argwhere(bad.any(-1))[0])

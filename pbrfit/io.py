@@ -37,6 +37,7 @@ __all__ = [
     "check_not_inside",
     "OUTPUT_MARKER",
     "read_image",
+    "color_channels",
     "read_image_info",
     "write_image",
     "read_material",
@@ -266,7 +267,8 @@ class ImageInfo:
         format: pixel format as stored: ``"uint8"``, ``"uint16"``, ``"half"``, ``"float"``, ...
         bits: bits per channel.
         is_ldr: integer pixels (a code maximum exists, values lie in [0, 1] once read).
-        alpha_channel: index of the alpha channel, or None.
+        alpha_channel: index of the alpha channel, or None (for a layered OpenEXR read through
+            one of its layers, `color_channels`, that layer's ``.A``).
         associated_alpha: the color channels are premultiplied by alpha as stored: always for
             OpenEXR, for TIFF unless the file says unassociated; PNG, BMP, TGA... are straight.
         file_format: OpenImageIO's format name (``"png"``, ``"openexr"``, ``"hdr"``, ``"tiff"``, ``"jpeg"``).
@@ -314,8 +316,41 @@ def _windows(spec, file_format: str):
     return data, display
 
 
+def _color_layer(names) -> tuple[Optional[str], list[str]]:
+    """(the colour layer an image is read through, every colour layer), by channel name: "" for
+    plain R, G, B; else the one prefix p with p.R, p.G and p.B, or of several the one whose last
+    part is "Combined" (Blender's multilayer OpenEXR: "ViewLayer.Combined.R" beside
+    "ViewLayer.AO.R", ...). None where no channel is so named, or the layers leave it open."""
+    index = set(names)
+    layers = [""] if {"R", "G", "B"} <= index else []
+    layers += [n[:-2] for n in names if n.endswith(".R") and {n[:-2] + ".G", n[:-2] + ".B"} <= index]
+    if "" in layers or len(layers) == 1:
+        return layers[0], layers
+    beauty = [layer for layer in layers if layer.rsplit(".", 1)[-1].lower() == "combined"]
+    return (beauty[0] if len(beauty) == 1 else None), layers
+
+
+def color_channels(info: ImageInfo, where: str) -> list[int]:
+    """The indices of an image's colour channels (at most three): R, G, B by name
+    (`_color_layer`), else the channels in stored order less alpha. Raises `CaptureError` when
+    several colour layers leave open which one holds the image."""
+    layer, layers = _color_layer(info.channel_names)
+    if layer is not None:
+        names = list(info.channel_names)
+        return [names.index(f"{layer}.{c}" if layer else c) for c in "RGB"]
+    if layers:
+        raise CaptureError(f"{where}: image {info.path} holds several colour layers ({', '.join(layers)}) and no "
+                           "R, G, B channels; pbrfit reads R, G, B, a single layer, or a 'Combined' one")
+    return [c for c in range(info.channels) if c != info.alpha_channel][:3]
+
+
 def _info(path: Path, spec, file_format: str) -> ImageInfo:
     fmt = str(spec.format)
+    alpha = int(spec.alpha_channel) if spec.alpha_channel >= 0 else None
+    layer, _ = _color_layer(tuple(spec.channelnames))
+    if layer:  # read through a layer: its own alpha, if it has one
+        names = list(spec.channelnames)
+        alpha = names.index(f"{layer}.A") if f"{layer}.A" in names else None
     windows = _windows(spec, file_format)
     data_window = None
     if windows is not None:
@@ -331,9 +366,9 @@ def _info(path: Path, spec, file_format: str) -> ImageInfo:
         format=fmt,
         bits=int(spec.format.size()) * 8,
         is_ldr=fmt in _LDR_MAX,
-        alpha_channel=int(spec.alpha_channel) if spec.alpha_channel >= 0 else None,
+        alpha_channel=alpha,
         file_format=str(file_format),
-        associated_alpha=spec.alpha_channel >= 0 and (
+        associated_alpha=alpha is not None and (
             str(file_format) == "openexr"
             or (str(file_format) == "tiff" and spec.get_int_attribute("oiio:UnassociatedAlpha", 0) != 1)
         ),

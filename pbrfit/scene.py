@@ -57,7 +57,7 @@ import numpy as np
 
 from .errors import CaptureError
 from .gbuffer import Camera
-from .io import _LDR_MAX, ImageInfo, _srgb_decode, data_window_mask, read_image, read_image_info
+from .io import _LDR_MAX, ImageInfo, _srgb_decode, color_channels, data_window_mask, read_image, read_image_info
 from .lights import FLOAT32_MAX, Light, _loc, _number, _triple, color_and_intensity, flash_light, light_from_json
 from .mesh import load_mesh
 
@@ -392,9 +392,9 @@ def _default_color_space(info: ImageInfo) -> str:
 
 
 def _rgb(pixels: np.ndarray, info: ImageInfo, where: str) -> np.ndarray:
-    color = [c for c in range(pixels.shape[-1]) if c != info.alpha_channel]
-    if len(color) >= 3:
-        return pixels[..., color[:3]]
+    color = color_channels(info, where)
+    if len(color) == 3:
+        return pixels[..., color]
     if len(color) == 1:
         return np.repeat(pixels[..., color], 3, axis=-1)
     raise CaptureError(f"{where}: image {info.path} has {info.channels} channels; expected gray, RGB or RGBA")

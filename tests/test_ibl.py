@@ -357,3 +357,18 @@ def test_shading_is_finite_over_the_closed_domain(constant_tables):
             grads = jax.grad(f, argnums=(0, 1, 2))(*args)
             assert np.isfinite(out) and all(np.all(np.isfinite(g)) for g in grads)
     assert float(dot3(n, v)[0]) == 0.0
+
+
+def test_layered_environment_is_read_through_its_colour_layer(tmp_path):
+    import OpenImageIO as oiio
+
+    sky = np.random.default_rng(2).random((4, 8, 3)).astype(np.float32)
+    names = ["World.AO.R", "World.AO.G", "World.AO.B", "World.Combined.R", "World.Combined.G", "World.Combined.B"]
+    spec = oiio.ImageSpec(8, 4, len(names), "float")
+    spec.channelnames = names
+    out = oiio.ImageOutput.create(str(tmp_path / "env.exr"))
+    out.open(str(tmp_path / "env.exr"), spec)
+    out.write_image(np.concatenate([np.full_like(sky, 5.0), sky], axis=-1))
+    out.close()
+    env = load_environment(tmp_path / "env.exr")
+    np.testing.assert_allclose(np.asarray(env.radiance), sky, rtol=1e-6)

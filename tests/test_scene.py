@@ -715,3 +715,42 @@ def test_mesh_with_non_finite_values_or_an_unknown_format_is_refused(tmp_path):
     with pytest.raises(CaptureError, match="unsupported mesh format '.xyz'; pbrfit reads .glb, .gltf, .obj"):
         load_mesh(tmp_path / "m.xyz")
 
+
+# --- layered OpenEXR frames: read through their colour layer --------------------------------------
+def _write_layered_exr(path, layers: dict) -> None:
+    """An OpenEXR whose channels are ``{name: (H, W) values}``, stored in that order."""
+    import OpenImageIO as oiio
+
+    names = list(layers)
+    spec = oiio.ImageSpec(W, H, len(names), "float")
+    spec.channelnames = names
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), spec)
+    out.write_image(np.stack([layers[n] for n in names], axis=-1).astype(np.float32))
+    out.close()
+
+
+def test_layered_exr_frame_is_read_through_its_combined_layer(tmp_path):
+    # Blender's multilayer OpenEXR: "ViewLayer.AO.*" sorts before "ViewLayer.Combined.*", and
+    # OpenImageIO lists it first; the frame is the Combined pass, its alpha the Combined alpha.
+    root = write_capture(tmp_path / "c")
+    rgba = base_images()["images/001.exr"]
+    layers = {f"ViewLayer.AO.{c}": np.full((H, W), 7.0) for c in "RGB"}
+    layers.update({f"ViewLayer.Combined.{c}": rgba[..., k] for k, c in enumerate("RGBA")})
+    layers["ViewLayer.Depth.Z"] = np.full((H, W), 3.0)
+    _write_layered_exr(root / "images/001.exr", layers)
+    frame = load_capture(root).frames[1]
+    np.testing.assert_allclose(frame.image[1:], rgba[1:, :, :3], rtol=1e-6)
+    assert not frame.mask[0].any() and frame.mask[1:].all()
+    # two colour layers, neither plain R, G, B nor a Combined one: which is meant is not guessed
+    del layers["ViewLayer.Combined.A"]
+    layers = {k.replace("Combined", "Beauty"): v for k, v in layers.items()}
+    _write_layered_exr(root / "images/001.exr", layers)
+    with pytest.raises(CaptureError, match=r"frames\[1\]\.file_path: image .*001.exr holds several colour layers "
+                                           r"\(ViewLayer.AO, ViewLayer.Beauty\)"):
+        load_capture(root)
+    # plain R, G, B beside other layers: those
+    layers = {c: rgba[..., k] for k, c in enumerate("RGBA")}
+    layers.update({f"AO.{c}": np.full((H, W), 7.0) for c in "RGB"})
+    _write_layered_exr(root / "images/001.exr", layers)
+    np.testing.assert_allclose(load_capture(root).frames[1].image[1:], rgba[1:, :, :3], rtol=1e-6)
