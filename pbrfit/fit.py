@@ -160,8 +160,9 @@ class FitResult:
             its window free (``uncertainty_radius``); 0 for fixed channels, +inf for texels no
             view sees.
         coverage: (H, W) pixel observations per texel (0 = never seen; such texels keep `PRIOR`).
-        report: model, solver, steps, times (setup / compile / solve), final loss, per-view PSNR,
-            devices, the levels run and the uniform check's tests.
+        report: model, solver, steps (also as "iterations", the capture spec's word), times
+            (setup / compile / solve), final loss, per-view PSNR, devices, the levels run and the
+            uniform check's tests.
         images: per view, the fitted render in the images' own space (H, W, 3); targets: the
             images; masks: (H, W) bool, the pixels that entered the objective.
     """
@@ -356,8 +357,10 @@ def fit_observations(
     if noise_level == "uniform":
         result, _ = _fit_pass(obs, **kwargs)
         result.report["noise_level"] = dict(mode="uniform")
-        return result
-    return _fit_weighted(obs, kwargs)
+    else:
+        result = _fit_weighted(obs, kwargs)
+    result.report["iterations"] = result.report["steps"]  # the capture spec's word for them
+    return result
 
 
 def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:

@@ -40,6 +40,7 @@ def test_fit_writes_the_spec_output(capture, tmp_path, monkeypatch):
     report = json.loads((out / "report.json").read_text())
     for key in ("model", "solver", "steps", "times", "final_loss", "psnr", "devices", "truth_rmse", "wall_time"):
         assert key in report, key
+    assert report["iterations"] == report["steps"] > 0  # the capture spec's word
     assert len(report["psnr"]) == 3
     assert set(report["truth_rmse"]) == {"base_color", "metallic", "roughness"}
     # a noiseless capture of the fit's own model: fitted exactly (measured: RMSE 1e-8 to 8e-8, PSNR 156 dB)
