@@ -7,6 +7,7 @@ on stderr, ``pbrfit: error: <what and where>``, and exit status 2; nothing is ha
 from __future__ import annotations
 
 import argparse
+import errno
 import signal
 import sys
 from typing import Optional, Sequence
@@ -155,7 +156,7 @@ def _cmd_synth(args) -> int:
     from .io import check_output_dir
 
     bounds = (("size", 1, MAX_SIZE), ("views", 1, MAX_VIEWS), ("supersample", 1, MAX_SUPERSAMPLE),
-              ("texture_size", 1, MAX_SIZE), ("ibl_samples", 1, None), ("seed", 0, None))
+              ("texture_size", 1, MAX_SIZE), ("ibl_samples", 1, MAX_IBL_SAMPLES), ("seed", 0, None))
     for name, low, high in bounds:
         value = getattr(args, name)
         if value is not None and value < low:
@@ -332,8 +333,8 @@ def _fit_options(args) -> dict:
         raise CaptureError("--fit: nothing left to fit (every map is held fixed)")
     if args.resolution is not None and not 1 <= args.resolution <= MAX_SIZE:
         raise CaptureError(f"--resolution: must be between 1 and {MAX_SIZE}, got {args.resolution}")
-    if args.max_steps is not None and args.max_steps < 1:
-        raise CaptureError(f"--max-steps: must be at least 1, got {args.max_steps}")
+    if args.max_steps is not None and not 1 <= args.max_steps <= MAX_SOLVER_STEPS:
+        raise CaptureError(f"--max-steps: must be between 1 and {MAX_SOLVER_STEPS}, got {args.max_steps}")
     if not (math.isfinite(args.smooth) and args.smooth >= 0):
         raise CaptureError(f"--smooth: must be a finite number >= 0, got {args.smooth}")
     for name in ("rtol", "atol"):
@@ -367,9 +368,10 @@ def _fit_options(args) -> dict:
         pixel_samples = int(pixel_samples)
     if "normal" in free and args.ibl == "per_pixel":
         raise CaptureError("--ibl per_pixel: fitted normals need --ibl split_sum (per-pixel integrals hold the normals fixed)")
-    for flag, value, least in (("--ibl-levels", args.ibl_levels, MIN_LEVELS), ("--ibl-samples", args.ibl_samples, MIN_SAMPLES)):
-        if value is not None and value < least:
-            raise CaptureError(f"{flag}: must be >= {least}, got {value}")
+    for flag, value, least, most in (("--ibl-levels", args.ibl_levels, MIN_LEVELS, MAX_IBL_LEVELS),
+                                     ("--ibl-samples", args.ibl_samples, MIN_SAMPLES, MAX_IBL_SAMPLES)):
+        if value is not None and not least <= value <= most:
+            raise CaptureError(f"{flag}: must be between {least} and {most}, got {value}")
     pixel_ibl_settings = PixelIBLSettings(
         levels=PixelIBLSettings.levels if args.ibl_levels is None else args.ibl_levels,
         samples=PixelIBLSettings.samples if args.ibl_samples is None else args.ibl_samples)
@@ -637,6 +639,16 @@ MAX_SIZE = 8192
 #: The most cameras `synth --views` renders, and the largest `synth --supersample`.
 MAX_VIEWS = 1024
 MAX_SUPERSAMPLE = 16
+#: The most solver steps (`--max-steps`), Monte Carlo sample steps (`--ibl-samples`) and tabulated
+#: roughness levels (`--ibl-levels`) taken: far beyond any use, and within the int32 counters of
+#: the jitted loops.
+MAX_SOLVER_STEPS = 1_000_000
+MAX_IBL_SAMPLES = 1 << 20
+MAX_IBL_LEVELS = 256
+#: File-system refusals reported as one line (exit status 2) rather than as a failure of pbrfit.
+_REFUSED_ERRNOS = frozenset(getattr(errno, name) for name in (
+    "ENAMETOOLONG", "ENOSPC", "EDQUOT", "EROFS", "EACCES", "EPERM", "EIO", "EFBIG", "EMFILE", "ENFILE", "ELOOP",
+    "ENOTDIR", "EISDIR", "ENOENT") if hasattr(errno, name))
 #: What to make smaller when a command runs out of memory.
 _LESS = {"fit": "use a smaller --resolution (or fewer or smaller images)",
          "render": "use smaller or fewer images, or a smaller material",
@@ -674,6 +686,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return _COMMANDS[args.command](args)
     except CaptureError as err:
         print(f"pbrfit: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except OSError as err:
+        # the system refused a file (a name too long, a full disk, no permission, a read-only place,
+        # a file removed while the command ran): one line naming it; anything else is a bug
+        if err.errno not in _REFUSED_ERRNOS:
+            raise
+        where = f"{err.filename}: " if err.filename else ""
+        print(f"pbrfit: error: {where}{err.strerror or err}", file=sys.stderr)
         return EXIT_USAGE
     except Exception as err:
         # out of memory: numpy's MemoryError (its message names the size) or XLA's RESOURCE_EXHAUSTED;

@@ -45,12 +45,14 @@ import math
 import sys
 import time
 import types
+from pathlib import Path
 from typing import Callable, Mapping, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .errors import CaptureError
 from .initialisation import coordinate_search, grid_initialise, parity_classes
 from .material import Material
 from .model import Model
@@ -1334,12 +1336,38 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     t_ibl = time.perf_counter() - t_ibl
     result = fit_observations(obs, model=model, ibl=tables, setup_time=time.perf_counter() - t0, centres=centres,
                               centre_ibl=centre_tables, select_footprint=select, **kwargs)
+    _check_finite(result, capture)
     if skipped is not None:
         result.report["footprint"] = dict(selected=1, skipped=skipped)
     if model.ibl is not None:
         result.report["ibl"] = dict(mode=model.ibl, seconds=t_ibl, **(
             dataclasses.asdict(pixel_ibl_settings) if model.ibl == "per_pixel" else {}))
     return result
+
+
+def _check_finite(result: FitResult, capture) -> None:
+    """`CaptureError` where the fit came out NaN or inf: every input is finite float32, but the
+    solve squares and sums the residuals, so images, lights or an environment that are too bright
+    (a hot pixel of 1e20, a light of 1e20 cd) overflow it, and the maps or standard errors
+    it writes would be NaN while its loss looks perfect."""
+    m = result.material
+    bad = [name for name, values in (("base_color", m.base_color), ("metallic", m.metallic),
+                                     ("roughness", m.roughness)) if not np.all(np.isfinite(np.asarray(values)))]
+    seen = np.asarray(result.coverage) > 0
+    if np.any(np.isnan(np.asarray(result.uncertainty)[..., :5][seen])):
+        bad.append("uncertainty")
+    if not math.isfinite(result.report.get("final_loss", 0.0)):
+        bad.append("loss")
+    if not bad:
+        return
+    brightest = [float(np.max(np.abs(f.image[f.mask]), initial=0.0)) for f in capture.frames]
+    k = int(np.argmax(brightest))
+    where = capture.json_path or capture.root
+    raise CaptureError(
+        f"{where}: the fit's {', '.join(bad)} came out NaN or inf: the images or the light they are "
+        f"rendered with are too bright for the float32 solve once squared (brightest image value "
+        f"{brightest[k]:.3g}, in frames[{k}] {Path(capture.frames[k].file_path).name}); bring them "
+        "nearer 1 (the images' values, the lights' intensity, the environment's intensity or exposure)")
 
 
 def map_rmse(truth: Material, result, coverage: Optional[np.ndarray] = None) -> dict:

@@ -136,7 +136,7 @@ def check_output_dir(final_dir: str | os.PathLike, kind: str) -> Path:
     _check_creatable(final_dir)
     if final_dir.exists() and any(final_dir.iterdir()):
         marker = final_dir / OUTPUT_MARKER
-        lines = marker.read_text().splitlines() if marker.is_file() else []
+        lines = marker.read_text(errors="replace").splitlines() if marker.is_file() else []
         if not lines or lines[0].strip() != kind:
             raise CaptureError(
                 f"{final_dir}: exists and is not a {what} (no {OUTPUT_MARKER} of kind {kind!r}); "
@@ -250,6 +250,13 @@ def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optio
                 shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, final_dir)
+    except OSError as err:  # a full disk, say: the file named as it would have been in the output
+        shutil.rmtree(tmp, ignore_errors=True)
+        name = str(err.filename or "")
+        if name.startswith(str(tmp)):
+            raise CaptureError(f"{final_dir}{name[len(str(tmp)):]}: cannot write: {err.strerror or err}; "
+                               "nothing was written") from None
+        raise
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -273,6 +273,9 @@ def _load_gltf_keeping_uv(path: Path):
             data = _glb_from_chunks(version, tree, binary)
         return trimesh.load_scene(_io.BytesIO(data), file_type="glb", process=False)
     tree = json.loads(data)
+    for kind, i, _, name in gltf_file_uris(tree):
+        if kind == "buffers" and not (path.parent / name).is_file():
+            raise ValueError(f"buffer {i}: file {name!r} not found (relative to the .gltf)")
     _gltf_default_material(tree)
     buffers = tree.setdefault("buffers", [])
     blob = _gltf_float_attributes(tree, _buffer_reader(tree, path.parent), len(buffers), 0)

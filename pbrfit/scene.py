@@ -525,7 +525,11 @@ def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
     json_path = _json_path(Path(path))
     root = json_path.parent
     name = str(json_path)
-    raw = _without_nulls(_read_json(json_path))
+    raw = _read_json(json_path)
+    try:
+        raw = _without_nulls(raw)
+    except RecursionError:  # parsed, but deeper than Python's stack walks
+        raise CaptureError(f"{name}: invalid capture: JSON nested too deeply") from None
 
     # format and keys
     if "format" in raw:

@@ -83,9 +83,9 @@ def block_standard_errors(blocks: np.ndarray, channels: np.ndarray, seen: np.nda
     ok = e > EIGEN_FLOOR * np.maximum(top, np.finfo(np.float64).tiny)
     inv_e = np.where(ok, 1.0 / np.where(ok, e, 1.0), np.inf)
     # Σ_k V_ck² / e_k, with 0 · inf taken as 0 (a degenerate direction that misses channel c).
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore"):  # (and a NaN σ̂² from an overflowed solve: `pbrfit.fit` refuses it)
         contrib = np.where(v * v > 0, v * v * inv_e[:, None, :], 0.0)
-    out = np.sqrt(sigma2 * np.sum(contrib, axis=2))
+        out = np.sqrt(sigma2 * np.sum(contrib, axis=2))
     out = np.where(seen[:, None], out, np.inf)
     return np.where(free, out, 0.0).astype(np.float32)
 

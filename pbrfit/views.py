@@ -284,12 +284,16 @@ def load_lights_override(path: os.PathLike | str) -> list:
             data = json.loads(text)
         except json.JSONDecodeError as err:
             raise CaptureError(f"--lights: invalid JSON: {err}") from None
+        except RecursionError:
+            raise CaptureError("--lights: invalid JSON: nested too deeply") from None
     else:
         path = Path(path)
         try:
             data = json.loads(path.read_text())
         except FileNotFoundError:
             raise CaptureError(f"{path}: no such lights file") from None
+        except RecursionError:
+            raise CaptureError(f"{path}: cannot read lights: JSON nested too deeply") from None
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
             raise CaptureError(f"{path}: cannot read lights: {err}") from None
     if isinstance(data, dict):

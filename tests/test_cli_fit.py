@@ -198,8 +198,11 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--noise-level", "poisson"], "argument --noise-level: invalid choice: 'poisson'"),
         (["--cache", "__FILE__"], "exists and is not a folder"),
         (["--ibl", "per_pixel", "--fit", "base_color,normal"], "--ibl per_pixel: fitted normals need --ibl split_sum"),
-        (["--ibl", "per_pixel", "--ibl-samples", "0"], "--ibl-samples: must be >= 1, got 0"),
-        (["--ibl", "per_pixel", "--ibl-levels", "1"], "--ibl-levels: must be >= 2, got 1"),
+        (["--ibl", "per_pixel", "--ibl-samples", "0"], "--ibl-samples: must be between 1 and 1048576, got 0"),
+        (["--ibl", "per_pixel", "--ibl-levels", "1"], "--ibl-levels: must be between 2 and 256, got 1"),
+        (["--ibl", "per_pixel", "--ibl-levels", "99999999999999999999"],
+         "--ibl-levels: must be between 2 and 256, got 99999999999999999999"),
+        (["--max-steps", "99999999999999999999999"], "--max-steps: must be between 1 and 1000000, got 9999"),
         (["--ibl", "exact"], "argument --ibl: invalid choice: 'exact'"),
         (["--roughness", "0.3", "--roughness-from", "__HELD__"],
          "--roughness-from: --roughness holds roughness at a value too; give one of the two"),
@@ -567,3 +570,23 @@ def test_out_of_memory_is_one_line_and_exit_2(capture, tmp_path, capsys, monkeyp
     monkeypatch.setitem(pbrfit.cli._COMMANDS, "fit", lambda args: 1 / 0)  # anything else is a bug: it propagates
     with pytest.raises(ZeroDivisionError):
         main(["fit", str(capture), "--out", str(tmp_path / "out"), "--quiet"])
+
+
+def test_a_capture_too_bright_for_float32_is_refused_not_written(capture, tmp_path, monkeypatch, capsys):
+    # every value is finite float32, but a hot pixel of 1e20 overflows the solve's squares: the
+    # fit would write NaN standard errors under a loss that looks perfect
+    import shutil
+
+    from pbrfit.io import read_image, write_image
+
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    hot = tmp_path / "hot"
+    shutil.copytree(capture, hot)
+    pixels, _ = read_image(hot / "images" / "000.exr")
+    pixels[16, 16, :3] = 1e20
+    write_image(hot / "images" / "000.exr", pixels, "float")
+    out = tmp_path / "out"
+    assert main(["fit", str(hot), "--out", str(out), "--resolution", "8", "--max-steps", "8", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "came out NaN or inf" in err and "brightest image value 1e+20, in frames[0] 000.exr" in err, err
+    assert err.count("\n") == 1 and not out.exists()

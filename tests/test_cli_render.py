@@ -129,6 +129,9 @@ def test_render_refuses_to_write_over_its_own_capture_and_takes_inline_lights(tm
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o2"), "--lights",
                  "[{bad"]) == 2
     assert "--lights: invalid JSON" in capsys.readouterr().err
+    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o2"), "--lights",
+                 "[" * 100000 + "]" * 100000]) == 2
+    assert "--lights: invalid JSON: nested too deeply" in capsys.readouterr().err
     # no light and no environment: every render would be black
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o3"), "--lights",
                  "[]"]) == 2
@@ -220,3 +223,31 @@ def test_render_copies_the_files_a_gltf_mesh_names(tmp_path, monkeypatch):
     assert [b["uri"] for b in json.loads((out2 / "mesh.gltf").read_text())["buffers"]] == [
         b["uri"] for b in doc["buffers"]]
     assert (out2 / "bufs" / "b0.bin").is_file() and len(load_capture(out2).frames) == 2
+
+
+def test_file_system_refusals_are_one_line_with_nothing_left(tmp_path, monkeypatch, capsys):
+    # a full disk while the render writes, and a path component longer than the system takes:
+    # exit status 2, one line naming the file, no traceback, no output folder
+    import errno
+
+    import pbrfit.views
+
+    cap = tmp_path / "cap"
+    assert main(["synth", "peer-plane", "--out", str(cap), "--size", "8", "--views", "1", "--texture-size", "4",
+                 "--quiet"]) == 0
+
+    def full(src, tmp, rel):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp / rel))
+
+    with monkeypatch.context() as m:
+        m.setattr(pbrfit.views, "_copy_into", full)
+        out = tmp_path / "rendered"
+        assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"pbrfit: error: {out}/mesh.glb: cannot write: No space left on device; nothing was written")
+        assert err.count("\n") == 1, err
+        assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+    out = tmp_path / ("x" * 300)
+    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("pbrfit: error: ") and "File name too long" in err and err.count("\n") == 1, err

@@ -116,6 +116,10 @@ def test_atomic_dir_success_failure_and_overwrite(tmp_path):
     with atomic_dir(out, kind="fit") as d:
         (d / "report.json").write_text("{}")
     assert not (out / "other.txt").exists()
+    (out / OUTPUT_MARKER).write_bytes(b"\xff\xfefit\n")  # not text: not pbrfit's marker, refused in one line
+    with pytest.raises(CaptureError, match="exists and is not a pbrfit fit output"):
+        check_output_dir(out, "fit")
+    (out / OUTPUT_MARKER).write_text("fit\n")
     # a place where no folder can be made: refused before any work, one line
     (tmp_path / "plain").write_text("")
     with pytest.raises(CaptureError, match="plain is not a folder"):

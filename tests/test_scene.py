@@ -431,6 +431,7 @@ MALFORMED = {
     "matrix shear": (lambda d, r: _frame0(d)["transform_matrix"][0].__setitem__(1, _frame0(d)["transform_matrix"][0][1] + 0.5), "capture.json: frames[0].transform_matrix: the camera's axes (rotation columns) are not perpendicular"),
     "matrix mirrored": (lambda d, r: [row.__setitem__(0, -row[0]) for row in _frame0(d)["transform_matrix"][:3]], "capture.json: frames[0].transform_matrix: the camera's axes are mirrored"),
     "JSON nested too deeply": (lambda d, r: _write_text(r, "capture.json", "[" * 100000 + "]" * 100000), "capture.json: invalid capture: JSON nested too deeply"),
+    "JSON nested deeper than Python walks": (lambda d, r: _write_text(r, "capture.json", json.dumps(d)[:-1] + ', "lights": ' + "[" * 700 + "]" * 700 + "}"), "json: invalid capture: JSON nested too deeply"),
 }  # fmt: skip
 
 
@@ -714,6 +715,13 @@ def test_mesh_with_non_finite_values_or_an_unknown_format_is_refused(tmp_path):
     (tmp_path / "m.xyz").write_text("0 0 0\n")
     with pytest.raises(CaptureError, match="unsupported mesh format '.xyz'; pbrfit reads .glb, .gltf, .obj"):
         load_mesh(tmp_path / "m.xyz")
+
+
+def test_gltf_whose_buffer_file_is_missing_names_it(tmp_path):
+    path = _quantized_quad(tmp_path / "m.gltf", QUAD_UV_GLTF, 5123, external=True)
+    (tmp_path / "quad data.bin").unlink()
+    with pytest.raises(CaptureError, match=r"cannot load mesh .*m.gltf: buffer 0: file 'quad data.bin' not found"):
+        load_mesh(path)
 
 
 # --- layered OpenEXR frames: read through their colour layer --------------------------------------
