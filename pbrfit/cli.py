@@ -7,7 +7,6 @@ on stderr, ``pbrfit: error: <what and where>``, and exit status 2; nothing is ha
 from __future__ import annotations
 
 import argparse
-import errno
 import signal
 import sys
 from typing import Optional, Sequence
@@ -645,10 +644,6 @@ MAX_SUPERSAMPLE = 16
 MAX_SOLVER_STEPS = 1_000_000
 MAX_IBL_SAMPLES = 1 << 20
 MAX_IBL_LEVELS = 256
-#: File-system refusals reported as one line (exit status 2) rather than as a failure of pbrfit.
-_REFUSED_ERRNOS = frozenset(getattr(errno, name) for name in (
-    "ENAMETOOLONG", "ENOSPC", "EDQUOT", "EROFS", "EACCES", "EPERM", "EIO", "EFBIG", "EMFILE", "ENFILE", "ELOOP",
-    "ENOTDIR", "EISDIR", "ENOENT") if hasattr(errno, name))
 #: What to make smaller when a command runs out of memory.
 _LESS = {"fit": "use a smaller --resolution (or fewer or smaller images)",
          "render": "use smaller or fewer images, or a smaller material",
@@ -688,9 +683,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"pbrfit: error: {err}", file=sys.stderr)
         return EXIT_USAGE
     except OSError as err:
-        # the system refused a file (a name too long, a full disk, no permission, a read-only place,
-        # a file removed while the command ran): one line naming it; anything else is a bug
-        if err.errno not in _REFUSED_ERRNOS:
+        # the system refused a file (a name too long, a full disk, no permission, a read-only
+        # place): one line naming it; anything else is a bug and keeps its traceback
+        from .io import REFUSED_ERRNOS
+
+        if err.errno not in REFUSED_ERRNOS:
             raise
         where = f"{err.filename}: " if err.filename else ""
         print(f"pbrfit: error: {where}{err.strerror or err}", file=sys.stderr)

@@ -100,12 +100,12 @@ def load_environment(path, world_up: str = "+y", intensity: float = 1.0,
     if not path.is_file():
         raise CaptureError(f"{path}: environment file not found")
     pixels, info = read_image(path, "environment")  # a cropped OpenEXR is placed in its display window
+    if pixels.shape[-1] == 2:
+        raise CaptureError(f"{path}: environment has 2 channels; expected 1, 3 or 4")
+    # R, G, B by name (one layer of a layered OpenEXR) or a grey Y, else the first three
+    pixels = pixels[..., color_channels(info, "environment")]
     if pixels.shape[-1] == 1:
         pixels = np.repeat(pixels, 3, axis=-1)
-    elif pixels.shape[-1] == 2:
-        raise CaptureError(f"{path}: environment has 2 channels; expected 1, 3 or 4")
-    else:  # R, G, B by name (one layer of a layered OpenEXR), else the first three
-        pixels = pixels[..., color_channels(info, "environment")]
     bad = ~np.isfinite(pixels)
     if bad.any():
         row, col = (int(i) for i in np.argwhere(bad.any(-1))[0])

@@ -1352,7 +1352,8 @@ def _check_finite(result: FitResult, capture) -> None:
     it writes would be NaN while its loss looks perfect."""
     m = result.material
     bad = [name for name, values in (("base_color", m.base_color), ("metallic", m.metallic),
-                                     ("roughness", m.roughness)) if not np.all(np.isfinite(np.asarray(values)))]
+                                     ("roughness", m.roughness), ("normal", m.normal))
+           if values is not None and not np.all(np.isfinite(np.asarray(values)))]
     seen = np.asarray(result.coverage) > 0
     if np.any(np.isnan(np.asarray(result.uncertainty)[..., :5][seen])):
         bad.append("uncertainty")
@@ -1364,8 +1365,8 @@ def _check_finite(result: FitResult, capture) -> None:
     k = int(np.argmax(brightest))
     where = capture.json_path or capture.root
     raise CaptureError(
-        f"{where}: the fit's {', '.join(bad)} came out NaN or inf: the images or the light they are "
-        f"rendered with are too bright for the float32 solve once squared (brightest image value "
+        f"{where}: the fit's {', '.join(bad)} came out NaN or inf, as when the images or the light they "
+        f"are rendered with are too bright for the float32 solve once squared (brightest image value "
         f"{brightest[k]:.3g}, in frames[{k}] {Path(capture.frames[k].file_path).name}); bring them "
         "nearer 1 (the images' values, the lights' intensity, the environment's intensity or exposure)")
 

@@ -18,6 +18,7 @@ Conventions held here:
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import shutil
 import tempfile
@@ -210,6 +211,12 @@ def _signals_held() -> Iterator[None]:
                 signal.raise_signal(signum)
 
 
+#: File-system refusals (a name too long, a full disk, no permission, a read-only place, a
+#: failing device) that the command line reports in one line with exit status 2, not as a bug.
+REFUSED_ERRNOS = frozenset(getattr(errno, name) for name in (
+    "ENAMETOOLONG", "ENOSPC", "EDQUOT", "EROFS", "EACCES", "EPERM", "EIO", "EFBIG") if hasattr(errno, name))
+
+
 @contextlib.contextmanager
 def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optional[str] = None) -> Iterator[Path]:
     """Yield a temporary folder beside ``final_dir``; rename it to ``final_dir`` on success.
@@ -250,13 +257,13 @@ def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optio
                 shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, final_dir)
-    except OSError as err:  # a full disk, say: the file named as it would have been in the output
+    except OSError as err:  # a full disk, say: named as it would have been in the output
         shutil.rmtree(tmp, ignore_errors=True)
         name = str(err.filename or "")
-        if name.startswith(str(tmp)):
-            raise CaptureError(f"{final_dir}{name[len(str(tmp)):]}: cannot write: {err.strerror or err}; "
-                               "nothing was written") from None
-        raise
+        if err.errno not in REFUSED_ERRNOS or (name and not name.startswith(str(tmp))):
+            raise
+        raise CaptureError(f"{final_dir}{name[len(str(tmp)):]}: cannot write: {err.strerror or err}; "
+                           "nothing was written") from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -329,6 +336,8 @@ def _color_layer(names) -> tuple[Optional[str], list[str]]:
     part is "Combined" (Blender's multilayer OpenEXR: "ViewLayer.Combined.R" beside
     "ViewLayer.AO.R", ...). None where no channel is so named, or the layers leave it open."""
     index = set(names)
+    if "Y" in index and not {"R", "G", "B"} <= index:  # a grey image (beside other layers): Y
+        return None, []
     layers = [""] if {"R", "G", "B"} <= index else []
     layers += [n[:-2] for n in names if n.endswith(".R") and {n[:-2] + ".G", n[:-2] + ".B"} <= index]
     if "" in layers or len(layers) == 1:
@@ -338,13 +347,15 @@ def _color_layer(names) -> tuple[Optional[str], list[str]]:
 
 
 def color_channels(info: ImageInfo, where: str) -> list[int]:
-    """The indices of an image's colour channels (at most three): R, G, B by name
-    (`_color_layer`), else the channels in stored order less alpha. Raises `CaptureError` when
-    several colour layers leave open which one holds the image."""
-    layer, layers = _color_layer(info.channel_names)
+    """The indices of an image's colour channels (three, or one for grey): R, G, B by name
+    (`_color_layer`), Y for a grey image, else the channels in stored order less alpha. Raises
+    `CaptureError` when several colour layers leave open which one holds the image."""
+    names = list(info.channel_names)
+    layer, layers = _color_layer(names)
     if layer is not None:
-        names = list(info.channel_names)
         return [names.index(f"{layer}.{c}" if layer else c) for c in "RGB"]
+    if "Y" in names:
+        return [names.index("Y")]
     if layers:
         raise CaptureError(f"{where}: image {info.path} holds several colour layers ({', '.join(layers)}) and no "
                            "R, G, B channels; pbrfit reads R, G, B, a single layer, or a 'Combined' one")
@@ -355,9 +366,9 @@ def _info(path: Path, spec, file_format: str) -> ImageInfo:
     fmt = str(spec.format)
     alpha = int(spec.alpha_channel) if spec.alpha_channel >= 0 else None
     layer, _ = _color_layer(tuple(spec.channelnames))
-    if layer:  # read through a layer: its own alpha, if it has one
+    if layer:  # read through a layer: its own alpha, else a plain A, else none
         names = list(spec.channelnames)
-        alpha = names.index(f"{layer}.A") if f"{layer}.A" in names else None
+        alpha = next((names.index(a) for a in (f"{layer}.A", "A") if a in names), None)
     windows = _windows(spec, file_format)
     data_window = None
     if windows is not None:

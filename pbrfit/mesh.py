@@ -14,8 +14,13 @@ Rules pinned here (tests in ``tests/test_scene.py``):
   max(c / 32767, -1) (the extension's README, "Encoding quantized data").
 * A texture transform (KHR_texture_transform) on a primitive's material applies to its
   TEXCOORD_0: the maps are read at uv' = T R S uv, with the extension's offset o, rotation r
-  and scale s (its README's GLSL, whose rotation matrix has the columns (cos r, sin r) and
-  (-sin r, cos r)): u' = o_u + s_u u cos r - s_v v sin r, v' = o_v + s_u u sin r + s_v v cos r.
+  and scale s: u' = o_u + s_u u cos r + s_v v sin r, v' = o_v - s_u u sin r + s_v v cos r.
+  R is counter-clockwise in glTF's uv space (v down), as the extension's text says and
+  three.js, Babylon.js, Blender's importer, CesiumGltf and the TextureTransformTest sample
+  model apply it; the GLSL listing in the extension's README has its transpose, a known
+  erratum (KhronosGroup/glTF#1563). The README's own example agrees: offset (0, 1), rotation
+  π/2 and scale 0.5 show the lower left quadrant. A Draco-compressed primitive (its data
+  decoded later, by trimesh) with a transform is refused.
   It is taken from the first of the material's textures that reads TEXCOORD_0, in the order
   baseColorTexture, metallicRoughnessTexture, normalTexture, occlusionTexture, emissiveTexture:
   base colour and metallic-roughness are the maps pbrfit fits, and a quantizing writer gives
@@ -153,20 +158,22 @@ def _texture_transform(tree: dict, primitive: dict):
 
 
 def apply_texture_transform(uv: Float[np.ndarray, "n 2"], offset, rotation: float, scale) -> Float[np.ndarray, "n 2"]:
-    """KHR_texture_transform: uv' = T R S uv, u' = o_u + s_u u cos r - s_v v sin r,
-    v' = o_v + s_u u sin r + s_v v cos r (glTF orientation, v = 0 at the image's top row)."""
+    """KHR_texture_transform: uv' = T R S uv, u' = o_u + s_u u cos r + s_v v sin r,
+    v' = o_v - s_u u sin r + s_v v cos r (glTF orientation, v = 0 at the image's top row; R
+    counter-clockwise there, see the module docstring on the README's GLSL erratum)."""
     su, sv = uv[:, 0] * scale[0], uv[:, 1] * scale[1]
     c, s = np.cos(rotation), np.sin(rotation)
-    return np.column_stack([offset[0] + c * su - s * sv, offset[1] + s * su + c * sv])
+    return np.column_stack([offset[0] + c * su + s * sv, offset[1] - s * su + c * sv])
 
 
 def _gltf_float_attributes(tree: dict, buffer, target: int, start: int) -> bytes:
     """Rewrite the primitives' POSITION, NORMAL and TEXCOORD_0 attributes that trimesh would
-    misread (normalized integers) or that a texture transform maps as new float32 accessors,
+    misread (normalized integers, sparse accessors) or that a texture transform maps as new float32 accessors,
     their data in buffer ``target`` from byte ``start`` on: returns that data (b"" when no
     attribute needs it; the caller stores it)."""
     blob = bytearray()
     made = {}
+    tree.setdefault("bufferViews", [])
     for mesh in tree.get("meshes") or []:
         for primitive in mesh.get("primitives") or []:
             attributes = primitive.get("attributes") or {}
@@ -176,8 +183,12 @@ def _gltf_float_attributes(tree: dict, buffer, target: int, start: int) -> bytes
                     continue
                 acc = tree["accessors"][index]
                 transform = _texture_transform(tree, primitive) if name == "TEXCOORD_0" else None
+                if "bufferView" not in acc and "sparse" not in acc:  # filled later by a decoder (Draco)
+                    if transform is not None:
+                        raise ValueError("a KHR_texture_transform on a compressed (Draco) primitive is not supported")
+                    continue
                 normalized = bool(acc.get("normalized")) and acc.get("componentType") in _NORMALIZED
-                if not normalized and transform is None:
+                if not normalized and transform is None and "sparse" not in acc:  # (trimesh ignores sparse)
                     continue
                 if (index, transform) not in made:
                     values = _read_accessor(tree, buffer, index)
@@ -200,7 +211,8 @@ def _gltf_float_attributes(tree: dict, buffer, target: int, start: int) -> bytes
 
 def _buffer_reader(tree: dict, folder: Path, binary=None):
     """buffer(i): glTF buffer i's bytes (a GLB's BIN chunk for a buffer 0 without a uri, else
-    its uri: base64 data or a file relative to ``folder``), each read once."""
+    its uri: base64 data or a file name relative to ``folder``, already percent-decoded by
+    `_file_resolver`), each read once."""
     cache = {}
 
     def buffer(i: int) -> bytes:
@@ -217,7 +229,7 @@ def _buffer_reader(tree: dict, folder: Path, binary=None):
                     raise ValueError(f"buffer {i}: a data: uri that is not base64")
                 cache[i] = base64.b64decode(payload)
             else:
-                cache[i] = (folder / urllib.parse.unquote(uri)).read_bytes()
+                cache[i] = (folder / uri).read_bytes()
         return cache[i]
 
     return buffer
@@ -251,44 +263,55 @@ def _glb_from_chunks(version: int, tree: dict, binary) -> bytes:
     return struct.pack("<III", _GLB_MAGIC, version, 12 + len(chunks)) + chunks
 
 
+def _store_float_attributes(tree: dict, folder: Path, binary):
+    """`_gltf_float_attributes` with its data stored: appended to a GLB's BIN chunk (buffer 0),
+    else as a new base64 buffer. Returns the (possibly longer) BIN chunk."""
+    buffers = tree.setdefault("buffers", [])
+    read = _buffer_reader(tree, folder, binary)
+    if binary is not None and buffers and "uri" not in buffers[0]:
+        blob = _gltf_float_attributes(tree, read, 0, len(binary))
+        if blob:
+            binary = bytes(binary) + blob
+            buffers[0]["byteLength"] = len(binary)
+        return binary
+    blob = _gltf_float_attributes(tree, read, len(buffers), 0)
+    if blob:
+        buffers.append({"byteLength": len(blob),
+                        "uri": "data:application/octet-stream;base64," + base64.b64encode(blob).decode()})
+    return binary
+
+
+def _file_resolver(tree: dict, folder: Path):
+    """A trimesh resolver for the tree's file URIs, which it rewrites to plain file names (glTF
+    URIs are percent-encoded and relative to the file, and may lead out of its folder); a
+    missing buffer file is named."""
+    import trimesh
+
+    for kind, i, entry, name in gltf_file_uris(tree):
+        if kind == "buffers" and not (folder / name).is_file():
+            raise ValueError(f"buffer {i}: file {name!r} not found (relative to the glTF file)")
+        entry["uri"] = name
+    try:
+        return trimesh.resolvers.FilePathResolver(str(folder), allow_anywhere=True)
+    except TypeError:  # an older trimesh: no such option, and no such restriction
+        return trimesh.resolvers.FilePathResolver(str(folder))
+
+
 def _load_gltf_keeping_uv(path: Path):
     import trimesh
 
     data = path.read_bytes()
     if path.suffix.lower() == ".glb":
         version, tree, binary = _glb_chunks(data)
-        changed = _gltf_default_material(tree)
-        buffers = tree.setdefault("buffers", [])
-        if binary is not None and buffers and "uri" not in buffers[0]:  # new data goes into the BIN chunk
-            blob = _gltf_float_attributes(tree, _buffer_reader(tree, path.parent, binary), 0, len(binary))
-            if blob:
-                binary = binary + blob
-                buffers[0]["byteLength"] = len(binary)
-        else:
-            blob = _gltf_float_attributes(tree, _buffer_reader(tree, path.parent, binary), len(buffers), 0)
-            if blob:
-                buffers.append({"byteLength": len(blob),
-                                "uri": "data:application/octet-stream;base64," + base64.b64encode(blob).decode()})
-        if changed or blob:
-            data = _glb_from_chunks(version, tree, binary)
-        return trimesh.load_scene(_io.BytesIO(data), file_type="glb", process=False)
+        resolver = _file_resolver(tree, path.parent)
+        _gltf_default_material(tree)
+        binary = _store_float_attributes(tree, path.parent, binary)
+        data = _glb_from_chunks(version, tree, binary)
+        return trimesh.load_scene(_io.BytesIO(data), file_type="glb", resolver=resolver, process=False)
     tree = json.loads(data)
-    for kind, i, _, name in gltf_file_uris(tree):
-        if kind == "buffers" and not (path.parent / name).is_file():
-            raise ValueError(f"buffer {i}: file {name!r} not found (relative to the .gltf)")
+    resolver = _file_resolver(tree, path.parent)
     _gltf_default_material(tree)
-    buffers = tree.setdefault("buffers", [])
-    blob = _gltf_float_attributes(tree, _buffer_reader(tree, path.parent), len(buffers), 0)
-    if blob:
-        buffers.append({"byteLength": len(blob),
-                        "uri": "data:application/octet-stream;base64," + base64.b64encode(blob).decode()})
-    for _, _, entry, name in gltf_file_uris(tree):  # the resolver takes file names
-        entry["uri"] = name
-    # the URIs are relative to the file and may lead out of its folder ("../buffers/a.bin")
-    try:
-        resolver = trimesh.resolvers.FilePathResolver(str(path.parent), allow_anywhere=True)
-    except TypeError:  # an older trimesh: no such option, and no such restriction
-        resolver = trimesh.resolvers.FilePathResolver(str(path.parent))
+    _store_float_attributes(tree, path.parent, None)
     return trimesh.load_scene(
         _io.BytesIO(json.dumps(tree).encode()), file_type="gltf", resolver=resolver, process=False
     )

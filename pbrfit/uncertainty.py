@@ -85,7 +85,9 @@ def block_standard_errors(blocks: np.ndarray, channels: np.ndarray, seen: np.nda
     # Σ_k V_ck² / e_k, with 0 · inf taken as 0 (a degenerate direction that misses channel c).
     with np.errstate(invalid="ignore"):  # (and a NaN σ̂² from an overflowed solve: `pbrfit.fit` refuses it)
         contrib = np.where(v * v > 0, v * v * inv_e[:, None, :], 0.0)
-        out = np.sqrt(sigma2 * np.sum(contrib, axis=2))
+        total = np.sum(contrib, axis=2)
+        # a direction no pixel constrains is unknown even where the fit is exact (σ̂² = 0): +inf, not 0 · inf
+        out = np.where(np.isposinf(total), np.inf, np.sqrt(sigma2 * np.where(np.isposinf(total), 0.0, total)))
     out = np.where(seen[:, None], out, np.inf)
     return np.where(free, out, 0.0).astype(np.float32)
 

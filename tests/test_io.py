@@ -502,3 +502,21 @@ def test_convergence_plot_survives_non_finite_losses(tmp_path):
     drawn, empty = read_image(tmp_path / "c.png")[0], read_image(tmp_path / "d.png")[0]
     assert drawn.shape == empty.shape == (320, 520, 3)
     assert drawn.min() < 0.5 < drawn.max() and not np.array_equal(drawn, empty)  # a curve on c only
+
+
+def test_atomic_dir_names_refusals_by_the_output_and_keeps_bugs(tmp_path):
+    # a full disk whose write() names no file: the output folder is named; a missing folder
+    # inside the temporary one is a bug, not the system refusing, and stays an OSError
+    import errno
+
+    out = tmp_path / "out"
+    with pytest.raises(CaptureError, match=r"out: cannot write: No space left on device; nothing was written"):
+        with atomic_dir(out, kind="fit"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+    with pytest.raises(CaptureError, match=r"out/views/0.png: cannot write: Permission denied"):
+        with atomic_dir(out, kind="fit") as d:
+            raise PermissionError(errno.EACCES, "Permission denied", str(d / "views" / "0.png"))
+    with pytest.raises(FileNotFoundError):
+        with atomic_dir(out, kind="fit") as d:
+            (d / "missing" / "report.json").write_text("{}")
+    assert not out.exists() and list(tmp_path.iterdir()) == []

@@ -225,13 +225,18 @@ def test_sparse_normalized_texture_coordinates(tmp_path):
 
 
 def test_texture_transform_maps_texture_coordinates(tmp_path):
-    # KHR_texture_transform's README: uv' = T R S uv with R's columns (cos r, sin r), (-sin r, cos r).
-    # At r = pi/2: u' = o_u - s_v v, v' = o_v + s_u u.
-    transform = {"offset": [0.5, 0.125], "rotation": math.pi / 2, "scale": [0.5, 0.25]}
-    mesh = load_mesh(_quantized_quad(tmp_path / "t.glb", QUAD_UV_GLTF, 5123, transform=transform))
+    # KHR_texture_transform: uv' = T R S uv, R counter-clockwise in glTF's v-down uv space (the
+    # text, and the viewers; the README's GLSL listing has the transpose, glTF issue #1563).
+    # The README's example: offset (0, 1), rotation pi/2, scale 0.5 show the lower left quadrant.
+    transform = {"offset": [0.0, 1.0], "rotation": math.pi / 2, "scale": [0.5, 0.5]}
+    corners = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], np.float32)
+    mesh = load_mesh(_quantized_quad(tmp_path / "t.glb", corners, 5123, transform=transform))
+    np.testing.assert_allclose(mesh.visual.uv, [[0, 1], [0, 0.5], [0.5, 0.5], [0.5, 1]], atol=1e-4)
+    # CesiumGltf's case: uv (1, 1), offset (5, 12), rotation pi/2, scale (2, 0.5) -> (5.5, 10)
+    transform = {"offset": [5.0, 12.0], "rotation": math.pi / 2, "scale": [2.0, 0.5]}
+    mesh = load_mesh(_quantized_quad(tmp_path / "c.glb", corners, 5123, transform=transform))
+    np.testing.assert_allclose(mesh.visual.uv[2], [5.5, 10.0], atol=1e-4)  # the corner at uv (1, 1)
     u, v = QUAD_UV_GLTF[:, 0], QUAD_UV_GLTF[:, 1]
-    expected = np.column_stack([0.5 - 0.25 * v, 0.125 + 0.5 * u])
-    np.testing.assert_allclose(mesh.visual.uv, expected, atol=1e-4)
     # offset and scale alone (the dequantization transform a quantizing writer stores)
     transform = {"offset": [-0.25, 0.5], "scale": [2.0, 0.5]}
     mesh = load_mesh(_quantized_quad(tmp_path / "o.glb", QUAD_UV_GLTF, 5123, transform=transform))
@@ -757,6 +762,14 @@ def test_layered_exr_frame_is_read_through_its_combined_layer(tmp_path):
     with pytest.raises(CaptureError, match=r"frames\[1\]\.file_path: image .*001.exr holds several colour layers "
                                            r"\(ViewLayer.AO, ViewLayer.Beauty\)"):
         load_capture(root)
+    # one layer and a plain A: that alpha; a grey Y beside a layer: Y
+    layers = {"A": rgba[..., 3], **{f"beauty.{c}": rgba[..., k] for k, c in enumerate("RGB")}}
+    _write_layered_exr(root / "images/001.exr", layers)
+    frame = load_capture(root).frames[1]
+    assert not frame.mask[0].any() and frame.mask[1:].all()
+    layers = {"Y": rgba[..., 0], **{f"AO.{c}": np.full((H, W), 7.0) for c in "RGB"}}
+    _write_layered_exr(root / "images/001.exr", layers)
+    np.testing.assert_allclose(load_capture(root).frames[1].image, np.repeat(rgba[..., :1], 3, -1), rtol=1e-6)
     # plain R, G, B beside other layers: those
     layers = {c: rgba[..., k] for k, c in enumerate("RGBA")}
     layers.update({f"AO.{c}": np.full((H, W), 7.0) for c in "RGB"})
