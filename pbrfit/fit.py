@@ -1313,6 +1313,7 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     if ibl is not None and model.ibl is not None:
         model = model.replace(ibl=ibl)
     _check_normals(model, kwargs.get("fit", ()))
+    _check_brightness(capture)
     pixel_samples, select, skipped = footprint_choice(capture, pixel_samples, views)
     obs = observations_from_capture(capture, cache_dir=cache_dir, views=views, pixel_samples=pixel_samples)
     centres = None if obs.samples == 1 else observations_from_capture(capture, cache_dir=cache_dir, views=views)
@@ -1345,11 +1346,28 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     return result
 
 
+def _check_brightness(capture) -> None:
+    """`CaptureError` naming the frame and pixel where an image value is too bright for the float32
+    solve: the sum of squared residuals over every pixel value would overflow float32 from that
+    value alone, |v| > sqrt(float32 max / n), n the pixel values the fit may read."""
+    n = 3 * max(sum(int(np.sum(f.mask)) for f in capture.frames), 1)
+    limit = math.sqrt(float(np.finfo(np.float32).max) / n)
+    for i, frame in enumerate(capture.frames):
+        values = np.where(frame.mask[..., None], np.abs(frame.image), 0.0)
+        if values.size and float(np.max(values)) > limit:
+            row, col, _ = np.unravel_index(int(np.argmax(values)), values.shape)
+            raise CaptureError(
+                f"{frame.file_path}: frames[{i}]: pixel value {float(np.max(values)):.3g} at row {row}, column {col} is "
+                f"too bright for the float32 solve (squared and summed over the {n} pixel values it would "
+                f"overflow; at most {limit:.3g}); mask it out or bring the images nearer 1")
+
+
 def _check_finite(result: FitResult, capture) -> None:
     """`CaptureError` where the fit came out NaN or inf: every input is finite float32, but the
-    solve squares and sums the residuals, so images, lights or an environment that are too bright
-    (a hot pixel of 1e20, a light of 1e20 cd) overflow it, and the maps or standard errors
-    it writes would be NaN while its loss looks perfect."""
+    solve squares and sums the residuals and their derivatives, so lights or an environment too
+    bright for it (a light of 1e20 cd, an environment pixel of 1e30; too bright images are
+    refused before the fit, `_check_brightness`) overflow it, and the maps or standard errors it
+    writes would be NaN."""
     m = result.material
     bad = [name for name, values in (("base_color", m.base_color), ("metallic", m.metallic),
                                      ("roughness", m.roughness), ("normal", m.normal))
@@ -1365,8 +1383,8 @@ def _check_finite(result: FitResult, capture) -> None:
     k = int(np.argmax(brightest))
     where = capture.json_path or capture.root
     raise CaptureError(
-        f"{where}: the fit's {', '.join(bad)} came out NaN or inf, as when the images or the light they "
-        f"are rendered with are too bright for the float32 solve once squared (brightest image value "
+        f"{where}: the fit's {', '.join(bad)} came out NaN or beyond float32, as when the images or the light "
+        f"they are rendered with are too bright for the float32 solve once squared (brightest image value "
         f"{brightest[k]:.3g}, in frames[{k}] {Path(capture.frames[k].file_path).name}); bring them "
         "nearer 1 (the images' values, the lights' intensity, the environment's intensity or exposure)")
 

@@ -588,5 +588,13 @@ def test_a_capture_too_bright_for_float32_is_refused_not_written(capture, tmp_pa
     out = tmp_path / "out"
     assert main(["fit", str(hot), "--out", str(out), "--resolution", "8", "--max-steps", "8", "--quiet"]) == 2
     err = capsys.readouterr().err
-    assert "came out NaN or inf" in err and "brightest image value 1e+20, in frames[0] 000.exr" in err, err
+    assert "000.exr: frames[0]: pixel value 1e+20 at row 16, column 16 is too bright for the float32 solve" in err, err
     assert err.count("\n") == 1 and not out.exists()
+    # a light that bright: the fit comes out NaN, and is refused after it
+    shutil.copy(capture / "images" / "000.exr", hot / "images" / "000.exr")
+    data = json.loads((hot / "capture.json").read_text())
+    data["lights"][0]["intensity"] = 1e20
+    (hot / "capture.json").write_text(json.dumps(data))
+    assert main(["fit", str(hot), "--out", str(out), "--resolution", "8", "--max-steps", "8", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "came out NaN or beyond float32" in err and err.count("\n") == 1 and not out.exists(), err
