@@ -359,7 +359,8 @@ def color_channels(info: ImageInfo, where: str) -> list[int]:
     if layers:
         raise CaptureError(f"{where}: image {info.path} holds several colour layers ({', '.join(layers)}) and no "
                            "R, G, B channels; pbrfit reads R, G, B, a single layer, or a 'Combined' one")
-    return [c for c in range(info.channels) if c != info.alpha_channel][:3]
+    # (a lone channel that a reader calls alpha is still the image)
+    return [c for c in range(info.channels) if c != info.alpha_channel][:3] or [0]
 
 
 def _info(path: Path, spec, file_format: str) -> ImageInfo:

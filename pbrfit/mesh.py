@@ -173,7 +173,6 @@ def _gltf_float_attributes(tree: dict, buffer, target: int, start: int) -> bytes
     attribute needs it; the caller stores it)."""
     blob = bytearray()
     made = {}
-    tree.setdefault("bufferViews", [])
     for mesh in tree.get("meshes") or []:
         for primitive in mesh.get("primitives") or []:
             attributes = primitive.get("attributes") or {}
@@ -183,9 +182,9 @@ def _gltf_float_attributes(tree: dict, buffer, target: int, start: int) -> bytes
                     continue
                 acc = tree["accessors"][index]
                 transform = _texture_transform(tree, primitive) if name == "TEXCOORD_0" else None
-                if "bufferView" not in acc and "sparse" not in acc:  # filled later by a decoder (Draco)
+                if "KHR_draco_mesh_compression" in (primitive.get("extensions") or {}):  # decoded later, by trimesh
                     if transform is not None:
-                        raise ValueError("a KHR_texture_transform on a compressed (Draco) primitive is not supported")
+                        raise ValueError("a KHR_texture_transform on a Draco-compressed primitive is not supported")
                     continue
                 normalized = bool(acc.get("normalized")) and acc.get("componentType") in _NORMALIZED
                 if not normalized and transform is None and "sparse" not in acc:  # (trimesh ignores sparse)
@@ -196,7 +195,7 @@ def _gltf_float_attributes(tree: dict, buffer, target: int, start: int) -> bytes
                         values = apply_texture_transform(values[:, :2], *transform)
                     data = np.ascontiguousarray(values, dtype="<f4")
                     blob += b"\0" * (-(start + len(blob)) % 4)
-                    tree["bufferViews"].append({"buffer": target, "byteOffset": start + len(blob),
+                    tree.setdefault("bufferViews", []).append({"buffer": target, "byteOffset": start + len(blob),
                                                 "byteLength": data.nbytes})
                     blob += data.tobytes()
                     entry = {"bufferView": len(tree["bufferViews"]) - 1, "componentType": _FLOAT,
