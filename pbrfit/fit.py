@@ -1095,7 +1095,9 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
     else:
         r, jac = linearization
         # (numpy: an eager jnp reduction would compile kernels of its own)
-        energy = jax.jit(objective)(xj, problem) if float(problem.smooth) > 0 else 0.5 * np.sum(np.square(np.asarray(r)))
+        with np.errstate(over="ignore"):  # (float32, as the solve sums it: an overflow is refused by `fit`)
+            energy = (jax.jit(objective)(xj, problem) if float(problem.smooth) > 0
+                      else 0.5 * np.sum(np.square(np.asarray(r))))
     blocks = np.asarray(_normal_blocks(jac, problem))
     n_res = 3 * obs.num_pixels
     n_par = int(np.sum(seen)) * int(np.sum(texel_channels)) + len(uniform)
@@ -1142,8 +1144,10 @@ def _finish(obs, problem, x, final, channels, seen, model, solver, history, loss
         images.append(img.reshape(h, w, 3))
         targets.append(tgt.reshape(h, w, 3))
         masks.append(msk.reshape(h, w))
-        mse = float(np.mean(resid[sel] ** 2)) if sel.any() else float("nan")
-        psnr.append(10.0 * math.log10(1.0 / mse) if mse > 0 else float("inf"))
+        with np.errstate(over="ignore", invalid="ignore"):  # (an overflowed fit: refused by `fit`)
+            mse = float(np.mean(np.square(resid[sel], dtype=np.float64))) if sel.any() else float("nan")
+        psnr.append(float("inf") if mse == 0 else -10.0 * math.log10(mse) if 0 < mse < math.inf
+                    else float("-inf") if mse == math.inf else float("nan"))
     normal = normal_from_slopes(to_device(x[..., 5:7], np.float32)) if k > 5 else None
     material = Material(base_color=to_device(x[..., 0:3], np.float32), metallic=to_device(x[..., 3:4], np.float32),
                         roughness=to_device(x[..., 4:5], np.float32), normal=normal)

@@ -524,7 +524,9 @@ def structured_lm(
         predicted = -(_vdot(g, step) + 0.5 * _vdot(step, gn_product(gp, step, problem)))
         r_new, jac_new, loss_new = linearize(x_new, problem)
         actual = jnp.where(c["k"] > 0, loss - loss_new, 0.0)
-        accept = jnp.isfinite(loss_new) & ((loss_new < loss) | (c["k"] == 0))
+        # step 0 only linearises at x0: kept even where the loss is not finite (an overflow), so
+        # that the returned residuals and loss are x0's and the caller sees it, not zeros and inf
+        accept = (c["k"] == 0) | (jnp.isfinite(loss_new) & (loss_new < loss))
         rho = actual / jnp.maximum(predicted, jnp.finfo(x.dtype).tiny)
         lam_new = jnp.where(accept, lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), lam * nu)
         nu_new = jnp.where(accept, 2.0, 2.0 * nu)

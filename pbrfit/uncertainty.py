@@ -78,7 +78,8 @@ def block_standard_errors(blocks: np.ndarray, channels: np.ndarray, seen: np.nda
     mask2 = free[:, :, None] & free[:, None, :] & seen[:, None, None]  # (nothing of an unseen texel is read)
     eye = np.eye(blocks.shape[1])
     b = np.where(mask2, blocks, 0.0) + np.where(free, 0.0, 1.0)[:, :, None] * eye
-    e, v = np.linalg.eigh(b)
+    broken = ~np.all(np.isfinite(b), axis=(1, 2))  # an overflowed solve's blocks: NaN out (`pbrfit.fit` refuses it)
+    e, v = np.linalg.eigh(np.where(broken[:, None, None], eye, b))
     top = np.max(np.abs(e), axis=1, keepdims=True)
     ok = e > EIGEN_FLOOR * np.maximum(top, np.finfo(np.float64).tiny)
     inv_e = np.where(ok, 1.0 / np.where(ok, e, 1.0), np.inf)
@@ -88,7 +89,7 @@ def block_standard_errors(blocks: np.ndarray, channels: np.ndarray, seen: np.nda
         total = np.sum(contrib, axis=2)
         # a direction no pixel constrains is unknown even where the fit is exact (σ̂² = 0): +inf, not 0 · inf
         out = np.where(np.isposinf(total), np.inf, np.sqrt(sigma2 * np.where(np.isposinf(total), 0.0, total)))
-    out = np.where(seen[:, None], out, np.inf)
+    out = np.where(seen[:, None], np.where(broken[:, None], np.nan, out), np.inf)
     return np.where(free, out, 0.0).astype(np.float32)
 
 

@@ -590,6 +590,15 @@ def test_a_capture_too_bright_for_float32_is_refused_not_written(capture, tmp_pa
     err = capsys.readouterr().err
     assert "000.exr: frames[0]: pixel value 1e+20 at row 16, column 16 is too bright for the float32 solve" in err, err
     assert err.count("\n") == 1 and not out.exists()
+    # past that check, the solve's loss overflows: it says so (its residuals at the start are
+    # returned, not zeros that would read as a perfect fit), and the fit is refused after it
+    import pbrfit.fit
+
+    with monkeypatch.context() as m:
+        m.setattr(pbrfit.fit, "_check_brightness", lambda capture: None)
+        assert main(["fit", str(hot), "--out", str(out), "--resolution", "8", "--max-steps", "8", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "the fit's loss came out NaN or beyond float32" in err and err.count("\n") == 1 and not out.exists(), err
     # a light that bright: the fit comes out NaN, and is refused after it
     shutil.copy(capture / "images" / "000.exr", hot / "images" / "000.exr")
     data = json.loads((hot / "capture.json").read_text())
