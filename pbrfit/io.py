@@ -264,6 +264,11 @@ def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optio
             raise
         raise CaptureError(f"{final_dir}{name[len(str(tmp)):]}: cannot write: {err.strerror or err}; "
                            "nothing was written") from None
+    except CaptureError as err:  # a file of the output named by its temporary path: named as in the output
+        shutil.rmtree(tmp, ignore_errors=True)
+        if str(tmp) not in str(err):
+            raise
+        raise CaptureError(str(err).replace(str(tmp), str(final_dir))) from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

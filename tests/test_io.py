@@ -519,4 +519,7 @@ def test_atomic_dir_names_refusals_by_the_output_and_keeps_bugs(tmp_path):
     with pytest.raises(FileNotFoundError):
         with atomic_dir(out, kind="fit") as d:
             (d / "missing" / "report.json").write_text("{}")
+    with pytest.raises(CaptureError, match=r"^cannot write image \S*/out/images/2.exr: disk full$"):
+        with atomic_dir(out, kind="fit") as d:
+            raise CaptureError(f"cannot write image {d / 'images' / '2.exr'}: disk full")
     assert not out.exists() and list(tmp_path.iterdir()) == []
