@@ -1350,20 +1350,29 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     return result
 
 
+def _brightest_pixel(capture) -> tuple[float, int, int, int]:
+    """(|value|, frame, row, column) of the largest image value the fit may read (in a mask)."""
+    best = (0.0, 0, 0, 0)
+    for i, frame in enumerate(capture.frames):
+        values = np.where(frame.mask[..., None], np.abs(frame.image), 0.0)
+        if values.size and float(np.max(values)) > best[0]:
+            row, col, _ = np.unravel_index(int(np.argmax(values)), values.shape)
+            best = (float(values[row, col].max()), i, int(row), int(col))
+    return best
+
+
 def _check_brightness(capture) -> None:
     """`CaptureError` naming the frame and pixel where an image value is too bright for the float32
     solve: the sum of squared residuals over every pixel value would overflow float32 from that
     value alone, |v| > sqrt(float32 max / n), n the pixel values the fit may read."""
     n = 3 * max(sum(int(np.sum(f.mask)) for f in capture.frames), 1)
     limit = math.sqrt(float(np.finfo(np.float32).max) / n)
-    for i, frame in enumerate(capture.frames):
-        values = np.where(frame.mask[..., None], np.abs(frame.image), 0.0)
-        if values.size and float(np.max(values)) > limit:
-            row, col, _ = np.unravel_index(int(np.argmax(values)), values.shape)
-            raise CaptureError(
-                f"{frame.file_path}: frames[{i}]: pixel value {float(np.max(values)):.3g} at row {row}, column {col} is "
-                f"too bright for the float32 solve (squared and summed over the {n} pixel values it would "
-                f"overflow; at most {limit:.3g}); mask it out or bring the images nearer 1")
+    value, i, row, col = _brightest_pixel(capture)
+    if value > limit:
+        raise CaptureError(
+            f"{capture.frames[i].file_path}: frames[{i}]: pixel value {value:.3g} at row {row}, column {col} is "
+            f"too bright for the float32 solve (squared and summed over the {n} pixel values it would "
+            f"overflow; at most {limit:.3g}); mask it out or bring the images nearer 1")
 
 
 def _check_finite(result: FitResult, capture) -> None:
@@ -1383,13 +1392,12 @@ def _check_finite(result: FitResult, capture) -> None:
         bad.append("loss")
     if not bad:
         return
-    brightest = [float(np.max(np.abs(f.image[f.mask]), initial=0.0)) for f in capture.frames]
-    k = int(np.argmax(brightest))
+    value, k, _, _ = _brightest_pixel(capture)
     where = capture.json_path or capture.root
     raise CaptureError(
         f"{where}: the fit's {', '.join(bad)} came out NaN or beyond float32, as when the images or the light "
         f"they are rendered with are too bright for the float32 solve once squared (brightest image value "
-        f"{brightest[k]:.3g}, in frames[{k}] {Path(capture.frames[k].file_path).name}); bring them "
+        f"{value:.3g}, in frames[{k}] {Path(capture.frames[k].file_path).name}); bring them "
         "nearer 1 (the images' values, the lights' intensity, the environment's intensity or exposure)")
 
 
