@@ -276,8 +276,9 @@ def _multi_device_report() -> dict:
     layout = texel_layout(sampled, MAP)
     sp = dataclasses.replace(problem, obs=sampled, index=layout.index, weight=layout.weight)
     sp_sh = shard_problem(sp, mesh)
-    one = fit_observations(sampled, resolution=MAP, max_steps=20)
-    many = fit_observations(sampled, resolution=MAP, max_steps=20, devices=jax.devices())
+    lean = dict(resolution=MAP, search=False, continuation=None, uniform_check=False, repair=False)  # the solve alone
+    one = fit_observations(sampled, max_steps=20, **lean)
+    many = fit_observations(sampled, max_steps=20, devices=jax.devices(), **lean)
     out.update(
         samples_shard_rows=sorted(int(s.data.shape[0]) for s in sp_sh.obs.target.addressable_shards),
         samples_blocks_rel_diff=float(
@@ -298,8 +299,8 @@ def _multi_device_report() -> dict:
     table = pixel_ibl(procedural_sky(16), np.asarray(problem.obs.normal), np.asarray(problem.obs.view), model,
                       PixelIBLSettings(levels=3, samples=8))
     table_sh = shard_problem(dataclasses.replace(problem, ibl=table, model=model), mesh).ibl.table
-    one = fit_observations(problem.obs, model=model, ibl=table, resolution=MAP, max_steps=10)
-    many = fit_observations(problem.obs, model=model, ibl=table, resolution=MAP, max_steps=10, devices=jax.devices())
+    one = fit_observations(problem.obs, model=model, ibl=table, max_steps=10, **lean)
+    many = fit_observations(problem.obs, model=model, ibl=table, max_steps=10, devices=jax.devices(), **lean)
     out.update(
         table_shard_rows=sorted(int(s.data.shape[0]) for s in table_sh.addressable_shards),
         table_padding=float(jnp.max(jnp.abs(table_sh[real:]))),
