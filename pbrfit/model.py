@@ -8,6 +8,8 @@ glTF 2.0 metallic-roughness BRDF (glTF 2.0 specification, Appendix B).
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 from typing import Optional
 
 __all__ = ["Model", "DISTRIBUTIONS", "GEOMETRIES", "FRESNELS", "DIFFUSES", "IBLS"]
@@ -73,8 +75,10 @@ class Model:
         for name in ("specular", "metallic", "multiscatter"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"Model.{name} must be True or False, got {getattr(self, name)!r}")
-        if not (isinstance(self.ior, (int, float)) and self.ior >= 1.0):
-            raise ValueError(f"Model.ior must be a number >= 1, got {self.ior!r}")
+        if isinstance(self.ior, bool) or not isinstance(self.ior, numbers.Real) \
+                or not (math.isfinite(self.ior) and self.ior >= 1.0):
+            raise ValueError(f"Model.ior must be a finite number >= 1, got {self.ior!r}")
+        object.__setattr__(self, "ior", float(self.ior))  # numpy scalars too: a plain, hashable float
 
     def replace(self, **changes) -> "Model":
         """A copy with some fields changed (validated like the constructor)."""

@@ -24,8 +24,11 @@ def test_unknown_variant_raises_naming_the_field(field):
 def test_bad_flags_and_ior_raise():
     with pytest.raises(ValueError, match="Model.specular"):
         Model(specular=1)
-    with pytest.raises(ValueError, match="Model.ior"):
-        Model(ior=0.5)
+    for bad in (0.5, float("inf"), float("nan"), True, "1.5"):
+        with pytest.raises(ValueError, match="Model.ior"):
+            Model(ior=bad)
+    model = Model(ior=np.float32(1.33))  # a numpy scalar is a number: kept as a plain float
+    assert type(model.ior) is float and model == Model(ior=float(np.float32(1.33))) and hash(model)
 
 
 def test_every_listed_variant_constructs():
