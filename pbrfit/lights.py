@@ -30,7 +30,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from .errors import CaptureError
 from .transfer import to_device
@@ -220,11 +220,11 @@ def spot_falloff(
 
 
 def incident(
-    light: Light, points: Float[Array, "P 3"]
-) -> tuple[Float[Array, "P 3"], Float[Array, "P 3"]]:
+    light: Light, points: Float[ArrayLike, "*P 3"]
+) -> tuple[Float[Array, "*P 3"], Float[Array, "*P 3"]]:
     """Light arriving at ``points``: ``(l, E)``.
 
-    ``l`` (P, 3) is the unit direction from the surface point towards the light; ``E`` (P, 3)
+    ``l`` (*P, 3) is the unit direction from the surface point towards the light; ``E`` (*P, 3)
     is ``color * intensity * window(d) * spot / d^2`` for point and spot lights (lux) and
     ``color * intensity`` for directional lights. ``d`` is floored at `MIN_DISTANCE`, so both
     outputs and their gradients are finite everywhere (a point on the light gets l = 0).
@@ -251,7 +251,7 @@ def incident(
         scale = scale * spot_falloff(
             cd, light.inner_cone_angle.astype(dtype), light.outer_cone_angle.astype(dtype)
         )
-    e = (color * intensity)[None, :] * scale[..., None]
+    e = (color * intensity) * scale[..., None]
     return l, e
 
 

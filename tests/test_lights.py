@@ -48,6 +48,17 @@ def test_point_light_inverse_square_and_direction():
     np.testing.assert_allclose(e, 40.0 * np.array([1.0, 0.5, 0.25])[None] / d2[:, None], rtol=1e-6)
 
 
+def test_incident_keeps_the_points_batch_shape():
+    """E has the shape of l: one point gives (3,), a batch (P, 3), under vmap too."""
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 0.5, 0.0]], np.float32)
+    for light in (point_light([0.0, 0.0, 3.0]), spot_light([0.0, 0.0, 3.0], [0.0, 0.0, -1.0])):
+        l, e = incident(light, pts[0])
+        assert l.shape == e.shape == (3,), (light.kind, l.shape, e.shape)
+        l, e = jax.vmap(incident, in_axes=(None, 0))(light, pts)
+        assert l.shape == e.shape == (2, 3)
+        np.testing.assert_allclose(e, incident_jit(light, pts)[1], rtol=1e-6)
+
+
 def test_range_window_matches_spec_formula():
     # window(d) = clamp(1 - (d/range)^4, 0, 1), 1/d^2 outside the window
     light = point_light([0.0, 0.0, 0.0], [1.0, 1.0, 1.0], 10.0, range=2.0)
