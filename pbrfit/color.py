@@ -205,7 +205,9 @@ def _inverse_khronos_neutral(y):
     g = 1.0 - 1.0 / (desaturation * (peak - safe_new) + 1.0)
     x = jnp.where(new_peak < start, y, (y - safe_new * g) / ((safe_new / peak) * (1.0 - g)))
     m = jnp.maximum(jnp.min(x, axis=-1, keepdims=True), 0.0)
-    low = jnp.where(m < 0.04, jnp.sqrt(m / 6.25), m + 0.04)
+    # the toe's inverse has infinite slope at m = 0: its gradient is taken as 0 there (double where)
+    root = jnp.where(m > 0.0, jnp.sqrt(jnp.where(m > 0.0, m, 1.0) / 6.25), 0.0)
+    low = jnp.where(m < 0.04, root, m + 0.04)
     return x + (low - m)
 
 

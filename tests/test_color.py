@@ -183,6 +183,17 @@ def test_inverse_tonemap_known_values():
         color.inverse_tonemap(x, "filmic")
 
 
+def test_inverse_tonemap_gradients_are_finite_at_black():
+    """Khronos PBR Neutral's toe inverse, sqrt(m / 6.25), has infinite slope at m = 0: a black
+    channel must not send the gradient to inf or NaN (nor its neighbours' through the min)."""
+    for name in color.TONEMAPS:
+        for y in ([0.0, 0.0, 0.0], [0.5, 0.2, 0.0], [0.9, 0.5, 0.0]):
+            g = jax.grad(lambda t: color.inverse_tonemap(t, name).sum())(jnp.asarray(y, jnp.float32))
+            assert np.all(np.isfinite(np.asarray(g))), (name, y, g)
+    g = jax.grad(lambda t: color.inverse_tonemap(t, "khronos_neutral")[2])(jnp.asarray([0.5, 0.2, 0.01]))
+    np.testing.assert_allclose(g[2], 1.0 / (2.0 * np.sqrt(6.25 * 0.01)), rtol=1e-4)  # d sqrt(m/6.25)/dm
+
+
 def test_khronos_neutral_identity_region():
     """Below the compression start (max < 0.76 after the 0.04 offset) and with min ≥ 0.08, Khronos PBR
     Neutral is x - 0.04: a base color renders as itself minus the fixed toe offset."""
