@@ -16,6 +16,7 @@ B. Burley, SIGGRAPH 2012; C. Schlick 1994.
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import jax.numpy as jnp
 from jax.scipy.special import erfc
@@ -415,6 +416,25 @@ def _fresnel(model: Model, v_dot_h, base_color, metallic, f0):
     return f_d + (f_schlick(vh, base_color) - f_d) * metallic
 
 
+def per_point(x: Float[ArrayLike, "*batch"] | Float[ArrayLike, "*batch 1"], rank: Optional[int] = None,
+              name: str = "value") -> Float[Array, "*batch 1"]:
+    """A per-point scalar (metallic, roughness) with the trailing axis of 1 that broadcasts
+    against RGB.
+
+    With ``rank`` (the batch's number of axes, as `evaluate` knows it from its vectors): an
+    array of at most ``rank`` axes gains the axis, one of ``rank + 1`` must end in it. Without
+    (`evaluate_cosines`, whose cosines may carry leading axes the material broadcasts against):
+    a scalar gains it, and any other array must end in it. Anything else, say (B, 3), is refused
+    rather than broadcast across RGB or into (B, B, 3)."""
+    x = jnp.asarray(x)
+    if x.ndim == 0 or (rank is not None and x.ndim <= rank):
+        return x[..., None]
+    if x.shape[-1] == 1 and (rank is None or x.ndim == rank + 1):
+        return x
+    want = "(*batch, 1)" if rank is None else f"(*batch) or (*batch, 1) for a batch of {rank} axes"
+    raise ValueError(f"{name} must hold one value per point, shape {want}; got shape {x.shape}")
+
+
 def evaluate_cosines(
     n_dot_v: Float[ArrayLike, "*batch"],
     n_dot_l: Float[ArrayLike, "*batch"],
@@ -434,7 +454,8 @@ def evaluate_cosines(
     2012). `dfg` (split-sum scale and bias at (n·v, roughness)) is required when
     ``model.multiscatter``. Zero where n·l <= 0 or n·v <= 0.
 
-    metallic and roughness have a trailing axis of 1 so they broadcast against RGB.
+    metallic and roughness hold one value per point with a trailing axis of 1 that broadcasts
+    against RGB, (*batch, 1), or are scalars (`per_point`; `evaluate` takes (*batch) as well).
 
     Energy: Lambert and the single-scattering specular lobe each conserve energy alone (white
     Lambert integrates to 1, the specular lobe to at most 1); Burley's diffuse does not (a white
@@ -448,8 +469,8 @@ def evaluate_cosines(
     n_dot_v = jnp.asarray(n_dot_v)
     n_dot_l = jnp.asarray(n_dot_l)
     base_color = jnp.asarray(base_color)
-    metallic = jnp.asarray(metallic)
-    roughness = jnp.clip(jnp.asarray(roughness), 0.0, 1.0)
+    metallic = per_point(metallic, name="metallic")
+    roughness = jnp.clip(per_point(roughness, name="roughness"), 0.0, 1.0)
     lit = (n_dot_v > 0.0) & (n_dot_l > 0.0)
     nv = jnp.clip(n_dot_v, 0.0, 1.0)
     nl = jnp.clip(n_dot_l, 0.0, 1.0)
@@ -482,16 +503,18 @@ def evaluate(
     v: Float[ArrayLike, "*batch 3"],
     l: Float[ArrayLike, "*batch 3"],
     base_color: Float[ArrayLike, "*batch 3"],
-    metallic: Float[ArrayLike, "*batch"],
-    roughness: Float[ArrayLike, "*batch"],
+    metallic: Float[ArrayLike, "*batch"] | Float[ArrayLike, "*batch 1"],
+    roughness: Float[ArrayLike, "*batch"] | Float[ArrayLike, "*batch 1"],
     model: Model = Model(),
     dfg: Float[ArrayLike, "*batch 2"] | None = None,
 ) -> Float[Array, "*batch 3"]:
     """BRDF × n·l for unit vectors n (normal), v (to the viewer), l (to the light); linear RGB.
 
-    metallic and roughness are per-point scalars (no trailing axis). See `evaluate_cosines`.
+    metallic and roughness hold one value per point, without a trailing axis (*batch) or with
+    one of 1 (*batch, 1), as `evaluate_cosines` takes them (`per_point`). See `evaluate_cosines`.
     """
     n, v, l = (jnp.asarray(x) for x in (n, v, l))
+    rank = max(n.ndim, v.ndim, l.ndim, jnp.ndim(base_color)) - 1
     n_dot_v = jnp.sum(n * v, axis=-1)
     n_dot_l = jnp.sum(n * l, axis=-1)
     n_dot_h, v_dot_h = half_vector_cosines(n_dot_v, n_dot_l, None, v_plus_l_sq(v, l))
@@ -501,8 +524,8 @@ def evaluate(
         n_dot_h,
         v_dot_h,
         base_color,
-        jnp.asarray(metallic)[..., None],
-        jnp.asarray(roughness)[..., None],
+        per_point(metallic, rank, "metallic"),
+        per_point(roughness, rank, "roughness"),
         model,
         dfg,
     )

@@ -768,3 +768,28 @@ def test_specular_dv_is_d_times_v_of_the_model():
     model = Model(distribution="beckmann", geometry="schlick_ggx_direct")
     got = brdf.specular_dv(model, jnp.float32(nv), jnp.float32(nl), jnp.float32(nh), jnp.float32(r))
     np.testing.assert_allclose(float(got), d_beck * v_schlick, rtol=1e-5)
+
+
+def test_metallic_and_roughness_per_point_with_or_without_the_trailing_axis():
+    """`evaluate` takes (B,) and (B, 1) alike, `evaluate_cosines` (B, 1) and scalars
+    (`brdf.per_point`); other shapes are refused rather than broadcast into (B, B, 3) or across RGB."""
+    rng = np.random.default_rng(3)
+    for b in (3, 7):
+        n = np.tile([0.0, 0.0, 1.0], (b, 1))
+        v, l = (x / np.linalg.norm(x, axis=1, keepdims=True) for x in (rng.normal(size=(b, 3)) + [0, 0, 2],
+                                                                       rng.normal(size=(b, 3)) + [0, 0, 2]))
+        base, m, r = rng.random((b, 3)), rng.random(b), rng.random(b)
+        want = np.asarray(brdf.evaluate(n, v, l, base, m, r))
+        assert want.shape == (b, 3)
+        np.testing.assert_array_equal(np.asarray(brdf.evaluate(n, v, l, base, m[:, None], r[:, None])), want)
+        nv, nl = np.sum(n * v, 1), np.sum(n * l, 1)
+        nh, vh = brdf.half_vector_cosines(nv, nl, None, brdf.v_plus_l_sq(v, l))
+        cos = np.asarray(brdf.evaluate_cosines(nv, nl, nh, vh, base, m[:, None], r[:, None]))
+        np.testing.assert_allclose(cos, want, rtol=1e-5, atol=1e-7)
+        with pytest.raises(ValueError, match="metallic must hold one value per point"):
+            brdf.evaluate(n, v, l, base, np.ones((b, 3)), r)
+        with pytest.raises(ValueError, match=r"roughness must hold one value per point, shape \(\*batch, 1\)"):
+            brdf.evaluate_cosines(nv, nl, nh, vh, base, m[:, None], r)  # (B,) would broadcast across RGB
+    one = brdf.evaluate_cosines(0.5, 0.6, 0.9, 0.8, jnp.full(3, 0.5), 0.0, 0.5)
+    np.testing.assert_allclose(one, brdf.evaluate_cosines(0.5, 0.6, 0.9, 0.8, jnp.full(3, 0.5), jnp.zeros(1),
+                                                          jnp.full(1, 0.5)))
