@@ -613,11 +613,23 @@ def write_material(directory: str | os.PathLike, material) -> list[Path]:
     ``metallic.exr`` and ``roughness.exr`` (one channel float32), ``metallic_roughness.png``
     (glTF packing, linear 8-bit: R = occlusion or 1, G = roughness, B = metallic). When present:
     ``normal.png`` (tangent space, +Y, ``n * 0.5 + 0.5`` in 8 bits), ``occlusion.exr`` and
-    ``emissive.exr`` (linear float32). Each file is written atomically.
+    ``emissive.exr`` (linear float32). Each file is written atomically, and an optional map's
+    file the material lacks is removed, so that the folder reads back (`read_material`) as this
+    material. Values a material folder may not hold (NaN, outside [0, 1]; emissive outside
+    [0, inf)) are refused with `CaptureError` before anything is written.
     """
     directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
     base = _np(material.base_color)
+    for name, values, top in (("base_color", base, 1.0), ("metallic", _np(material.metallic), 1.0),
+                              ("roughness", _np(material.roughness), 1.0),
+                              ("occlusion", _np(getattr(material, "occlusion", None)), 1.0),
+                              ("emissive", _np(getattr(material, "emissive", None)), None)):
+        if values is not None:
+            _checked_map(values, directory, name, top)
+    normal = _np(getattr(material, "normal", None))
+    if normal is not None and not np.all(np.isfinite(normal)):
+        raise CaptureError(f"{directory}: the normal map holds NaN or inf values")
+    directory.mkdir(parents=True, exist_ok=True)
     written = [
         write_image(directory / "base_color.exr", base, "float"),
         write_image(directory / "base_color.png", _srgb_encode(base), "uint8"),
@@ -625,7 +637,6 @@ def write_material(directory: str | os.PathLike, material) -> list[Path]:
         write_image(directory / "roughness.exr", _np(material.roughness)[..., :1], "float"),
         write_image(directory / "metallic_roughness.png", _pack_orm(material), "uint8", color_space="linear"),
     ]
-    normal = _np(getattr(material, "normal", None))
     if normal is not None:
         written.append(write_image(directory / "normal.png", _encode_normal(normal), "uint8", color_space="linear"))
     occlusion = _np(getattr(material, "occlusion", None))
@@ -634,6 +645,9 @@ def write_material(directory: str | os.PathLike, material) -> list[Path]:
     emissive = _np(getattr(material, "emissive", None))
     if emissive is not None:
         written.append(write_image(directory / "emissive.exr", emissive, "float"))
+    for name, values in (("normal.png", normal), ("occlusion.exr", occlusion), ("emissive.exr", emissive)):
+        if values is None:
+            (directory / name).unlink(missing_ok=True)  # an earlier material's map would read back as this one's
     return written
 
 

@@ -295,6 +295,26 @@ def test_material_uniform_1x1(tmp_path):
     np.testing.assert_array_equal(back.roughness, [[[0.5]]])
 
 
+def test_write_material_replaces_an_earlier_material(tmp_path):
+    """Written over a folder that held a material with more maps, the folder reads back as the
+    new material (the old normal, occlusion and emissive files go); values a material folder may
+    not hold are refused before anything is written."""
+    write_material(tmp_path, _material(np.random.default_rng(2), normal=True, occlusion=True, emissive=True))
+    (tmp_path / "notes.txt").write_text("keep")
+    m = Material.uniform([0.2, 0.4, 0.6], 0.0, 0.5)
+    write_material(tmp_path, m)
+    back = read_material(tmp_path)
+    assert back.normal is None and back.occlusion is None and back.emissive is None
+    assert (tmp_path / "notes.txt").read_text() == "keep"
+    before = {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()}
+    for bad, match in ((Material.uniform([1.5, 0.3, 0.4], 0.0, 0.7), "base_color must lie in"),
+                       (Material.uniform([0.5, 0.3, 0.4], float("nan"), 0.7), "metallic hold NaN"),
+                       (Material.uniform([0.5, 0.3, 0.4], 0.0, -0.1), "roughness must lie in")):
+        with pytest.raises(CaptureError, match=match):
+            write_material(tmp_path, bad)
+    assert {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()} == before
+
+
 def test_read_material_errors(tmp_path):
     with pytest.raises(CaptureError, match="material folder not found"):
         read_material(tmp_path / "missing")
