@@ -42,6 +42,7 @@ import importlib
 import inspect
 import itertools
 import math
+import os
 import sys
 import time
 import types
@@ -300,6 +301,92 @@ def _layout(obs: Observations, shape, wrap: str) -> TexelLayout:
     return uniform_layout(obs) if tuple(shape) == (1, 1) else texel_layout(obs, shape, wrap)
 
 
+#: The material maps a fit can fit or hold (``fit=``, ``fixed=``); "normal" can only be fitted.
+MATERIAL_MAPS = ("base_color", "metallic", "roughness")
+#: The largest map side an explicit ``resolution`` takes (the default stops at `MAX_RESOLUTION`).
+MAX_MAP_SIDE = 8192
+
+
+def fit_arguments(fit=None, fixed: Optional[Mapping] = None) -> tuple[tuple[str, ...], dict]:
+    """The maps a fit frees and the values it holds, checked (`ValueError` otherwise).
+
+    ``fit``: names from `FIT_GROUPS` (a sequence, or one string of comma-separated names); None
+    (default): every map of `MATERIAL_MAPS` that ``fixed`` does not hold. ``fixed``: {map: value}
+    for maps of `MATERIAL_MAPS`, finite and in [0, 1]: base colour as one grey value, R, G, B or an
+    (H, W, 3) map; metallic and roughness as one value or an (H, W) or (H, W, 1) map (any size:
+    resampled to the fit's). A map may not be both fitted and held, and something must be fitted.
+    Returns (fit, fixed) with the held values as float32 arrays of shape (), (3,), (H, W, C)."""
+    held = {}
+    for name, value in dict(fixed or {}).items():
+        if name not in MATERIAL_MAPS:
+            raise ValueError(f"fixed: unknown map {name!r}; expected some of {', '.join(MATERIAL_MAPS)}"
+                             + (" (a normal map can only be fitted)" if name == "normal" else ""))
+        try:
+            v = np.asarray(value, np.float32)
+        except (TypeError, ValueError):
+            raise ValueError(f"fixed[{name!r}]: expected numbers, got {value!r}") from None
+        channels = len(FIT_GROUPS[name])
+        if name != "base_color" and v.ndim == 2:
+            v = v[..., None]
+        ok = v.ndim == 0 or (v.ndim == 1 and v.shape[0] in (1, channels)) or (
+            v.ndim == 3 and v.shape[-1] == channels and min(v.shape[:2]) >= 1)
+        if not ok:
+            want = "a value, R, G, B or an (H, W, 3) map" if channels == 3 else "a value or an (H, W) map"
+            raise ValueError(f"fixed[{name!r}]: expected {want}, got shape {v.shape}")
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"fixed[{name!r}]: holds NaN or inf")
+        if np.any(v < 0.0) or np.any(v > 1.0):
+            raise ValueError(f"fixed[{name!r}]: values must lie in [0, 1], found {v.min():g} to {v.max():g}")
+        held[name] = v.reshape(-1)[0] if v.ndim == 1 and v.shape[0] == 1 else v
+    if fit is None:
+        fit = tuple(name for name in MATERIAL_MAPS if name not in held)
+    else:
+        names = fit.split(",") if isinstance(fit, str) else list(fit)
+        fit = tuple(str(name).strip() for name in names if str(name).strip())
+        for name in fit:
+            if name not in FIT_GROUPS:
+                raise ValueError(f"fit: unknown map {name!r}; expected some of {', '.join(FIT_GROUPS)}")
+            if fit.count(name) > 1:
+                raise ValueError(f"fit: lists {name} twice")
+            if name in held:
+                raise ValueError(f"fit: lists {name}, which fixed holds too; drop one of the two")
+    if not fit:
+        raise ValueError("fit: nothing to fit (every map is held fixed)")
+    return fit, held
+
+
+def _check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, atol, cg_rtol, loss_scale, smooth,
+                   coarse_to_fine, continuation) -> None:
+    """`ValueError` for option values out of range, or given to a mode that does not read them
+    (the command line refuses the same)."""
+    if resolution is not None:
+        sides = [resolution] if np.ndim(resolution) == 0 else list(np.ravel(resolution))
+        if len(sides) not in (1, 2) or any(isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer))
+                                           or not 1 <= r <= MAX_MAP_SIDE for r in sides):
+            raise ValueError(f"resolution must be an integer N or (H, W) from 1 to {MAX_MAP_SIDE}, got {resolution!r}")
+    for name, value, least in (("max_steps", max_steps, 1), ("coarse_steps", coarse_steps, 0)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer))
+                                  or not least <= value < 2**31):
+            raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+    for name, value in (("rtol", rtol), ("atol", atol), ("smooth", smooth)):
+        if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value >= 0):
+            raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    if not (isinstance(loss_scale, (int, float, np.number)) and math.isfinite(loss_scale) and loss_scale > 0):
+        raise ValueError(f"loss_scale must be a finite number > 0, got {loss_scale!r}")
+    given_continuation = continuation is not None and len(np.ravel(continuation)) > 0 \
+        and tuple(np.ravel(continuation)) != CONTINUATION
+    if solver != DEFAULT_SOLVER:  # options only the structured solver reads
+        if cg_rtol != CG_RTOL:
+            raise ValueError(f"cg_rtol: only the {DEFAULT_SOLVER} solver uses it, not solver={solver!r}")
+        if given_continuation:
+            raise ValueError(f"continuation: only the {DEFAULT_SOLVER} solver uses it, not solver={solver!r}")
+    if maps == "none":  # one texel: no map size, no neighbours, no levels
+        for name, given in (("resolution", resolution is not None), ("smooth", smooth > 0),
+                            ("continuation", given_continuation), ("coarse_to_fine", coarse_to_fine)):
+            if given:
+                raise ValueError(f"{name}: maps='none' fits one uniform material (1 x 1 maps)")
+
+
 def _check_normals(model: Model, fit: Sequence[str]) -> None:
     if model.ibl == "per_pixel" and "normal" in fit:
         raise ValueError("fitting normals needs ibl='split_sum': per-pixel IBL integrals hold each pixel's normal fixed")
@@ -311,7 +398,7 @@ def fit_observations(
     model: Model = Model(),
     ibl=None,
     resolution=None,
-    fit: Sequence[str] = ("base_color", "metallic", "roughness"),
+    fit: Optional[Sequence[str]] = None,
     fixed: Optional[Mapping] = None,
     maps: str = "texture",
     solver: str = DEFAULT_SOLVER,
@@ -343,6 +430,12 @@ def fit_observations(
 ) -> FitResult:
     """Fit maps to prepared `Observations` (see `fit` for the arguments).
 
+    The light is the caller's to describe: ``model`` and ``ibl`` must be those of the capture
+    the observations come from (`fit` derives them: `model_for_capture`, and
+    `pbrfit.views.capture_ibl` or `pbrfit.pixel_ibl.pixel_ibl`). The defaults, ``Model()`` and no
+    tables, shade with the observations' punctual lights alone, so a capture lit by an
+    environment is fitted as if that light were absent.
+
     With several samples per pixel in `obs`, `centres` (optional) holds the same capture's
     observations at pixel centres (and `centre_ibl` their IBL, when it is per pixel): the grid
     start, the continuation's first steps and the coordinate search then run on them, at a
@@ -355,6 +448,10 @@ def fit_observations(
     "footprint" entry gives both energies, the steps and the choice."""
     if noise_level not in NOISE_LEVELS:
         raise ValueError(f"noise_level must be one of {', '.join(NOISE_LEVELS)}, got {noise_level!r}")
+    fit, fixed = fit_arguments(fit, fixed)
+    _check_options(resolution=resolution, maps=maps, solver=solver, max_steps=max_steps, coarse_steps=coarse_steps,
+                   rtol=rtol, atol=atol, cg_rtol=cg_rtol, loss_scale=loss_scale, smooth=smooth,
+                   coarse_to_fine=coarse_to_fine, continuation=continuation)
     kwargs = {name: value for name, value in locals().items() if name not in ("obs", "noise_level")}  # the arguments
     if noise_level == "uniform":
         result, _ = _fit_pass(obs, **kwargs)
@@ -363,6 +460,11 @@ def fit_observations(
         result = _fit_weighted(obs, kwargs)
     result.report["iterations"] = result.report["steps"]  # the capture spec's word for them
     return result
+
+
+#: `fit_observations`'s defaults of the options `_check_options` checks.
+_OPTION_DEFAULTS = {name: param.default for name, param in inspect.signature(fit_observations).parameters.items()
+                    if name in inspect.signature(_check_options).parameters}
 
 
 def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
@@ -1217,7 +1319,8 @@ def footprint_choice(capture, pixel_samples="auto", views=None) -> tuple[int, bo
 
 def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, ibl: Optional[str] = None,
         pixel_ibl_settings: PixelIBLSettings = PixelIBLSettings(), pixel_samples="auto", **kwargs) -> FitResult:
-    """Fit material maps to a `pbrfit.scene.Capture`.
+    """Fit material maps to a `pbrfit.scene.Capture` (or the capture folder, read with
+    `pbrfit.scene.load_capture`).
 
     Keyword arguments (all optional):
         pixel_samples: n: shade n × n samples per pixel and compare their mean radiance with the
@@ -1237,9 +1340,10 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             error, not with fitted normals). Ignored without an environment.
         resolution: map size N (or (H, W)); default `default_resolution(capture)`.
         fit: which maps are free, some of "base_color", "metallic", "roughness", "normal" (a
-            tangent-space normal map, `pbrfit.parameters`; needs the mesh's tangents: uv).
-        fixed: values of maps held fixed: {"roughness": 0.4, "base_color": (H, W, 3) array, ...};
-            maps neither fitted nor given stay at `pbrfit.parameters.PRIOR`.
+            tangent-space normal map, `pbrfit.parameters`; needs the mesh's tangents: uv);
+            default: the three material maps, less those ``fixed`` holds (`fit_arguments`).
+        fixed: values of maps held fixed, in [0, 1]: {"roughness": 0.4, "base_color": (H, W, 3)
+            array, ...}; maps neither fitted nor given stay at `pbrfit.parameters.PRIOR`.
         maps: "texture" (maps) or "none" (one uniform material, 1 × 1 maps).
         solver: one of `SOLVERS`; max_steps (final level), coarse_steps, rtol, atol.
         cg_rtol: the structured solver's conjugate-gradient tolerance per step (in (0, 1),
@@ -1310,13 +1414,19 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             None for a solve with no host round-trips).
     """
     t0 = time.perf_counter()
-    model = model_for_capture(capture, kwargs.get("fit", ("base_color", "metallic", "roughness")),
-                              kwargs.get("fixed")) if model is None else model
+    if isinstance(capture, (str, os.PathLike)):
+        from .scene import load_capture
+
+        capture = load_capture(capture, require_uv=kwargs.get("maps", "texture") == "texture"
+                               or "normal" in (kwargs.get("fit") or ()))
+    kwargs["fit"], kwargs["fixed"] = fit_arguments(kwargs.get("fit"), kwargs.get("fixed"))
+    _check_options(**{name: kwargs.get(name, default) for name, default in _OPTION_DEFAULTS.items()})
+    model = model_for_capture(capture, kwargs["fit"], kwargs["fixed"]) if model is None else model
     if ibl not in (None,) + IBL_MODES:
         raise ValueError(f"ibl must be one of {', '.join(IBL_MODES)}, got {ibl!r}")
     if ibl is not None and model.ibl is not None:
         model = model.replace(ibl=ibl)
-    _check_normals(model, kwargs.get("fit", ()))
+    _check_normals(model, kwargs["fit"])
     _check_brightness(capture)
     pixel_samples, select, skipped = footprint_choice(capture, pixel_samples, views)
     obs = observations_from_capture(capture, cache_dir=cache_dir, views=views, pixel_samples=pixel_samples)

@@ -17,7 +17,8 @@ from pbrfit.color import encode
 import pbrfit.fit
 import pbrfit.initialisation
 import pbrfit.solvers
-from pbrfit.fit import RELEASED_STEPS, SEARCH_AFTER, SETTLE_STEPS, SOLVERS, default_resolution, fit_observations, map_rmse, schedule
+from pbrfit.fit import (RELEASED_STEPS, SEARCH_AFTER, SETTLE_STEPS, SOLVERS, default_resolution, fit_arguments,
+                        fit_observations, map_rmse, schedule)
 from pbrfit.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, grid_initialise, parity_classes
 from pbrfit.lights import point_light
 from pbrfit.material import Material
@@ -179,12 +180,48 @@ def test_uncertainty_window_widens_the_per_texel_errors():
 
 
 def test_fixed_channels_stay_fixed():
+    """A held map is taken out of the default `fit` (all maps), as ``--roughness`` does."""
     truth = _checker()
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
-    res = fit_observations(obs, resolution=8, fit=("base_color",), fixed={"roughness": np.asarray(truth.roughness)},
+    res = fit_observations(obs, resolution=8, fixed={"roughness": np.asarray(truth.roughness)[..., 0], "metallic": 0},
                            max_steps=20)
+    assert res.report["fitted"] == ["base_r", "base_g", "base_b"], res.report["fitted"]
+    assert res.report["held"]["roughness"]["source"] == "map" and res.report["held"]["metallic"]["value"] == 0.0
     np.testing.assert_allclose(np.asarray(res.material.roughness), np.asarray(truth.roughness), atol=1e-6)
     assert map_rmse(truth, res)["base_color"] < 0.01
+
+
+def test_fit_arguments_resolve_and_refuse():
+    assert fit_arguments() == (("base_color", "metallic", "roughness"), {})
+    fit, fixed = fit_arguments(None, {"roughness": 0.3, "base_color": [0.2, 0.3, 0.4]})
+    assert fit == ("metallic",) and fixed["roughness"].shape == () and fixed["base_color"].shape == (3,)
+    assert fit_arguments("base_color, normal")[0] == ("base_color", "normal")
+    assert fit_arguments(None, {"metallic": np.zeros((4, 4))})[1]["metallic"].shape == (4, 4, 1)
+    for fit, fixed, match in ((("roughness",), {"roughness": 0.3}, "fixed holds too"),
+                              (None, {"base_color": 0.5, "metallic": 0.0, "roughness": 0.5}, "nothing to fit"),
+                              (("albedo",), None, "unknown map 'albedo'"), (("metallic", "metallic"), None, "twice"),
+                              (None, {"normal": 0.5}, "can only be fitted"), (None, {"roughness": 2.0}, r"\[0, 1\]"),
+                              (None, {"roughness": float("nan")}, "NaN"),
+                              (None, {"base_color": np.ones((4, 4, 4))}, r"\(H, W, 3\)"),
+                              (None, {"roughness": "rough"}, "expected numbers")):
+        with pytest.raises(ValueError, match=match):
+            fit_arguments(fit, fixed)
+
+
+@pytest.mark.parametrize("options, match", [
+    (dict(resolution=0), "resolution"), (dict(resolution=8.5), "resolution"), (dict(resolution=(8, 8, 8)), "resolution"),
+    (dict(max_steps=0), "max_steps"), (dict(smooth=-1.0), "smooth"), (dict(smooth=float("nan")), "smooth"),
+    (dict(loss="huber", loss_scale=0.0), "loss_scale"), (dict(rtol=float("inf")), "rtol"),
+    (dict(solver="lm", cg_rtol=0.1), "cg_rtol"), (dict(solver="lm", continuation=(0.1, 0.01)), "continuation"),
+    (dict(maps="none", resolution=8), "maps='none'"), (dict(maps="none", smooth=0.1), "maps='none'"),
+    (dict(maps="none", coarse_to_fine=True), "maps='none'"),
+])
+def test_fit_refuses_options_out_of_range_or_unread(options, match):
+    """Refused before any work (no compile: these run in milliseconds); the command line refuses
+    the same (`tests/test_cli_fit.py`)."""
+    obs = observations_from_views(VIEWS[:1], [np.zeros((RES, RES, 3), np.float32)])
+    with pytest.raises(ValueError, match=match):
+        fit_observations(obs, **options)
 
 
 def test_srgb_targets_and_huber_loss():

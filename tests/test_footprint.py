@@ -353,9 +353,10 @@ def test_footprint_choice_by_image_kind(capture):
         footprint_choice(capture, "many")
 
 
-def test_auto_footprint_skips_the_samples_on_a_large_capture(capture, monkeypatch):
+def test_auto_footprint_skips_the_samples_on_a_large_capture(capture, capture_dir, monkeypatch):
     """Beyond `AUTO_MAX_PIXELS` image pixels the automatic choice keeps to pixel centres (four
-    times the rows would not pay), and the report says so."""
+    times the rows would not pay), and the report says so. (The fit is given the capture's
+    folder: `pbrfit.fit` reads it.)"""
     import pbrfit.fit as fit_module
 
     pixels = sum(f.image.shape[0] * f.image.shape[1] for f in capture.frames)
@@ -363,7 +364,7 @@ def test_auto_footprint_skips_the_samples_on_a_large_capture(capture, monkeypatc
     n, select, skipped = fit_module.footprint_choice(capture)
     assert (n, select) == (1, False) and f"{pixels:,} image pixels > AUTO_MAX_PIXELS" in skipped
     assert fit_module.footprint_choice(capture, 2) == (2, False, None)  # asked for: no limit
-    res = fit(capture, maps="none", max_steps=5)
+    res = fit(str(capture_dir), maps="none", max_steps=5)
     assert res.report["pixel_samples"] == 1 and "energies" not in res.report["footprint"]
     assert f"{pixels:,} image pixels > AUTO_MAX_PIXELS" in res.report["footprint"]["skipped"]
     monkeypatch.setattr(fit_module, "AUTO_MAX_PIXELS", pixels)
