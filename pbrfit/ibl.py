@@ -275,7 +275,7 @@ def prefilter_level(stack, shapes, roughness: float, height: int, samples: int, 
 def prefiltered_lookup(tables: IBLTables, r_env: Float[Array, "*b 3"], roughness) -> Float[Array, "*b 3"]:
     """Prefiltered radiance along environment-frame directions at continuous perceptual roughness."""
     k = tables.prefiltered.shape[0]
-    level = jnp.clip(jnp.asarray(roughness), 0.0, 1.0) * (k - 1)
+    level = brdf.clamp_inward(roughness, 0.0, 1.0) * (k - 1)
     return sample_stack(tables.prefiltered, tables.level_shapes, direction_to_uv(r_env), level)
 
 
@@ -348,7 +348,7 @@ def shade_ibl(tables: IBLTables, n: Float[Array, "P 3"], v: Float[Array, "P 3"],
     """
     col = lambda x: None if x is None else (x[..., None] if jnp.ndim(x) == jnp.ndim(base_color) - 1 else x)
     metallic, roughness, occlusion = col(jnp.asarray(metallic)), col(jnp.asarray(roughness)), col(occlusion)
-    rough = jnp.clip(roughness[..., 0], 0.0, 1.0)
+    rough = brdf.clamp_inward(roughness[..., 0], 0.0, 1.0)
     nv_raw = dot3(n, v)
     nv = jnp.clip(nv_raw, 0.0, 1.0)
     to_env = lambda d: to_environment_frame(d, tables.world_up, tables.rotation_deg)

@@ -150,6 +150,7 @@ def shade_punctual(
         roughness[:, None, :],
         model,
         None if dfg is None else dfg[:, None, :],
+        brdf.half_vector_sin2(normal[:, None, :], view[:, None, :], light_l),
     )
     return jnp.sum(f * light_radiance, axis=1)
 
