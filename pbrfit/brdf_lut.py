@@ -43,10 +43,18 @@ def _lut_model(model: Optional[Model]) -> Model:
                                       multiscatter=False, ibl=None)
 
 
+def _view_at(nv):
+    """The unit view direction in the x-z plane at cosine n·v to n = +z: (sin, 0, n·v). The sine
+    by a double where, so its derivative at n·v = 1 is 0, not -inf (the albedo's is finite)."""
+    s2 = (1.0 - nv) * (1.0 + nv)
+    sin = jnp.where(s2 > 0.0, jnp.sqrt(jnp.where(s2 > 0.0, s2, 1.0)), 0.0)
+    return jnp.stack([sin, jnp.zeros_like(nv), nv], -1)
+
+
 @functools.partial(jax.jit, static_argnames=("samples", "model"))
 def _dfg(nv, r, samples, model):
     alpha = brdf.alpha_from_roughness(r)
-    v = jnp.stack([jnp.sqrt(1 - nv * nv), jnp.zeros_like(nv), nv], -1)
+    v = _view_at(nv)
     ones = jnp.ones(nv.shape + (3,), nv.dtype)
 
     def step(acc, u):
@@ -101,7 +109,7 @@ def brdf_lut(size: int = 32, samples: int = 512, model: Optional[Model] = None) 
 def _diffuse_lut(size, samples, model):
     nv, r = _lut_grid(size)
     nv, r = jnp.broadcast_to(nv, (size, size)), jnp.broadcast_to(r, (size, size))
-    v = jnp.stack([jnp.sqrt(1 - nv * nv), jnp.zeros_like(nv), nv], -1)
+    v = _view_at(nv)
     lobe = brdf.diffuse_burley if model.diffuse == "burley" else brdf.diffuse_lambert
 
     def step(acc, u):

@@ -92,12 +92,18 @@ def tonemap_reinhard(x):
     return x / (1.0 + x)
 
 
+#: Input cap of the ACES fits: from here up both give 1 in every channel (their rational parts
+#: exceed 1 and are clipped), and the cap keeps x² and the derivatives' x³ inside float32
+#: (uncapped, the gradient was NaN from about 1e18 and the value from 1e20).
+ACES_INPUT_MAX = 1e9
+
+
 def tonemap_aces_narkowicz(x):
     """K. Narkowicz 2015, "ACES Filmic Tone Mapping Curve" (fit of the ACES RRT+ODT, per channel):
     clamp(x (2.51 x + 0.03) / (x (2.43 x + 0.59) + 0.14), 0, 1). The input is used as is (no 0.6
     pre-scale), matching the glTF Sample Viewer's ``toneMapACES_Narkowicz``.
     """
-    x = jnp.maximum(jnp.asarray(x), 0.0)
+    x = jnp.clip(jnp.asarray(x), 0.0, ACES_INPUT_MAX)
     return jnp.clip(x * (2.51 * x + 0.03) / (x * (2.43 * x + 0.59) + 0.14), 0.0, 1.0)
 
 
@@ -118,7 +124,7 @@ def tonemap_aces_hill(x):
     c = M_in rgb; c = (c (c + 0.0245786) - 0.000090537) / (c (0.983729 c + 0.4329510) + 0.238081);
     out = clamp(M_out c, 0, 1). Without the viewer's optional /0.6 exposure boost.
     """
-    x = jnp.maximum(jnp.asarray(x), 0.0)
+    x = jnp.clip(jnp.asarray(x), 0.0, ACES_INPUT_MAX)
     c = jnp.einsum("ij,...j->...i", _ACES_INPUT.astype(x.dtype), x, precision=jax.lax.Precision.HIGHEST)
     c = (c * (c + 0.0245786) - 0.000090537) / (c * (0.983729 * c + 0.4329510) + 0.238081)
     out = jnp.einsum("ij,...j->...i", _ACES_OUTPUT.astype(x.dtype), c, precision=jax.lax.Precision.HIGHEST)

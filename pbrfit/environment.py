@@ -158,15 +158,16 @@ def direction_to_uv(d: Float[Array, "*b 3"]) -> Float[Array, "*b 2"]:
     """Environment-frame unit direction -> equirect (u, v) in [0, 1]^2.
 
     ``u = 0.5 + atan2(x, -z) / 2pi``, ``v = atan2(sqrt(x^2 + z^2), y) / pi`` (= acos(y) / pi, but
-    with a finite gradient at the poles). Double-``where`` keeps gradients finite at x = z = 0.
+    with a finite gradient at the poles). Double-``where`` keeps gradients finite at x = z = 0,
+    the zero vector included (v = 0 there, as at the +y pole; arctan2(0, 0) has no gradient).
     """
     x, y, z = d[..., 0], d[..., 1], d[..., 2]
     r2 = x * x + z * z
     ok = r2 > POLE_EPS
     xs, zs = jnp.where(ok, x, 1.0), jnp.where(ok, -z, 1.0)
     u = jnp.where(ok, 0.5 + jnp.arctan2(xs, zs) / (2 * math.pi), 0.5)
-    s = jnp.where(ok, jnp.sqrt(jnp.where(ok, r2, 1.0)), 0.0)
-    v = jnp.arctan2(s, y) / math.pi
+    s = jnp.sqrt(jnp.where(ok, r2, 1.0))
+    v = jnp.where(ok, jnp.arctan2(s, y) / math.pi, jnp.where(y < 0.0, 1.0, 0.0))
     return jnp.stack([u, v], axis=-1)
 
 

@@ -227,7 +227,8 @@ def incident(
     ``l`` (*P, 3) is the unit direction from the surface point towards the light; ``E`` (*P, 3)
     is ``color * intensity * window(d) * spot / d^2`` for point and spot lights (lux) and
     ``color * intensity`` for directional lights. ``d`` is floored at `MIN_DISTANCE`, so both
-    outputs and their gradients are finite everywhere (a point on the light gets l = 0).
+    outputs and their gradients are finite everywhere (within `MIN_DISTANCE` of the light l is
+    shorter than 1, and a point on the light gets l = 0).
     """
     points = jnp.asarray(points)
     dtype = jnp.result_type(points.dtype, jnp.float32)

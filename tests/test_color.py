@@ -220,3 +220,16 @@ def test_encode_order_and_errors():
         color.tonemap(x, "filmic")
     with pytest.raises(ValueError, match="color space"):
         color.encode(x, 0.0, "none", "p3")
+
+
+def test_aces_fits_finite_for_huge_radiance():
+    """Above `color.ACES_INPUT_MAX` both ACES fits are 1 already; the cap keeps x² and the
+    derivatives' x³ inside float32 (uncapped: NaN gradient from 1e18, NaN value from 1e20)."""
+    for name in ("aces_narkowicz", "aces_hill"):
+        for x in ([1e20, 1.0, 0.5], [1e18, 0.0, 0.0], [3e38, 3e38, 3e38]):
+            x = jnp.asarray(x, jnp.float32)
+            y, jac = color.tonemap(x, name), jax.jacfwd(lambda t: color.tonemap(t, name))(x)
+            assert np.all(np.isfinite(np.asarray(y))) and np.all(np.isfinite(np.asarray(jac))), (name, x)
+            assert float(y[0]) == 1.0
+        big = jnp.asarray([color.ACES_INPUT_MAX, 0.3, 0.0], jnp.float32)
+        np.testing.assert_array_equal(color.tonemap(big, name), color.tonemap(big * jnp.asarray([10.0, 1.0, 1.0]), name))

@@ -372,3 +372,16 @@ def test_layered_environment_is_read_through_its_colour_layer(tmp_path):
     out.close()
     env = load_environment(tmp_path / "env.exr")
     np.testing.assert_allclose(np.asarray(env.radiance), sky, rtol=1e-6)
+
+
+def test_gradients_finite_at_a_zero_direction_and_at_normal_incidence():
+    """direction_to_uv at the zero vector (arctan2(0, 0)) and at the poles, and the albedo table's
+    view direction at n·v = 1 (sqrt(1 - n·v²)), have finite derivatives."""
+    from pbrfit.environment import direction_to_uv
+
+    for d in ([0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 1e-20, 0.0]):
+        jac = np.asarray(jax.jacfwd(direction_to_uv)(jnp.asarray(d, jnp.float32)))
+        assert np.all(np.isfinite(jac)), (d, jac)
+    np.testing.assert_allclose(np.asarray(direction_to_uv(jnp.zeros(3))), [0.5, 0.0])
+    g = jax.grad(lambda c: specular_albedo(c, 0.5, samples=64).sum())
+    assert np.isfinite(float(g(1.0)))  # was -inf
