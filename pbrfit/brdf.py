@@ -102,6 +102,8 @@ def clamp_inward(x: Float[ArrayLike, "*batch"], lo: float, hi: Optional[float] =
     floor, through two floors) of its Jacobian column, and Gauss-Newton steps and standard
     errors two to four times too large there."""
     x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.floating):  # an integer roughness too: the floor is not an integer
+        x = x.astype(jnp.result_type(float))
     out = jnp.where(x < lo, jnp.asarray(lo, x.dtype), x)
     return out if hi is None else jnp.where(x > hi, jnp.asarray(hi, x.dtype), out)
 
@@ -146,12 +148,19 @@ def half_vector_sin2(n: Float[ArrayLike, "*batch 3"], v: Float[ArrayLike, "*batc
     At a highlight's peak n·h rounds to 1 and 1 - (n·h)² loses its digits: in float32 at
     roughness 0.045, one unit in the last place of n·h moves D by about 6%, and D was off by up
     to 15% (65% at 89° from the normal) and its roughness derivative by up to 30%. The cross
-    product keeps the relative precision. Pass it to the D terms (``sin2_h``). 0 at v = -l."""
+    product keeps the relative precision. Pass it to the D terms (``sin2_h``). Where |v + l|² <
+    `NORM2_MIN` (v -> -l, the half vector undefined) it is 1 - (n·h)² with n·h as
+    `half_vector_cosines` floors it there, so the two stay consistent."""
     n, v, l = jnp.asarray(n), jnp.asarray(v), jnp.asarray(l)
     s = v + l
-    c = jnp.cross(jnp.broadcast_to(n, jnp.broadcast_shapes(n.shape, s.shape)), s)
+    n = jnp.broadcast_to(n, jnp.broadcast_shapes(n.shape, s.shape))
+    c = jnp.cross(n, s)
     c2 = c[..., 0] * c[..., 0] + c[..., 1] * c[..., 1] + c[..., 2] * c[..., 2]
-    return jnp.clip(c2 / jnp.maximum(v_plus_l_sq(v, l), NORM2_MIN), 0.0, 1.0)
+    s2 = v_plus_l_sq(v, l)
+    wide = s2 >= NORM2_MIN
+    nh = jnp.clip((n[..., 0] * s[..., 0] + n[..., 1] * s[..., 1] + n[..., 2] * s[..., 2]) / math.sqrt(NORM2_MIN),
+                  0.0, 1.0)
+    return jnp.where(wide, jnp.clip(c2 / jnp.where(wide, s2, 1.0), 0.0, 1.0), (1.0 - nh) * (1.0 + nh))
 
 
 def half_vector_cosines(n_dot_v, n_dot_l, v_dot_l, v_plus_l_sq=None):
@@ -192,14 +201,15 @@ def d_ggx(n_dot_h, alpha, sin2_h=None):
     """
     a2 = jnp.square(_alpha(alpha))
     nh = jnp.clip(n_dot_h, 0.0, 1.0)
-    b = _sin2(nh, sin2_h) + nh * nh * a2
-    return jnp.where(jnp.asarray(n_dot_h) > 0.0, a2 * _INV_PI / (b * b), 0.0)
+    front = jnp.asarray(n_dot_h) > 0.0
+    b = jnp.where(front, _sin2(nh, sin2_h) + nh * nh * a2, 1.0)  # double where: b may be 0 behind
+    return jnp.where(front, a2 * _INV_PI / (b * b), 0.0)
 
 
 def d_beckmann(n_dot_h, alpha, sin2_h=None):
     """Beckmann normal distribution function.
 
-    D(h) = exp(-tan^2(theta_h) / alpha^2) / (pi alpha^2 cos^4(theta_h))   (Walter et al. 2007, eq. 25)
+    D(h) = χ⁺(n·h) exp(-tan^2(theta_h) / alpha^2) / (pi alpha^2 cos^4(theta_h))   (Walter et al. 2007, eq. 25)
 
     n·h is floored at `COS_MIN` (tan^2 -> inf; D -> 0 there, as the formula's limit). The
     1 / cos^4 factor is folded into the exponent: at grazing n·h and small alpha, alpha^2 cos^4
@@ -212,7 +222,7 @@ def d_beckmann(n_dot_h, alpha, sin2_h=None):
     nh = _cos(n_dot_h)
     nh2 = nh * nh
     tan2 = _sin2(nh, sin2_h) / nh2
-    return jnp.exp(-tan2 / a2 - 2.0 * jnp.log(nh2)) * _INV_PI / a2
+    return jnp.where(jnp.asarray(n_dot_h) > 0.0, jnp.exp(-tan2 / a2 - 2.0 * jnp.log(nh2)) * _INV_PI / a2, 0.0)
 
 
 # --- Smith masking-shadowing for GGX -----------------------------------------------------------
@@ -468,17 +478,19 @@ def per_point(x: Float[ArrayLike, "*batch"] | Float[ArrayLike, "*batch 1"], rank
     against RGB.
 
     With ``rank`` (the batch's number of axes, as `evaluate` knows it from its vectors): an
-    array of at most ``rank`` axes gains the axis, one of ``rank + 1`` must end in it. Without
+    array of ``rank + 1`` axes ending in 1 has it already; any other gains it (and broadcasts
+    against the batch: a roughness sweep at one geometry gives one row per value). Without
     (`evaluate_cosines`, whose cosines may carry leading axes the material broadcasts against):
-    a scalar gains it, and any other array must end in it. Anything else, say (B, 3), is refused
-    rather than broadcast across RGB or into (B, B, 3)."""
+    a scalar gains it, and any other array must end in it; (B,) is refused rather than
+    broadcast across RGB."""
     x = jnp.asarray(x)
-    if x.ndim == 0 or (rank is not None and x.ndim <= rank):
+    if rank is not None:
+        return x if (x.ndim == rank + 1 and x.shape[-1] == 1) else x[..., None]
+    if x.ndim == 0:
         return x[..., None]
-    if x.shape[-1] == 1 and (rank is None or x.ndim == rank + 1):
+    if x.shape[-1] == 1:
         return x
-    want = "(*batch, 1)" if rank is None else f"(*batch) or (*batch, 1) for a batch of {rank} axes"
-    raise ValueError(f"{name} must hold one value per point, shape {want}; got shape {x.shape}")
+    raise ValueError(f"{name} must hold one value per point, shape (*batch, 1); got shape {x.shape}")
 
 
 def evaluate_cosines(

@@ -322,7 +322,10 @@ def fit_arguments(fit=None, fixed: Optional[Mapping] = None) -> tuple[tuple[str,
             raise ValueError(f"fixed: unknown map {name!r}; expected some of {', '.join(MATERIAL_MAPS)}"
                              + (" (a normal map can only be fitted)" if name == "normal" else ""))
         try:
-            v = np.asarray(value, np.float32)
+            v = np.asarray(value)
+            if v.dtype.kind not in "biuf":
+                raise TypeError
+            v = v.astype(np.float32)
         except (TypeError, ValueError):
             raise ValueError(f"fixed[{name!r}]: expected numbers, got {value!r}") from None
         channels = len(FIT_GROUPS[name])
@@ -361,7 +364,7 @@ def _check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, a
     (the command line refuses the same)."""
     if resolution is not None:
         sides = [resolution] if np.ndim(resolution) == 0 else list(np.ravel(resolution))
-        if len(sides) not in (1, 2) or any(isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer))
+        if (np.ndim(resolution) != 0 and len(sides) != 2) or any(isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer))
                                            or not 1 <= r <= MAX_MAP_SIDE for r in sides):
             raise ValueError(f"resolution must be an integer N or (H, W) from 1 to {MAX_MAP_SIDE}, got {resolution!r}")
     for name, value, least in (("max_steps", max_steps, 1), ("coarse_steps", coarse_steps, 0)):

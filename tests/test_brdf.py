@@ -775,8 +775,9 @@ def test_specular_dv_is_d_times_v_of_the_model():
 
 
 def test_metallic_and_roughness_per_point_with_or_without_the_trailing_axis():
-    """`evaluate` takes (B,) and (B, 1) alike, `evaluate_cosines` (B, 1) and scalars
-    (`brdf.per_point`); other shapes are refused rather than broadcast into (B, B, 3) or across RGB."""
+    """`evaluate` takes (B,) and (B, 1) alike (a (B, 1) array gave (B, B, 3)), and a sweep of
+    roughness at one geometry gives a row per value; `evaluate_cosines` takes (B, 1) and scalars
+    and refuses (B,), which it broadcast across RGB (`brdf.per_point`)."""
     rng = np.random.default_rng(3)
     for b in (3, 7):
         n = np.tile([0.0, 0.0, 1.0], (b, 1))
@@ -790,10 +791,11 @@ def test_metallic_and_roughness_per_point_with_or_without_the_trailing_axis():
         nh, vh = brdf.half_vector_cosines(nv, nl, None, brdf.v_plus_l_sq(v, l))
         cos = np.asarray(brdf.evaluate_cosines(nv, nl, nh, vh, base, m[:, None], r[:, None]))
         np.testing.assert_allclose(cos, want, rtol=1e-5, atol=1e-7)
-        with pytest.raises(ValueError, match="metallic must hold one value per point"):
-            brdf.evaluate(n, v, l, base, np.ones((b, 3)), r)
         with pytest.raises(ValueError, match=r"roughness must hold one value per point, shape \(\*batch, 1\)"):
             brdf.evaluate_cosines(nv, nl, nh, vh, base, m[:, None], r)  # (B,) would broadcast across RGB
+    z = jnp.array([0.0, 0.0, 1.0])
+    sweep = brdf.evaluate(z, z, z, jnp.full(3, 0.5), 0.0, jnp.linspace(0.1, 1.0, 5))
+    assert sweep.shape == (5, 3) and float(sweep[0, 0]) > float(sweep[-1, 0])
     one = brdf.evaluate_cosines(0.5, 0.6, 0.9, 0.8, jnp.full(3, 0.5), 0.0, 0.5)
     np.testing.assert_allclose(one, brdf.evaluate_cosines(0.5, 0.6, 0.9, 0.8, jnp.full(3, 0.5), jnp.zeros(1),
                                                           jnp.full(1, 0.5)))
@@ -857,3 +859,18 @@ def test_lambda_ggx_keeps_its_digits_when_small():
         t = a32**2 * (1 - c32 * c32) / (c32 * c32)
         want = 0.5 * t / (1 + math.sqrt(1 + t))
         np.testing.assert_allclose(float(brdf.lambda_ggx(jnp.float32(c), jnp.float32(a))), want, rtol=1e-4)
+
+
+def test_half_vector_undefined_or_behind_gives_zero_and_finite_gradients():
+    """v = -l (|v + l| = 0) and h = -n: D's bracket is 0 there, so the masked branch must not
+    reach the gradient (a double where); an integer roughness is floored like a float one."""
+    n = jnp.array([0.0, 0.0, 1.0])
+    for v, l in (([0.6, 0.0, -0.8], [-0.6, 0.0, -0.8]), ([1.0, 0.0, 0.0], [-1.0, 0.0, 0.0])):
+        v, l = jnp.asarray(v), jnp.asarray(l)
+        for model in (Model(), Model(distribution="beckmann", geometry="smith_beckmann_correlated")):
+            f = lambda r, nn: brdf.evaluate(nn, v, l, jnp.full(3, 0.5), 0.0, r, model).sum()  # noqa: E731
+            assert float(f(0.3, n)) == 0.0
+            assert float(jax.grad(f)(0.3, n)) == 0.0 and np.all(np.isfinite(np.asarray(jax.grad(f, 1)(0.3, n))))
+    assert float(brdf.alpha_from_roughness(0)) == pytest.approx(brdf.MIN_ALPHA)
+    np.testing.assert_allclose(brdf.evaluate(n, n, n, jnp.ones(3), 0, 0), brdf.evaluate(n, n, n, jnp.ones(3), 0.0, 0.0))
+

@@ -203,13 +203,15 @@ def test_fit_arguments_resolve_and_refuse():
                               (None, {"normal": 0.5}, "can only be fitted"), (None, {"roughness": 2.0}, r"\[0, 1\]"),
                               (None, {"roughness": float("nan")}, "NaN"),
                               (None, {"base_color": np.ones((4, 4, 4))}, r"\(H, W, 3\)"),
-                              (None, {"roughness": "rough"}, "expected numbers")):
+                              (None, {"roughness": "rough"}, "expected numbers"),
+                              (None, {"roughness": "0.5"}, "expected numbers")):
         with pytest.raises(ValueError, match=match):
             fit_arguments(fit, fixed)
 
 
 @pytest.mark.parametrize("options, match", [
     (dict(resolution=0), "resolution"), (dict(resolution=8.5), "resolution"), (dict(resolution=(8, 8, 8)), "resolution"),
+    (dict(resolution=[8]), "resolution"),
     (dict(max_steps=0), "max_steps"), (dict(smooth=-1.0), "smooth"), (dict(smooth=float("nan")), "smooth"),
     (dict(loss="huber", loss_scale=0.0), "loss_scale"), (dict(rtol=float("inf")), "rtol"),
     (dict(solver="lm", cg_rtol=0.1), "cg_rtol"), (dict(solver="lm", continuation=(0.1, 0.01)), "continuation"),
