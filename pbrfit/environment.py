@@ -64,7 +64,8 @@ class Environment(eqx.Module):
     """An equirectangular environment of linear radiance, with its orientation in the world.
 
     Attributes:
-        radiance: (H, W, 3) float32 linear radiance (already multiplied by the capture's intensity).
+        radiance: (H, W, 3) linear radiance (already multiplied by the capture's intensity):
+            float32 as `load_environment` gives it; an array given directly is kept as given.
         world_up: ``"+y"`` or ``"+z"``, the world axis the top row looks along.
         rotation_deg: turn about the up axis, degrees, counter-clockwise seen from above.
     """
