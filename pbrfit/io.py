@@ -619,30 +619,26 @@ def write_material(directory: str | os.PathLike, material) -> list[Path]:
     [0, inf)) are refused with `CaptureError` before anything is written.
     """
     directory = Path(directory)
-    base = _np(material.base_color)
-    for name, values, top in (("base_color", base, 1.0), ("metallic", _np(material.metallic), 1.0),
-                              ("roughness", _np(material.roughness), 1.0),
-                              ("occlusion", _np(getattr(material, "occlusion", None)), 1.0),
-                              ("emissive", _np(getattr(material, "emissive", None)), None)):
+    base, metallic, roughness = _np(material.base_color), _np(material.metallic), _np(material.roughness)
+    normal, occlusion, emissive = (_np(getattr(material, name, None)) for name in ("normal", "occlusion", "emissive"))
+    for name, values, top in (("base_color", base, 1.0), ("metallic", metallic, 1.0), ("roughness", roughness, 1.0),
+                              ("occlusion", occlusion, 1.0), ("emissive", emissive, None)):
         if values is not None:
             _checked_map(values, directory, name, top)
-    normal = _np(getattr(material, "normal", None))
     if normal is not None and not np.all(np.isfinite(normal)):
         raise CaptureError(f"{directory}: the normal map holds NaN or inf values")
     directory.mkdir(parents=True, exist_ok=True)
     written = [
         write_image(directory / "base_color.exr", base, "float"),
         write_image(directory / "base_color.png", _srgb_encode(base), "uint8"),
-        write_image(directory / "metallic.exr", _np(material.metallic)[..., :1], "float"),
-        write_image(directory / "roughness.exr", _np(material.roughness)[..., :1], "float"),
+        write_image(directory / "metallic.exr", metallic[..., :1], "float"),
+        write_image(directory / "roughness.exr", roughness[..., :1], "float"),
         write_image(directory / "metallic_roughness.png", _pack_orm(material), "uint8", color_space="linear"),
     ]
     if normal is not None:
         written.append(write_image(directory / "normal.png", _encode_normal(normal), "uint8", color_space="linear"))
-    occlusion = _np(getattr(material, "occlusion", None))
     if occlusion is not None:
         written.append(write_image(directory / "occlusion.exr", occlusion[..., :1], "float"))
-    emissive = _np(getattr(material, "emissive", None))
     if emissive is not None:
         written.append(write_image(directory / "emissive.exr", emissive, "float"))
     for name, values in (("normal.png", normal), ("occlusion.exr", occlusion), ("emissive.exr", emissive)):
