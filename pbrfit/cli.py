@@ -285,81 +285,48 @@ def _add_fit(sub) -> None:
 
 def _fit_options(args) -> dict:
     """Keyword arguments of `pbrfit.fit.fit` from the command line (errors name the option)."""
-    import math
-
-    from .fit import DEFAULT_SOLVER
+    from .fit import COARSE_STEPS, LOSS_SCALE, OptionNames, check_options, fit_arguments
     from .io import read_map
     from .observations import MAX_PIXEL_SAMPLES
     from .pixel_ibl import MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
-    from .uncertainty import MAX_UNCERTAINTY_RADIUS
+    from .solvers import CG_RTOL
+    from .uncertainty import WINDOW_RADIUS
 
-    explicit = args.fit is not None
-    free = [m.strip() for m in (args.fit if explicit else ",".join(_MAP_NAMES)).split(",") if m.strip()]
-    for name in free:
-        if name not in _FIT_NAMES:
-            raise CaptureError(f"--fit: unknown map {name!r} (expected some of {', '.join(_FIT_NAMES)})")
-        if free.count(name) > 1:
-            raise CaptureError(f"--fit: lists {name} twice")
-    fixed = {}
+    fixed, held_by = {}, {}
     if args.base_color is not None:
         try:
             rgb = [float(c) for c in args.base_color.split(",")]
         except ValueError:
             rgb = []
-        if len(rgb) != 3 or not all(0.0 <= c <= 1.0 for c in rgb):
+        if len(rgb) != 3:
             raise CaptureError(f"--base-color: expected R,G,B in [0, 1], got {args.base_color!r}")
-        fixed["base_color"] = rgb
+        fixed["base_color"], held_by["base_color"] = rgb, "--base-color"
     for name in ("metallic", "roughness"):
-        value = getattr(args, name)
-        if value is not None:
-            if not 0.0 <= value <= 1.0:
-                raise CaptureError(f"--{name}: expected a value in [0, 1], got {value}")
-            fixed[name] = value
+        if getattr(args, name) is not None:
+            fixed[name], held_by[name] = getattr(args, name), f"--{name}"
     for name in _MAP_NAMES:
         folder = getattr(args, f"{name}_from")
         if folder is not None:
             flag = name.replace("_", "-")
             if name in fixed:
                 raise CaptureError(f"--{flag}-from: --{flag} holds {name} at a value too; give one of the two")
-            fixed[name] = read_map(folder, name)
-    for name in fixed:
-        if name in free:
-            if explicit:
-                flag = name.replace("_", "-") + ("-from" if getattr(args, f"{name}_from") is not None else "")
-                raise CaptureError(f"--fit: lists {name}, which --{flag} holds fixed; drop one of the two")
-            free.remove(name)  # by default a map given on the command line is held, not fitted
-    if not free:
-        raise CaptureError("--fit: nothing left to fit (every map is held fixed)")
-    if args.resolution is not None and not 1 <= args.resolution <= MAX_SIZE:
-        raise CaptureError(f"--resolution: must be between 1 and {MAX_SIZE}, got {args.resolution}")
-    if args.max_steps is not None and not 1 <= args.max_steps <= MAX_SOLVER_STEPS:
-        raise CaptureError(f"--max-steps: must be between 1 and {MAX_SOLVER_STEPS}, got {args.max_steps}")
-    if not (math.isfinite(args.smooth) and args.smooth >= 0):
-        raise CaptureError(f"--smooth: must be a finite number >= 0, got {args.smooth}")
-    for name in ("rtol", "atol"):
-        value = getattr(args, name)
-        if not (math.isfinite(value) and value >= 0):
-            raise CaptureError(f"--{name}: must be a finite number >= 0, got {value}")
-    if args.cg_rtol is not None and not 0.0 < args.cg_rtol < 1.0:
-        raise CaptureError(f"--cg-rtol: must be a number in (0, 1), got {args.cg_rtol}")
-    if args.cg_rtol is not None and args.solver != DEFAULT_SOLVER:
-        raise CaptureError(f"--cg-rtol: only the {DEFAULT_SOLVER} solver uses it, not --solver {args.solver}")
-    if args.uncertainty_radius is not None and not 0 <= args.uncertainty_radius <= MAX_UNCERTAINTY_RADIUS:
-        raise CaptureError(f"--uncertainty-radius: must be an integer from 0 to {MAX_UNCERTAINTY_RADIUS}, "
-                           f"got {args.uncertainty_radius}")
+            fixed[name], held_by[name] = read_map(folder, name), f"--{flag}-from"
     continuation = _continuation(_default_continuation() if args.continuation is None else args.continuation)
-    # options that only another mode reads are refused, not silently ignored
-    if args.continuation is not None and continuation and args.solver != DEFAULT_SOLVER:
-        raise CaptureError(f"--continuation: only the {DEFAULT_SOLVER} solver uses it, not --solver {args.solver}")
+    names = OptionNames(flags=True, held_by=held_by)
+    try:  # the checks `pbrfit.fit` makes, worded with the flags
+        free, fixed = fit_arguments(args.fit, fixed, names)
+        check_options(resolution=args.resolution, maps=args.maps, solver=args.solver, max_steps=args.max_steps,
+                      coarse_steps=COARSE_STEPS, rtol=args.rtol, atol=args.atol,
+                      cg_rtol=CG_RTOL if args.cg_rtol is None else args.cg_rtol, loss_scale=LOSS_SCALE,
+                      smooth=args.smooth, coarse_to_fine=args.coarse_to_fine,
+                      continuation=continuation if args.continuation is not None else None,
+                      uncertainty_radius=WINDOW_RADIUS if args.uncertainty_radius is None else args.uncertainty_radius,
+                      names=names)
+    except ValueError as e:
+        raise CaptureError(str(e)) from None
     for name in ("ibl_samples", "ibl_levels"):
         if getattr(args, name) is not None and args.ibl != "per_pixel":
             raise CaptureError(f"--{name.replace('_', '-')}: only --ibl per_pixel uses it")
-    if args.maps == "none":  # one texel: no map size, no neighbours, no levels
-        for flag, given in (("--resolution", args.resolution is not None), ("--smooth", args.smooth > 0),
-                            ("--continuation", args.continuation is not None and bool(continuation)),
-                            ("--coarse-to-fine", args.coarse_to_fine)):
-            if given:
-                raise CaptureError(f"{flag}: --maps none fits one uniform material (1 x 1 maps)")
     pixel_samples = args.pixel_samples
     if pixel_samples != "auto":
         if not (pixel_samples.isdigit() and 1 <= int(pixel_samples) <= MAX_PIXEL_SAMPLES):
@@ -383,7 +350,7 @@ def _fit_options(args) -> dict:
             raise CaptureError(f"--devices: expected 1 to {len(available)} (the devices JAX sees), got {args.devices}")
         devices = available[: args.devices] if args.devices > 1 else None
     return dict(
-        fit=tuple(free), fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
+        fit=free, fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
         max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, loss=args.loss, smooth=args.smooth,
         coarse_to_fine=args.coarse_to_fine, search=not args.no_search, uniform_check=not args.no_uniform_check,
         repair=not args.no_repair, noise_level=args.noise_level, devices=devices, ibl=args.ibl,
@@ -633,15 +600,14 @@ def _default_continuation() -> str:
     return ",".join(str(w) for w in CONTINUATION)
 
 
-#: The largest image side (`synth --size`) and map side (`--resolution`, `--texture-size`) taken.
+#: The largest image side (`synth --size`) and texture side (`--texture-size`) taken.
 MAX_SIZE = 8192
 #: The most cameras `synth --views` renders, and the largest `synth --supersample`.
 MAX_VIEWS = 1024
 MAX_SUPERSAMPLE = 16
-#: The most solver steps (`--max-steps`), Monte Carlo sample steps (`--ibl-samples`) and tabulated
-#: roughness levels (`--ibl-levels`) taken: far beyond any use, and within the int32 counters of
-#: the jitted loops.
-MAX_SOLVER_STEPS = 1_000_000
+#: The most Monte Carlo sample steps (`--ibl-samples`) and tabulated roughness levels
+#: (`--ibl-levels`) taken: far beyond any use, and within the int32 counters of the jitted loops
+#: (`pbrfit.fit.MAX_SOLVER_STEPS` bounds `--max-steps`, `MAX_MAP_SIDE` `--resolution`).
 MAX_IBL_SAMPLES = 1 << 20
 MAX_IBL_LEVELS = 256
 #: What to make smaller when a command runs out of memory.

@@ -305,10 +305,39 @@ def _layout(obs: Observations, shape, wrap: str) -> TexelLayout:
 MATERIAL_MAPS = ("base_color", "metallic", "roughness")
 #: The largest map side an explicit ``resolution`` takes (the default stops at `MAX_RESOLUTION`).
 MAX_MAP_SIDE = 8192
+#: The most solver steps ``max_steps`` (and ``coarse_steps``) takes: far beyond any use, and within
+#: the int32 step counters of the jitted loops.
+MAX_SOLVER_STEPS = 1_000_000
 
 
-def fit_arguments(fit=None, fixed: Optional[Mapping] = None) -> tuple[tuple[str, ...], dict]:
-    """The maps a fit frees and the values it holds, checked (`ValueError` otherwise).
+@dataclasses.dataclass(frozen=True)
+class OptionNames:
+    """How `fit_arguments` and `check_options` name what they refuse: by the Python keyword
+    (default: ``smooth``, ``solver='lm'``, ``fixed``) or, with ``flags``, by the command line's
+    flag (``--smooth``, ``--solver lm``); ``held_by`` then gives the flag that holds each map
+    (``--roughness`` or ``--roughness-from``)."""
+
+    flags: bool = False
+    held_by: Mapping[str, str] = dataclasses.field(default_factory=dict)
+
+    def option(self, name: str) -> str:
+        return "--" + name.replace("_", "-") if self.flags else name
+
+    def setting(self, name: str, value) -> str:
+        return f"{self.option(name)} {value}" if self.flags else f"{name}={value!r}"
+
+    def holder(self, name: str) -> str:
+        """Who holds map ``name``: its flag, or the ``fixed`` argument."""
+        return self.held_by.get(name, self.option(name)) if self.flags else "fixed"
+
+    def held_value(self, name: str) -> str:
+        return self.holder(name) if self.flags else f"fixed[{name!r}]"
+
+
+def fit_arguments(fit=None, fixed: Optional[Mapping] = None,
+                  names: OptionNames = OptionNames()) -> tuple[tuple[str, ...], dict]:
+    """The maps a fit frees and the values it holds, checked (`ValueError` otherwise, worded
+    with ``names``).
 
     ``fit``: names from `FIT_GROUPS` (a sequence, or one string of comma-separated names); None
     (default): every map of `MATERIAL_MAPS` that ``fixed`` does not hold. ``fixed``: {map: value}
@@ -321,13 +350,14 @@ def fit_arguments(fit=None, fixed: Optional[Mapping] = None) -> tuple[tuple[str,
         if name not in MATERIAL_MAPS:
             raise ValueError(f"fixed: unknown map {name!r}; expected some of {', '.join(MATERIAL_MAPS)}"
                              + (" (a normal map can only be fitted)" if name == "normal" else ""))
+        label = names.held_value(name)
         try:
             v = np.asarray(value)
             if v.dtype.kind not in "biuf":
                 raise TypeError
             v = v.astype(np.float32)
         except (TypeError, ValueError):
-            raise ValueError(f"fixed[{name!r}]: expected numbers, got {value!r}") from None
+            raise ValueError(f"{label}: expected numbers, got {value!r}") from None
         channels = len(FIT_GROUPS[name])
         if name != "base_color" and v.ndim == 2:
             v = v[..., None]
@@ -335,59 +365,68 @@ def fit_arguments(fit=None, fixed: Optional[Mapping] = None) -> tuple[tuple[str,
             v.ndim == 3 and v.shape[-1] == channels and min(v.shape[:2]) >= 1)
         if not ok:
             want = "a value, R, G, B or an (H, W, 3) map" if channels == 3 else "a value or an (H, W) map"
-            raise ValueError(f"fixed[{name!r}]: expected {want}, got shape {v.shape}")
+            raise ValueError(f"{label}: expected {want}, got shape {v.shape}")
         if not np.all(np.isfinite(v)):
-            raise ValueError(f"fixed[{name!r}]: holds NaN or inf")
+            raise ValueError(f"{label}: holds NaN or inf")
         if np.any(v < 0.0) or np.any(v > 1.0):
-            raise ValueError(f"fixed[{name!r}]: values must lie in [0, 1], found {v.min():g} to {v.max():g}")
+            found = f"got {v.item():g}" if v.size == 1 else f"found {v.min():g} to {v.max():g}"
+            raise ValueError(f"{label}: expected values in [0, 1], {found}")
         held[name] = v.reshape(-1)[0] if v.ndim == 1 and v.shape[0] == 1 else v
+    option = names.option("fit")
     if fit is None:
         fit = tuple(name for name in MATERIAL_MAPS if name not in held)
     else:
-        names = fit.split(",") if isinstance(fit, str) else list(fit)
-        fit = tuple(str(name).strip() for name in names if str(name).strip())
+        listed = fit.split(",") if isinstance(fit, str) else list(fit)
+        fit = tuple(str(name).strip() for name in listed if str(name).strip())
         for name in fit:
             if name not in FIT_GROUPS:
-                raise ValueError(f"fit: unknown map {name!r}; expected some of {', '.join(FIT_GROUPS)}")
+                raise ValueError(f"{option}: unknown map {name!r}; expected some of {', '.join(FIT_GROUPS)}")
             if fit.count(name) > 1:
-                raise ValueError(f"fit: lists {name} twice")
+                raise ValueError(f"{option}: lists {name} twice")
             if name in held:
-                raise ValueError(f"fit: lists {name}, which fixed holds too; drop one of the two")
+                raise ValueError(f"{option}: lists {name}, which {names.holder(name)} holds too; drop one of the two")
     if not fit:
-        raise ValueError("fit: nothing to fit (every map is held fixed)")
+        raise ValueError(f"{option}: nothing to fit (every map is held fixed)")
     return fit, held
 
 
-def _check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, atol, cg_rtol, loss_scale, smooth,
-                   coarse_to_fine, continuation) -> None:
-    """`ValueError` for option values out of range, or given to a mode that does not read them
-    (the command line refuses the same)."""
+def check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, atol, cg_rtol, loss_scale, smooth,
+                  coarse_to_fine, continuation, uncertainty_radius, names: OptionNames = OptionNames()) -> None:
+    """`ValueError` (worded with ``names``) for option values out of range, or given to a mode
+    that does not read them: `fit`, `fit_observations` and the command line refuse alike."""
+    say = names.option
     if resolution is not None:
         sides = [resolution] if np.ndim(resolution) == 0 else list(np.ravel(resolution))
-        if (np.ndim(resolution) != 0 and len(sides) != 2) or any(isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer))
-                                           or not 1 <= r <= MAX_MAP_SIDE for r in sides):
-            raise ValueError(f"resolution must be an integer N or (H, W) from 1 to {MAX_MAP_SIDE}, got {resolution!r}")
-    for name, value, least in (("max_steps", max_steps, 1), ("coarse_steps", coarse_steps, 0)):
-        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer))
-                                  or not least <= value < 2**31):
-            raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+        if (np.ndim(resolution) != 0 and len(sides) != 2) or any(
+                isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer)) or not 1 <= r <= MAX_MAP_SIDE
+                for r in sides):
+            want = "an integer" if names.flags else "an integer N or a pair (H, W) of integers"
+            raise ValueError(f"{say('resolution')}: must be {want} from 1 to {MAX_MAP_SIDE}, got {resolution!r}")
+    for name, value, least in (("max_steps", max_steps, 1), ("coarse_steps", coarse_steps, 0),
+                               ("uncertainty_radius", uncertainty_radius, 0)):
+        most = MAX_UNCERTAINTY_RADIUS if name == "uncertainty_radius" else MAX_SOLVER_STEPS
+        if not (value is None and name == "max_steps") and (isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer))
+                                  or not least <= value <= most):
+            raise ValueError(f"{say(name)}: must be an integer from {least} to {most}, got {value!r}")
     for name, value in (("rtol", rtol), ("atol", atol), ("smooth", smooth)):
         if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value >= 0):
-            raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+            raise ValueError(f"{say(name)}: must be a finite number >= 0, got {value!r}")
     if not (isinstance(loss_scale, (int, float, np.number)) and math.isfinite(loss_scale) and loss_scale > 0):
-        raise ValueError(f"loss_scale must be a finite number > 0, got {loss_scale!r}")
+        raise ValueError(f"{say('loss_scale')}: must be a finite number > 0, got {loss_scale!r}")
+    if not (isinstance(cg_rtol, (int, float, np.number)) and 0.0 < cg_rtol < 1.0):
+        raise ValueError(f"{say('cg_rtol')}: must be a number in (0, 1), got {cg_rtol!r}")
     given_continuation = continuation is not None and len(np.ravel(continuation)) > 0 \
         and tuple(np.ravel(continuation)) != CONTINUATION
     if solver != DEFAULT_SOLVER:  # options only the structured solver reads
-        if cg_rtol != CG_RTOL:
-            raise ValueError(f"cg_rtol: only the {DEFAULT_SOLVER} solver uses it, not solver={solver!r}")
-        if given_continuation:
-            raise ValueError(f"continuation: only the {DEFAULT_SOLVER} solver uses it, not solver={solver!r}")
+        for name, given in (("cg_rtol", cg_rtol != CG_RTOL), ("continuation", given_continuation)):
+            if given:
+                raise ValueError(f"{say(name)}: only the {DEFAULT_SOLVER} solver uses it, "
+                                 f"not {names.setting('solver', solver)}")
     if maps == "none":  # one texel: no map size, no neighbours, no levels
         for name, given in (("resolution", resolution is not None), ("smooth", smooth > 0),
                             ("continuation", given_continuation), ("coarse_to_fine", coarse_to_fine)):
             if given:
-                raise ValueError(f"{name}: maps='none' fits one uniform material (1 x 1 maps)")
+                raise ValueError(f"{say(name)}: {names.setting('maps', 'none')} fits one uniform material (1 x 1 maps)")
 
 
 def _check_normals(model: Model, fit: Sequence[str]) -> None:
@@ -452,9 +491,9 @@ def fit_observations(
     if noise_level not in NOISE_LEVELS:
         raise ValueError(f"noise_level must be one of {', '.join(NOISE_LEVELS)}, got {noise_level!r}")
     fit, fixed = fit_arguments(fit, fixed)
-    _check_options(resolution=resolution, maps=maps, solver=solver, max_steps=max_steps, coarse_steps=coarse_steps,
-                   rtol=rtol, atol=atol, cg_rtol=cg_rtol, loss_scale=loss_scale, smooth=smooth,
-                   coarse_to_fine=coarse_to_fine, continuation=continuation)
+    check_options(resolution=resolution, maps=maps, solver=solver, max_steps=max_steps, coarse_steps=coarse_steps,
+                  rtol=rtol, atol=atol, cg_rtol=cg_rtol, loss_scale=loss_scale, smooth=smooth,
+                  coarse_to_fine=coarse_to_fine, continuation=continuation, uncertainty_radius=uncertainty_radius)
     kwargs = {name: value for name, value in locals().items() if name not in ("obs", "noise_level")}  # the arguments
     if noise_level == "uniform":
         result, _ = _fit_pass(obs, **kwargs)
@@ -465,9 +504,9 @@ def fit_observations(
     return result
 
 
-#: `fit_observations`'s defaults of the options `_check_options` checks.
+#: `fit_observations`'s defaults of the options `check_options` checks.
 _OPTION_DEFAULTS = {name: param.default for name, param in inspect.signature(fit_observations).parameters.items()
-                    if name in inspect.signature(_check_options).parameters}
+                    if name in inspect.signature(check_options).parameters}
 
 
 def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
@@ -549,12 +588,6 @@ def _fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, so
         raise ValueError(f"init must be 'grid' or 'prior', got {init!r}")
     if maps not in ("texture", "none"):
         raise ValueError(f"maps must be 'texture' or 'none', got {maps!r}")
-    if not 0.0 < cg_rtol < 1.0:
-        raise ValueError(f"cg_rtol must be in (0, 1), got {cg_rtol}")
-    if isinstance(uncertainty_radius, bool) or not isinstance(uncertainty_radius, (int, np.integer)) \
-            or not 0 <= uncertainty_radius <= MAX_UNCERTAINTY_RADIUS:
-        raise ValueError(f"uncertainty_radius must be an integer from 0 to {MAX_UNCERTAINTY_RADIUS}, "
-                         f"got {uncertainty_radius!r}")
     _check_normals(model, fit)
     fixed = dict(fixed or {})
     # what the caller held (before the model's own: a model without the metal lobe holds metallic 0)
@@ -1423,7 +1456,7 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
         capture = load_capture(capture, require_uv=kwargs.get("maps", "texture") == "texture"
                                or "normal" in (kwargs.get("fit") or ()))
     kwargs["fit"], kwargs["fixed"] = fit_arguments(kwargs.get("fit"), kwargs.get("fixed"))
-    _check_options(**{name: kwargs.get(name, default) for name, default in _OPTION_DEFAULTS.items()})
+    check_options(**{name: kwargs.get(name, default) for name, default in _OPTION_DEFAULTS.items()})
     model = model_for_capture(capture, kwargs["fit"], kwargs["fixed"]) if model is None else model
     if ibl not in (None,) + IBL_MODES:
         raise ValueError(f"ibl must be one of {', '.join(IBL_MODES)}, got {ibl!r}")

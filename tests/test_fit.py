@@ -217,6 +217,8 @@ def test_fit_arguments_resolve_and_refuse():
     (dict(solver="lm", cg_rtol=0.1), "cg_rtol"), (dict(solver="lm", continuation=(0.1, 0.01)), "continuation"),
     (dict(maps="none", resolution=8), "maps='none'"), (dict(maps="none", smooth=0.1), "maps='none'"),
     (dict(maps="none", coarse_to_fine=True), "maps='none'"),
+    (dict(cg_rtol=0.0), "cg_rtol"), (dict(cg_rtol=float("nan")), "cg_rtol"), (dict(coarse_steps=-1), "coarse_steps"),
+    (dict(uncertainty_radius=3), "uncertainty_radius"), (dict(max_steps=True), "max_steps"),
 ])
 def test_fit_refuses_options_out_of_range_or_unread(options, match):
     """Refused before any work (no compile: these run in milliseconds); the command line refuses
