@@ -31,6 +31,7 @@ Rules pinned here (tests in ``tests/test_scene.py``):
 from __future__ import annotations
 
 import base64
+import contextlib
 import io as _io
 import json
 import struct
@@ -352,7 +353,7 @@ def _smooth_is_flat(geom) -> bool:
     return bool(np.all(np.einsum("fkd,fd->fk", corners[real], face[real]) > 1.0 - 1e-9))
 
 
-def _flatten(scene) -> list:
+def _flatten(scene, where: str, path: Path) -> list:
     """The scene's triangle meshes in world space, keeping the file's vertex normals.
 
     Each geometry node's transform is applied to positions, and its inverse transpose to the
@@ -360,7 +361,10 @@ def _flatten(scene) -> list:
     smooths across hard edges and seams). A mesh the file gives no normals is shaded flat, in
     every format, as glTF 2.0 requires of its clients (§3.7.2.1: "client implementations MUST
     calculate flat normals"): its faces are unwelded (`_unwelded`) unless it is already flat
-    at every vertex (`_smooth_is_flat`). A mirroring transform also reverses the winding.
+    at every vertex (`_smooth_is_flat`). A mirroring transform also reverses the winding, and
+    a node whose transform is singular (a zero scale, which hides a node in glTF viewers) adds
+    nothing. Face indices outside the vertices and non-finite positions or transforms raise
+    `CaptureError` (``where``, ``path`` name the file).
     """
     import trimesh
 
@@ -370,9 +374,22 @@ def _flatten(scene) -> list:
         geom = scene.geometry.get(name)
         if not isinstance(geom, trimesh.Trimesh) or not len(geom.faces):
             continue
+        label = f" (mesh {name!r})" if len(scene.geometry) > 1 else ""
+        faces = np.asarray(geom.faces, np.int64)
+        if faces.min() < 0 or faces.max() >= len(geom.vertices):
+            raise CaptureError(f"{where}: mesh {path}{label}: face indices run from {faces.min()} to {faces.max()}, "
+                               f"outside its {len(geom.vertices)} vertices")
+        t = np.asarray(transform, np.float64)
+        if not np.all(np.isfinite(t)):
+            raise CaptureError(f"{where}: mesh {path}{label}: its node's transform holds NaN or inf")
+        if abs(np.linalg.det(t[:3, :3])) < 1e-30:  # a zero scale hides a node (glTF viewers draw nothing)
+            continue
+        vertices = np.asarray(geom.vertices, np.float64)
+        if not np.all(np.isfinite(vertices)):
+            count = int(np.sum(~np.all(np.isfinite(vertices), axis=1)))
+            raise CaptureError(f"{where}: mesh {path}{label}: {count} vertex positions hold NaN or inf values")
         if not has_file_normals(geom) and not _smooth_is_flat(geom):
             geom = _unwelded(geom)
-        t = np.asarray(transform, np.float64)
         normals = np.asarray(geom.vertex_normals, np.float64) @ np.linalg.inv(t[:3, :3])  # (M^-T n) as rows
         normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
         faces = np.asarray(geom.faces, np.int64)
@@ -388,6 +405,10 @@ def _flatten(scene) -> list:
     return parts
 
 
+#: The largest |coordinate| a mesh's world-space vertices may have: the renderer squares distances
+#: in float32 (1e18² = 1e36, below float32's 3.4e38).
+MAX_COORDINATE = 1e18
+
 #: The triangle-mesh formats read (through trimesh).
 MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
 
@@ -402,6 +423,24 @@ def _uv_area(uv: np.ndarray, faces: np.ndarray) -> float:
     a, b, c = (uv[faces[:, k]] for k in range(3))
     cross = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
     return float(0.5 * np.sum(np.abs(cross)))
+
+
+@contextlib.contextmanager
+def _quiet_trimesh():
+    """No numpy floating-point warnings and no trimesh log records while a mesh loads: what is
+    wrong with a file is said once, by `load_mesh`."""
+    import logging
+    import warnings
+
+    logger = logging.getLogger("trimesh")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL + 1)
+    try:
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)
+            yield
+    finally:
+        logger.setLevel(level)
 
 
 def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
@@ -422,15 +461,19 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise CaptureError(f"{where}: {path}: unsupported mesh format {path.suffix or '(no suffix)'!r}; "
                            f"pbrfit reads {', '.join(MESH_SUFFIXES)}")
-    try:
-        if path.suffix.lower() in (".glb", ".gltf"):
-            scene = _load_gltf_keeping_uv(path)
-        else:
-            scene = trimesh.load_scene(str(path), process=False)
-    except Exception as err:  # trimesh raises many types for bad files
-        msg = str(err).splitlines()[0] if str(err) else type(err).__name__
-        raise CaptureError(f"{where}: cannot load mesh {path}: {msg}") from None
-    parts = _flatten(scene)
+    with _quiet_trimesh():  # bad files are reported below, one line
+        try:
+            if path.suffix.lower() in (".glb", ".gltf"):
+                scene = _load_gltf_keeping_uv(path)
+            else:
+                scene = trimesh.load_scene(str(path), process=False)
+        except Exception as err:  # trimesh raises many types for bad files
+            msg = str(err).splitlines()[0] if str(err) else ""
+            if isinstance(err, (AssertionError, AttributeError, IndexError, KeyError, TypeError)) or not msg:
+                # the parser tripped over the file's structure: say so, and what it tripped on
+                msg = f"malformed {path.suffix.lstrip('.').upper()} file ({type(err).__name__}{': ' + msg if msg else ''})"
+            raise CaptureError(f"{where}: cannot load mesh {path}: {msg}") from None
+        parts = _flatten(scene, where, path)
     if not parts:
         raise CaptureError(f"{where}: mesh file {path} holds no triangles")
     uvs = []
@@ -461,6 +504,10 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
         if values is not None and not np.all(np.isfinite(values)):
             count = int(np.sum(~np.all(np.isfinite(values), axis=1)))
             raise CaptureError(f"{where}: mesh {path}: {count} {label} hold NaN or inf values")
+    extent = float(np.max(np.abs(vertices)))
+    if extent > MAX_COORDINATE:
+        raise CaptureError(f"{where}: mesh {path}: vertex positions reach {extent:.3g}; pbrfit takes up to "
+                           f"{MAX_COORDINATE:g} world units (the solve squares distances in float32)")
     mesh = trimesh.Trimesh(
         vertices=vertices, faces=faces, vertex_normals=normals, visual=visual, process=False
     )

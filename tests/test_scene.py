@@ -749,6 +749,48 @@ def test_mesh_without_normals_is_shaded_flat(tmp_path, suffix):
     np.testing.assert_allclose(smooth.vertex_normals[crest], [[0, 1, 0]] * int(crest.sum()), atol=1e-6)
 
 
+def _quad_glb(path, edit=None):
+    """The fixture quad as a GLB (normals written), its JSON chunk passed through ``edit``."""
+    import trimesh
+
+    from pbrfit.mesh import _glb_chunks, _glb_from_chunks
+
+    quad = trimesh.Trimesh(QUAD_POSITIONS, [[0, 1, 2], [0, 2, 3]], process=False)
+    quad.vertex_normals  # computed: the export writes them
+    version, tree, binary = _glb_chunks(quad.export(file_type="glb"))
+    if edit is not None:
+        edit(tree)
+    path.write_bytes(_glb_from_chunks(version, tree, binary))
+    return path
+
+
+def test_broken_mesh_structure_is_one_clear_error(tmp_path):
+    """Singular or non-finite node transforms, face indices outside the vertices, positions
+    beyond what float32 distances hold, a truncated GLB: a CaptureError naming the file."""
+    node = lambda **kw: (lambda tree: tree["nodes"][0].update(kw))  # noqa: E731
+    # a zero scale hides a node, as in glTF viewers: here the only one, so nothing is left
+    with pytest.raises(CaptureError, match="holds no triangles"):
+        load_mesh(_quad_glb(tmp_path / "zero.glb", node(scale=[1, 1, 0])), require_uv=False)
+    with pytest.raises(CaptureError, match="transform holds NaN or inf"):
+        load_mesh(_quad_glb(tmp_path / "nan.glb", node(matrix=[float("nan")] * 16)), require_uv=False)
+    with pytest.raises(CaptureError, match="vertex positions reach 1e\\+30; pbrfit takes up to 1e\\+18"):
+        load_mesh(_quad_glb(tmp_path / "far.glb", node(scale=[1e30] * 3)), require_uv=False)
+    short = _quad_glb(tmp_path / "short.glb", lambda tree: tree["accessors"][1].update(count=3))
+    with pytest.raises(CaptureError, match=r"short.glb: face indices run from 0 to 3, outside its 3 vertices"):
+        load_mesh(short, require_uv=False)
+    data = _quad_glb(tmp_path / "whole.glb").read_bytes()
+    (tmp_path / "cut.glb").write_bytes(data[: len(data) * 9 // 10])
+    with pytest.raises(CaptureError, match=r"cannot load mesh .*cut.glb: malformed GLB file"):
+        load_mesh(tmp_path / "cut.glb", require_uv=False)
+    ply = ["ply", "format ascii 1.0", "element vertex 4", "property float x", "property float y", "property float z",
+           "element face 2", "property list uchar int vertex_indices", "end_header",
+           "0 0 0", "1 0 0", "1 1 0", "0 1 0", "3 0 1 2", "3 0 2 {}"]
+    for last, low, high in ((9, 0, 9), (-1, -1, 2)):
+        (tmp_path / "bad.ply").write_text("\n".join(ply).format(last) + "\n")
+        with pytest.raises(CaptureError, match=f"bad.ply: face indices run from {low} to {high}, outside its 4"):
+            load_mesh(tmp_path / "bad.ply", require_uv=False)
+
+
 def test_gltf_whose_buffer_file_is_missing_names_it(tmp_path):
     path = _quantized_quad(tmp_path / "m.gltf", QUAD_UV_GLTF, 5123, external=True)
     (tmp_path / "quad data.bin").unlink()
