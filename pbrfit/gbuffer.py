@@ -47,7 +47,7 @@ import trimesh
 from jaxtyping import Bool, Float, Int
 
 from .errors import CaptureError
-from .io import atomic_path
+from .io import write_cache_file
 from .raycast import NORM_FLOOR, PARALLEL_EPS, cast, has_embree, make_first_hit
 
 __all__ = [
@@ -291,8 +291,7 @@ def _load_cached(path: Path) -> GBuffer | None:
 
 
 def _save_cached(path: Path, gbuffer: GBuffer) -> None:
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.savez(f, **gbuffer._arrays())
+    write_cache_file(path, lambda f: np.savez(f, **gbuffer._arrays()))
 
 
 # ----------------------------------------------------------------------------------- compute

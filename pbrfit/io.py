@@ -22,9 +22,10 @@ import errno
 import os
 import shutil
 import tempfile
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Optional, Sequence
+from typing import BinaryIO, Callable, Iterator, Optional, Sequence
 
 import numpy as np
 
@@ -110,11 +111,41 @@ def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+class CacheWarning(UserWarning):
+    """A cache file could not be written; the command goes on without it."""
+
+
+def write_cache_file(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> None:
+    """Write a cache file atomically with ``write(f)`` on the open temporary file. A cache that
+    cannot be written (a full disk, no permission, a path through a file) costs only a later
+    run's time: a `CacheWarning` naming its folder (once per folder and reason), and nothing else."""
+    path = Path(path)
+    try:
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            write(f)
+    except OSError as err:
+        warnings.warn(f"cache folder {path.parent}: cannot write ({err.strerror or err}); going on without it",
+                      CacheWarning, stacklevel=2)
+
+
 #: The file every output folder of a pbrfit command holds (its content: the kind of output).
 #: Only a folder holding it, with the same kind, or an empty one, is ever replaced.
 OUTPUT_MARKER = ".pbrfit-output"
 #: Kinds of output folder: a fit's maps and report, or a capture folder (`render`, `synth`).
 OUTPUT_KINDS = {"fit": "pbrfit fit output", "capture": "capture folder written by pbrfit"}
+
+
+def output_path(final_dir: str | os.PathLike) -> Path:
+    """``final_dir`` as an absolute path. A symbolic link is followed to the folder it names
+    (the output replaces that folder, and the link keeps pointing at it); a link to nothing is
+    `CaptureError`."""
+    path = Path(os.path.abspath(final_dir))
+    if path.is_symlink():
+        if not path.exists():
+            raise CaptureError(f"{path}: is a link to {os.readlink(path)}, which does not exist; "
+                               "choose another output folder")
+        path = Path(os.path.realpath(path))
+    return path
 
 
 def check_output_dir(final_dir: str | os.PathLike, kind: str) -> Path:
@@ -128,7 +159,7 @@ def check_output_dir(final_dir: str | os.PathLike, kind: str) -> Path:
     file, or without write permission) are `CaptureError`.
     """
     what = OUTPUT_KINDS[kind]
-    final_dir = Path(os.path.abspath(final_dir))
+    final_dir = output_path(final_dir)
     cwd = Path.cwd()
     if final_dir == cwd or final_dir in cwd.parents:
         raise CaptureError(f"{final_dir}: is the current folder or holds it; choose another output folder")
@@ -211,10 +242,12 @@ def _signals_held() -> Iterator[None]:
                 signal.raise_signal(signum)
 
 
-#: File-system refusals (a name too long, a full disk, no permission, a read-only place, a
-#: failing device) that the command line reports in one line with exit status 2, not as a bug.
+#: File-system refusals (a name too long, a full disk, no permission, a read-only place, a path
+#: through a file or a loop of links, a failing device) that the command line reports in one line
+#: with exit status 2, not as a bug.
 REFUSED_ERRNOS = frozenset(getattr(errno, name) for name in (
-    "ENAMETOOLONG", "ENOSPC", "EDQUOT", "EROFS", "EACCES", "EPERM", "EIO", "EFBIG") if hasattr(errno, name))
+    "ENAMETOOLONG", "ENOSPC", "EDQUOT", "EROFS", "EACCES", "EPERM", "EIO", "EFBIG", "ENOTDIR", "ELOOP")
+    if hasattr(errno, name))
 
 
 @contextlib.contextmanager
@@ -228,7 +261,7 @@ def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optio
     an empty folder or an earlier output of that kind is replaced (`check_output_dir`), and the
     new folder is marked as one (`OUTPUT_MARKER`).
     """
-    final_dir = Path(os.path.abspath(final_dir))
+    final_dir = output_path(final_dir)
     if final_dir.exists() and not overwrite:
         raise CaptureError(f"{final_dir}: already exists")
     if kind is not None:
@@ -354,16 +387,24 @@ def _color_layer(names) -> tuple[Optional[str], list[str]]:
 def color_channels(info: ImageInfo, where: str) -> list[int]:
     """The indices of an image's colour channels (three, or one for grey): R, G, B by name
     (`_color_layer`), Y for a grey image, else the channels in stored order less alpha. Raises
-    `CaptureError` when several colour layers leave open which one holds the image."""
+    `CaptureError` when several colour layers leave open which one holds the image, for CIE
+    X, Y, Z channels, and for an OpenEXR none of whose channels is R, G, B or Y (a depth or
+    normal pass)."""
     names = list(info.channel_names)
     layer, layers = _color_layer(names)
     if layer is not None:
         return [names.index(f"{layer}.{c}" if layer else c) for c in "RGB"]
+    if {"X", "Y", "Z"} <= set(names):
+        raise CaptureError(f"{where}: image {info.path} holds CIE X, Y, Z channels; pbrfit reads R, G, B (or grey Y)")
     if "Y" in names:
         return [names.index("Y")]
     if layers:
         raise CaptureError(f"{where}: image {info.path} holds several colour layers ({', '.join(layers)}) and no "
                            "R, G, B channels; pbrfit reads R, G, B, a single layer, or a 'Combined' one")
+    if str(info.file_format) == "openexr" and not any(n.rsplit(".", 1)[-1] in ("R", "G", "B") for n in names):
+        # OpenEXR names what each channel holds: depth (Z), normals (N.X), ids are no image
+        raise CaptureError(f"{where}: image {info.path} holds no colour channels (R, G, B or Y), only "
+                           f"{', '.join(names[:6])}{' ...' if len(names) > 6 else ''}")
     # (a lone channel that a reader calls alpha is still the image)
     return [c for c in range(info.channels) if c != info.alpha_channel][:3] or [0]
 
@@ -455,7 +496,8 @@ def read_image(path: str | os.PathLike, where: str | None = None) -> tuple[np.nd
 
     Integer files map codes to [0, 1] (code / max); float files are returned as stored; no
     color conversion happens here. Raises `CaptureError` (prefixed with ``where`` when given)
-    when the file is missing or OpenImageIO cannot read it.
+    when the file is missing or OpenImageIO cannot read it, or reads it but reports a fault (a
+    truncated JPEG).
     """
     oiio = _oiio()
     path = Path(path)
@@ -473,6 +515,8 @@ def read_image(path: str | os.PathLike, where: str | None = None) -> tuple[np.nd
     if pixels is None or not isinstance(pixels, np.ndarray) or pixels.size == 0:
         raise CaptureError(f"{prefix}cannot read image {path}: "
                            f"{_first_line(error or oiio.geterror() or ''.join(printed))}")
+    if error:  # pixels, but the decoder hit a fault (a truncated JPEG reads its missing rows as grey)
+        raise CaptureError(f"{prefix}image {path} is damaged: {_first_line(error)}")
     pixels = np.asarray(pixels, dtype=np.float32)
     if pixels.ndim == 2:
         pixels = pixels[:, :, None]

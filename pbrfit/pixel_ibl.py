@@ -67,7 +67,7 @@ from jaxtyping import Array, Float
 from . import brdf
 from .environment import (Environment, direction_to_uv, dot3, from_environment_frame, sample_equirect,
                           to_environment_frame)
-from .io import atomic_path
+from .io import write_cache_file
 from .model import Model
 from .montecarlo import (_batch, _hash32, _uniforms, default_lut, environment_pdf, environment_sampler,
                          ggx_vndf_pdf, sample_cosine, sample_environment, sample_ggx_vndf, tangent_frame)
@@ -329,8 +329,7 @@ def _load_cached(path: Path, shape: tuple) -> Optional[np.ndarray]:
 
 
 def _save_cached(path: Path, table: np.ndarray) -> None:
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.save(f, table)
+    write_cache_file(path, lambda f: np.save(f, table))
 
 
 def pixel_ibl(env: Environment, n: Float[Array, "P 3"], v: Float[Array, "P 3"], model: Model = Model(),

@@ -9,6 +9,7 @@ from pbrfit.color import linear_to_srgb, srgb_to_linear
 from pbrfit.errors import CaptureError
 from pbrfit.io import (
     atomic_dir,
+    CacheWarning,
     OUTPUT_MARKER,
     check_not_inside,
     check_output_dir,
@@ -19,6 +20,7 @@ from pbrfit.io import (
     read_material,
     write_gltf,
     write_image,
+    write_cache_file,
     write_material,
 )
 from pbrfit.material import Material
@@ -522,6 +524,59 @@ def test_convergence_plot_survives_non_finite_losses(tmp_path):
     drawn, empty = read_image(tmp_path / "c.png")[0], read_image(tmp_path / "d.png")[0]
     assert drawn.shape == empty.shape == (320, 520, 3)
     assert drawn.min() < 0.5 < drawn.max() and not np.array_equal(drawn, empty)  # a curve on c only
+
+
+def _write_oiio(path, pixels, names=None, fmt="float"):
+    import OpenImageIO as oiio
+
+    spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], fmt)
+    if names is not None:
+        spec.channelnames = names
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(pixels)
+    out.close()
+    return path
+
+
+def test_damaged_or_non_colour_images_are_refused(tmp_path):
+    from pbrfit.io import color_channels
+
+    rng = np.random.default_rng(0)
+    jpg = _write_oiio(tmp_path / "f.jpg", (rng.random((32, 32, 3)) * 255).astype(np.uint8), fmt="uint8")
+    assert read_image(jpg)[0].shape == (32, 32, 3)
+    data = jpg.read_bytes()
+    (tmp_path / "cut.jpg").write_bytes(data[: len(data) * 6 // 10])  # decodes, its lost rows grey
+    with pytest.raises(CaptureError, match=r"frame: image .*cut.jpg is damaged: .*Premature end of JPEG"):
+        read_image(tmp_path / "cut.jpg", "frame")
+    for names, match in ((["Z"], "no colour channels .* only Z"), (["N.X", "N.Y", "N.Z"], "only N.X, N.Y, N.Z"),
+                         (["X", "Y", "Z"], "CIE X, Y, Z")):
+        path = _write_oiio(tmp_path / f"{len(names)}{names[0]}.exr", np.ones((4, 4, len(names)), np.float32), names)
+        with pytest.raises(CaptureError, match=match):
+            color_channels(read_image(path)[1], "frame")
+    grey = _write_oiio(tmp_path / "r.exr", np.ones((4, 4, 1), np.float32), ["R"])  # a lone R is a grey image
+    assert color_channels(read_image(grey)[1], "frame") == [0]
+
+
+def test_output_folder_through_a_link(tmp_path):
+    """A link is followed to the folder it names, which the output replaces (the link stays); a
+    link to nothing is refused before any work."""
+    target = tmp_path / "target"
+    target.mkdir()
+    (tmp_path / "link").symlink_to(target)
+    with atomic_dir(tmp_path / "link", kind="fit") as d:
+        (d / "report.json").write_text("{}")
+    assert (tmp_path / "link").is_symlink() and _listing(target) == [OUTPUT_MARKER, "report.json"]
+    (tmp_path / "dangling").symlink_to(tmp_path / "nowhere")
+    with pytest.raises(CaptureError, match=r"dangling: is a link to .*nowhere, which does not exist"):
+        check_output_dir(tmp_path / "dangling", "fit")
+
+
+def test_a_cache_that_cannot_be_written_is_a_warning(tmp_path):
+    (tmp_path / "file").write_text("x")
+    with pytest.warns(CacheWarning, match=r"cache folder .*file/sub: cannot write \(Not a directory\)"):
+        write_cache_file(tmp_path / "file" / "sub" / "g.npz", lambda f: f.write(b"1"))
+    write_cache_file(tmp_path / "ok" / "g.npz", lambda f: f.write(b"1"))
+    assert (tmp_path / "ok" / "g.npz").read_bytes() == b"1" and _listing(tmp_path / "ok") == ["g.npz"]
 
 
 def test_atomic_dir_names_refusals_by_the_output_and_keeps_bugs(tmp_path):
