@@ -7,8 +7,10 @@ on stderr, ``pbrfit: error: <what and where>``, and exit status 2; nothing is ha
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
+import warnings
 from typing import Optional, Sequence
 
 from .errors import CaptureError
@@ -329,7 +331,7 @@ def _fit_options(args) -> dict:
             raise CaptureError(f"--{name.replace('_', '-')}: only --ibl per_pixel uses it")
     pixel_samples = args.pixel_samples
     if pixel_samples != "auto":
-        if not (pixel_samples.isdigit() and 1 <= int(pixel_samples) <= MAX_PIXEL_SAMPLES):
+        if not (pixel_samples.isascii() and pixel_samples.isdigit() and 1 <= int(pixel_samples) <= MAX_PIXEL_SAMPLES):
             raise CaptureError(f"--pixel-samples: expected auto or 1 to {MAX_PIXEL_SAMPLES}, got {args.pixel_samples}")
         pixel_samples = int(pixel_samples)
     if "normal" in free and args.ibl == "per_pixel":
@@ -558,8 +560,6 @@ def _enable_compilation_cache(args) -> None:
     skips part of its compile time (off with --no-cache or PBRFIT_NO_COMPILE_CACHE=1). JAX keeps
     no program with a host callback, so the solver's loop, which reports each step, compiles on
     every run (a small fit: 5.6 s of compile waited for, then 2.9 s on the second run)."""
-    import os
-
     if getattr(args, "no_cache", False) or os.environ.get("PBRFIT_NO_COMPILE_CACHE"):
         return
     import jax
@@ -622,6 +622,12 @@ class _Terminated(BaseException):
     temporary name are removed on the way out)."""
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings as one line, like the errors: ``pbrfit: warning: <message>``."""
+    print(f"pbrfit: warning: {str(message).splitlines()[0] if str(message) else category.__name__}",
+          file=sys.stderr if file is None else file)
+
+
 def _raise_terminated(signum, frame):
     raise _Terminated()
 
@@ -634,7 +640,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except SystemExit as stop:  # --help (0) or a usage error (2, one line already printed)
         return int(stop.code or 0)
     if args.command is None:
-        parser.print_help()
+        print(f"pbrfit: error: expected a command, one of {', '.join(_COMMANDS)} (see pbrfit --help)", file=sys.stderr)
         return EXIT_USAGE
     # a `kill` (SIGTERM) unwinds like Ctrl-C, so that half-written outputs are removed
     try:
@@ -643,8 +649,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except ValueError:  # not the main thread: signals stay as they are
         previous, installed = None, False
     try:
-        _enable_compilation_cache(args)
-        return _COMMANDS[args.command](args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            _enable_compilation_cache(args)
+            return _COMMANDS[args.command](args)
+    except BrokenPipeError:  # stdout closed early (`pbrfit synth ... | head -1`): nothing more to say
+        try:  # what is left in stdout's buffer goes nowhere at exit, not into a second error
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):  # stdout is no file (captured)
+            pass
+        return 141  # 128 + SIGPIPE, as a shell reports a command whose pipe closed
     except CaptureError as err:
         print(f"pbrfit: error: {err}", file=sys.stderr)
         return EXIT_USAGE

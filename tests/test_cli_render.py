@@ -251,3 +251,21 @@ def test_file_system_refusals_are_one_line_with_nothing_left(tmp_path, monkeypat
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("pbrfit: error: ") and "File name too long" in err and err.count("\n") == 1, err
+
+
+def test_no_command_a_closed_pipe_and_warnings_are_one_line(capsys, monkeypatch):
+    import warnings
+
+    import pbrfit.cli as cli
+
+    assert main([]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"pbrfit: error: expected a command, one of {', '.join(cli._COMMANDS)} (see pbrfit --help)"]
+
+    def closed_pipe(args):  # a command printing into `| head -1` after its reader left
+        warnings.warn("a warning of\ntwo lines", RuntimeWarning)
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setitem(cli._COMMANDS, "demo", closed_pipe)
+    assert main(["demo"]) == 141
+    assert capsys.readouterr().err.splitlines() == ["pbrfit: warning: a warning of"]
