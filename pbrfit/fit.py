@@ -220,11 +220,15 @@ def _median_footprint(obs: Observations) -> float:
 def default_resolution(capture_or_obs) -> int:
     """The finest power-of-two map size whose texels are at least `PIXELS_PER_TEXEL` pixels
     wide, judged by the median pixel footprint in uv over all views, and whose observed texels
-    get at least `OBSERVATIONS_PER_TEXEL` pixels each on average (more views allow finer maps)."""
+    get at least `OBSERVATIONS_PER_TEXEL` pixels each on average (more views allow finer maps).
+    The map has no more texels than the views have pixels: views of a small part of the texture
+    (close-ups, a narrow field of view) would otherwise ask for a fine map the solve pays for
+    whole, almost all of it unseen (pass ``resolution`` for that)."""
     obs = capture_or_obs if isinstance(capture_or_obs, Observations) else observations_from_capture(capture_or_obs)
     side = _median_footprint(obs) * PIXELS_PER_TEXEL
     n = 2 ** int(math.floor(math.log2(max(1.0 / max(side, 1e-9), 1.0))))
-    n = int(min(max(n, 1), MAX_RESOLUTION))
+    most = 2 ** int(math.floor(math.log2(max(math.sqrt(obs.num_pixels), 1.0))))
+    n = int(min(max(n, 1), MAX_RESOLUTION, most))
     while n > 1:
         seen = int(np.sum(coverage_counts(texel_layout(obs, (n, n))) > 0))
         if obs.num_pixels >= OBSERVATIONS_PER_TEXEL * seen:
@@ -303,6 +307,8 @@ def _layout(obs: Observations, shape, wrap: str) -> TexelLayout:
 
 #: The material maps a fit can fit or hold (``fit=``, ``fixed=``); "normal" can only be fitted.
 MATERIAL_MAPS = ("base_color", "metallic", "roughness")
+#: The largest finite float32, the solve's precision: the bound of every real-valued option.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 #: The largest map side an explicit ``resolution`` takes (the default stops at `MAX_RESOLUTION`).
 MAX_MAP_SIDE = 8192
 #: The most solver steps ``max_steps`` (and ``coarse_steps``) takes: far beyond any use, and within
@@ -411,6 +417,12 @@ def check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, at
     for name, value in (("rtol", rtol), ("atol", atol), ("smooth", smooth)):
         if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value >= 0):
             raise ValueError(f"{say(name)}: must be a finite number >= 0, got {value!r}")
+        if value > FLOAT32_MAX:  # the solve runs in float32
+            raise ValueError(f"{say(name)}: must be at most {FLOAT32_MAX:.3g} (float32), got {value!r}")
+    weights = () if continuation is None else np.ravel(np.asarray(continuation, dtype=object))
+    if not all(isinstance(w, (int, float, np.number)) and not isinstance(w, (bool, np.bool_)) and math.isfinite(w)
+               and 0 <= w <= FLOAT32_MAX for w in weights):
+        raise ValueError(f"{say('continuation')}: expected weights >= 0 within float32, got {continuation!r}")
     if not (isinstance(loss_scale, (int, float, np.number)) and math.isfinite(loss_scale) and loss_scale > 0):
         raise ValueError(f"{say('loss_scale')}: must be a finite number > 0, got {loss_scale!r}")
     if not (isinstance(cg_rtol, (int, float, np.number)) and 0.0 < cg_rtol < 1.0):

@@ -128,6 +128,14 @@ def test_uniform_material_recovered(truth):
     assert res.report["solver"] == "structured" and len(res.report["psnr"]) == len(VIEWS)
 
 
+def test_default_resolution_has_no_more_texels_than_pixels():
+    """Views that see a speck of the texture (here 1e-5 of its width) ask for the finest map
+    their footprint resolves (2048, almost all unseen); the default stops at one texel per pixel."""
+    views = _views(n_views=2, extent=1e5)
+    obs = observations_from_views(views, [np.zeros((RES, RES, 3), np.float32)] * 2)
+    assert default_resolution(obs) == 2 ** int(math.log2(math.sqrt(obs.num_pixels))) <= 32
+
+
 def test_maps_recovered_on_small_scene():
     truth = _checker()
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
