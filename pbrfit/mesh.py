@@ -317,51 +317,15 @@ def _load_gltf_keeping_uv(path: Path):
     )
 
 
-def has_file_normals(geom) -> bool:
-    """Whether the file gave ``geom`` (a `trimesh.Trimesh` as loaded) vertex normals: glTF
-    ``NORMAL``, OBJ ``vn``, PLY ``nx, ny, nz``. trimesh keeps loaded normals in its cache and
-    computes them from the faces on first access otherwise."""
-    return "vertex_normals" in geom._cache
-
-
-def _unwelded(geom):
-    """``geom`` with three vertices of its own per face, each carrying the face's normal (the
-    flat normals glTF 2.0 §3.7.2.1 has a client compute when a mesh gives none), uv kept."""
-    import trimesh
-    from trimesh.visual.texture import TextureVisuals
-
-    corners = np.asarray(geom.faces, np.int64).reshape(-1)
-    uv = getattr(geom.visual, "uv", None)
-    visual = None
-    if uv is not None and len(uv) == len(geom.vertices):
-        visual = TextureVisuals(uv=np.asarray(uv)[corners], material=getattr(geom.visual, "material", None))
-    flat = trimesh.Trimesh(vertices=np.asarray(geom.vertices, np.float64)[corners],
-                           faces=np.arange(len(corners), dtype=np.int64).reshape(-1, 3),
-                           vertex_normals=np.repeat(np.asarray(geom.face_normals, np.float64), 3, axis=0),
-                           visual=visual, process=False)
-    flat.metadata.update(geom.metadata)
-    return flat
-
-
-def _smooth_is_flat(geom) -> bool:
-    """Whether ``geom``'s vertex normals computed from its faces equal each (non-degenerate)
-    face's own normal at its corners: a mesh made of flat pieces (a plane, a quad) that needs no
-    unwelding to be shaded flat."""
-    face = np.asarray(geom.face_normals, np.float64)
-    corners = np.asarray(geom.vertex_normals, np.float64)[np.asarray(geom.faces, np.int64)]  # (F, 3, 3)
-    real = np.linalg.norm(face, axis=-1) > 0.5
-    return bool(np.all(np.einsum("fkd,fd->fk", corners[real], face[real]) > 1.0 - 1e-9))
-
-
 def _flatten(scene, where: str, path: Path) -> list:
     """The scene's triangle meshes in world space, keeping the file's vertex normals.
 
     Each geometry node's transform is applied to positions, and its inverse transpose to the
     normals the file holds (trimesh's ``Scene.dump`` would recompute them from the faces, which
-    smooths across hard edges and seams). A mesh the file gives no normals is shaded flat, in
-    every format, as glTF 2.0 requires of its clients (§3.7.2.1: "client implementations MUST
-    calculate flat normals"): its faces are unwelded (`_unwelded`) unless it is already flat
-    at every vertex (`_smooth_is_flat`). A mirroring transform also reverses the winding, and
+    smooths across hard edges and seams). A mesh the file gives no normals gets trimesh's: at
+    each vertex the angle-weighted mean of its faces' normals, smooth across shared vertices (as
+    Mitsuba computes them; glTF 2.0 §3.7.2.1 would have flat ones). A mirroring transform also
+    reverses the winding, and
     a node whose transform is singular (a zero scale, which hides a node in glTF viewers) adds
     nothing. Face indices outside the vertices and non-finite positions or transforms raise
     `CaptureError` (``where``, ``path`` name the file).
@@ -388,8 +352,6 @@ def _flatten(scene, where: str, path: Path) -> list:
         if not np.all(np.isfinite(vertices)):
             count = int(np.sum(~np.all(np.isfinite(vertices), axis=1)))
             raise CaptureError(f"{where}: mesh {path}{label}: {count} vertex positions hold NaN or inf values")
-        if not has_file_normals(geom) and not _smooth_is_flat(geom):
-            geom = _unwelded(geom)
         normals = np.asarray(geom.vertex_normals, np.float64) @ np.linalg.inv(t[:3, :3])  # (M^-T n) as rows
         normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
         faces = np.asarray(geom.faces, np.int64)
