@@ -287,7 +287,7 @@ def _add_fit(sub) -> None:
 
 def _fit_options(args) -> dict:
     """Keyword arguments of `pbrfit.fit.fit` from the command line (errors name the option)."""
-    from .fit import COARSE_STEPS, LOSS_SCALE, OptionNames, check_options, fit_arguments
+    from .fit import COARSE_STEPS, DEFAULT_SOLVER, LOSS_SCALE, OptionNames, check_options, fit_arguments
     from .io import read_map
     from .observations import MAX_PIXEL_SAMPLES
     from .pixel_ibl import MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
@@ -314,6 +314,14 @@ def _fit_options(args) -> dict:
                 raise CaptureError(f"--{flag}-from: --{flag} holds {name} at a value too; give one of the two")
             fixed[name], held_by[name] = read_map(folder, name), f"--{flag}-from"
     continuation = _continuation(_default_continuation() if args.continuation is None else args.continuation)
+    # a flag a mode does not read is refused even at its default value (check_options, which sees
+    # values only, refuses values other than the default)
+    for flag, given in (("--cg-rtol", args.cg_rtol is not None), ("--continuation", args.continuation is not None
+                                                                   and bool(continuation))):
+        if given and args.solver != DEFAULT_SOLVER:
+            raise CaptureError(f"{flag}: only the {DEFAULT_SOLVER} solver uses it, not --solver {args.solver}")
+        if given and flag == "--continuation" and args.maps == "none":
+            raise CaptureError(f"{flag}: --maps none fits one uniform material (1 x 1 maps)")
     names = OptionNames(flags=True, held_by=held_by)
     try:  # the checks `pbrfit.fit` makes, worded with the flags
         free, fixed = fit_arguments(args.fit, fixed, names)
@@ -622,6 +630,25 @@ class _Terminated(BaseException):
     temporary name are removed on the way out)."""
 
 
+def _stdout_closed() -> bool:
+    """Whether stdout's reader has gone; if so, stdout is pointed at the null device, so that what
+    is left in its buffer goes nowhere at exit instead of into a second error."""
+    try:
+        sys.stdout.flush()
+        return False
+    except BrokenPipeError:
+        pass
+    except (OSError, ValueError):
+        return False
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, sys.stdout.fileno())
+        os.close(null)
+    except (OSError, ValueError):  # stdout is no file descriptor
+        pass
+    return True
+
+
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
     """Warnings as one line, like the errors: ``pbrfit: warning: <message>``."""
     print(f"pbrfit: warning: {str(message).splitlines()[0] if str(message) else category.__name__}",
@@ -652,13 +679,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning
             _enable_compilation_cache(args)
-            return _COMMANDS[args.command](args)
-    except BrokenPipeError:  # stdout closed early (`pbrfit synth ... | head -1`): nothing more to say
-        try:  # what is left in stdout's buffer goes nowhere at exit, not into a second error
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        except (OSError, ValueError):  # stdout is no file (captured)
-            pass
-        return 141  # 128 + SIGPIPE, as a shell reports a command whose pipe closed
+            status = _COMMANDS[args.command](args)
+            sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's last flush
+            return status
+    except BrokenPipeError:
+        if not _stdout_closed():  # another pipe (a child's) broke: a bug, with its traceback
+            raise
+        return 141  # 128 + SIGPIPE, as a shell reports a command whose reader left (`| head -1`)  # 128 + SIGPIPE, as a shell reports a command whose pipe closed
     except CaptureError as err:
         print(f"pbrfit: error: {err}", file=sys.stderr)
         return EXIT_USAGE

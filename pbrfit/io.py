@@ -124,8 +124,15 @@ def write_cache_file(path: str | os.PathLike, write: Callable[[BinaryIO], None])
         with atomic_path(path) as tmp, open(tmp, "wb") as f:
             write(f)
     except OSError as err:
-        warnings.warn(f"cache folder {path.parent}: cannot write ({err.strerror or err}); going on without it",
-                      CacheWarning, stacklevel=2)
+        said = (str(path.parent), str(err.strerror or err))
+        if said not in _CACHE_WARNED:
+            _CACHE_WARNED.add(said)
+            warnings.warn(f"cache folder {said[0]}: cannot write ({said[1]}); going on without it",
+                          CacheWarning, stacklevel=2)
+
+
+#: (cache folder, reason) pairs already warned of in this process.
+_CACHE_WARNED: set = set()
 
 
 #: The file every output folder of a pbrfit command holds (its content: the kind of output).
@@ -203,10 +210,11 @@ def _check_creatable(final_dir: Path) -> None:
 
 def check_not_inside(folder: str | os.PathLike, out_dir: str | os.PathLike, role: str) -> None:
     """`CaptureError` when `folder` (an input: `role`) is `out_dir` or lies inside it, which
-    replacing `out_dir` would delete."""
-    folder, out_dir = Path(os.path.abspath(folder)), Path(os.path.abspath(out_dir))
-    if folder == out_dir or out_dir in folder.parents:
-        raise CaptureError(f"{out_dir}: holds the {role} ({folder}); choose another output folder")
+    replacing `out_dir` would delete: as written, and with links followed (`output_path`)."""
+    folder_abs, out_abs = Path(os.path.abspath(folder)), Path(os.path.abspath(out_dir))
+    for f, o in ((folder_abs, out_abs), (Path(os.path.realpath(folder)), Path(os.path.realpath(out_dir)))):
+        if f == o or o in f.parents:
+            raise CaptureError(f"{out_abs}: holds the {role} ({folder_abs}); choose another output folder")
 
 
 @contextlib.contextmanager
@@ -388,8 +396,8 @@ def color_channels(info: ImageInfo, where: str) -> list[int]:
     """The indices of an image's colour channels (three, or one for grey): R, G, B by name
     (`_color_layer`), Y for a grey image, else the channels in stored order less alpha. Raises
     `CaptureError` when several colour layers leave open which one holds the image, for CIE
-    X, Y, Z channels, and for an OpenEXR none of whose channels is R, G, B or Y (a depth or
-    normal pass)."""
+    X, Y, Z channels, and for an OpenEXR of several channels none of which is R, G, B or Y (a
+    normal or position pass; one channel of any name is a grey image)."""
     names = list(info.channel_names)
     layer, layers = _color_layer(names)
     if layer is not None:
@@ -401,7 +409,8 @@ def color_channels(info: ImageInfo, where: str) -> list[int]:
     if layers:
         raise CaptureError(f"{where}: image {info.path} holds several colour layers ({', '.join(layers)}) and no "
                            "R, G, B channels; pbrfit reads R, G, B, a single layer, or a 'Combined' one")
-    if str(info.file_format) == "openexr" and not any(n.rsplit(".", 1)[-1] in ("R", "G", "B") for n in names):
+    if str(info.file_format) == "openexr" and len(names) > 1 \
+            and not any(n.rsplit(".", 1)[-1] in ("R", "G", "B") for n in names):
         # OpenEXR names what each channel holds: depth (Z), normals (N.X), ids are no image
         raise CaptureError(f"{where}: image {info.path} holds no colour channels (R, G, B or Y), only "
                            f"{', '.join(names[:6])}{' ...' if len(names) > 6 else ''}")

@@ -346,7 +346,8 @@ def _flatten(scene, where: str, path: Path) -> list:
         t = np.asarray(transform, np.float64)
         if not np.all(np.isfinite(t)):
             raise CaptureError(f"{where}: mesh {path}{label}: its node's transform holds NaN or inf")
-        if abs(np.linalg.det(t[:3, :3])) < 1e-30:  # a zero scale hides a node (glTF viewers draw nothing)
+        scales = np.linalg.svd(t[:3, :3], compute_uv=False)
+        if scales[-1] <= 1e-12 * scales[0] or scales[0] == 0.0:  # a zero scale hides a node (viewers draw nothing)
             continue
         vertices = np.asarray(geom.vertices, np.float64)
         if not np.all(np.isfinite(vertices)):

@@ -254,6 +254,8 @@ def test_file_system_refusals_are_one_line_with_nothing_left(tmp_path, monkeypat
 
 
 def test_no_command_a_closed_pipe_and_warnings_are_one_line(capsys, monkeypatch):
+    import io
+    import sys
     import warnings
 
     import pbrfit.cli as cli
@@ -262,10 +264,27 @@ def test_no_command_a_closed_pipe_and_warnings_are_one_line(capsys, monkeypatch)
     assert capsys.readouterr().err.splitlines() == [
         f"pbrfit: error: expected a command, one of {', '.join(cli._COMMANDS)} (see pbrfit --help)"]
 
-    def closed_pipe(args):  # a command printing into `| head -1` after its reader left
+    class Closed(io.StringIO):  # stdout whose reader left (`| head -1`)
+        def write(self, text):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self):
+            raise BrokenPipeError(32, "Broken pipe")
+
+    def command(args):
         warnings.warn("a warning of\ntwo lines", RuntimeWarning)
+        print("done")
+        return 0
+
+    monkeypatch.setitem(cli._COMMANDS, "demo", command)
+    with monkeypatch.context() as m:
+        m.setattr(sys, "stdout", Closed())
+        assert main(["demo"]) == 141
+    assert capsys.readouterr().err.splitlines() == ["pbrfit: warning: a warning of"]
+
+    def child_pipe(args):  # another pipe broke, stdout is fine: a bug, raised
         raise BrokenPipeError(32, "Broken pipe")
 
-    monkeypatch.setitem(cli._COMMANDS, "demo", closed_pipe)
-    assert main(["demo"]) == 141
-    assert capsys.readouterr().err.splitlines() == ["pbrfit: warning: a warning of"]
+    monkeypatch.setitem(cli._COMMANDS, "demo", child_pipe)
+    with pytest.raises(BrokenPipeError):
+        main(["demo"])

@@ -548,13 +548,14 @@ def test_damaged_or_non_colour_images_are_refused(tmp_path):
     (tmp_path / "cut.jpg").write_bytes(data[: len(data) * 6 // 10])  # decodes, its lost rows grey
     with pytest.raises(CaptureError, match=r"frame: image .*cut.jpg is damaged: .*Premature end of JPEG"):
         read_image(tmp_path / "cut.jpg", "frame")
-    for names, match in ((["Z"], "no colour channels .* only Z"), (["N.X", "N.Y", "N.Z"], "only N.X, N.Y, N.Z"),
+    for names, match in ((["Z", "ID"], "no colour channels .* only Z, ID"), (["N.X", "N.Y", "N.Z"], "only N.X, N.Y, N.Z"),
                          (["X", "Y", "Z"], "CIE X, Y, Z")):
         path = _write_oiio(tmp_path / f"{len(names)}{names[0]}.exr", np.ones((4, 4, len(names)), np.float32), names)
         with pytest.raises(CaptureError, match=match):
             color_channels(read_image(path)[1], "frame")
-    grey = _write_oiio(tmp_path / "r.exr", np.ones((4, 4, 1), np.float32), ["R"])  # a lone R is a grey image
-    assert color_channels(read_image(grey)[1], "frame") == [0]
+    for name in ("R", "L"):  # one channel, of any name, is a grey image
+        grey = _write_oiio(tmp_path / f"{name}.exr", np.ones((4, 4, 1), np.float32), [name])
+        assert color_channels(read_image(grey)[1], "frame") == [0]
 
 
 def test_output_folder_through_a_link(tmp_path):
@@ -566,6 +567,8 @@ def test_output_folder_through_a_link(tmp_path):
     with atomic_dir(tmp_path / "link", kind="fit") as d:
         (d / "report.json").write_text("{}")
     assert (tmp_path / "link").is_symlink() and _listing(target) == [OUTPUT_MARKER, "report.json"]
+    with pytest.raises(CaptureError, match=r"link: holds the material folder"):  # an input the link leads to
+        check_not_inside(target, tmp_path / "link", "material folder")
     (tmp_path / "dangling").symlink_to(tmp_path / "nowhere")
     with pytest.raises(CaptureError, match=r"dangling: is a link to .*nowhere, which does not exist"):
         check_output_dir(tmp_path / "dangling", "fit")

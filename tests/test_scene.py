@@ -768,6 +768,8 @@ def test_broken_mesh_structure_is_one_clear_error(tmp_path):
     # a zero scale hides a node, as in glTF viewers: here the only one, so nothing is left
     with pytest.raises(CaptureError, match="holds no triangles"):
         load_mesh(_quad_glb(tmp_path / "zero.glb", node(scale=[1, 1, 0])), require_uv=False)
+    tiny = load_mesh(_quad_glb(tmp_path / "tiny.glb", node(scale=[1e-11] * 3)), require_uv=False)
+    np.testing.assert_allclose(tiny.vertices, QUAD_POSITIONS * 1e-11, rtol=1e-6)  # small, not hidden
     with pytest.raises(CaptureError, match="transform holds NaN or inf"):
         load_mesh(_quad_glb(tmp_path / "nan.glb", node(matrix=[float("nan")] * 16)), require_uv=False)
     with pytest.raises(CaptureError, match="vertex positions reach 1e\\+30; pbrfit takes up to 1e\\+18"):
