@@ -194,13 +194,10 @@ def _cmd_synth(args) -> int:
 
 
 # --- fit -------------------------------------------------------------------------------------
-_MAP_NAMES = ("base_color", "metallic", "roughness")
-#: What --fit accepts: the maps above (which can also be held fixed) and normals.
-_FIT_NAMES = _MAP_NAMES + ("normal",)
 
 
 def _add_fit(sub) -> None:
-    from .fit import DEFAULT_SOLVER, IBL_MODES, MAX_STEPS, SOLVERS
+    from .fit import DEFAULT_SOLVER, IBL_MODES, MATERIAL_MAPS, MAX_STEPS, SOLVERS
     from .noise import NOISE_LEVELS
     from .observations import MAX_PIXEL_SAMPLES
     from .pixel_ibl import PixelIBLSettings
@@ -221,7 +218,7 @@ def _add_fit(sub) -> None:
     p.add_argument("--base-color", help="hold base color fixed at R,G,B (linear)")
     p.add_argument("--metallic", type=float, help="hold metallic fixed at this value")
     p.add_argument("--roughness", type=float, help="hold roughness fixed at this value (perceptual)")
-    for name in _MAP_NAMES:
+    for name in MATERIAL_MAPS:
         flag = name.replace("_", "-")
         p.add_argument(f"--{flag}-from", metavar="DIR", help=f"hold {name} fixed at the map in a material folder")
     p.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER, help=f"default {DEFAULT_SOLVER}")
@@ -287,7 +284,8 @@ def _add_fit(sub) -> None:
 
 def _fit_options(args) -> dict:
     """Keyword arguments of `pbrfit.fit.fit` from the command line (errors name the option)."""
-    from .fit import COARSE_STEPS, DEFAULT_SOLVER, LOSS_SCALE, OptionNames, check_options, fit_arguments
+    from .fit import (COARSE_STEPS, DEFAULT_SOLVER, LOSS_SCALE, MATERIAL_MAPS, OptionNames, check_options,
+                      fit_arguments)
     from .io import read_map
     from .observations import MAX_PIXEL_SAMPLES
     from .pixel_ibl import MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
@@ -306,7 +304,7 @@ def _fit_options(args) -> dict:
     for name in ("metallic", "roughness"):
         if getattr(args, name) is not None:
             fixed[name], held_by[name] = getattr(args, name), f"--{name}"
-    for name in _MAP_NAMES:
+    for name in MATERIAL_MAPS:
         folder = getattr(args, f"{name}_from")
         if folder is not None:
             flag = name.replace("_", "-")
@@ -529,6 +527,7 @@ def _summary(result, errors) -> str:
 def _cmd_fit(args) -> int:
     from pathlib import Path
 
+    from .fit import MATERIAL_MAPS
     from .io import check_not_inside, check_output_dir
     from .scene import load_capture
 
@@ -537,7 +536,7 @@ def _cmd_fit(args) -> int:
     check_output_dir(out, "fit")
     capture = load_capture(args.capture, require_uv=options["maps"] == "texture" or "normal" in options["fit"])
     check_not_inside(capture.root, out, "capture being fitted")
-    for name in _MAP_NAMES:
+    for name in MATERIAL_MAPS:
         folder = getattr(args, f"{name}_from")
         if folder is not None:
             check_not_inside(folder, out, f"{name} map of --{name.replace('_', '-')}-from")
@@ -685,7 +684,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except BrokenPipeError:
         if not _stdout_closed():  # another pipe (a child's) broke: a bug, with its traceback
             raise
-        return 141  # 128 + SIGPIPE, as a shell reports a command whose reader left (`| head -1`)  # 128 + SIGPIPE, as a shell reports a command whose pipe closed
+        return 141  # 128 + SIGPIPE, as a shell reports a command whose reader left (`| head -1`)
     except CaptureError as err:
         print(f"pbrfit: error: {err}", file=sys.stderr)
         return EXIT_USAGE

@@ -411,8 +411,9 @@ def check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, at
     for name, value, least in (("max_steps", max_steps, 1), ("coarse_steps", coarse_steps, 0),
                                ("uncertainty_radius", uncertainty_radius, 0)):
         most = MAX_UNCERTAINTY_RADIUS if name == "uncertainty_radius" else MAX_SOLVER_STEPS
-        if not (value is None and name == "max_steps") and (isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer))
-                                  or not least <= value <= most):
+        if value is None and name == "max_steps":  # the solver's own default
+            continue
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or not least <= value <= most:
             raise ValueError(f"{say(name)}: must be an integer from {least} to {most}, got {value!r}")
     for name, value in (("rtol", rtol), ("atol", atol), ("smooth", smooth)):
         if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value >= 0):
@@ -625,9 +626,7 @@ def _fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, so
     if centres is not None and obs.samples > 1 and model.ibl == "per_pixel" and centre_ibl is None:
         raise ValueError("centres with a per-pixel IBL model need centre_ibl: the centres' own integrals")
     mesh = None if devices is None else pixel_mesh(devices)
-    continuation = () if continuation is None else tuple(float(w) for w in np.ravel(continuation))
-    if any(not (math.isfinite(w) and w >= 0) for w in continuation):
-        raise ValueError(f"continuation weights must be finite and >= 0, got {continuation}")
+    continuation = () if continuation is None else tuple(float(w) for w in np.ravel(continuation))  # check_options checked them
     x = None if start is None else np.asarray(start, np.float32).reshape(final + (k,))
     history = []
     annealed = footprint = None

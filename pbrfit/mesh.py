@@ -317,6 +317,12 @@ def _load_gltf_keeping_uv(path: Path):
     )
 
 
+#: A node transform whose smallest scale is at most this fraction of its largest is singular (a
+#: zero scale, as glTF files hide nodes): float64 rounding of a product of rotations and
+#: non-zero scales stays far above it, so a tiny uniform scale (1e-11) is kept.
+SINGULAR_SCALE_REL = 1e-12
+
+
 def _flatten(scene, where: str, path: Path) -> list:
     """The scene's triangle meshes in world space, keeping the file's vertex normals.
 
@@ -325,10 +331,10 @@ def _flatten(scene, where: str, path: Path) -> list:
     smooths across hard edges and seams). A mesh the file gives no normals gets trimesh's: at
     each vertex the angle-weighted mean of its faces' normals, smooth across shared vertices (as
     Mitsuba computes them; glTF 2.0 §3.7.2.1 would have flat ones). A mirroring transform also
-    reverses the winding, and
-    a node whose transform is singular (a zero scale, which hides a node in glTF viewers) adds
-    nothing. Face indices outside the vertices and non-finite positions or transforms raise
-    `CaptureError` (``where``, ``path`` name the file).
+    reverses the winding, and a node whose transform is singular (a zero scale, which hides a
+    node in glTF viewers; `SINGULAR_SCALE_REL`) adds nothing. Face indices outside the vertices
+    and non-finite transforms raise `CaptureError` (``where``, ``path`` name the file);
+    `load_mesh` checks the positions.
     """
     import trimesh
 
@@ -347,12 +353,8 @@ def _flatten(scene, where: str, path: Path) -> list:
         if not np.all(np.isfinite(t)):
             raise CaptureError(f"{where}: mesh {path}{label}: its node's transform holds NaN or inf")
         scales = np.linalg.svd(t[:3, :3], compute_uv=False)
-        if scales[-1] <= 1e-12 * scales[0] or scales[0] == 0.0:  # a zero scale hides a node (viewers draw nothing)
+        if scales[0] == 0.0 or scales[-1] <= SINGULAR_SCALE_REL * scales[0]:  # a zero scale: viewers draw nothing
             continue
-        vertices = np.asarray(geom.vertices, np.float64)
-        if not np.all(np.isfinite(vertices)):
-            count = int(np.sum(~np.all(np.isfinite(vertices), axis=1)))
-            raise CaptureError(f"{where}: mesh {path}{label}: {count} vertex positions hold NaN or inf values")
         normals = np.asarray(geom.vertex_normals, np.float64) @ np.linalg.inv(t[:3, :3])  # (M^-T n) as rows
         normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
         faces = np.asarray(geom.faces, np.int64)
