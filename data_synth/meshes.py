@@ -279,11 +279,15 @@ def load_mesh(path, normalize: bool = False) -> MeshData:
     Read exactly as a capture's mesh is read (scenes flattened, uv turned to glTF orientation,
     the file's normals kept), so a synthetic capture of it shows what a fit will see. With
     `normalize`, it is centred on its bounding box and scaled to fit a unit-radius sphere.
-    Raises `CaptureError` when the file cannot be read or has no texture coordinates.
+    Raises `CaptureError` when the file cannot be read, has no texture coordinates or has no
+    area (every triangle degenerate: nothing would show in the images).
     """
+    from pbrfit.errors import CaptureError
     from pbrfit.mesh import load_mesh as load_capture_mesh
 
     mesh = load_capture_mesh(Path(path), where="--mesh")
+    if not float(np.sum(mesh.area_faces)) > 0.0:
+        raise CaptureError(f"--mesh: {path}: every triangle has zero area, so nothing would show in the images")
     data = MeshData(mesh.vertices, mesh.faces, mesh.vertex_normals, np.asarray(mesh.visual.uv)[:, :2])
     if normalize:
         lo, hi = data.vertices.min(0), data.vertices.max(0)

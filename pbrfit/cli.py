@@ -166,6 +166,9 @@ def _cmd_synth(args) -> int:
             raise CaptureError(f"--{name.replace('_', '-')}: must be at most {high}, got {value}")
     if args.noise is not None and not (math.isfinite(args.noise) and args.noise >= 0):
         raise CaptureError(f"--noise: must be a finite number >= 0, got {args.noise}")
+    if args.noise is not None and args.noise > MAX_NOISE:
+        raise CaptureError(f"--noise: must be at most {MAX_NOISE:g} (a std {MAX_NOISE:g} times display white), "
+                           f"got {args.noise:g}")
     if args.ibl_samples is not None and args.ibl != "monte_carlo":
         raise CaptureError("--ibl-samples: only --ibl monte_carlo uses it")
     if args.mesh is not None and args.shape is not None:
@@ -612,6 +615,9 @@ MAX_SIZE = 8192
 #: The most cameras `synth --views` renders, and the largest `synth --supersample`.
 MAX_VIEWS = 1024
 MAX_SUPERSAMPLE = 16
+#: The largest `synth --noise` std, in display values (white is 1): far beyond any sensor, and
+#: within what `fit` reads (larger noise writes images too bright for its float32 solve).
+MAX_NOISE = 100.0
 #: The most Monte Carlo sample steps (`--ibl-samples`) and tabulated roughness levels
 #: (`--ibl-levels`) taken: far beyond any use, and within the int32 counters of the jitted loops
 #: (`pbrfit.fit.MAX_SOLVER_STEPS` bounds `--max-steps`, `MAX_MAP_SIDE` `--resolution`).

@@ -170,6 +170,16 @@ def test_user_obj_mesh_keeps_gltf_uv(tmp_path):
     assert np.linalg.norm(scene.mesh.vertices, axis=-1).max() == pytest.approx(1.0, rel=1e-5)
 
 
+def test_user_mesh_without_area_is_refused(tmp_path):
+    from pbrfit.errors import CaptureError
+
+    path = tmp_path / "flat.obj"  # two triangles, each with its corners on one line
+    path.write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nv 3 0 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
+                    "f 1/1 2/2 3/3\nf 2/2 3/3 4/4\n")
+    with pytest.raises(CaptureError, match="flat.obj: every triangle has zero area"):
+        meshes.load_mesh(path, normalize=True)
+
+
 def test_combine_atlas_tiles():
     a, b = meshes.plane(), meshes.uv_sphere(segments=8, rings=4)
     c = meshes.combine([a, b], [(0, 0, 0.5, 1), (0.5, 0, 1, 0.5)])
@@ -432,6 +442,7 @@ def test_cli_synth_writes_and_refuses_bad_input(tmp_path, capsys):
                            (["--views", "100000000"], "--views: must be at most 1024"),
                            (["--supersample", "100000"], "--supersample: must be at most 16"),
                            (["--noise", "inf"], "--noise: must be a finite number >= 0, got inf"),
+                           (["--noise", "1e30"], "--noise: must be at most 100"),
                            (["--ibl-samples", "64"], "--ibl-samples: only --ibl monte_carlo uses it"),
                            (["--ibl", "monte_carlo"], "--ibl monte_carlo: preset peer-plane has no environment"),
                            (["--out", str(tmp_path / "c" / "capture.json" / "x")], "capture.json is not a folder")):
