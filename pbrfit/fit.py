@@ -1461,16 +1461,17 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             None for a solve with no host round-trips).
     """
     t0 = time.perf_counter()
+    # the arguments first: a wrong one is said at once, before the capture is read
+    if ibl not in (None,) + IBL_MODES:
+        raise ValueError(f"ibl must be one of {', '.join(IBL_MODES)}, got {ibl!r}")
+    kwargs["fit"], kwargs["fixed"] = fit_arguments(kwargs.get("fit"), kwargs.get("fixed"))
+    check_options(**{name: kwargs.get(name, default) for name, default in _OPTION_DEFAULTS.items()})
     if isinstance(capture, (str, os.PathLike)):
         from .scene import load_capture
 
         capture = load_capture(capture, require_uv=kwargs.get("maps", "texture") == "texture"
-                               or "normal" in (kwargs.get("fit") or ()))
-    kwargs["fit"], kwargs["fixed"] = fit_arguments(kwargs.get("fit"), kwargs.get("fixed"))
-    check_options(**{name: kwargs.get(name, default) for name, default in _OPTION_DEFAULTS.items()})
+                               or "normal" in kwargs["fit"])
     model = model_for_capture(capture, kwargs["fit"], kwargs["fixed"]) if model is None else model
-    if ibl not in (None,) + IBL_MODES:
-        raise ValueError(f"ibl must be one of {', '.join(IBL_MODES)}, got {ibl!r}")
     if ibl is not None and model.ibl is not None:
         model = model.replace(ibl=ibl)
     _check_normals(model, kwargs["fit"])

@@ -234,6 +234,10 @@ def test_fit_refuses_options_out_of_range_or_unread(options, match):
     obs = observations_from_views(VIEWS[:1], [np.zeros((RES, RES, 3), np.float32)])
     with pytest.raises(ValueError, match=match):
         fit_observations(obs, **options)
+    # pbrfit.fit checks them before it reads the capture: a path to nothing is not reached
+    with pytest.raises(ValueError, match=match) as caught:
+        pbrfit.fit("/nonexistent/capture", **options)
+    assert "nonexistent" not in str(caught.value)
 
 
 def test_srgb_targets_and_huber_loss():
