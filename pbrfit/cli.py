@@ -381,8 +381,11 @@ def _continuation(text: str) -> tuple:
         weights = tuple(float(w) for w in text.split(","))
     except ValueError:
         weights = ()
-    if not weights or not all(math.isfinite(w) and w >= 0 for w in weights):
-        raise CaptureError(f"--continuation: expected 'none' or comma-separated weights >= 0, got {text!r}")
+    from .fit import FLOAT32_MAX
+
+    if not weights or not all(math.isfinite(w) and 0 <= w <= FLOAT32_MAX for w in weights):
+        raise CaptureError(f"--continuation: expected 'none' or comma-separated weights >= 0 within float32, "
+                           f"got {text!r}")
     return weights
 
 

@@ -392,7 +392,8 @@ def fit_arguments(fit=None, fixed: Optional[Mapping] = None,
             if name in held:
                 raise ValueError(f"{option}: lists {name}, which {names.holder(name)} holds too; drop one of the two")
     if not fit:
-        raise ValueError(f"{option}: nothing to fit (every map is held fixed)")
+        why = "every map is held fixed" if held and len(held) == len(MATERIAL_MAPS) else "it names no map"
+        raise ValueError(f"{option}: nothing to fit ({why})")
     return fit, held
 
 
