@@ -34,6 +34,7 @@ import base64
 import contextlib
 import io as _io
 import json
+import re
 import struct
 import urllib.parse
 from pathlib import Path
@@ -408,6 +409,26 @@ def _quiet_trimesh():
         logger.setLevel(level)
 
 
+#: A 0 among an OBJ line's numbers (``f 0 1 2``, ``f 1/0 ...``; `_check_obj_indices` keeps those
+#: on face lines): OBJ counts from 1 (negative: back from the last), so 0 is no vertex, and
+#: trimesh reads it as -1, the last one.
+_OBJ_ZERO = re.compile(rb"[ \t/][-+]?0+(?=[ \t/\r\n#]|\Z)")
+
+
+def _check_obj_indices(path: Path, where: str) -> None:
+    """`CaptureError` when an OBJ face names index 0, as files written counting from 0 do (every
+    face would be shifted to its neighbouring vertices, and 0 read as the last one)."""
+    data = path.read_bytes()
+    for match in _OBJ_ZERO.finditer(data):
+        start = data.rfind(b"\n", 0, match.start()) + 1
+        head = data[start:match.start() + 1].lstrip(b" \t")  # with the separator before the 0
+        if head[:2] in (b"f ", b"f\t") and b"#" not in head:
+            end = data.find(b"\n", match.end())
+            line = data[start:None if end < 0 else end].decode("utf-8", "replace").strip()
+            raise CaptureError(f"{where}: mesh {path}: face {line!r} has index 0; OBJ indices count from 1 "
+                               "(was the file written counting from 0?)")
+
+
 def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     """Load a triangle mesh as one `trimesh.Trimesh` with uv in glTF orientation.
 
@@ -426,6 +447,8 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise CaptureError(f"{where}: {path}: unsupported mesh format {path.suffix or '(no suffix)'!r}; "
                            f"pbrfit reads {', '.join(MESH_SUFFIXES)}")
+    if path.suffix.lower() == ".obj":
+        _check_obj_indices(path, where)
     with _quiet_trimesh():  # bad files are reported below, one line
         try:
             if path.suffix.lower() in (".glb", ".gltf"):

@@ -788,6 +788,14 @@ def test_broken_mesh_structure_is_one_clear_error(tmp_path):
         (tmp_path / "bad.ply").write_text("\n".join(ply).format(last) + "\n")
         with pytest.raises(CaptureError, match=f"bad.ply: face indices run from {low} to {high}, outside its 4"):
             load_mesh(tmp_path / "bad.ply", require_uv=False)
+    # an OBJ written counting from 0: trimesh would read 0 as the last vertex and shift every face
+    obj = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
+    for faces in ("f 0/0 1/1 2/2\nf 0/0 2/2 3/3\n", "f 1/0 2/1 3/2\n"):
+        (tmp_path / "zero.obj").write_text(obj + faces)
+        with pytest.raises(CaptureError, match=r"zero.obj: face 'f [0-9/ ]+' has index 0; OBJ indices count from 1"):
+            load_mesh(tmp_path / "zero.obj")
+    (tmp_path / "one.obj").write_text(obj + "# f 0/0 1/1 2/2\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n")  # a comment is no face
+    assert len(load_mesh(tmp_path / "one.obj").faces) == 2
 
 
 def test_gltf_whose_buffer_file_is_missing_names_it(tmp_path):
