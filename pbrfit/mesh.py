@@ -429,6 +429,18 @@ def _check_obj_indices(path: Path, where: str) -> None:
                                "(was the file written counting from 0?)")
 
 
+def _check_ply_counts(scene, where: str, path: Path) -> None:
+    """`CaptureError` when a PLY holds fewer vertices or faces than its header declares: a
+    truncated ASCII file, which trimesh loads as far as it goes."""
+    for geometry in scene.geometry.values():
+        for element, info in (geometry.metadata.get("_ply_raw") or {}).items():
+            data = info.get("data")
+            rows = [len(v) for v in data.values() if hasattr(v, "__len__")] if isinstance(data, dict) else []
+            if rows and min(rows) < int(info.get("length", 0)):
+                raise CaptureError(f"{where}: mesh {path}: the header declares {info['length']} {element} "
+                                   f"elements, the file holds {min(rows)} (is it truncated?)")
+
+
 def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     """Load a triangle mesh as one `trimesh.Trimesh` with uv in glTF orientation.
 
@@ -461,6 +473,7 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
                 # the parser tripped over the file's structure: say so, and what it tripped on
                 msg = f"malformed {path.suffix.lstrip('.').upper()} file ({type(err).__name__}{': ' + msg if msg else ''})"
             raise CaptureError(f"{where}: cannot load mesh {path}: {msg}") from None
+        _check_ply_counts(scene, where, path)
         parts = _flatten(scene, where, path)
     if not parts:
         raise CaptureError(f"{where}: mesh file {path} holds no triangles")

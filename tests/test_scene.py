@@ -788,6 +788,12 @@ def test_broken_mesh_structure_is_one_clear_error(tmp_path):
         (tmp_path / "bad.ply").write_text("\n".join(ply).format(last) + "\n")
         with pytest.raises(CaptureError, match=f"bad.ply: face indices run from {low} to {high}, outside its 4"):
             load_mesh(tmp_path / "bad.ply", require_uv=False)
+    # a truncated ASCII PLY: trimesh loads what is there; fewer rows than the header declares
+    for rows, element, held in ((ply[:-1], "face", 1), (ply[:-3], "vertex", 3)):
+        (tmp_path / "cut.ply").write_text("\n".join(rows).format(3) + "\n")
+        with pytest.raises(CaptureError, match=f"cut.ply: the header declares . {element} elements, the file "
+                                               f"holds {held}"):
+            load_mesh(tmp_path / "cut.ply", require_uv=False)
     # an OBJ written counting from 0: trimesh would read 0 as the last vertex and shift every face
     obj = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
     for faces in ("f 0/0 1/1 2/2\nf 0/0 2/2 3/3\n", "f 1/0 2/1 3/2\n"):
