@@ -34,6 +34,7 @@ from .errors import CaptureError
 
 __all__ = [
     "Environment",
+    "EnvironmentWarning",
     "WORLD_UPS",
     "load_environment",
     "environment_lookup",
@@ -54,6 +55,16 @@ __all__ = [
 
 #: World up axes the capture format allows.
 WORLD_UPS = ("+y", "+z")
+
+#: Environment files already warned of in this process (`EnvironmentWarning`): a fit reads its
+#: environment more than once.
+_WARNED: set = set()
+
+
+class EnvironmentWarning(UserWarning):
+    """An environment map read as the spec says, though it does not look like one: not 2:1, as
+    a cube cross (4:3) or a mirror-ball probe (1:1) is, and an equirectangular image is."""
+
 
 #: Squared length of a direction's horizontal part (x, z) below which the azimuth is undefined
 #: (a pole): u is set to 0.5 there and atan2's gradient, infinite at the origin, is not taken.
@@ -89,7 +100,8 @@ def load_environment(path, world_up: str = "+y", intensity: float = 1.0,
     the display window: an OpenEXR whose data window is smaller holds 0 outside it (OpenEXR's
     meaning), and overscan past the display window is cut. Negative
     values are clamped to 0 (radiance is not negative). Raises `CaptureError` naming the file when
-    it cannot be read, is not an image, or holds NaN or inf pixels.
+    it cannot be read, is not an image, or holds NaN or inf pixels; warns (`EnvironmentWarning`,
+    once per file) when it is not 2:1.
     """
     from .io import color_channels, read_image
 
@@ -101,6 +113,14 @@ def load_environment(path, world_up: str = "+y", intensity: float = 1.0,
     if not path.is_file():
         raise CaptureError(f"{path}: environment file not found")
     pixels, info = read_image(path, "environment")  # a cropped OpenEXR is placed in its display window
+    height, width = pixels.shape[:2]
+    if abs(width - 2 * height) > 1 and str(path) not in _WARNED:  # odd sizes round either way
+        import warnings
+
+        _WARNED.add(str(path))
+        warnings.warn(f"{path}: environment is {width} x {height}, not 2:1; read as an equirectangular "
+                      "(lat-long) map all the same, as the capture spec says (a cube cross or a mirror-ball "
+                      "probe would light the scene wrongly)", EnvironmentWarning, stacklevel=2)
     if pixels.shape[-1] == 2:
         raise CaptureError(f"{path}: environment has 2 channels; expected 1, 3 or 4")
     # R, G, B by name (one layer of a layered OpenEXR) or a grey Y, else the first three

@@ -164,6 +164,25 @@ def test_load_environment(tmp_path):
         np.testing.assert_array_equal(radiance, expected)
 
 
+def test_environment_not_two_to_one_is_read_with_a_warning(tmp_path):
+    """A 1:1 image (a mirror-ball probe's shape) is read as lat-long, as the spec says, with one
+    warning per file; 2:1 and odd widths one pixel off are read silently."""
+    import warnings
+
+    from pbrfit.environment import EnvironmentWarning
+    from pbrfit.io import write_image
+
+    for name, shape in (("ok", (4, 8)), ("odd", (5, 9)), ("square", (6, 6))):
+        write_image(tmp_path / f"{name}.exr", np.ones(shape + (3,), np.float32), "float")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for name in ("ok", "odd", "square", "square"):
+            assert load_environment(tmp_path / f"{name}.exr").radiance.shape[:2] == {
+                "ok": (4, 8), "odd": (5, 9), "square": (6, 6)}[name]
+    said = [str(w.message) for w in caught if issubclass(w.category, EnvironmentWarning)]
+    assert len(said) == 1 and "square.exr: environment is 6 x 6, not 2:1" in said[0]
+
+
 def test_resampling_preserves_the_sphere_integral():
     img = jnp.asarray(np.random.default_rng(2).random((16, 32, 3)), jnp.float32)
     total = (np.asarray(img) * texel_solid_angles(16, 32)[..., None]).sum((0, 1))
