@@ -355,10 +355,14 @@ def sample_stack(stack: Float[Array, "K H W C"], shapes: tuple, uv: Float[Array,
                  level: Float[Array, "*b"]) -> Float[Array, "*b C"]:
     """Trilinear sample of a padded level stack at continuous ``level`` (clamped to [0, K-1]).
 
-    Linear in the stack's values and piecewise linear in ``level``, so differentiable w.r.t. both.
+    Linear in the stack's values and piecewise linear in ``level``, so differentiable w.r.t. both;
+    at level 0 and K-1 (roughness 0 and 1) with the derivative from inside (`brdf.clamp_inward`:
+    a clip's is half of it there).
     """
+    from .brdf import clamp_inward
+
     k = stack.shape[0]
-    level = jnp.clip(level, 0.0, k - 1.0)
+    level = clamp_inward(level, 0.0, k - 1.0)
     l0 = jnp.clip(jnp.floor(level), 0, max(k - 2, 0)).astype(jnp.int32)
     t = (level - l0)[..., None]
     poles = _pole_means(stack, shapes)

@@ -213,13 +213,14 @@ def shade(
 
 def shading_inputs(view: ViewInputs, material: Material, wrap: str = "repeat", normal_convention: str = "opengl"):
     """What a view's pixels shade with: (normal, base_color, metallic, roughness, occlusion,
-    emissive), the material sampled at their uv (channels clipped to [0, 1]) and its normal map,
-    if any, applied. occlusion and emissive are None when the material has none."""
+    emissive), the material sampled at their uv (channels clipped to [0, 1], with the derivative
+    from inside at 0 and 1: `brdf.clamp_inward`) and its normal map, if any, applied. occlusion
+    and emissive are None when the material has none."""
     sample = material_at(material, view.uv, wrap)
     normal = view.normal
     if sample.normal is not None:
         normal = apply_normal_map(normal, view.tangent, sample.normal, normal_convention)
-    unit = lambda x: jnp.clip(x, 0.0, 1.0)  # noqa: E731
+    unit = lambda x: brdf.clamp_inward(x, 0.0, 1.0)  # noqa: E731
     return (normal, unit(sample.base_color), unit(sample.metallic), unit(sample.roughness), sample.occlusion,
             sample.emissive)
 

@@ -360,6 +360,18 @@ def test_gradients_wrt_environment_pixels_and_roughness(sky_tables):
     assert float(jnp.sum(g_r * step)) == pytest.approx(float(fd_r), rel=1e-2)  # measured: 8e-4 apart
 
 
+def test_prefiltered_roughness_derivative_at_the_ends_is_from_inside(sky_tables):
+    """At roughness 0 and 1 (the ends of the level stack) the derivative is the one-sided one from
+    inside, not half of it (a clip's at a tie), as `brdf.clamp_inward` keeps the BRDF's."""
+    _, tables = sky_tables
+    d = jnp.asarray([[0.3, 0.5, -0.8]]) / np.linalg.norm([0.3, 0.5, -0.8])
+    f = jax.jit(lambda r: jnp.sum(prefiltered_lookup(tables, d, r)))
+    h = 1e-3
+    for end, inside in ((1.0, 1.0 - h), (0.0, h)):
+        one_sided = (float(f(end)) - float(f(inside))) / (end - inside)
+        assert float(jax.grad(f)(end)) == pytest.approx(one_sided, rel=0.02), end
+
+
 def test_shading_is_finite_over_the_closed_domain(constant_tables):
     _, sh = constant_tables
     n = jnp.tile(jnp.array([[0.0, 0.0, 1.0]]), (5, 1))

@@ -1,5 +1,6 @@
 """Renderer: shading against independent closed forms, texture sampling, normal mapping."""
 
+import dataclasses
 import math
 
 import jax
@@ -102,6 +103,22 @@ def test_shade_gradients_finite_at_extremes():
     for val in (0.0, 1.0):
         grads = jax.grad(loss, argnums=(0, 1, 2))(jnp.full((p, 3), val), jnp.full((p, 1), val), jnp.full((p, 1), val))
         assert all(np.all(np.isfinite(np.asarray(g))) for g in grads)
+
+
+def test_material_gradient_at_its_bounds_is_from_inside():
+    """`radiance_view` clips the sampled material to [0, 1] with the derivative from inside at 0 and
+    1 (a clip's is half of it there): metallic 0, roughness 1 and white base colour keep their
+    whole gradient."""
+    vi, *_ = _plane_view(n=3)
+    loss = jax.jit(lambda m: jnp.sum(radiance_view(vi, m, Model())))
+    h = 1e-3
+    for base, metal, rough, field, step in ((0.5, 0.0, 0.5, "metallic", h), (0.5, 0.5, 1.0, "roughness", -h),
+                                            (1.0, 0.5, 0.5, "base_color", -h)):
+        mat = Material.uniform((base,) * 3, metal, rough, size=2)
+        grad = float(jnp.sum(getattr(jax.grad(loss)(mat), field)))
+        moved = dataclasses.replace(mat, **{field: getattr(mat, field) + step})
+        one_sided = (float(loss(moved)) - float(loss(mat))) / step
+        assert grad == pytest.approx(one_sided, rel=0.02), field
 
 
 # --- textures --------------------------------------------------------------------------------
