@@ -669,24 +669,33 @@ def write_material(directory: str | os.PathLike, material) -> list[Path]:
     ``emissive.exr`` (linear float32). Each file is written atomically, and an optional map's
     file the material lacks is removed, so that the folder reads back (`read_material`) as this
     material. Values a material folder may not hold (NaN, outside [0, 1]; emissive outside
-    [0, inf)) are refused with `CaptureError` before anything is written.
+    [0, inf)), empty maps, metallic and roughness maps of different sizes and a ``directory``
+    that is a file are refused with `CaptureError` before anything is written.
     """
     directory = Path(directory)
     base, metallic, roughness = _np(material.base_color), _np(material.metallic), _np(material.roughness)
     normal, occlusion, emissive = (_np(getattr(material, name, None)) for name in ("normal", "occlusion", "emissive"))
     for name, values, top in (("base_color", base, 1.0), ("metallic", metallic, 1.0), ("roughness", roughness, 1.0),
-                              ("occlusion", occlusion, 1.0), ("emissive", emissive, None)):
-        if values is not None:
+                              ("occlusion", occlusion, 1.0), ("normal", normal, None), ("emissive", emissive, None)):
+        if values is not None and (values.ndim != 3 or values.size == 0):
+            raise CaptureError(f"{directory}: the {name} map must be (H, W, C) with H, W >= 1, got shape {values.shape}")
+        if name == "normal" and values is not None and not np.all(np.isfinite(values)):
+            raise CaptureError(f"{directory}: the normal map holds NaN or inf values")
+        elif name != "normal" and values is not None:
             _checked_map(values, directory, name, top)
-    if normal is not None and not np.all(np.isfinite(normal)):
-        raise CaptureError(f"{directory}: the normal map holds NaN or inf values")
+    if metallic.shape[:2] != roughness.shape[:2]:
+        raise CaptureError(f"{directory}: the metallic {metallic.shape[:2]} and roughness {roughness.shape[:2]} maps "
+                           "differ in size; metallic_roughness.png packs them together")
+    if directory.exists() and not directory.is_dir():
+        raise CaptureError(f"{directory}: is not a folder")
+    orm = _pack_orm(material)  # every check first: nothing is written for a material that is refused
     directory.mkdir(parents=True, exist_ok=True)
     written = [
         write_image(directory / "base_color.exr", base, "float"),
         write_image(directory / "base_color.png", _srgb_encode(base), "uint8"),
         write_image(directory / "metallic.exr", metallic[..., :1], "float"),
         write_image(directory / "roughness.exr", roughness[..., :1], "float"),
-        write_image(directory / "metallic_roughness.png", _pack_orm(material), "uint8", color_space="linear"),
+        write_image(directory / "metallic_roughness.png", orm, "uint8", color_space="linear"),
     ]
     if normal is not None:
         written.append(write_image(directory / "normal.png", _encode_normal(normal), "uint8", color_space="linear"))

@@ -11,6 +11,7 @@ from typing import Optional
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .brdf import safe_normalize
@@ -47,13 +48,20 @@ class Material(eqx.Module):
             value = getattr(self, name)
             if value is None or not hasattr(value, "shape"):
                 continue
-            if value.ndim != 3 or value.shape[-1] != channels:
-                raise ValueError(f"Material.{name} must have shape (H, W, {channels}), got {tuple(value.shape)}")
+            if value.ndim != 3 or value.shape[-1] != channels or min(value.shape[:2]) < 1:
+                raise ValueError(f"Material.{name} must have shape (H, W, {channels}) with H, W >= 1, "
+                                 f"got {tuple(value.shape)}")
 
     @classmethod
     def uniform(cls, base_color, metallic, roughness, size: int = 1) -> "Material":
-        """A material with the same values in every texel of size x size maps."""
-        base = jnp.broadcast_to(jnp.asarray(base_color, jnp.float32).reshape(1, 1, 3), (size, size, 3))
+        """A material with the same values in every texel of size x size maps; ``base_color`` is
+        R, G, B or one grey value."""
+        base = jnp.asarray(base_color, jnp.float32)
+        if base.size not in (1, 3):
+            raise ValueError(f"Material.uniform: base_color must be R, G, B or one value, got shape {base.shape}")
+        if not (isinstance(size, (int, np.integer)) and size >= 1):
+            raise ValueError(f"Material.uniform: size must be an integer >= 1, got {size!r}")
+        base = jnp.broadcast_to(base.reshape(1, 1, -1), (size, size, 3))
         metal = jnp.full((size, size, 1), metallic, jnp.float32)
         rough = jnp.full((size, size, 1), roughness, jnp.float32)
         return cls(base, metal, rough)

@@ -311,10 +311,14 @@ def test_write_material_replaces_an_earlier_material(tmp_path):
     before = {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()}
     for bad, match in ((Material.uniform([1.5, 0.3, 0.4], 0.0, 0.7), "base_color must lie in"),
                        (Material.uniform([0.5, 0.3, 0.4], float("nan"), 0.7), "metallic hold NaN"),
-                       (Material.uniform([0.5, 0.3, 0.4], 0.0, -0.1), "roughness must lie in")):
+                       (Material.uniform([0.5, 0.3, 0.4], 0.0, -0.1), "roughness must lie in"),
+                       (Material(np.full((4, 4, 3), 0.8, np.float32), np.ones((4, 4, 1), np.float32),
+                                 np.full((2, 2, 1), 0.1, np.float32)), r"metallic \(4, 4\) and roughness \(2, 2\)")):
         with pytest.raises(CaptureError, match=match):
             write_material(tmp_path, bad)
     assert {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()} == before
+    with pytest.raises(CaptureError, match="notes.txt: is not a folder"):
+        write_material(tmp_path / "notes.txt", m)
 
 
 def test_read_material_errors(tmp_path):

@@ -190,3 +190,11 @@ def test_material_uniform_and_sampling():
     assert s.normal is None
     with pytest.raises(ValueError, match="metallic"):
         Material(jnp.zeros((2, 2, 3)), jnp.zeros((2, 2)), jnp.zeros((2, 2, 1)))
+    with pytest.raises(ValueError, match=r"roughness must have shape \(H, W, 1\) with H, W >= 1, got \(0, 2, 1\)"):
+        Material(jnp.zeros((2, 2, 3)), jnp.zeros((2, 2, 1)), jnp.zeros((0, 2, 1)))
+    grey = Material.uniform(0.25, 0.0, 0.5, size=2)
+    np.testing.assert_array_equal(np.asarray(grey.base_color), np.full((2, 2, 3), 0.25, np.float32))
+    for args, match in ((((0.5, 0.5), 0.0, 0.5), "base_color must be R, G, B or one value"),
+                        (((0.5,) * 3, 0.0, 0.5, 0), "size must be an integer >= 1, got 0")):
+        with pytest.raises(ValueError, match=match):
+            Material.uniform(*args)
