@@ -297,6 +297,10 @@ def synthesize(
                 from pbrfit.ibl import IBLSettings, build_ibl
 
                 ibl = build_ibl(environment, IBLSettings(), scene.model)
+        elif scene.model.multiscatter:  # punctual lights alone: the energy compensation's tables
+            from pbrfit.ibl import brdf_tables
+
+            ibl = brdf_tables(model=scene.model)
         clean, masks = render_scene(scene, mesh, environment, ibl, progress)
 
         rng = np.random.default_rng([scene.seed, 0x5E5])  # the sensor's own stream

@@ -190,7 +190,7 @@ def model_for_capture(capture, fit: Sequence[str] = ("base_color", "metallic", "
 
 
 def _ibl_for_capture(capture, model: Model):
-    if model.ibl is None:
+    if model.ibl is None and not model.multiscatter:
         return None
     from .views import capture_ibl
 
@@ -1472,7 +1472,19 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
 
         capture = load_capture(capture, require_uv=kwargs.get("maps", "texture") == "texture"
                                or "normal" in kwargs["fit"])
+    from .scene import Capture
+
+    if not isinstance(capture, Capture):
+        raise ValueError(f"capture: expected a pbrfit.scene.Capture or a capture folder, got {type(capture).__name__}")
+    if model is not None and not isinstance(model, Model):
+        raise ValueError(f"model: expected a pbrfit.Model, got {model!r}")
     model = model_for_capture(capture, kwargs["fit"], kwargs["fixed"]) if model is None else model
+    if model.ibl == "monte_carlo":
+        raise ValueError("model: Model(ibl='monte_carlo') is the reference integrator, not a fit's shading; "
+                         "use 'split_sum' or 'per_pixel'")
+    if model.ibl is not None and capture.environment is None:
+        raise ValueError(f"model: Model(ibl={model.ibl!r}) shades an environment light, and the capture "
+                         f"{capture.root} has none (leave ibl at None)")
     if ibl is not None and model.ibl is not None:
         model = model.replace(ibl=ibl)
     _check_normals(model, kwargs["fit"])

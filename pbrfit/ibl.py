@@ -52,6 +52,7 @@ __all__ = [
     "IBLSettings",
     "IBLTables",
     "build_ibl",
+    "brdf_tables",
     "brdf_lut",
     "specular_albedo",
     "diffuse_lut",
@@ -319,6 +320,18 @@ def build_ibl(env: Environment, settings: IBLSettings = IBLSettings(), model: Op
     dif = diffuse_lut(settings.lut_size, settings.lut_samples, model).astype(pre.dtype)
     return IBLTables(irr, pre, spec[..., :2], dif, spec[..., 2:], settings.irradiance, shapes,
                      env.world_up, env.rotation_deg, settings.specular_direction)
+
+
+def brdf_tables(settings: IBLSettings = IBLSettings(), model: Optional[Model] = None) -> IBLTables:
+    """The split sum's BRDF tables alone (LUT, diffuse and dielectric albedo), with an empty
+    environment (black irradiance, one black prefiltered texel): what ``Model(multiscatter=True)``
+    reads for its energy compensation (`brdf.energy_compensation`, the DFG LUT) under punctual
+    lights alone, where there is no environment to build `build_ibl` from."""
+    model = model or Model()
+    spec = _specular_tables(settings.lut_size, settings.lut_samples, model)
+    dif = diffuse_lut(settings.lut_size, settings.lut_samples, model)
+    return IBLTables(jnp.zeros((9, 3), spec.dtype), jnp.zeros((1, 1, 1, 3), spec.dtype), spec[..., :2], dif,
+                     spec[..., 2:], "sh9", ((1, 1),))
 
 
 def _diffuse_albedo(tables, n_dot_v, roughness, base_color, metallic, f0, model):

@@ -72,12 +72,15 @@ def capture_environment(capture):
 
 
 def capture_ibl(capture, settings=None, environment=None, model: Optional[Model] = None):
-    """Split-sum tables for the capture's environment (or `environment`), or None without one;
-    `model` picks the lobes the tables hold (see `pbrfit.ibl.build_ibl`)."""
+    """Split-sum tables for the capture's environment (or `environment`); `model` picks the lobes
+    the tables hold (see `pbrfit.ibl.build_ibl`). Without an environment: the BRDF tables alone
+    where ``model.multiscatter`` reads them (`pbrfit.ibl.brdf_tables`), else None."""
+    from .ibl import IBLSettings, brdf_tables, build_ibl
+
     env = environment if environment is not None else capture_environment(capture)
     if env is None:
-        return None
-    from .ibl import IBLSettings, build_ibl
+        multiscatter = model is not None and model.multiscatter
+        return brdf_tables(settings if settings is not None else IBLSettings(), model) if multiscatter else None
 
     return build_ibl(env, settings if settings is not None else IBLSettings(), model)
 
@@ -114,11 +117,26 @@ def render_capture(
     """Render every frame as its file would hold it: [(image (H, W, 3), alpha (H, W))].
 
     Exposure, tone map and color space follow each frame; past the mesh, the camera sees the
-    environment (or black without one). Without `model`, the capture's
-    (`model_for_capture`); without `ibl`, built from the capture's environment when the model
-    needs it.
+    environment (or black without one). `capture`: a `pbrfit.scene.Capture` or its folder.
+    Without `model`, the capture's (`model_for_capture`); without `ibl`, built from the
+    capture's environment when the model needs it. A material holding NaN or inf, or a model
+    that shades an environment the capture lacks, is refused (`ValueError`); material values
+    outside [0, 1] are clipped (`pbrfit.render.shading_inputs`).
     """
+    from .scene import Capture, load_capture
+
+    if isinstance(capture, (str, os.PathLike)):
+        capture = load_capture(capture, require_uv=max(material.resolution) > 1)
+    if not isinstance(capture, Capture):
+        raise ValueError(f"capture: expected a pbrfit.scene.Capture or a capture folder, got {type(capture).__name__}")
+    for name in ("base_color", "metallic", "roughness", "normal", "occlusion", "emissive"):
+        values = getattr(material, name)
+        if values is not None and not np.all(np.isfinite(np.asarray(values))):
+            raise ValueError(f"material: the {name} map holds NaN or inf values")
     model = model if model is not None else model_for_capture(capture, material)
+    if model.ibl in ("split_sum", "per_pixel", "monte_carlo") and ibl is None and capture.environment is None:
+        raise ValueError(f"model: Model(ibl={model.ibl!r}) shades an environment light, and the capture "
+                         f"{capture.root} has none")
     environment = capture_environment(capture)
     if ibl is None and (model.ibl == "split_sum" or model.multiscatter):
         ibl = capture_ibl(capture, environment=environment, model=model)

@@ -842,3 +842,35 @@ def test_repair_puts_back_the_clusters_judged_no_better(monkeypatch):
     assert p["texels_kept"] == better.sum() and not np.array_equal(x[better], x0[better])
     energy = float(jax.jit(objective)(jnp.asarray(x), _texel_problem(truth)))
     np.testing.assert_allclose(res.report["final_loss"], energy, rtol=1e-3)
+
+
+def test_models_on_a_capture_without_an_environment(tmp_path):
+    """Under punctual lights alone: multiscatter reads the BRDF tables built without an
+    environment (`pbrfit.ibl.brdf_tables`), in `render_capture` and `fit`; a model that shades an
+    environment is refused at once, as are a capture that is not one and a NaN material."""
+    from _capture_fixtures import base_capture_dict, write_capture
+
+    from pbrfit.scene import load_capture
+    from pbrfit.views import render_capture
+
+    data = base_capture_dict()
+    del data["environment"]
+    root = write_capture(tmp_path / "cap", data)
+    capture = load_capture(root)
+    material = Material.uniform((0.9, 0.9, 0.9), 0.0, 0.6, size=2)
+    (plain, alpha), _ = render_capture(root, material)  # a folder, as fit takes
+    (multi, _), _ = render_capture(capture, material, model=Model(multiscatter=True))
+    lit = (alpha > 0) & (plain.sum(-1) > 1e-3)
+    gain = multi[lit] / plain[lit]
+    assert np.all(gain >= 1.0 - 1e-6) and 1.0 < gain.max() < 1.2  # compensation adds what masking lost
+    result = pbrfit.fit(capture, maps="none", model=Model(multiscatter=True), max_steps=2)
+    assert result.report["model"]["multiscatter"] and np.isfinite(result.report["final_loss"])
+    for call, match in ((lambda: render_capture(capture, material, model=Model(ibl="split_sum")), "has none"),
+                        (lambda: pbrfit.fit(capture, model=Model(ibl="split_sum")), "shades an environment light"),
+                        (lambda: pbrfit.fit(capture, model=Model(ibl="monte_carlo")), "reference integrator"),
+                        (lambda: pbrfit.fit(capture, model="ggx"), "expected a pbrfit.Model"),
+                        (lambda: pbrfit.fit(42), "expected a pbrfit.scene.Capture or a capture folder, got int"),
+                        (lambda: render_capture(capture, Material.uniform((0.5,) * 3, float("nan"), 0.5)),
+                         "metallic map holds NaN")):
+        with pytest.raises(ValueError, match=match):
+            call()
