@@ -108,8 +108,11 @@ def load_environment(path, world_up: str = "+y", intensity: float = 1.0,
     path = Path(path)
     if world_up not in WORLD_UPS:
         raise CaptureError(f"{path}: world_up must be one of {', '.join(WORLD_UPS)}, got {world_up!r}")
-    if not (isinstance(intensity, (int, float)) and math.isfinite(intensity) and intensity >= 0):
+    real = lambda x: isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))  # noqa: E731
+    if not (real(intensity) and math.isfinite(intensity) and intensity >= 0):
         raise CaptureError(f"{path}: environment intensity must be a finite number >= 0, got {intensity!r}")
+    if not (real(rotation_deg) and math.isfinite(rotation_deg)):
+        raise CaptureError(f"{path}: environment rotation_deg must be a finite number, got {rotation_deg!r}")
     if not path.is_file():
         raise CaptureError(f"{path}: environment file not found")
     pixels, info = read_image(path, "environment")  # a cropped OpenEXR is placed in its display window
@@ -133,7 +136,7 @@ def load_environment(path, world_up: str = "+y", intensity: float = 1.0,
         raise CaptureError(
             f"{path}: {int(bad.any(-1).sum())} environment pixels with NaN or inf values (first at row {row}, column {col})"
         )
-    pixels = np.maximum(pixels, 0.0) * np.float32(intensity)
+    pixels = np.maximum(pixels, 0.0) * np.float32(float(intensity))
     return Environment(jnp.asarray(pixels, jnp.float32), world_up, float(rotation_deg))
 
 

@@ -137,6 +137,11 @@ def test_load_environment(tmp_path):
     np.testing.assert_allclose(np.asarray(env.radiance), 2.0 * np.repeat(pix, 3, -1), rtol=1e-6)
     with pytest.raises(CaptureError, match="not found"):
         load_environment(tmp_path / "missing.hdr")
+    assert float(load_environment(path, intensity=np.float32(2.0)).radiance[0, 0, 0]) == pytest.approx(2.0 * pix[0, 0, 0])
+    for kwargs, match in ((dict(rotation_deg=float("nan")), "rotation_deg must be a finite number, got nan"),
+                          (dict(intensity=True), "intensity must be a finite number >= 0, got True")):
+        with pytest.raises(CaptureError, match=match):
+            load_environment(path, **kwargs)
     (tmp_path / "junk.exr").write_text("not an image")
     with pytest.raises(CaptureError, match="junk.exr"):
         load_environment(tmp_path / "junk.exr")
