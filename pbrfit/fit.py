@@ -504,7 +504,13 @@ def fit_observations(
     "footprint" entry gives both energies, the steps and the choice."""
     if noise_level not in NOISE_LEVELS:
         raise ValueError(f"noise_level must be one of {', '.join(NOISE_LEVELS)}, got {noise_level!r}")
+    _check_kinds(coarse_to_fine=coarse_to_fine, search=search, select_footprint=select_footprint,
+                 background_compile=background_compile, uniform_check=uniform_check, repair=repair,
+                 progress=progress, level_factor=level_factor, devices=devices)
     fit, fixed = fit_arguments(fit, fixed)
+    if "metallic" in fit and not model.metallic:
+        raise ValueError("fit: metallic is fitted, and the model has no metal lobe (Model(metallic=False)): "
+                         "the images could not say anything about it")
     check_options(resolution=resolution, maps=maps, solver=solver, max_steps=max_steps, coarse_steps=coarse_steps,
                   rtol=rtol, atol=atol, cg_rtol=cg_rtol, loss_scale=loss_scale, smooth=smooth,
                   coarse_to_fine=coarse_to_fine, continuation=continuation, uncertainty_radius=uncertainty_radius)
@@ -518,9 +524,35 @@ def fit_observations(
     return result
 
 
+def _check_kinds(*, progress, level_factor, devices, **switches) -> None:
+    """`ValueError` for arguments of the wrong kind, before any work: a switch that is not a
+    bool (``search="no"`` read as true), a ``progress`` that cannot be called (it failed inside
+    the compiled solve), a ``level_factor`` below 2, ``devices`` that are not JAX devices."""
+    for name, value in switches.items():
+        if not isinstance(value, (bool, np.bool_)):
+            raise ValueError(f"{name}: expected True or False, got {value!r}")
+    if progress is not None and not callable(progress):
+        raise ValueError(f"progress: expected a function of one dict, or None, got {progress!r}")
+    if isinstance(level_factor, (bool, np.bool_)) or not isinstance(level_factor, (int, np.integer)) \
+            or level_factor < 2:
+        raise ValueError(f"level_factor: expected an integer >= 2, got {level_factor!r}")
+    if devices is not None:
+        listed = [devices] if isinstance(devices, (str, bytes)) else devices
+        try:
+            listed = list(listed)
+        except TypeError:
+            listed = [devices]
+        if not listed or not all(isinstance(d, jax.Device) for d in listed):
+            raise ValueError(f"devices: expected a sequence of JAX devices (jax.devices()), got {devices!r}")
+
+
 #: `fit_observations`'s defaults of the options `check_options` checks.
 _OPTION_DEFAULTS = {name: param.default for name, param in inspect.signature(fit_observations).parameters.items()
                     if name in inspect.signature(check_options).parameters}
+#: ... and of those `_check_kinds` checks.
+_KIND_DEFAULTS = {name: inspect.signature(fit_observations).parameters[name].default
+                  for name in ("coarse_to_fine", "search", "select_footprint", "background_compile", "uniform_check",
+                               "repair", "progress", "level_factor", "devices")}
 
 
 def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
@@ -1371,6 +1403,11 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     `pbrfit.scene.load_capture`).
 
     Keyword arguments (all optional):
+        cache_dir: a folder for the G-buffers (and per-pixel IBL integrals) computed from the
+            capture, read back by later fits of the same capture and settings; default None: none
+            kept (the command line's ``--cache``).
+        views: precomputed `pbrfit.render.ViewInputs`, one per frame in the capture's order (as
+            `pbrfit.views.capture_views` makes them), instead of those computed from the capture.
         pixel_samples: n: shade n × n samples per pixel and compare their mean radiance with the
             pixel (`pbrfit.observations`, pixel footprints): the model of an antialiased or
             supersampled capture (1: pixel centres). The grid start, the continuation's first
@@ -1467,6 +1504,12 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
         raise ValueError(f"ibl must be one of {', '.join(IBL_MODES)}, got {ibl!r}")
     kwargs["fit"], kwargs["fixed"] = fit_arguments(kwargs.get("fit"), kwargs.get("fixed"))
     check_options(**{name: kwargs.get(name, default) for name, default in _OPTION_DEFAULTS.items()})
+    _check_kinds(**{name: kwargs.get(name, default) for name, default in _KIND_DEFAULTS.items()})
+    if model is not None and not isinstance(model, Model):
+        raise ValueError(f"model: expected a pbrfit.Model, got {model!r}")
+    if model is not None and "metallic" in kwargs["fit"] and not model.metallic:
+        raise ValueError("fit: metallic is fitted, and the model has no metal lobe (Model(metallic=False)): "
+                         "the images could not say anything about it")
     if isinstance(capture, (str, os.PathLike)):
         from .scene import load_capture
 
@@ -1476,8 +1519,6 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
 
     if not isinstance(capture, Capture):
         raise ValueError(f"capture: expected a pbrfit.scene.Capture or a capture folder, got {type(capture).__name__}")
-    if model is not None and not isinstance(model, Model):
-        raise ValueError(f"model: expected a pbrfit.Model, got {model!r}")
     model = model_for_capture(capture, kwargs["fit"], kwargs["fixed"]) if model is None else model
     if model.ibl == "monte_carlo":
         raise ValueError("model: Model(ibl='monte_carlo') is the reference integrator, not a fit's shading; "

@@ -249,6 +249,11 @@ def observations_from_capture(capture, cache_dir=None, views=None, pixel_samples
     n = int(pixel_samples)
     if n != pixel_samples or not 1 <= n <= MAX_PIXEL_SAMPLES:
         raise ValueError(f"pixel_samples must be an integer from 1 to {MAX_PIXEL_SAMPLES}, got {pixel_samples!r}")
+    if views is not None and (isinstance(views, (str, bytes)) or not hasattr(views, "__len__")
+                              or len(views) != len(capture.frames)
+                              or not all(isinstance(v, ViewInputs) for v in views)):
+        raise ValueError(f"views: expected one pbrfit.render.ViewInputs per frame ({len(capture.frames)}), "
+                         f"got {views!r:.80}")
     if n > 1:
         if views is not None:
             raise ValueError("precomputed views hold pixel centres only: pass views=None with pixel_samples > 1")

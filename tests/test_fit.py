@@ -227,6 +227,10 @@ def test_fit_arguments_resolve_and_refuse():
     (dict(maps="none", coarse_to_fine=True), "maps='none'"),
     (dict(cg_rtol=0.0), "cg_rtol"), (dict(cg_rtol=float("nan")), "cg_rtol"), (dict(coarse_steps=-1), "coarse_steps"),
     (dict(uncertainty_radius=3), "uncertainty_radius"), (dict(max_steps=True), "max_steps"),
+    (dict(search="no"), "search: expected True or False"), (dict(repair=1), "repair: expected True or False"),
+    (dict(progress=5), "progress: expected a function"), (dict(level_factor=0), "level_factor: expected an integer >= 2"),
+    (dict(devices="cpu"), "devices: expected a sequence of JAX devices"), (dict(devices=[]), "devices"),
+    (dict(model=Model(metallic=False)), "metallic is fitted, and the model has no metal lobe"),
 ])
 def test_fit_refuses_options_out_of_range_or_unread(options, match):
     """Refused before any work (no compile: these run in milliseconds); the command line refuses
@@ -894,6 +898,7 @@ def test_models_on_a_capture_without_an_environment(tmp_path):
                         (lambda: pbrfit.fit(capture, model=Model(ibl="monte_carlo")), "reference integrator"),
                         (lambda: pbrfit.fit(capture, model="ggx"), "expected a pbrfit.Model"),
                         (lambda: pbrfit.fit(42), "expected a pbrfit.scene.Capture or a capture folder, got int"),
+                        (lambda: pbrfit.fit(capture, views=[1, 2]), r"views: expected one pbrfit.render.ViewInputs per frame \(2\)"),
                         (lambda: render_capture(capture, Material.uniform((0.5,) * 3, float("nan"), 0.5)),
                          "metallic map holds NaN")):
         with pytest.raises(ValueError, match=match):
