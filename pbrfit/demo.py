@@ -26,12 +26,12 @@ def recovery_table(fitted, truth, sigma, coverage) -> list[dict]:
     channels whose error is within 2σ (≈ 95% when the uncertainty is honest)."""
     import numpy as np
 
-    import jax
+    from .textures import resample_map
 
     x = np.concatenate([np.asarray(fitted.base_color), np.asarray(fitted.metallic), np.asarray(fitted.roughness)], -1)
     t = np.concatenate([np.asarray(truth.base_color), np.asarray(truth.metallic), np.asarray(truth.roughness)], -1)
     if t.shape != x.shape:  # truth at another resolution: resampled as `pbrfit.fit.map_rmse` does
-        t = np.asarray(jax.image.resize(t, x.shape, "linear"))
+        t = resample_map(t, x.shape[:2])
     sig = np.asarray(sigma)
     seen = np.asarray(coverage) > 0
     rows = []

@@ -71,7 +71,7 @@ from .selection import (NEWTON_STEPS, SELECTABLE, WALD_MARGIN, aic_statistic, ne
                         profile_hessian, texel_precisions, uniform_direction, wald_statistic, weighted_value)
 from .solvers import (CG_RTOL, LOSSES, Problem, linearize, neighbour_blocks, normal_blocks, objective,
                       pixel_residuals, structured_lm)
-from .textures import sample_bilinear
+from .textures import resample_map, sample_bilinear
 from .transfer import to_device
 from .uncertainty import (MAX_UNCERTAINTY_RADIUS, WINDOW_RADIUS, residual_variance, window_radii,
                           window_standard_errors)
@@ -259,7 +259,7 @@ def _fixed_values(fixed: Mapping, shape: tuple[int, int], k: int = 5) -> np.ndar
             raise ValueError(f"a fixed {name!r} map is not supported: fit it or leave it out")
         v = np.asarray(value, np.float32)
         if v.ndim == 3:
-            v = np.asarray(jax.image.resize(v, shape + (v.shape[-1],), "linear"))
+            v = resample_map(v, shape)
         out[..., chans] = np.broadcast_to(v.reshape(v.shape[:-1] + (-1,)) if v.ndim == 3 else v, shape + (len(chans),))
     return out
 
@@ -349,7 +349,8 @@ def fit_arguments(fit=None, fixed: Optional[Mapping] = None,
     (default): every map of `MATERIAL_MAPS` that ``fixed`` does not hold. ``fixed``: {map: value}
     for maps of `MATERIAL_MAPS`, finite and in [0, 1]: base colour as one grey value, R, G, B or an
     (H, W, 3) map; metallic and roughness as one value or an (H, W) or (H, W, 1) map (any size:
-    resampled to the fit's). A map may not be both fitted and held, and something must be fitted.
+    resampled to the fit's by `pbrfit.textures.resample_map`). A map may not be both fitted and
+    held, and something must be fitted.
     Returns (fit, fixed) with the held values as float32 arrays of shape (), (3,), (H, W, C)."""
     held = {}
     for name, value in dict(fixed or {}).items():
@@ -1616,8 +1617,8 @@ def _check_finite(result: FitResult, capture) -> None:
 def map_rmse(truth: Material, result, coverage: Optional[np.ndarray] = None) -> dict:
     """Per-map RMSE of a fitted material (or `FitResult`) against the truth, over observed texels.
 
-    The truth is resampled to the fitted resolution when sizes differ: ``jax.image.resize``,
-    linear, antialiased (a widened triangle filter) when it shrinks.
+    The truth is resampled to the fitted resolution when sizes differ, as a held map is
+    (`pbrfit.textures.resample_map`: block means for whole factors, else linear).
     """
     material = result.material if isinstance(result, FitResult) else result
     if coverage is None and isinstance(result, FitResult):
@@ -1628,7 +1629,7 @@ def map_rmse(truth: Material, result, coverage: Optional[np.ndarray] = None) -> 
         t = np.asarray(getattr(truth, name), np.float32)
         f = np.asarray(getattr(material, name), np.float32)
         if t.shape[:2] != shape:
-            t = np.asarray(jax.image.resize(t, shape + t.shape[2:], "linear"))
+            t = resample_map(t, shape)
         seen = np.ones(shape, bool) if coverage is None else np.asarray(coverage) > 0
         err = (f - t)[seen]
         out[name] = float(np.sqrt(np.mean(err ** 2))) if err.size else float("nan")

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
-__all__ = ["WRAPS", "bilinear_weights", "sample_bilinear", "downsample2x", "build_mips"]
+__all__ = ["WRAPS", "bilinear_weights", "sample_bilinear", "downsample2x", "build_mips", "resample_map"]
 
 WRAPS = ("repeat", "clamp")
 
@@ -80,3 +80,19 @@ def build_mips(texture: Float[ArrayLike, "H W C"]) -> list[Float[Array, "h w C"]
     while levels[-1].shape[0] > 1 or levels[-1].shape[1] > 1:
         levels.append(downsample2x(levels[-1]))
     return levels
+
+
+def resample_map(values, shape: tuple[int, int]):
+    """An (H, W, C) map at another (h, w), as a host array: where H and W are whole multiples of
+    h and w, each texel is the mean of its block of the map (a mip level's box filter: a map
+    upsampled by repeating texels comes back exactly); otherwise ``jax.image.resize``, linear,
+    antialiased (a widened triangle filter) when it shrinks."""
+    import numpy as np
+
+    v = np.asarray(values, np.float32)
+    (h0, w0), (h, w) = v.shape[:2], tuple(shape)
+    if (h0, w0) == (h, w):
+        return v
+    if h0 % h == 0 and w0 % w == 0:
+        return v.reshape(h, h0 // h, w, w0 // w, *v.shape[2:]).mean(axis=(1, 3))
+    return np.asarray(jax.image.resize(v, (h, w) + v.shape[2:], "linear"))

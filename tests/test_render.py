@@ -129,6 +129,16 @@ def test_texel_centres_return_texel_values():
     np.testing.assert_allclose(np.asarray(sample_bilinear(tex, uv)), np.asarray(tex), atol=1e-5)
 
 
+def test_resample_map_box_filters_whole_factors():
+    from pbrfit.textures import resample_map
+
+    small = np.random.default_rng(0).random((4, 6, 1)).astype(np.float32)
+    big = np.repeat(np.repeat(small, 2, axis=0), 3, axis=1)  # each texel repeated 2 x 3
+    np.testing.assert_allclose(resample_map(big, (4, 6)), small, rtol=1e-6)  # a held map comes back
+    np.testing.assert_allclose(resample_map(big, (1, 1))[0, 0], big.mean((0, 1)), rtol=1e-6)
+    assert resample_map(big, (5, 7)).shape == (5, 7, 1) and resample_map(small, (8, 12)).shape == (8, 12, 1)
+
+
 def test_bilinear_midpoint_and_wrap_modes():
     tex = jnp.array([[[0.0], [1.0]], [[2.0], [3.0]]])  # row 0 = v = 0
     mid = sample_bilinear(tex, jnp.array([0.5, 0.5]))
