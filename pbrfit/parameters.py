@@ -120,17 +120,22 @@ def clip_to_bounds(x: Float[ArrayLike, "... K"]) -> Float[Array, "... K"]:
 
 
 def from_sine(z: Float[ArrayLike, "... K"]) -> Float[Array, "... K"]:
-    """Bounded values from unconstrained storage: lo + (hi - lo) (1 + sin z) / 2."""
+    """Bounded values from unconstrained storage: lo + (hi - lo) (1 + sin z) / 2 (the bounds in
+    z's precision, so that float64 reaches them exactly)."""
     k = jnp.shape(z)[-1]
-    lo = jnp.asarray(lower(k))
-    hi = jnp.asarray(upper(k))
+    dtype = jnp.result_type(z, jnp.float32)
+    lo = jnp.asarray(lower(k), dtype)
+    hi = jnp.asarray(upper(k), dtype)
     return lo + (hi - lo) * 0.5 * (1.0 + jnp.sin(z))
 
 
 def to_sine(x: Float[ArrayLike, "... K"]) -> Float[Array, "... K"]:
-    """The storage ``z`` in [-π/2, π/2] of bounded values (inverse of `from_sine` on that branch)."""
+    """The storage ``z`` in [-π/2, π/2] of bounded values (inverse of `from_sine` on that branch).
+    Its derivative is infinite at the bounds (arcsin's at ±1), where `from_sine`'s is 0: the
+    optimistix solvers start inside them (`pbrfit.optx_solvers.START_MARGIN`)."""
     k = jnp.shape(x)[-1]
-    lo = jnp.asarray(lower(k))
-    hi = jnp.asarray(upper(k))
+    dtype = jnp.result_type(x, jnp.float32)
+    lo = jnp.asarray(lower(k), dtype)
+    hi = jnp.asarray(upper(k), dtype)
     t = jnp.clip(2.0 * (jnp.asarray(x) - lo) / (hi - lo) - 1.0, -1.0, 1.0)
     return jnp.arcsin(t)

@@ -95,6 +95,10 @@ def test_sine_storage_reaches_bounds_and_inverts():
     x = np.array([[0.0, 0.3, 1.0, 0.5, LOWER[4]], [1.0, 0.0, 0.2, 1.0, 1.0]], np.float32)
     np.testing.assert_allclose(np.asarray(from_sine(to_sine(x))), x, atol=1e-6)
     assert np.all(np.asarray(from_sine(jnp.full((5,), 100.0))) <= UPPER)
+    with jax.enable_x64(True):  # the bounds in float64 too: reached exactly (they were float32's)
+        bounds = jnp.asarray(np.stack([LOWER, UPPER]), jnp.float64)
+        back = from_sine(to_sine(bounds))
+        assert back.dtype == jnp.float64 and np.array_equal(np.asarray(back), np.asarray(bounds))
 
 
 def test_normal_slopes_round_trip_and_bounds():
