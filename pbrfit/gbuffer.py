@@ -52,6 +52,7 @@ from .raycast import NORM_FLOOR, PARALLEL_EPS, cast, has_embree, make_first_hit
 
 __all__ = [
     "Camera",
+    "camera_axes",
     "GBuffer",
     "compute_gbuffer",
     "vertex_tangents",
@@ -89,12 +90,43 @@ def _any_perpendicular(n: Float[np.ndarray, "*b 3"]) -> Float[np.ndarray, "*b 3"
 # ------------------------------------------------------------------------------------- camera
 
 
+#: The largest |cos| between two camera axes (columns of the rotation, normalised) taken as perpendicular.
+ORTHONORMAL_TOL = 1e-3
+#: Camera axes whose lengths are within this of 1 are taken as they are (not renormalised).
+UNIT_TOL = 1e-9
+#: A camera axis (rotation column) shorter than this is zero: it has no direction to normalise.
+AXIS_FLOOR = 1e-12
+
+
+def camera_axes(c2w: Float[np.ndarray, "4 4"], label: str = "camera: transform") -> Float[np.ndarray, "4 4"]:
+    """A camera-to-world matrix with unit axes: a scale on the axes (a scaled camera object in
+    Blender) changes no ray and is taken out; axes that are not perpendicular (a shear), zero or
+    mirrored (a left-handed frame) are no camera: `CaptureError`, worded with ``label``."""
+    m = np.asarray(c2w, np.float64)
+    norms = np.linalg.norm(m[:3, :3], axis=0)
+    if np.min(norms) < AXIS_FLOOR:
+        raise CaptureError(f"{label}: a camera axis (rotation column) is zero")
+    axes = m[:3, :3] / norms
+    gram = axes.T @ axes
+    if np.max(np.abs(gram - np.eye(3))) > ORTHONORMAL_TOL:
+        raise CaptureError(f"{label}: the camera's axes (rotation columns) are not "
+                           f"perpendicular (largest |cos| between two {np.max(np.abs(gram - np.eye(3))):.3g})")
+    if np.linalg.det(axes) < 0:
+        raise CaptureError(f"{label}: the camera's axes are mirrored (a left-handed "
+                           "frame); expected +X right, +Y up, looking down -Z")
+    if np.max(np.abs(norms - 1.0)) > UNIT_TOL:  # (a unit frame as given: its values unchanged)
+        m = m.copy()
+        m[:3, :3] = axes
+    return m
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Camera:
     """A pinhole camera: camera-to-world matrix and intrinsics in pixels.
 
     OpenGL convention (looks down -Z, +Y up, +X right); pixel centres at (j + 0.5, i + 0.5),
-    row 0 at the top. Equality and hashing compare values.
+    row 0 at the top. Equality and hashing compare values. ``c2w``'s axes are scaled to unit
+    length; zero, sheared or mirrored axes are refused (`camera_axes`).
     """
 
     c2w: Float[np.ndarray, "4 4"]
@@ -109,8 +141,7 @@ class Camera:
         c2w = np.array(self.c2w, dtype=np.float64)
         if c2w.shape != (4, 4) or not np.all(np.isfinite(c2w)):
             raise CaptureError(f"camera: transform must be a finite 4x4 matrix, got shape {c2w.shape}")
-        if abs(np.linalg.det(c2w[:3, :3])) < NORM_FLOOR:
-            raise CaptureError("camera: transform rotation part is singular")
+        c2w = np.array(camera_axes(c2w), dtype=np.float64)  # unit, perpendicular, right-handed axes
         c2w.setflags(write=False)
         object.__setattr__(self, "c2w", c2w)
         for name in ("fx", "fy", "cx", "cy"):

@@ -56,7 +56,7 @@ from typing import Any, Mapping, Optional
 import numpy as np
 
 from .errors import CaptureError
-from .gbuffer import Camera
+from .gbuffer import Camera, camera_axes
 from .io import _LDR_MAX, ImageInfo, _srgb_decode, color_channels, data_window_mask, read_image, read_image_info
 from .lights import FLOAT32_MAX, Light, _loc, _number, _triple, color_and_intensity, flash_light, light_from_json
 from .mesh import load_mesh
@@ -116,12 +116,6 @@ _SRGB_FORMATS = ("png", "jpeg")
 _MIN_UNPREMULTIPLY_ALPHA = 1.0 / 256.0
 # The last row of a camera-to-world matrix must be (0, 0, 0, 1) to this tolerance.
 _AFFINE_ROW_TOL = 1e-6
-#: The largest |cos| between two camera axes (columns of the rotation, normalised) taken as perpendicular.
-_ORTHONORMAL_TOL = 1e-3
-#: Camera axes whose lengths are within this of 1 are taken as they are (not renormalised).
-_UNIT_TOL = 1e-9
-#: A camera axis (rotation column) shorter than this is zero: it has no direction to normalise.
-_AXIS_FLOOR = 1e-12
 #: The largest |exposure| in EV a frame may have: 2^64 ≈ 1.8e19 leaves float32 room for the radiance.
 MAX_EXPOSURE = 64.0
 
@@ -312,23 +306,7 @@ def _matrix(frame: Mapping, where: str) -> np.ndarray:
         raise CaptureError(f"{_loc(where, 'transform_matrix')}: values beyond float32's range (|x| <= 3.4e38)")
     if np.max(np.abs(m[3] - [0.0, 0.0, 0.0, 1.0])) > _AFFINE_ROW_TOL:
         raise CaptureError(f"{_loc(where, 'transform_matrix')}: last row must be [0, 0, 0, 1], got {m[3].tolist()}")
-    # a camera's axes: a scale on them (a scaled camera object in Blender) changes no ray and is
-    # taken out; axes that are not perpendicular (a shear) or a mirrored (left-handed) frame are no camera
-    norms = np.linalg.norm(m[:3, :3], axis=0)
-    if np.min(norms) < _AXIS_FLOOR:
-        raise CaptureError(f"{_loc(where, 'transform_matrix')}: a camera axis (rotation column) is zero")
-    axes = m[:3, :3] / norms
-    gram = axes.T @ axes
-    if np.max(np.abs(gram - np.eye(3))) > _ORTHONORMAL_TOL:
-        raise CaptureError(f"{_loc(where, 'transform_matrix')}: the camera's axes (rotation columns) are not "
-                           f"perpendicular (largest |cos| between two {np.max(np.abs(gram - np.eye(3))):.3g})")
-    if np.linalg.det(axes) < 0:
-        raise CaptureError(f"{_loc(where, 'transform_matrix')}: the camera's axes are mirrored (a left-handed "
-                           "frame); expected +X right, +Y up, looking down -Z")
-    if np.max(np.abs(norms - 1.0)) > _UNIT_TOL:  # (a unit frame as given: its values unchanged)
-        m = m.copy()
-        m[:3, :3] = axes
-    return m
+    return camera_axes(m, _loc(where, "transform_matrix"))
 
 
 def _camera(top: Mapping, frame: Mapping, c2w: np.ndarray, width: int, height: int, where: str, name: str, image: Path) -> Camera:

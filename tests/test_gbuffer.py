@@ -114,6 +114,14 @@ def test_camera_validation_and_equality():
     a = Camera.from_fov(np.eye(4), 0.7, 8, 6)
     b = Camera.from_fov(np.eye(4).tolist(), 0.7, 8, 6)
     assert a == b and hash(a) == hash(b) and a != Camera.from_fov(np.eye(4), 0.8, 8, 6)
+    # as the capture loader reads transform_matrix: scaled axes are made unit (the same rays),
+    # zero, sheared or mirrored ones are refused
+    scaled = Camera.from_fov(np.diag([2.0, 0.5, 3.0, 1.0]), 0.7, 8, 6)
+    assert scaled == a and np.allclose(scaled.rays()[1], a.rays()[1])
+    for c2w, match in ((np.diag([1.0, 1.0, -1.0, 1.0]), "mirrored"), (np.diag([1.0, 0.0, 1.0, 1.0]), "is zero"),
+                       ([[1, 0.5, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "not perpendicular")):
+        with pytest.raises(CaptureError, match=f"camera: transform: .*{match}"):
+            Camera.from_fov(c2w, 0.7, 8, 6)
 
 
 PLANE_CAM = Camera.from_fov(look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0)), 0.5, 24, 20)
