@@ -530,6 +530,8 @@ def evaluate_cosines(
     n_dot_v = jnp.asarray(n_dot_v)
     n_dot_l = jnp.asarray(n_dot_l)
     base_color = jnp.asarray(base_color)
+    if base_color.ndim == 0 or base_color.shape[-1] != 3:
+        raise ValueError(f"base_color must be linear RGB, shape (*batch, 3); got shape {base_color.shape}")
     metallic = per_point(metallic, name="metallic")
     roughness = clamp_inward(per_point(roughness, name="roughness"), 0.0, 1.0)
     lit = (n_dot_v > 0.0) & (n_dot_l > 0.0)
@@ -575,6 +577,9 @@ def evaluate(
     one of 1 (*batch, 1), as `evaluate_cosines` takes them (`per_point`). See `evaluate_cosines`.
     """
     n, v, l = (jnp.asarray(x) for x in (n, v, l))
+    for name, x in (("n", n), ("v", v), ("l", l), ("base_color", base_color)):
+        if jnp.ndim(x) == 0 or jnp.shape(x)[-1] != 3:
+            raise ValueError(f"{name} must end in an axis of 3 (*batch, 3); got shape {jnp.shape(x)}")
     rank = max(n.ndim, v.ndim, l.ndim, jnp.ndim(base_color)) - 1
     n_dot_v = jnp.sum(n * v, axis=-1)
     n_dot_l = jnp.sum(n * l, axis=-1)

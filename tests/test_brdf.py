@@ -793,6 +793,12 @@ def test_metallic_and_roughness_per_point_with_or_without_the_trailing_axis():
         np.testing.assert_allclose(cos, want, rtol=1e-5, atol=1e-7)
         with pytest.raises(ValueError, match=r"roughness must hold one value per point, shape \(\*batch, 1\)"):
             brdf.evaluate_cosines(nv, nl, nh, vh, base, m[:, None], r)  # (B,) would broadcast across RGB
+        # a base colour that is not RGB, or a vector that is not 3D: said, not broadcast
+        with pytest.raises(ValueError, match=r"base_color must be linear RGB, shape \(\*batch, 3\); got shape"):
+            brdf.evaluate_cosines(nv, nl, nh, vh, base[:, :2], m[:, None], r[:, None])
+        for args, name in (((n[:, :2], v, l, base), "n"), ((n, v, l, base[:, :2]), "base_color")):
+            with pytest.raises(ValueError, match=f"{name} must end in an axis of 3"):
+                brdf.evaluate(*args, m, r)
     z = jnp.array([0.0, 0.0, 1.0])
     sweep = brdf.evaluate(z, z, z, jnp.full(3, 0.5), 0.0, jnp.linspace(0.1, 1.0, 5))
     assert sweep.shape == (5, 3) and float(sweep[0, 0]) > float(sweep[-1, 0])
