@@ -508,6 +508,8 @@ def fit_observations(
     _check_kinds(coarse_to_fine=coarse_to_fine, search=search, select_footprint=select_footprint,
                  background_compile=background_compile, uniform_check=uniform_check, repair=repair,
                  progress=progress, level_factor=level_factor, devices=devices)
+    if not isinstance(model, Model):
+        raise ValueError(f"model: expected a pbrfit.Model, got {model!r}")
     fit, fixed = fit_arguments(fit, fixed)
     if "metallic" in fit and not model.metallic:
         raise ValueError("fit: metallic is fitted, and the model has no metal lobe (Model(metallic=False)): "
@@ -538,13 +540,29 @@ def _check_kinds(*, progress, level_factor, devices, **switches) -> None:
             or level_factor < 2:
         raise ValueError(f"level_factor: expected an integer >= 2, got {level_factor!r}")
     if devices is not None:
-        listed = [devices] if isinstance(devices, (str, bytes)) else devices
         try:
-            listed = list(listed)
+            listed = [devices] if isinstance(devices, (str, bytes, jax.Device)) else list(devices)
         except TypeError:
             listed = [devices]
-        if not listed or not all(isinstance(d, jax.Device) for d in listed):
+        if isinstance(devices, (str, bytes, jax.Device)) or not listed \
+                or not all(isinstance(d, jax.Device) for d in listed):
             raise ValueError(f"devices: expected a sequence of JAX devices (jax.devices()), got {devices!r}")
+
+
+def _check_names(*, noise_level, loss, init, wrap, pixel_samples) -> None:
+    """`ValueError` for a named choice `pbrfit.fit` would otherwise refuse only after it has read
+    the capture and cast its rays."""
+    from .observations import MAX_PIXEL_SAMPLES
+    from .textures import WRAPS
+
+    for name, value, choices in (("noise_level", noise_level, NOISE_LEVELS), ("loss", loss, LOSSES),
+                                 ("init", init, ("grid", "prior")), ("wrap", wrap, WRAPS)):
+        if not isinstance(value, str) or value not in choices:
+            raise ValueError(f"{name} must be one of {', '.join(choices)}, got {value!r}")
+    whole = isinstance(pixel_samples, (int, np.integer)) and not isinstance(pixel_samples, (bool, np.bool_))
+    if pixel_samples != "auto" and not (whole and 1 <= pixel_samples <= MAX_PIXEL_SAMPLES):
+        raise ValueError(f"pixel_samples must be 'auto' or an integer from 1 to {MAX_PIXEL_SAMPLES}, "
+                         f"got {pixel_samples!r}")
 
 
 #: `fit_observations`'s defaults of the options `check_options` checks.
@@ -1506,6 +1524,8 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     kwargs["fit"], kwargs["fixed"] = fit_arguments(kwargs.get("fit"), kwargs.get("fixed"))
     check_options(**{name: kwargs.get(name, default) for name, default in _OPTION_DEFAULTS.items()})
     _check_kinds(**{name: kwargs.get(name, default) for name, default in _KIND_DEFAULTS.items()})
+    _check_names(noise_level=kwargs.get("noise_level", "uniform"), loss=kwargs.get("loss", "l2"),
+                 init=kwargs.get("init", "grid"), wrap=kwargs.get("wrap", "repeat"), pixel_samples=pixel_samples)
     if model is not None and not isinstance(model, Model):
         raise ValueError(f"model: expected a pbrfit.Model, got {model!r}")
     if model is not None and "metallic" in kwargs["fit"] and not model.metallic:

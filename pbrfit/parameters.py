@@ -122,6 +122,7 @@ def clip_to_bounds(x: Float[ArrayLike, "... K"]) -> Float[Array, "... K"]:
 def from_sine(z: Float[ArrayLike, "... K"]) -> Float[Array, "... K"]:
     """Bounded values from unconstrained storage: lo + (hi - lo) (1 + sin z) / 2 (the bounds in
     z's precision, so that float64 reaches them exactly)."""
+    z = jnp.asarray(z)
     k = jnp.shape(z)[-1]
     dtype = jnp.result_type(z, jnp.float32)
     lo = jnp.asarray(lower(k), dtype)
@@ -133,6 +134,7 @@ def to_sine(x: Float[ArrayLike, "... K"]) -> Float[Array, "... K"]:
     """The storage ``z`` in [-π/2, π/2] of bounded values (inverse of `from_sine` on that branch).
     Its derivative is infinite at the bounds (arcsin's at ±1), where `from_sine`'s is 0: the
     optimistix solvers start inside them (`pbrfit.optx_solvers.START_MARGIN`)."""
+    x = jnp.asarray(x)
     k = jnp.shape(x)[-1]
     dtype = jnp.result_type(x, jnp.float32)
     lo = jnp.asarray(lower(k), dtype)

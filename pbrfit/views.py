@@ -126,7 +126,9 @@ def render_capture(
     from .scene import Capture, load_capture
 
     if isinstance(capture, (str, os.PathLike)):
-        capture = load_capture(capture, require_uv=max(material.resolution) > 1)
+        from .io import needs_texture_coordinates
+
+        capture = load_capture(capture, require_uv=needs_texture_coordinates(material))
     if not isinstance(capture, Capture):
         raise ValueError(f"capture: expected a pbrfit.scene.Capture or a capture folder, got {type(capture).__name__}")
     for name in ("base_color", "metallic", "roughness", "normal", "occlusion", "emissive"):

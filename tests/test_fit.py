@@ -235,6 +235,9 @@ def test_fit_arguments_resolve_and_refuse():
     (dict(progress=5), "progress: expected a function"), (dict(level_factor=0), "level_factor: expected an integer >= 2"),
     (dict(devices="cpu"), "devices: expected a sequence of JAX devices"), (dict(devices=[]), "devices"),
     (dict(model=Model(metallic=False)), "metallic is fitted, and the model has no metal lobe"),
+    (dict(model="ggx"), "model: expected a pbrfit.Model"), (dict(devices=jax.devices()[0]), "devices"),
+    (dict(noise_level="bad"), "noise_level"), (dict(loss="l3"), "loss"), (dict(init="foo"), "init"),
+    (dict(wrap="x"), "wrap"),
 ])
 def test_fit_refuses_options_out_of_range_or_unread(options, match):
     """Refused before any work (no compile: these run in milliseconds); the command line refuses
@@ -286,9 +289,9 @@ def test_every_solver_runs(solver):
     # from the prior's 0.5, the three steps of every solver with a damping, a trust region or a
     # line search move base colour towards the truth (measured: RMSE 0.011 (lm) to 0.175 (adam),
     # against the prior's 0.202); gn's undamped first steps overshoot (metallic to 0.99, RMSE
-    # 0.24), and it gets there in ten (`test_optx_solvers_move_a_channel_started_on_its_bound`)
+    # 0.24): its ten steps are checked in `test_optx_solvers_move_a_channel_started_on_its_bound`
     rmse = float(np.sqrt(np.mean((np.asarray(res.material.base_color) - [0.6, 0.35, 0.2]) ** 2)))
-    assert rmse < (0.3 if solver == "gn" else 0.19), rmse
+    assert solver == "gn" or rmse < 0.19, rmse
 
 
 def test_optx_solvers_move_a_channel_started_on_its_bound():
@@ -305,11 +308,14 @@ def test_optx_solvers_move_a_channel_started_on_its_bound():
         assert float(res.material.metallic[0, 0, 0]) > least, (solver, res.material.metallic)
     dielectric = Material.uniform((0.6, 0.35, 0.2), 0.0, 0.35)
     obs = observations_from_views(VIEWS[:2], _images(VIEWS[:2], dielectric))
-    for solver, most in (("gn", 0.1), ("dogleg", 1e-3)):  # measured 0.08 and 4e-5; the prior 0.202
+    # measured: base RMSE 0.08 and 4e-5 (the prior 0.202), loss 3.97 and 2e-7 (17.89 at the
+    # start), largest metallic 0.14 and 2e-4
+    for solver, most, loss in (("gn", 0.1, 5.0), ("dogleg", 1e-3, 1e-5)):
         res = fit_observations(obs, resolution=4, solver=solver, max_steps=10, init="prior", search=False)
         assert res.report["steps"] == 10, (solver, res.report["levels"])
         rmse = float(np.sqrt(np.mean((np.asarray(res.material.base_color) - [0.6, 0.35, 0.2]) ** 2)))
-        assert rmse < most, (solver, rmse)
+        assert rmse < most and res.report["final_loss"] < loss, (solver, rmse, res.report["final_loss"])
+        assert float(np.max(np.asarray(res.material.metallic))) < 0.2, solver
 
 
 def _texel_problem(truth, smooth=0.0):
@@ -903,7 +909,18 @@ def test_models_on_a_capture_without_an_environment(tmp_path):
                         (lambda: pbrfit.fit(capture, model="ggx"), "expected a pbrfit.Model"),
                         (lambda: pbrfit.fit(42), "expected a pbrfit.scene.Capture or a capture folder, got int"),
                         (lambda: pbrfit.fit(capture, views=[1, 2]), r"views: expected one pbrfit.render.ViewInputs per frame \(2\)"),
+                        (lambda: pbrfit.fit(tmp_path / "none", pixel_samples=9), "pixel_samples must be 'auto' or"),
                         (lambda: render_capture(capture, Material.uniform((0.5,) * 3, float("nan"), 0.5)),
                          "metallic map holds NaN")):
         with pytest.raises(ValueError, match=match):
             call()
+    # a folder whose mesh has no uv: refused when any map of the material is more than one texel
+    from _capture_fixtures import write_quad_obj
+
+    from pbrfit.errors import CaptureError
+
+    write_quad_obj(root / "mesh.obj", uv=False)
+    one = Material.uniform((0.5,) * 3, 0.0, 0.5)
+    assert len(render_capture(root, one)) == 2
+    with pytest.raises(CaptureError, match="no texture coordinates"):
+        render_capture(root, dataclasses.replace(one, roughness=jnp.full((2, 2, 1), 0.5)))
