@@ -503,17 +503,10 @@ def fit_observations(
     pixels' footprint). With the structured solver the samples stop after their first
     `PROBE_STEPS` when these do not yet fit better than the centres' whole finish. The report's
     "footprint" entry gives both energies, the steps and the choice."""
-    if noise_level not in NOISE_LEVELS:
-        raise ValueError(f"noise_level must be one of {', '.join(NOISE_LEVELS)}, got {noise_level!r}")
-    _check_kinds(coarse_to_fine=coarse_to_fine, search=search, select_footprint=select_footprint,
-                 background_compile=background_compile, uniform_check=uniform_check, repair=repair,
-                 progress=progress, level_factor=level_factor, devices=devices)
-    if not isinstance(model, Model):
-        raise ValueError(f"model: expected a pbrfit.Model, got {model!r}")
+    _check_names(noise_level=noise_level, loss=loss, init=init, wrap=wrap)
+    _check_kinds(**{name: value for name, value in locals().items() if name in _KIND_DEFAULTS})
     fit, fixed = fit_arguments(fit, fixed)
-    if "metallic" in fit and not model.metallic:
-        raise ValueError("fit: metallic is fitted, and the model has no metal lobe (Model(metallic=False)): "
-                         "the images could not say anything about it")
+    _check_model(model, fit)
     check_options(resolution=resolution, maps=maps, solver=solver, max_steps=max_steps, coarse_steps=coarse_steps,
                   rtol=rtol, atol=atol, cg_rtol=cg_rtol, loss_scale=loss_scale, smooth=smooth,
                   coarse_to_fine=coarse_to_fine, continuation=continuation, uncertainty_radius=uncertainty_radius)
@@ -549,9 +542,9 @@ def _check_kinds(*, progress, level_factor, devices, **switches) -> None:
             raise ValueError(f"devices: expected a sequence of JAX devices (jax.devices()), got {devices!r}")
 
 
-def _check_names(*, noise_level, loss, init, wrap, pixel_samples) -> None:
-    """`ValueError` for a named choice `pbrfit.fit` would otherwise refuse only after it has read
-    the capture and cast its rays."""
+def _check_names(*, noise_level, loss, init, wrap, pixel_samples="auto") -> None:
+    """`ValueError` for a named choice out of its list (`fit_observations`; `pbrfit.fit` before
+    it reads the capture and casts its rays, with ``pixel_samples`` too)."""
     from .observations import MAX_PIXEL_SAMPLES
     from .textures import WRAPS
 
@@ -563,6 +556,16 @@ def _check_names(*, noise_level, loss, init, wrap, pixel_samples) -> None:
     if pixel_samples != "auto" and not (whole and 1 <= pixel_samples <= MAX_PIXEL_SAMPLES):
         raise ValueError(f"pixel_samples must be 'auto' or an integer from 1 to {MAX_PIXEL_SAMPLES}, "
                          f"got {pixel_samples!r}")
+
+
+def _check_model(model, fit: Sequence[str]) -> None:
+    """`ValueError` for a ``model`` that is not a `Model`, or that has no metal lobe while
+    metallic is fitted."""
+    if not isinstance(model, Model):
+        raise ValueError(f"model: expected a pbrfit.Model, got {model!r}")
+    if "metallic" in fit and not model.metallic:
+        raise ValueError("fit: metallic is fitted, and the model has no metal lobe (Model(metallic=False)): "
+                         "the images could not say anything about it")
 
 
 #: `fit_observations`'s defaults of the options `check_options` checks.
@@ -647,10 +650,6 @@ def _fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, so
     t_start = time.perf_counter()
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
-    if loss not in LOSSES:
-        raise ValueError(f"unknown loss {loss!r}; expected one of {', '.join(LOSSES)}")
-    if init not in ("grid", "prior"):
-        raise ValueError(f"init must be 'grid' or 'prior', got {init!r}")
     if maps not in ("texture", "none"):
         raise ValueError(f"maps must be 'texture' or 'none', got {maps!r}")
     _check_normals(model, fit)
@@ -1526,11 +1525,8 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     _check_kinds(**{name: kwargs.get(name, default) for name, default in _KIND_DEFAULTS.items()})
     _check_names(noise_level=kwargs.get("noise_level", "uniform"), loss=kwargs.get("loss", "l2"),
                  init=kwargs.get("init", "grid"), wrap=kwargs.get("wrap", "repeat"), pixel_samples=pixel_samples)
-    if model is not None and not isinstance(model, Model):
-        raise ValueError(f"model: expected a pbrfit.Model, got {model!r}")
-    if model is not None and "metallic" in kwargs["fit"] and not model.metallic:
-        raise ValueError("fit: metallic is fitted, and the model has no metal lobe (Model(metallic=False)): "
-                         "the images could not say anything about it")
+    if model is not None:
+        _check_model(model, kwargs["fit"])
     if isinstance(capture, (str, os.PathLike)):
         from .scene import load_capture
 
@@ -1544,9 +1540,9 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     if model.ibl == "monte_carlo":
         raise ValueError("model: Model(ibl='monte_carlo') is the reference integrator, not a fit's shading; "
                          "use 'split_sum' or 'per_pixel'")
-    if model.ibl is not None and capture.environment is None:
-        raise ValueError(f"model: Model(ibl={model.ibl!r}) shades an environment light, and the capture "
-                         f"{capture.root} has none (leave ibl at None)")
+    from .views import check_environment
+
+    check_environment(model, capture)
     if ibl is not None and model.ibl is not None:
         model = model.replace(ibl=ibl)
     _check_normals(model, kwargs["fit"])

@@ -677,12 +677,14 @@ def write_material(directory: str | os.PathLike, material) -> list[Path]:
     normal, occlusion, emissive = (_np(getattr(material, name, None)) for name in ("normal", "occlusion", "emissive"))
     for name, values, top in (("base_color", base, 1.0), ("metallic", metallic, 1.0), ("roughness", roughness, 1.0),
                               ("occlusion", occlusion, 1.0), ("normal", normal, None), ("emissive", emissive, None)):
-        if values is not None and (values.ndim != 3 or values.size == 0):
+        if values is None:
+            continue
+        if values.ndim != 3 or values.size == 0:
             raise CaptureError(f"{directory}: the {name} map must be (H, W, C) with H, W >= 1, got shape {values.shape}")
-        if name == "normal" and values is not None and not np.all(np.isfinite(values)):
-            raise CaptureError(f"{directory}: the normal map holds NaN or inf values")
-        elif name != "normal" and values is not None:
+        if name != "normal":
             _checked_map(values, directory, name, top)
+        elif not np.all(np.isfinite(values)):  # unit vectors: any sign
+            raise CaptureError(f"{directory}: the normal map holds NaN or inf values")
     if metallic.shape[:2] != roughness.shape[:2]:
         raise CaptureError(f"{directory}: the metallic {metallic.shape[:2]} and roughness {roughness.shape[:2]} maps "
                            "differ in size; metallic_roughness.png packs them together")

@@ -139,5 +139,5 @@ def to_sine(x: Float[ArrayLike, "... K"]) -> Float[Array, "... K"]:
     dtype = jnp.result_type(x, jnp.float32)
     lo = jnp.asarray(lower(k), dtype)
     hi = jnp.asarray(upper(k), dtype)
-    t = jnp.clip(2.0 * (jnp.asarray(x) - lo) / (hi - lo) - 1.0, -1.0, 1.0)
+    t = jnp.clip(2.0 * (x - lo) / (hi - lo) - 1.0, -1.0, 1.0)
     return jnp.arcsin(t)

@@ -61,6 +61,14 @@ def model_for_capture(capture, material: Optional[Material] = None, **overrides)
     return Model(**fields)
 
 
+def check_environment(model: Model, capture) -> None:
+    """`ValueError` when ``model`` shades an environment light (``model.ibl`` set) and the
+    capture has no environment: there is nothing to build its tables from."""
+    if model.ibl is not None and capture.environment is None:
+        raise ValueError(f"model: Model(ibl={model.ibl!r}) shades an environment light, and the capture "
+                         f"{capture.root} has none (leave ibl at None)")
+
+
 def capture_environment(capture):
     """The capture's environment as a `pbrfit.environment.Environment`, or None."""
     if capture.environment is None:
@@ -136,9 +144,8 @@ def render_capture(
         if values is not None and not np.all(np.isfinite(np.asarray(values))):
             raise ValueError(f"material: the {name} map holds NaN or inf values")
     model = model if model is not None else model_for_capture(capture, material)
-    if model.ibl in ("split_sum", "per_pixel", "monte_carlo") and ibl is None and capture.environment is None:
-        raise ValueError(f"model: Model(ibl={model.ibl!r}) shades an environment light, and the capture "
-                         f"{capture.root} has none")
+    if ibl is None:
+        check_environment(model, capture)
     environment = capture_environment(capture)
     if ibl is None and (model.ibl == "split_sum" or model.multiscatter):
         ibl = capture_ibl(capture, environment=environment, model=model)
