@@ -365,6 +365,18 @@ def test_gradients_wrt_environment_pixels_and_roughness(sky_tables):
     assert float(jnp.sum(g_r * step)) == pytest.approx(float(fd_r), rel=1e-2)  # measured: 8e-4 apart
 
 
+def test_brdf_tables_are_build_ibls_without_the_environment(sky_tables):
+    """`brdf_tables` (multiscatter under punctual lights alone) holds exactly the BRDF tables
+    `build_ibl` makes for an environment, and no light."""
+    from pbrfit.ibl import brdf_tables
+
+    _, full = sky_tables
+    alone = brdf_tables(SMALL)
+    for name in ("lut", "diffuse", "dielectric"):
+        np.testing.assert_array_equal(np.asarray(getattr(alone, name)), np.asarray(getattr(full, name)), err_msg=name)
+    assert not np.any(np.asarray(alone.irradiance)) and not np.any(np.asarray(alone.prefiltered))
+
+
 def test_prefiltered_roughness_derivative_at_the_ends_is_from_inside(sky_tables):
     """At roughness 0 and 1 (the ends of the level stack) the derivative is the one-sided one from
     inside, not half of it (a clip's at a tie), as `brdf.clamp_inward` keeps the BRDF's."""
