@@ -224,6 +224,19 @@ def test_other_formats_read(tmp_path, name, dtype, atol):
     assert read_image_info(tmp_path / name) == info
 
 
+def test_jpeg_is_written_at_full_quality_and_chroma_resolution(tmp_path):
+    """`render` keeps a JPEG capture's file type: the JPEG holds the pixels as closely as JPEG
+    goes (quality 100, no chroma subsampling). OpenImageIO's default 4:2:0 put a red-blue edge
+    0.64 off."""
+    a = np.zeros((32, 32, 3), np.float32)
+    a[:, :16] = [1, 0, 0]
+    a[:, 16:] = [0, 0, 1]
+    a[8:24, 8:24] = [0, 1, 0]
+    write_image(tmp_path / "edges.jpg", a, "uint8")
+    back, _ = read_image(tmp_path / "edges.jpg")
+    assert np.max(np.abs(back - a)) < 0.02
+
+
 def test_read_image_errors_name_the_file(tmp_path):
     with pytest.raises(CaptureError, match=r"frames\[0\]: image file not found: .*nope.png"):
         read_image(tmp_path / "nope.png", "frames[0]")
