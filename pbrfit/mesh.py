@@ -1,6 +1,6 @@
 """Meshes: loading a capture's triangle mesh (glTF/GLB, OBJ, PLY) with its uv in glTF orientation.
 
-Rules pinned here (tests in ``tests/test_scene.py``):
+Rules pinned here (tests in ``tests/test_scene.py`` and ``tests/test_mesh.py``):
 
 * Loaded with trimesh without processing (vertex order kept); a scene's meshes are
   concatenated with their node transforms applied. ``mesh.visual.uv`` holds texture
@@ -26,6 +26,12 @@ Rules pinned here (tests in ``tests/test_scene.py``):
   base colour and metallic-roughness are the maps pbrfit fits, and a quantizing writer gives
   every texture of a material the same transform. The uv `load_mesh` returns (and material.glb
   holds) are the transformed ones.
+* Other glTF that trimesh alone misreads is read as glTF 2.0 means it (`_prepare_tree`,
+  `_gltf_rewrite_primitives`): triangle fans, morph targets under their weights, sparse
+  indices, meshes on or under camera nodes; a file requiring an extension that changes the
+  geometry (Draco, meshopt, GPU instancing, any unknown one) is refused.
+* OBJ text is read as the format means it (`_obj_text`): fields separated by any whitespace,
+  comments after an element's fields, ``vt u`` with v = 0; a face index 0 is refused.
 """
 
 from __future__ import annotations
@@ -34,7 +40,6 @@ import base64
 import contextlib
 import io as _io
 import json
-import re
 import struct
 import urllib.parse
 from pathlib import Path
@@ -168,45 +173,97 @@ def apply_texture_transform(uv: Float[np.ndarray, "n 2"], offset, rotation: floa
     return np.column_stack([offset[0] + c * su + s * sv, offset[1] - s * su + c * sv])
 
 
-def _gltf_float_attributes(tree: dict, buffer, target: int, start: int) -> bytes:
-    """Rewrite the primitives' POSITION, NORMAL and TEXCOORD_0 attributes that trimesh would
-    misread (normalized integers, sparse accessors) or that a texture transform maps as new float32 accessors,
-    their data in buffer ``target`` from byte ``start`` on: returns that data (b"" when no
-    attribute needs it; the caller stores it)."""
+def _morph_weights(tree: dict, mesh_index: int) -> list:
+    """The morph target weights mesh ``mesh_index`` is drawn with: its nodes' ``weights``, else
+    its own, else 0 (glTF 2.0 §3.7.2.2, "Morph Targets"). A ValueError when its nodes draw it
+    with different weights: pbrfit reads one shape per mesh."""
+    mesh = tree["meshes"][mesh_index]
+    default = [float(w) for w in mesh.get("weights") or []]
+    drawn = {tuple(float(w) for w in node.get("weights", default))
+             for node in tree.get("nodes") or [] if isinstance(node, dict) and node.get("mesh") == mesh_index}
+    if len(drawn) > 1:
+        raise ValueError(f"mesh {mesh_index} is drawn by nodes with different morph target weights "
+                         "(pbrfit reads one shape per mesh)")
+    return list(drawn.pop()) if drawn else default
+
+
+_TRIANGLE_FAN = 6
+_UINT32 = 5125
+
+
+def _gltf_rewrite_primitives(tree: dict, buffer, target: int, start: int) -> bytes:
+    """Rewrite what trimesh would misread in the primitives as new accessors, their data in
+    buffer ``target`` from byte ``start`` on: returns that data (b"" when nothing needs it; the
+    caller stores it).
+
+    - POSITION, NORMAL and TEXCOORD_0 stored as normalized integers or sparse accessors, mapped
+      by a texture transform, or moved by morph targets under non-zero weights (the attribute
+      plus Σ wᵢ targetᵢ, glTF 2.0 §3.7.2.2; trimesh draws the base shape), as float32;
+    - sparse indices (applied), as uint32;
+    - a TRIANGLE_FAN primitive (mode 6, which trimesh drops) as TRIANGLES with triangles
+      (v_{i+1}, v_{i+2}, v_0) (glTF 2.0 §3.7.2.1)."""
     blob = bytearray()
     made = {}
-    for mesh in tree.get("meshes") or []:
+
+    def store(values, dtype, kind: str, component: int) -> int:
+        data = np.ascontiguousarray(values, dtype=dtype)
+        blob.extend(b"\0" * (-(start + len(blob)) % 4))
+        tree.setdefault("bufferViews", []).append({"buffer": target, "byteOffset": start + len(blob),
+                                                   "byteLength": data.nbytes})
+        blob.extend(data.tobytes())
+        entry = {"bufferView": len(tree["bufferViews"]) - 1, "componentType": component,
+                 "count": int(len(data)), "type": kind}
+        if len(data) and kind != "SCALAR":
+            entry.update(min=data.min(axis=0).tolist(), max=data.max(axis=0).tolist())
+        tree["accessors"].append(entry)
+        return len(tree["accessors"]) - 1
+
+    for mesh_index, mesh in enumerate(tree.get("meshes") or []):
+        weights = _morph_weights(tree, mesh_index)
         for primitive in mesh.get("primitives") or []:
             attributes = primitive.get("attributes") or {}
+            if "KHR_draco_mesh_compression" in (primitive.get("extensions") or {}):  # decoded later, by trimesh
+                if _texture_transform(tree, primitive) is not None:
+                    raise ValueError("a KHR_texture_transform on a Draco-compressed primitive is not supported")
+                continue
+            targets = primitive.get("targets") or []
             for name in ("POSITION", "NORMAL", "TEXCOORD_0"):
                 index = attributes.get(name)
                 if not isinstance(index, int):
                     continue
                 acc = tree["accessors"][index]
                 transform = _texture_transform(tree, primitive) if name == "TEXCOORD_0" else None
-                if "KHR_draco_mesh_compression" in (primitive.get("extensions") or {}):  # decoded later, by trimesh
-                    if transform is not None:
-                        raise ValueError("a KHR_texture_transform on a Draco-compressed primitive is not supported")
-                    continue
+                morph = tuple((w, t[name]) for w, t in zip(weights, targets)
+                              if w != 0.0 and isinstance(t, dict) and isinstance(t.get(name), int))
                 normalized = bool(acc.get("normalized")) and acc.get("componentType") in _NORMALIZED
-                if not normalized and transform is None and "sparse" not in acc:  # (trimesh ignores sparse)
+                if not (normalized or morph) and transform is None and "sparse" not in acc:  # (trimesh ignores sparse)
                     continue
-                if (index, transform) not in made:
+                key = (index, transform, morph)
+                if key not in made:
                     values = _read_accessor(tree, buffer, index)
+                    for w, t in morph:
+                        values = values + w * _read_accessor(tree, buffer, t)[:, : values.shape[1]]
                     if transform is not None:
                         values = apply_texture_transform(values[:, :2], *transform)
-                    data = np.ascontiguousarray(values, dtype="<f4")
-                    blob += b"\0" * (-(start + len(blob)) % 4)
-                    tree.setdefault("bufferViews", []).append({"buffer": target, "byteOffset": start + len(blob),
-                                                "byteLength": data.nbytes})
-                    blob += data.tobytes()
-                    entry = {"bufferView": len(tree["bufferViews"]) - 1, "componentType": _FLOAT,
-                             "count": int(len(data)), "type": acc["type"] if transform is None else "VEC2"}
-                    if len(data):
-                        entry.update(min=data.min(axis=0).tolist(), max=data.max(axis=0).tolist())
-                    tree["accessors"].append(entry)
-                    made[(index, transform)] = len(tree["accessors"]) - 1
-                attributes[name] = made[(index, transform)]
+                    made[key] = store(values, "<f4", acc["type"] if transform is None else "VEC2", _FLOAT)
+                attributes[name] = made[key]
+            primitive.pop("targets", None)
+            indices = primitive.get("indices")
+            if isinstance(indices, int) and "sparse" in tree["accessors"][indices]:
+                values = _read_accessor(tree, buffer, indices)[:, 0]
+                primitive["indices"] = store(values, "<u4", "SCALAR", _UINT32)
+            if primitive.get("mode") == _TRIANGLE_FAN:
+                if "indices" in primitive:
+                    order = _read_accessor(tree, buffer, primitive["indices"])[:, 0].astype(np.int64)
+                else:
+                    order = np.arange(int(tree["accessors"][attributes["POSITION"]]["count"]))
+                fan = np.stack([order[1:-1], order[2:], np.full(max(len(order) - 2, 0), order[0] if len(order) else 0)], 1)
+                primitive["indices"] = store(fan.reshape(-1), "<u4", "SCALAR", _UINT32)
+                primitive["mode"] = 4
+        mesh.pop("weights", None)
+    for node in tree.get("nodes") or []:
+        if isinstance(node, dict):
+            node.pop("weights", None)
     return bytes(blob)
 
 
@@ -264,18 +321,18 @@ def _glb_from_chunks(version: int, tree: dict, binary) -> bytes:
     return struct.pack("<III", _GLB_MAGIC, version, 12 + len(chunks)) + chunks
 
 
-def _store_float_attributes(tree: dict, folder: Path, binary):
-    """`_gltf_float_attributes` with its data stored: appended to a GLB's BIN chunk (buffer 0),
+def _store_rewritten_primitives(tree: dict, folder: Path, binary):
+    """`_gltf_rewrite_primitives` with its data stored: appended to a GLB's BIN chunk (buffer 0),
     else as a new base64 buffer. Returns the (possibly longer) BIN chunk."""
     buffers = tree.setdefault("buffers", [])
     read = _buffer_reader(tree, folder, binary)
     if binary is not None and buffers and "uri" not in buffers[0]:
-        blob = _gltf_float_attributes(tree, read, 0, len(binary))
+        blob = _gltf_rewrite_primitives(tree, read, 0, len(binary))
         if blob:
             binary = bytes(binary) + blob
             buffers[0]["byteLength"] = len(binary)
         return binary
-    blob = _gltf_float_attributes(tree, read, len(buffers), 0)
+    blob = _gltf_rewrite_primitives(tree, read, len(buffers), 0)
     if blob:
         buffers.append({"byteLength": len(blob),
                         "uri": "data:application/octet-stream;base64," + base64.b64encode(blob).decode()})
@@ -298,6 +355,33 @@ def _file_resolver(tree: dict, folder: Path):
         return trimesh.resolvers.FilePathResolver(str(folder))
 
 
+#: Required glTF extensions (``extensionsRequired``) that leave the geometry as the core spec reads
+#: it, or that pbrfit reads itself: materials, textures, lights and metadata are not read (the
+#: material is what a fit finds), quantized attributes and TEXCOORD_0's transform are.
+_EXTENSIONS_READ = ("KHR_mesh_quantization", "KHR_texture_transform", "KHR_lights_punctual", "KHR_xmp_json_ld")
+_EXTENSION_PREFIXES_NOT_READ = ("KHR_materials_", "KHR_texture_", "EXT_texture_")
+
+
+def _prepare_tree(tree: dict) -> None:
+    """Check a glTF's required extensions and give trimesh what it reads right.
+
+    A ValueError names the required extensions pbrfit cannot honour (a loader must refuse a file
+    that requires one it does not support: compressed or instanced geometry would come out
+    empty, zero or one instance short). Camera nodes lose their camera: trimesh leaves a node
+    with a camera and a mesh, and the meshes under it, out of the scene, which glTF viewers
+    draw. Primitives with TEXCOORD_0 and no material get a default one (`_gltf_default_material`)."""
+    required = [name for name in tree.get("extensionsRequired") or []
+                if name not in _EXTENSIONS_READ and not str(name).startswith(_EXTENSION_PREFIXES_NOT_READ)]
+    if required:
+        hint = (" (write it without compression)" if any("compression" in str(n) for n in required) else "")
+        raise ValueError(f"it requires the glTF extension{'s' if len(required) > 1 else ''} "
+                         f"{', '.join(map(str, required))}, which pbrfit does not read{hint}")
+    for node in tree.get("nodes") or []:
+        if isinstance(node, dict):
+            node.pop("camera", None)
+    _gltf_default_material(tree)
+
+
 def _load_gltf_keeping_uv(path: Path):
     import trimesh
 
@@ -305,14 +389,14 @@ def _load_gltf_keeping_uv(path: Path):
     if path.suffix.lower() == ".glb":
         version, tree, binary = _glb_chunks(data)
         resolver = _file_resolver(tree, path.parent)
-        _gltf_default_material(tree)
-        binary = _store_float_attributes(tree, path.parent, binary)
+        _prepare_tree(tree)
+        binary = _store_rewritten_primitives(tree, path.parent, binary)
         data = _glb_from_chunks(version, tree, binary)
         return trimesh.load_scene(_io.BytesIO(data), file_type="glb", resolver=resolver, process=False)
     tree = json.loads(data)
     resolver = _file_resolver(tree, path.parent)
-    _gltf_default_material(tree)
-    _store_float_attributes(tree, path.parent, None)
+    _prepare_tree(tree)
+    _store_rewritten_primitives(tree, path.parent, None)
     return trimesh.load_scene(
         _io.BytesIO(json.dumps(tree).encode()), file_type="gltf", resolver=resolver, process=False
     )
@@ -409,24 +493,32 @@ def _quiet_trimesh():
         logger.setLevel(level)
 
 
-#: A 0 among an OBJ line's numbers (``f 0 1 2``, ``f 1/0 ...``; `_check_obj_indices` keeps those
-#: on face lines): OBJ counts from 1 (negative: back from the last), so 0 is no vertex, and
-#: trimesh reads it as -1, the last one.
-_OBJ_ZERO = re.compile(rb"[ \t/][-+]?0+(?=[ \t/\r\n#]|\Z)")
+#: OBJ element lines: their fields are numbers, and a ``#`` ends them.
+_OBJ_ELEMENTS = (b"v", b"vt", b"vn", b"vp", b"f", b"l", b"p")
 
 
-def _check_obj_indices(path: Path, where: str) -> None:
-    """`CaptureError` when an OBJ face names index 0, as files written counting from 0 do (every
-    face would be shifted to its neighbouring vertices, and 0 read as the last one)."""
-    data = path.read_bytes()
-    for match in _OBJ_ZERO.finditer(data):
-        start = data.rfind(b"\n", 0, match.start()) + 1
-        head = data[start:match.start() + 1].lstrip(b" \t")  # with the separator before the 0
-        if head[:2] in (b"f ", b"f\t") and b"#" not in head:
-            end = data.find(b"\n", match.end())
-            line = data[start:None if end < 0 else end].decode("utf-8", "replace").strip()
-            raise CaptureError(f"{where}: mesh {path}: face {line!r} has index 0; OBJ indices count from 1 "
-                               "(was the file written counting from 0?)")
+def _obj_text(path: Path, where: str) -> bytes:
+    """An OBJ file's text as trimesh's parser reads it as the format means it: fields separated by
+    tabs as by spaces, indented lines, a comment after an element's fields, and a one-component
+    texture coordinate ``vt u`` (v = 0) are all valid OBJ, which trimesh misreads (drops the
+    line or fails). `CaptureError` when a face names index 0, as files written counting from 0
+    do: OBJ counts from 1 (negative: back from the last), and trimesh reads 0 as the last vertex,
+    shifting every face."""
+    lines = []
+    for line in path.read_bytes().split(b"\n"):
+        line = line.replace(b"\t", b" ").strip(b" \r")
+        keyword = line.split(b" ", 1)[0]
+        if keyword in _OBJ_ELEMENTS:
+            line = line.split(b"#", 1)[0].rstrip(b" ")
+            fields = line.split()
+            if keyword == b"vt" and len(fields) == 2:
+                line += b" 0"
+            if keyword == b"f" and any(i.lstrip(b"+-").strip(b"0") == b"" for f in fields[1:] for i in f.split(b"/") if i):
+                text = line.decode("utf-8", "replace")
+                raise CaptureError(f"{where}: mesh {path}: face {text!r} has index 0; OBJ indices count from 1 "
+                                   "(was the file written counting from 0?)")
+        lines.append(line)
+    return b"\n".join(lines) + b"\n"
 
 
 def _check_ply_counts(scene, where: str, path: Path) -> None:
@@ -459,22 +551,26 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise CaptureError(f"{where}: {path}: unsupported mesh format {path.suffix or '(no suffix)'!r}; "
                            f"pbrfit reads {', '.join(MESH_SUFFIXES)}")
-    if path.suffix.lower() == ".obj":
-        _check_obj_indices(path, where)
+    obj = _obj_text(path, where) if path.suffix.lower() == ".obj" else None
     with _quiet_trimesh():  # bad files are reported below, one line
         try:
             if path.suffix.lower() in (".glb", ".gltf"):
                 scene = _load_gltf_keeping_uv(path)
+            elif obj is not None:
+                resolver = trimesh.resolvers.FilePathResolver(str(path.parent))  # its .mtl
+                scene = trimesh.load_scene(_io.BytesIO(obj), file_type="obj", resolver=resolver, process=False)
             else:
                 scene = trimesh.load_scene(str(path), process=False)
+            _check_ply_counts(scene, where, path)
+            parts = _flatten(scene, where, path)
+        except CaptureError:
+            raise
         except Exception as err:  # trimesh raises many types for bad files
             msg = str(err).splitlines()[0] if str(err) else ""
             if isinstance(err, (AssertionError, AttributeError, IndexError, KeyError, TypeError)) or not msg:
                 # the parser tripped over the file's structure: say so, and what it tripped on
                 msg = f"malformed {path.suffix.lstrip('.').upper()} file ({type(err).__name__}{': ' + msg if msg else ''})"
             raise CaptureError(f"{where}: cannot load mesh {path}: {msg}") from None
-        _check_ply_counts(scene, where, path)
-        parts = _flatten(scene, where, path)
     if not parts:
         raise CaptureError(f"{where}: mesh file {path} holds no triangles")
     uvs = []

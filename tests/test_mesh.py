@@ -1,0 +1,141 @@
+"""Mesh files read as their formats mean them: glTF primitives trimesh alone misreads (triangle
+fans, morph targets, sparse indices, camera nodes, required extensions) and OBJ text it trips
+over (tabs, indentation, comments after fields, one-component texture coordinates)."""
+
+import numpy as np
+import pytest
+from _capture_fixtures import QUAD_POSITIONS, QUAD_UV_GLTF
+
+from pbrfit.errors import CaptureError
+from pbrfit.mesh import _glb_from_chunks, load_mesh
+
+_COMPONENTS = {np.float32: 5126, np.uint32: 5125, np.uint16: 5123, np.uint8: 5121}
+
+
+def _glb(path, arrays, **tree):
+    """A GLB whose accessor i holds ``arrays[i]`` (float32 VECn or integer SCALAR), completed by
+    ``tree`` (meshes, nodes, and scenes unless given)."""
+    blob, views, accessors = b"", [], []
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        blob += b"\0" * (-len(blob) % 4)
+        views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": a.nbytes})
+        entry = {"bufferView": len(views) - 1, "componentType": _COMPONENTS[a.dtype.type], "count": len(a),
+                 "type": "SCALAR" if a.ndim == 1 else f"VEC{a.shape[1]}"}
+        if a.ndim == 2 and a.shape[1] == 3:
+            entry.update(min=a.min(0).tolist(), max=a.max(0).tolist())
+        accessors.append(entry)
+        blob += a.tobytes()
+    tree = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], **tree,
+            "buffers": [{"byteLength": len(blob)}], "bufferViews": views, "accessors": accessors}
+    path.write_bytes(_glb_from_chunks(2, tree, blob))
+    return path
+
+
+def _triangles(mesh):
+    """The mesh's triangles as sets of (x, y, z) corners, independent of vertex order."""
+    return sorted(tuple(sorted(map(tuple, np.round(mesh.vertices[f], 6)))) for f in mesh.faces)
+
+
+def test_triangle_fans_are_triangles(tmp_path):
+    """glTF mode 6 (TRIANGLE_FAN): triangles (v_{i+1}, v_{i+2}, v_0), indexed or not. trimesh
+    dropped them: a fan-only file held "no triangles", a fan beside triangles vanished."""
+    lifted = QUAD_POSITIONS + np.float32([0, 0, 1])
+    arrays = [QUAD_POSITIONS, QUAD_UV_GLTF, np.array([0, 1, 2, 3], np.uint16), lifted,
+              np.array([[0, 1, 2], [0, 2, 3]], np.uint32).reshape(-1)]
+    meshes = [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "mode": 6},
+                              {"attributes": {"POSITION": 3, "TEXCOORD_0": 1}, "mode": 6},
+                              {"attributes": {"POSITION": 3, "TEXCOORD_0": 1}, "indices": 4}]}]
+    mesh = load_mesh(_glb(tmp_path / "fan.glb", arrays, meshes=meshes, nodes=[{"mesh": 0}]))
+    assert len(mesh.faces) == 6
+    quad = [[0, 1, 2], [0, 2, 3]]
+    expected = [tuple(sorted(map(tuple, p[f]))) for p in (QUAD_POSITIONS, lifted, lifted) for f in quad]
+    assert _triangles(mesh) == sorted(tuple(sorted(tuple(float(x) for x in c) for c in t)) for t in expected)
+    # the fan's first triangle is (v1, v2, v0): winding kept, so its normal faces +z
+    np.testing.assert_allclose(mesh.face_normals[:2], [[0, 0, 1]] * 2, atol=1e-6)
+
+
+def test_morph_targets_move_the_mesh_by_their_weights(tmp_path):
+    """POSITION + Σ wᵢ targetᵢ, the weights a node gives, else the mesh's (glTF §3.7.2.2);
+    trimesh drew the base shape."""
+    up = np.tile(np.float32([0, 0, 2]), (4, 1))
+    arrays = [QUAD_POSITIONS, QUAD_UV_GLTF, np.array([0, 1, 2, 0, 2, 3], np.uint16), up]
+    prim = {"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "targets": [{"POSITION": 3}]}
+
+    def z(**nodes_and_mesh):
+        mesh = {"primitives": [prim], **nodes_and_mesh.pop("mesh", {})}
+        return load_mesh(_glb(tmp_path / "m.glb", arrays, meshes=[mesh], **nodes_and_mesh)).vertices[:, 2]
+
+    np.testing.assert_allclose(z(nodes=[{"mesh": 0}]), 0.0)  # no weights: 0
+    np.testing.assert_allclose(z(mesh={"weights": [0.5]}, nodes=[{"mesh": 0}]), 1.0)
+    np.testing.assert_allclose(z(mesh={"weights": [0.5]}, nodes=[{"mesh": 0, "weights": [1.0]}]), 2.0)
+    with pytest.raises(CaptureError, match="m.glb: mesh 0 is drawn by nodes with different morph target weights"):
+        z(mesh={"weights": [0.5]}, nodes=[{"children": [1, 2]}, {"mesh": 0}, {"mesh": 0, "weights": [1.0]}])
+
+
+def test_sparse_indices_are_applied(tmp_path):
+    arrays = [QUAD_POSITIONS, QUAD_UV_GLTF, np.array([0, 1, 2, 0, 0, 0], np.uint16),
+              np.array([4, 5], np.uint8), np.array([2, 3], np.uint16)]
+    tree_edit = {"meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2}]}],
+                 "nodes": [{"mesh": 0}]}
+    path = _glb(tmp_path / "s.glb", arrays, **tree_edit)
+    from pbrfit.mesh import _glb_chunks
+
+    version, tree, blob = _glb_chunks(path.read_bytes())
+    tree["accessors"][2]["sparse"] = {"count": 2, "indices": {"bufferView": 3, "componentType": 5121},
+                                      "values": {"bufferView": 4}}
+    path.write_bytes(_glb_from_chunks(version, tree, blob))
+    np.testing.assert_array_equal(load_mesh(path).faces, [[0, 1, 2], [0, 2, 3]])
+
+
+def test_a_mesh_on_or_under_a_camera_node_is_drawn(tmp_path):
+    """trimesh left a node holding a camera and a mesh, and the meshes under it, out of the scene
+    (the child raised "No path from world->1!")."""
+    arrays = [QUAD_POSITIONS, QUAD_UV_GLTF, np.array([0, 1, 2, 0, 2, 3], np.uint16)]
+    meshes = [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2}]}]
+    nodes = [{"camera": 0, "mesh": 0, "children": [1]}, {"mesh": 0, "translation": [0, 0, 3]}]
+    cameras = [{"type": "perspective", "perspective": {"yfov": 0.8, "znear": 0.1}}]
+    mesh = load_mesh(_glb(tmp_path / "c.glb", arrays, meshes=meshes, nodes=nodes, cameras=cameras))
+    assert sorted(set(np.round(mesh.vertices[:, 2], 6))) == [0.0, 3.0] and len(mesh.faces) == 4
+
+
+def test_required_extensions_pbrfit_cannot_read_are_refused(tmp_path):
+    """A loader must refuse a file requiring an extension it does not support: a Draco or meshopt
+    file came out as zeros or "malformed", an instanced one one instance short. Material, texture
+    and quantization extensions leave what pbrfit reads as it is."""
+    arrays = [QUAD_POSITIONS, QUAD_UV_GLTF, np.array([0, 1, 2, 0, 2, 3], np.uint16)]
+    tree = dict(meshes=[{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2}]}],
+                nodes=[{"mesh": 0}])
+    ok = ["KHR_materials_clearcoat", "KHR_texture_basisu", "KHR_mesh_quantization", "KHR_texture_transform"]
+    assert len(load_mesh(_glb(tmp_path / "ok.glb", arrays, extensionsRequired=ok, **tree)).faces) == 2
+    for required, message in (
+            (["KHR_draco_mesh_compression"], "the glTF extension KHR_draco_mesh_compression, which pbrfit does "
+                                             r"not read \(write it without compression\)"),
+            (["EXT_mesh_gpu_instancing", "KHR_materials_ior", "EXT_foo"],
+             "the glTF extensions EXT_mesh_gpu_instancing, EXT_foo, which pbrfit does not read$")):
+        with pytest.raises(CaptureError, match=r"cannot load mesh .*x.glb: it requires " + message):
+            load_mesh(_glb(tmp_path / "x.glb", arrays, extensionsRequired=required, **tree))
+
+
+@pytest.mark.parametrize("text", [
+    "v\t0 0 0\nv\t1 0 0\nv\t1 1 0\nv\t0 1 0\nvt\t0 0\nvt\t1 0\nvt\t1 0.75\nvt\t0 0.75\nf\t1/1 2/2 3/3\nf\t1/1 3/3 4/4\n",
+    "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 0.75\nvt 0 0.75\n"
+    "  f 1/1 2/2 3/3  # first\r\nf 1/1 3/3 4/4 # second\n",
+])
+def test_obj_fields_separated_by_any_whitespace_and_comments_after_them(tmp_path, text):
+    """Tab-separated or indented lines were dropped by trimesh (a file "held no triangles", or a
+    face was lost), and a comment after a face's fields failed to parse."""
+    (tmp_path / "q.obj").write_text(text)
+    mesh = load_mesh(tmp_path / "q.obj")
+    np.testing.assert_allclose(mesh.vertices, QUAD_POSITIONS)
+    np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [0, 2, 3]])
+    np.testing.assert_allclose(mesh.visual.uv, QUAD_UV_GLTF)  # OBJ's v up, read as glTF's v down
+
+
+def test_obj_one_component_texture_coordinate_has_v_0(tmp_path):
+    """``vt u`` is valid OBJ (v defaults to 0); it raised an IndexError."""
+    (tmp_path / "u.obj").write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nvt 0\nvt 1\nvt 0.5\nf 1/1 2/2 3/3\n")
+    mesh = load_mesh(tmp_path / "u.obj", require_uv=False)
+    np.testing.assert_allclose(mesh.visual.uv, [[0, 1], [1, 1], [0.5, 1]])
+    with pytest.raises(CaptureError, match="texture coordinates span no area"):
+        load_mesh(tmp_path / "u.obj")
