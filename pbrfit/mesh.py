@@ -440,7 +440,7 @@ def _flatten(scene, where: str, path: Path) -> list:
         scales = np.linalg.svd(t[:3, :3], compute_uv=False)
         if scales[0] == 0.0 or scales[-1] <= SINGULAR_SCALE_REL * scales[0]:  # a zero scale: viewers draw nothing
             continue
-        normals = np.asarray(geom.vertex_normals, np.float64) @ np.linalg.inv(t[:3, :3])  # (M^-T n) as rows
+        normals = _file_normals(geom) @ np.linalg.inv(t[:3, :3])  # (M^-T n) as rows
         normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
         faces = np.asarray(geom.faces, np.int64)
         if np.linalg.det(t[:3, :3]) < 0:
@@ -521,16 +521,59 @@ def _obj_text(path: Path, where: str) -> bytes:
     return b"\n".join(lines) + b"\n"
 
 
-def _check_ply_counts(scene, where: str, path: Path) -> None:
-    """`CaptureError` when a PLY holds fewer vertices or faces than its header declares: a
-    truncated ASCII file, which trimesh loads as far as it goes."""
+def _check_ply(scene, where: str, path: Path) -> None:
+    """`CaptureError` when a PLY holds fewer vertices or faces than its header declares (a
+    truncated ASCII file, which trimesh loads as far as it goes) or a face index outside its
+    vertices (trimesh reads -1 as the last one where the file has texture coordinates)."""
     for geometry in scene.geometry.values():
-        for element, info in (geometry.metadata.get("_ply_raw") or {}).items():
+        raw = geometry.metadata.get("_ply_raw") or {}
+        for element, info in raw.items():
             data = info.get("data")
             rows = [len(v) for v in data.values() if hasattr(v, "__len__")] if isinstance(data, dict) else []
             if rows and min(rows) < int(info.get("length", 0)):
                 raise CaptureError(f"{where}: mesh {path}: the header declares {info['length']} {element} "
                                    f"elements, the file holds {min(rows)} (is it truncated?)")
+        count = int((raw.get("vertex") or {}).get("length", 0))
+        for key in ("vertex_indices", "vertex_index"):
+            lists = _ply_property(raw, "face", key)
+            if lists is not None and len(lists):
+                if lists.dtype.names:  # a binary file's fixed-length lists: (count, indices)
+                    lists = lists[lists.dtype.names[-1]]
+                index = np.concatenate([np.asarray(f, np.int64).reshape(-1) for f in lists])
+                if len(index) and (index.min() < 0 or index.max() >= count):
+                    raise CaptureError(f"{where}: mesh {path}: face indices run from {index.min()} to "
+                                       f"{index.max()}, outside its {count} vertices")
+
+
+def _ply_property(raw: dict, element: str, name: str):
+    """Property ``name`` of PLY element ``element`` as trimesh keeps the file's data (a dict of
+    arrays, or a structured array for binary files), or None."""
+    data = (raw.get(element) or {}).get("data")
+    if isinstance(data, dict):
+        return None if data.get(name) is None else np.asarray(data[name])
+    if isinstance(data, np.ndarray) and data.dtype.names and name in data.dtype.names:
+        return data[name]
+    return None
+
+
+def _file_normals(geom) -> np.ndarray:
+    """The vertex normals of a loaded geometry: the file's where it gives them, else trimesh's.
+
+    trimesh gives a PLY vertex a copy for each texture coordinate its faces give it (per-face
+    ``texcoord`` lists, as MeshLab writes them) and then drops the file's ``nx, ny, nz``, which
+    no longer match its vertices: they are taken back here for each copy, found by its position."""
+    raw = geom.metadata.get("_ply_raw") or {}
+    columns = {k: _ply_property(raw, "vertex", k) for k in ("x", "y", "z", "nx", "ny", "nz")}
+    if all(c is not None for c in columns.values()) and len(columns["x"]) != len(geom.vertices):
+        positions = np.column_stack([columns[k] for k in ("x", "y", "z")]).astype(np.float64)
+        normals = np.column_stack([columns[k] for k in ("nx", "ny", "nz")]).astype(np.float64)
+        first = {}
+        for i, p in enumerate(map(tuple, positions)):
+            first.setdefault(p, i)
+        rows = [first.get(tuple(p)) for p in np.asarray(geom.vertices, np.float64)]
+        if all(r is not None for r in rows):
+            return normals[rows]
+    return np.asarray(geom.vertex_normals, np.float64)
 
 
 def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
@@ -561,7 +604,7 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
                 scene = trimesh.load_scene(_io.BytesIO(obj), file_type="obj", resolver=resolver, process=False)
             else:
                 scene = trimesh.load_scene(str(path), process=False)
-            _check_ply_counts(scene, where, path)
+            _check_ply(scene, where, path)
             parts = _flatten(scene, where, path)
         except CaptureError:
             raise

@@ -139,3 +139,39 @@ def test_obj_one_component_texture_coordinate_has_v_0(tmp_path):
     np.testing.assert_allclose(mesh.visual.uv, [[0, 1], [1, 1], [0.5, 1]])
     with pytest.raises(CaptureError, match="texture coordinates span no area"):
         load_mesh(tmp_path / "u.obj")
+
+
+def _ply(path, vertices, faces, vertex_props=("x", "y", "z"), face_texcoord=None):
+    head = ["ply", "format ascii 1.0", f"element vertex {len(vertices)}"]
+    head += [f"property float {p}" for p in vertex_props]
+    head += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+    head += ["property list uchar float texcoord"] if face_texcoord is not None else []
+    rows = [" ".join(map(repr, map(float, v))) for v in vertices]
+    for k, face in enumerate(faces):
+        row = f"{len(face)} " + " ".join(map(str, face))
+        if face_texcoord is not None:
+            row += f" {2 * len(face)} " + " ".join(map(repr, map(float, np.ravel(face_texcoord[k]))))
+        rows.append(row)
+    path.write_text("\n".join(head + ["end_header"] + rows) + "\n")
+    return path
+
+
+def test_ply_normals_are_kept_where_per_face_texture_coordinates_split_vertices(tmp_path):
+    """MeshLab writes a PLY's texture coordinates per face corner (``texcoord`` lists): trimesh
+    gives a vertex a copy for each, and dropped the file's normals, which no longer matched; the
+    copies shaded with normals of their own were creased at every uv seam."""
+    tilted = np.array([0.3, 0.0, 1.0]) / np.linalg.norm([0.3, 0.0, 1.0])
+    vertices = [[*p, *tilted] for p in QUAD_POSITIONS]
+    seam = [[[0, 0], [1, 0], [1, 1]], [[0.5, 0], [1, 1], [0, 1]]]  # vertex 0 and 2 get two uv each
+    path = _ply(tmp_path / "n.ply", vertices, [[0, 1, 2], [0, 2, 3]], ("x", "y", "z", "nx", "ny", "nz"), seam)
+    mesh = load_mesh(path)
+    assert len(mesh.vertices) > 4  # the seam's copies
+    np.testing.assert_allclose(mesh.vertex_normals, np.tile(tilted, (len(mesh.vertices), 1)), atol=1e-6)
+
+
+def test_ply_face_index_outside_its_vertices_is_refused_with_texture_coordinates_too(tmp_path):
+    """With texture coordinates trimesh read index -1 as the last vertex."""
+    vertices = [[0, 0, 0, 0, 0], [1, 0, 0, 1, 0], [0, 1, 0, 0, 1]]
+    path = _ply(tmp_path / "neg.ply", vertices, [[0, 1, -1]], ("x", "y", "z", "s", "t"))
+    with pytest.raises(CaptureError, match="neg.ply: face indices run from -1 to 1, outside its 3 vertices"):
+        load_mesh(path)
