@@ -40,6 +40,7 @@ import base64
 import contextlib
 import io as _io
 import json
+import re
 import struct
 import urllib.parse
 from pathlib import Path
@@ -495,30 +496,47 @@ def _quiet_trimesh():
 
 #: OBJ element lines: their fields are numbers, and a ``#`` ends them.
 _OBJ_ELEMENTS = (b"v", b"vt", b"vn", b"vp", b"f", b"l", b"p")
+_OBJ_INDENT = re.compile(rb"(?m)^ +")
+#: A 0 among an OBJ line's numbers (``f 0 1 2``, ``f 1/0 ...``; `_obj_text` keeps those on face lines).
+_OBJ_ZERO = re.compile(rb"[ /][-+]?0+(?=[ /\r\n]|\Z)")
+
+
+def _line_at(text: bytes, at: int) -> tuple[int, int]:
+    """(start, end) of the line of ``text`` holding byte ``at``, without its line break."""
+    start = text.rfind(b"\n", 0, at) + 1
+    end = text.find(b"\n", at)
+    end = len(text) if end < 0 else end
+    return start, end - (text[end - 1:end] == b"\r")
 
 
 def _obj_text(path: Path, where: str) -> bytes:
     """An OBJ file's text as trimesh's parser reads it as the format means it: fields separated by
-    tabs as by spaces, indented lines, a comment after an element's fields, and a one-component
-    texture coordinate ``vt u`` (v = 0) are all valid OBJ, which trimesh misreads (drops the
-    line or fails). `CaptureError` when a face names index 0, as files written counting from 0
-    do: OBJ counts from 1 (negative: back from the last), and trimesh reads 0 as the last vertex,
-    shifting every face."""
-    lines = []
-    for line in path.read_bytes().split(b"\n"):
-        line = line.replace(b"\t", b" ").strip(b" \r")
-        keyword = line.split(b" ", 1)[0]
-        if keyword in _OBJ_ELEMENTS:
-            line = line.split(b"#", 1)[0].rstrip(b" ")
-            fields = line.split()
-            if keyword == b"vt" and len(fields) == 2:
-                line += b" 0"
-            if keyword == b"f" and any(i.lstrip(b"+-").strip(b"0") == b"" for f in fields[1:] for i in f.split(b"/") if i):
-                text = line.decode("utf-8", "replace")
-                raise CaptureError(f"{where}: mesh {path}: face {text!r} has index 0; OBJ indices count from 1 "
-                                   "(was the file written counting from 0?)")
-        lines.append(line)
-    return b"\n".join(lines) + b"\n"
+    tabs as by spaces, indented lines and a comment after an element's fields are valid OBJ,
+    which trimesh misreads (drops the line, or fails). `CaptureError` when a face names index 0,
+    as files written counting from 0 do: OBJ counts from 1 (negative: back from the last), and
+    trimesh reads 0 as the last vertex, shifting every face. Each rewrite runs only where its
+    cause is in the file (a pass over every line in Python took a third of a 1M-face OBJ's load)."""
+    text = path.read_bytes()
+    if b"\t" in text:
+        text = text.replace(b"\t", b" ")
+    if text.startswith(b" ") or b"\n " in text:
+        text = _OBJ_INDENT.sub(b"", text)
+    if b"#" in text:  # cut comments that follow an element's fields
+        kept, last = [], 0
+        for at in (m.start() for m in re.finditer(rb"#", text)):
+            start, end = _line_at(text, at)
+            if at < last or text[start:at].split(b" ", 1)[0] not in _OBJ_ELEMENTS:
+                continue
+            kept.append(text[last:at].rstrip(b" "))
+            last = end
+        text = b"".join(kept) + text[last:]
+    for match in _OBJ_ZERO.finditer(text):
+        start, end = _line_at(text, match.start())
+        if text[start:start + 2] == b"f ":
+            line = text[start:end].decode("utf-8", "replace").strip()
+            raise CaptureError(f"{where}: mesh {path}: face {line!r} has index 0; OBJ indices count from 1 "
+                               "(was the file written counting from 0?)")
+    return text
 
 
 def _check_ply(scene, where: str, path: Path) -> None:
@@ -629,7 +647,10 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
                 )
             uvs = None
             break
-        uvs.append(np.asarray(uv, dtype=np.float64)[:, :2])
+        uv = np.asarray(uv, dtype=np.float64)
+        if uv.ndim == 2 and uv.shape[1] == 1:  # OBJ's "vt u": v is 0
+            uv = np.column_stack([uv, np.zeros(len(uv))])
+        uvs.append(uv[:, :2])
     offsets = np.cumsum([0] + [len(p.vertices) for p in parts])
     vertices = np.concatenate([np.asarray(p.vertices, np.float64) for p in parts])
     faces = np.concatenate([np.asarray(p.faces, np.int64) + off for p, off in zip(parts, offsets)])
