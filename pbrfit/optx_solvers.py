@@ -46,8 +46,6 @@ BFGS_MAX_PARAMETERS = 4096
 ADAM_LEARNING_RATE = 0.02
 #: CG steps per linear solve inside the optimistix least-squares solvers.
 CG_MAX_STEPS = 100
-#: The CG recomputes its residual from its iterate every this many steps (as lineax's CG does).
-STABILISE_EVERY = 10
 #: The start is moved this share of each channel's range inside its bounds. In the sine storage
 #: d value / dz = (hi - lo) cos(z) / 2 vanishes at a bound, so a channel started on one (the grid
 #: start puts metallic at exactly 0 or 1, the prior at 0) never moves: on the flash preset at
@@ -71,12 +69,13 @@ def truncated_cg():
 
         α = rᵀr / pᵀAp,   y ← y + α p,   r ← r − α A p,   p ← r + (r'ᵀr' / rᵀr) p
 
-    until every |rᵢ| ≤ rtol |bᵢ| + atol and every |Δyᵢ| ≤ rtol |yᵢ| + atol (lineax's test) or
-    `max_steps`, r recomputed as b − Ay every `STABILISE_EVERY` steps (as lineax does: without it
-    the float32 steps differ). Every iterate lowers the quadratic model, so the
-    last one is a step wherever the loop ends: at the step limit, and where a curvature pᵀAp is
-    not positive or a value is not finite (rounding in float32) the last finite iterate is kept,
-    as truncated CG keeps it. Both are reported as successes.
+    until ‖r / (rtol |b| + atol)‖ ≤ 1 and ‖Δy / (rtol |y| + atol)‖ ≤ 1 in the solver's `norm`
+    (lineax's test; the max norm by default), or `max_steps` (default 10 N, as lineax's), r
+    recomputed as b − Ay every `stabilise_every` steps (lineax's default 10: without it the
+    float32 steps differ). Every iterate lowers the quadratic model, so the last one is a step
+    wherever the loop ends: at the step limit, and where a curvature pᵀAp is not positive or a
+    value is not finite (rounding in float32) the last finite iterate is kept, as truncated CG
+    keeps it. Both are reported as successes.
 
     lineax's own `CG` reports the step limit as a failure and declares breakdown (NaN) where
     pᵀAp < 100 · N · eps · rᵀr, a threshold that grows with the number of unknowns N: in float32
@@ -92,18 +91,21 @@ def truncated_cg():
                 raise ValueError("TruncatedCG starts at 0 and takes no preconditioner")
             operator, is_nsd = state
             b, unravel = ravel_pytree(vector)
+            max_steps = 10 * b.size if self.max_steps is None else self.max_steps
+            stats = {"num_steps": jnp.asarray(0), "max_steps": self.max_steps}
+            if b.size == 0:
+                return vector, lx.RESULTS.successful, stats
 
             def mv(v):
                 return ravel_pytree(operator.mv(unravel(v)))[0]
 
             scale = self.rtol * jnp.abs(b) + self.atol
-            gamma0 = _dot(b, b)
 
             def cond(carry):
                 y, r, _, _, diff, step, done = carry
                 y_scale = self.rtol * jnp.abs(y) + self.atol
-                converged = (jnp.max(jnp.abs(r) / scale) <= 1) & (jnp.max(jnp.abs(diff) / y_scale) <= 1)
-                return ~done & (step < self.max_steps) & ~converged
+                converged = (self.norm(r / scale) <= 1) & (self.norm(diff / y_scale) <= 1)
+                return ~done & (step < max_steps) & ~converged
 
             def body(carry):
                 y, r, p, gamma, diff, step, _ = carry
@@ -111,20 +113,24 @@ def truncated_cg():
                 curvature = _dot(p, ap)
                 alpha = gamma / jnp.where(curvature > 0, curvature, 1)
                 y_next = y + alpha * p
-                # the residual recomputed from y every STABILISE_EVERY steps, against rounding
-                r_next = jax.lax.cond((step + 1) % STABILISE_EVERY == 0, lambda: b - mv(y_next), lambda: r - alpha * ap)
+                if self.stabilise_every is None:
+                    r_next = r - alpha * ap
+                else:  # the residual recomputed from y, against rounding
+                    r_next = jax.lax.cond((step + 1) % self.stabilise_every == 0, lambda: b - mv(y_next),
+                                          lambda: r - alpha * ap)
                 gamma_next = _dot(r_next, r_next)
                 ok = (curvature > 0) & jnp.isfinite(gamma_next) & jnp.all(jnp.isfinite(y_next))
                 p_next = r_next + (gamma_next / gamma) * p
-                keep = lambda new, old: jnp.where(ok, new, old)
+                keep = lambda new, old: jnp.where(ok, new, old)  # noqa: E731
                 return (keep(y_next, y), keep(r_next, r), keep(p_next, p), keep(gamma_next, gamma), keep(alpha * p, diff),
                         step + 1, ~ok)
 
+            gamma0 = _dot(b, b)
             carry = (jnp.zeros_like(b), b, b, gamma0, jnp.full_like(b, jnp.inf), 0, ~jnp.isfinite(gamma0))
             y, _, _, _, _, steps, _ = jax.lax.while_loop(cond, body, carry)
             if is_nsd.value:
                 y = -y
-            return unravel(y), lx.RESULTS.successful, {"num_steps": steps, "max_steps": self.max_steps}
+            return unravel(y), lx.RESULTS.successful, {**stats, "num_steps": steps}
 
     return TruncatedCG
 

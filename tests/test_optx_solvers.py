@@ -1,5 +1,6 @@
 """The linear solver inside the optimistix least-squares solvers (`pbrfit.optx_solvers.truncated_cg`)."""
 
+import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
@@ -48,3 +49,38 @@ def test_negative_curvature_keeps_the_last_iterate():
     assert sol.result == lx.RESULTS.successful
     np.testing.assert_allclose(np.asarray(sol.value), [1.5, 1.5, 1.5], rtol=1e-6)
     assert int(sol.stats["num_steps"]) == 2
+
+
+def test_a_well_conditioned_system_converges_before_the_step_limit():
+    rng = np.random.default_rng(1)
+    m = rng.normal(size=(30, 30))
+    a = m @ m.T / 30 + np.eye(30)
+    b = rng.normal(size=30)
+    operator = lx.MatrixLinearOperator(jnp.asarray(a, jnp.float32), lx.positive_semidefinite_tag)
+    sol = lx.linear_solve(operator, jnp.asarray(b, jnp.float32), truncated_cg()(rtol=1e-5, atol=1e-8, max_steps=100))
+    assert int(sol.stats["num_steps"]) < 60
+    np.testing.assert_allclose(np.asarray(sol.value), np.linalg.solve(a, b), rtol=1e-3, atol=1e-4)
+    # negative definite: lineax's CG solves -A y = -b and turns the sign back
+    operator = lx.MatrixLinearOperator(jnp.asarray(-a, jnp.float32), lx.negative_semidefinite_tag)
+    sol = lx.linear_solve(operator, jnp.asarray(b, jnp.float32), truncated_cg()(rtol=1e-5, atol=1e-8, max_steps=100))
+    np.testing.assert_allclose(np.asarray(sol.value), np.linalg.solve(-a, b), rtol=1e-3, atol=1e-4)
+
+
+def test_normal_equations_of_a_tuple_of_residuals():
+    """As the optimistix solvers use it: `lx.Normal` over a Jacobian whose output is a pytree
+    (pbrfit's (data, prior) residuals); the step is the least-squares solution."""
+    rng = np.random.default_rng(2)
+    j1, j2 = rng.normal(size=(40, 6)), rng.normal(size=(9, 6))
+    b1, b2 = rng.normal(size=40), rng.normal(size=9)
+    operator = lx.FunctionLinearOperator(lambda z: (jnp.asarray(j1, jnp.float32) @ z, jnp.asarray(j2, jnp.float32) @ z),
+                                         jax.ShapeDtypeStruct((6,), jnp.float32))
+    solver = lx.Normal(truncated_cg()(rtol=1e-6, atol=1e-9, max_steps=50))
+    sol = lx.linear_solve(operator, (jnp.asarray(b1, jnp.float32), jnp.asarray(b2, jnp.float32)), solver)
+    expected = np.linalg.lstsq(np.vstack([j1, j2]), np.concatenate([b1, b2]), rcond=None)[0]
+    np.testing.assert_allclose(np.asarray(sol.value), expected, rtol=1e-3, atol=1e-4)
+
+
+def test_a_non_finite_right_hand_side_gives_no_step():
+    sol = _solve([1.0, 2.0], [np.inf, 1.0])
+    assert sol.result == lx.RESULTS.successful
+    np.testing.assert_array_equal(np.asarray(sol.value), [0.0, 0.0])
