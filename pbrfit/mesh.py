@@ -174,14 +174,27 @@ def apply_texture_transform(uv: Float[np.ndarray, "n 2"], offset, rotation: floa
     return np.column_stack([offset[0] + c * su + s * sv, offset[1] - s * su + c * sv])
 
 
-def _morph_weights(tree: dict, mesh_index: int) -> list:
-    """The morph target weights mesh ``mesh_index`` is drawn with: its nodes' ``weights``, else
-    its own, else 0 (glTF 2.0 §3.7.2.2, "Morph Targets"). A ValueError when its nodes draw it
-    with different weights: pbrfit reads one shape per mesh."""
+def _scene_nodes(tree: dict) -> list:
+    """The nodes of the scene a viewer shows (``scene``, else the first), with their descendants."""
+    nodes, scenes = tree.get("nodes") or [], tree.get("scenes") or []
+    scene = tree.get("scene", 0)
+    roots = scenes[scene].get("nodes", []) if isinstance(scene, int) and 0 <= scene < len(scenes) else []
+    seen, stack = set(), list(roots)
+    while stack:
+        index = stack.pop()
+        if isinstance(index, int) and 0 <= index < len(nodes) and index not in seen and isinstance(nodes[index], dict):
+            seen.add(index)
+            stack.extend(nodes[index].get("children") or [])
+    return [nodes[i] for i in sorted(seen)]
+
+
+def _morph_weights(tree: dict, mesh_index: int, shown: list) -> list:
+    """The morph target weights mesh ``mesh_index`` is drawn with by the ``shown`` nodes: their
+    ``weights``, else its own, else 0 (glTF 2.0 §3.7.2.2, "Morph Targets"). A ValueError when
+    they draw it with different weights: pbrfit reads one shape per mesh."""
     mesh = tree["meshes"][mesh_index]
     default = [float(w) for w in mesh.get("weights") or []]
-    drawn = {tuple(float(w) for w in node.get("weights", default))
-             for node in tree.get("nodes") or [] if isinstance(node, dict) and node.get("mesh") == mesh_index}
+    drawn = {tuple(float(w) for w in node.get("weights", default)) for node in shown if node.get("mesh") == mesh_index}
     if len(drawn) > 1:
         raise ValueError(f"mesh {mesh_index} is drawn by nodes with different morph target weights "
                          "(pbrfit reads one shape per mesh)")
@@ -219,11 +232,12 @@ def _gltf_rewrite_primitives(tree: dict, buffer, target: int, start: int) -> byt
         tree["accessors"].append(entry)
         return len(tree["accessors"]) - 1
 
+    shown = _scene_nodes(tree)
     for mesh_index, mesh in enumerate(tree.get("meshes") or []):
-        weights = _morph_weights(tree, mesh_index)
+        weights = _morph_weights(tree, mesh_index, shown)
         for primitive in mesh.get("primitives") or []:
             attributes = primitive.get("attributes") or {}
-            if "KHR_draco_mesh_compression" in (primitive.get("extensions") or {}):  # decoded later, by trimesh
+            if _DRACO in (primitive.get("extensions") or {}):  # decoded later, by trimesh (with DracoPy)
                 if _texture_transform(tree, primitive) is not None:
                     raise ValueError("a KHR_texture_transform on a Draco-compressed primitive is not supported")
                 continue
@@ -250,16 +264,17 @@ def _gltf_rewrite_primitives(tree: dict, buffer, target: int, start: int) -> byt
                 attributes[name] = made[key]
             primitive.pop("targets", None)
             indices = primitive.get("indices")
-            if isinstance(indices, int) and "sparse" in tree["accessors"][indices]:
-                values = _read_accessor(tree, buffer, indices)[:, 0]
-                primitive["indices"] = store(values, "<u4", "SCALAR", _UINT32)
-            if primitive.get("mode") == _TRIANGLE_FAN:
-                if "indices" in primitive:
-                    order = _read_accessor(tree, buffer, primitive["indices"])[:, 0].astype(np.int64)
-                else:
+            fan = primitive.get("mode") == _TRIANGLE_FAN
+            if isinstance(indices, int) and ("sparse" in tree["accessors"][indices] or fan):
+                order = _read_accessor(tree, buffer, indices)[:, 0].astype(np.int64)
+                if not fan:
+                    primitive["indices"] = store(order, "<u4", "SCALAR", _UINT32)
+            if fan:
+                if not isinstance(indices, int):
                     order = np.arange(int(tree["accessors"][attributes["POSITION"]]["count"]))
-                fan = np.stack([order[1:-1], order[2:], np.full(max(len(order) - 2, 0), order[0] if len(order) else 0)], 1)
-                primitive["indices"] = store(fan.reshape(-1), "<u4", "SCALAR", _UINT32)
+                first = np.full(max(len(order) - 2, 0), order[0] if len(order) else 0)
+                triangles = np.stack([order[1:-1], order[2:], first], 1)  # (v_{i+1}, v_{i+2}, v_0)
+                primitive["indices"] = store(triangles.reshape(-1), "<u4", "SCALAR", _UINT32)
                 primitive["mode"] = 4
         mesh.pop("weights", None)
     for node in tree.get("nodes") or []:
@@ -361,6 +376,7 @@ def _file_resolver(tree: dict, folder: Path):
 #: material is what a fit finds), quantized attributes and TEXCOORD_0's transform are.
 _EXTENSIONS_READ = ("KHR_mesh_quantization", "KHR_texture_transform", "KHR_lights_punctual", "KHR_xmp_json_ld")
 _EXTENSION_PREFIXES_NOT_READ = ("KHR_materials_", "KHR_texture_", "EXT_texture_")
+_DRACO = "KHR_draco_mesh_compression"
 
 
 def _prepare_tree(tree: dict) -> None:
@@ -371,10 +387,17 @@ def _prepare_tree(tree: dict) -> None:
     empty, zero or one instance short). Camera nodes lose their camera: trimesh leaves a node
     with a camera and a mesh, and the meshes under it, out of the scene, which glTF viewers
     draw. Primitives with TEXCOORD_0 and no material get a default one (`_gltf_default_material`)."""
+    import importlib.util
+
+    read = _EXTENSIONS_READ
+    if importlib.util.find_spec("DracoPy") is not None:  # trimesh decodes Draco with it
+        read += (_DRACO,)
     required = [name for name in tree.get("extensionsRequired") or []
-                if name not in _EXTENSIONS_READ and not str(name).startswith(_EXTENSION_PREFIXES_NOT_READ)]
+                if name not in read and not str(name).startswith(_EXTENSION_PREFIXES_NOT_READ)]
     if required:
         hint = (" (write it without compression)" if any("compression" in str(n) for n in required) else "")
+        if _DRACO in required:
+            hint = " (install DracoPy, with which trimesh decodes Draco, or write it without compression)"
         raise ValueError(f"it requires the glTF extension{'s' if len(required) > 1 else ''} "
                          f"{', '.join(map(str, required))}, which pbrfit does not read{hint}")
     for node in tree.get("nodes") or []:
@@ -497,6 +520,8 @@ def _quiet_trimesh():
 #: OBJ element lines: their fields are numbers, and a ``#`` ends them.
 _OBJ_ELEMENTS = (b"v", b"vt", b"vn", b"vp", b"f", b"l", b"p")
 _OBJ_INDENT = re.compile(rb"(?m)^ +")
+#: A one-component texture coordinate line, ``vt u`` (after a line break).
+_OBJ_ONE_UV = re.compile(rb"(\nvt +[^ \r\n]+) *(?=\r?\n|\Z)")
 #: A 0 among an OBJ line's numbers (``f 0 1 2``, ``f 1/0 ...``; `_obj_text` keeps those on face lines).
 _OBJ_ZERO = re.compile(rb"[ /][-+]?0+(?=[ /\r\n]|\Z)")
 
@@ -511,8 +536,9 @@ def _line_at(text: bytes, at: int) -> tuple[int, int]:
 
 def _obj_text(path: Path, where: str) -> bytes:
     """An OBJ file's text as trimesh's parser reads it as the format means it: fields separated by
-    tabs as by spaces, indented lines and a comment after an element's fields are valid OBJ,
-    which trimesh misreads (drops the line, or fails). `CaptureError` when a face names index 0,
+    tabs as by spaces, indented lines, a comment after an element's fields and a one-component
+    texture coordinate ``vt u`` (v = 0) are valid OBJ, which trimesh misreads (drops the line,
+    fails, or shifts every texture coordinate after it). `CaptureError` when a face names index 0,
     as files written counting from 0 do: OBJ counts from 1 (negative: back from the last), and
     trimesh reads 0 as the last vertex, shifting every face. Each rewrite runs only where its
     cause is in the file (a pass over every line in Python took a third of a 1M-face OBJ's load)."""
@@ -530,6 +556,8 @@ def _obj_text(path: Path, where: str) -> bytes:
             kept.append(text[last:at].rstrip(b" "))
             last = end
         text = b"".join(kept) + text[last:]
+    if text.startswith(b"vt ") or _OBJ_ONE_UV.search(text):
+        text = _OBJ_ONE_UV.sub(rb"\1 0", b"\n" + text)[1:]
     for match in _OBJ_ZERO.finditer(text):
         start, end = _line_at(text, match.start())
         if text[start:start + 2] == b"f ":
@@ -557,7 +585,7 @@ def _check_ply(scene, where: str, path: Path) -> None:
             if lists is not None and len(lists):
                 if lists.dtype.names:  # a binary file's fixed-length lists: (count, indices)
                     lists = lists[lists.dtype.names[-1]]
-                index = np.concatenate([np.asarray(f, np.int64).reshape(-1) for f in lists])
+                index = np.concatenate(list(lists)) if lists.dtype == object else lists.reshape(-1)
                 if len(index) and (index.min() < 0 or index.max() >= count):
                     raise CaptureError(f"{where}: mesh {path}: face indices run from {index.min()} to "
                                        f"{index.max()}, outside its {count} vertices")
@@ -579,19 +607,28 @@ def _file_normals(geom) -> np.ndarray:
 
     trimesh gives a PLY vertex a copy for each texture coordinate its faces give it (per-face
     ``texcoord`` lists, as MeshLab writes them) and then drops the file's ``nx, ny, nz``, which
-    no longer match its vertices: they are taken back here for each copy, found by its position."""
+    no longer match its vertices: each copy takes them back from the file's vertices at its
+    position where those agree. Where they do not (a hard edge: one vertex per face at a corner)
+    the copy keeps trimesh's normal, the mean of the faces it belongs to."""
+    computed = np.asarray(geom.vertex_normals, np.float64)
     raw = geom.metadata.get("_ply_raw") or {}
     columns = {k: _ply_property(raw, "vertex", k) for k in ("x", "y", "z", "nx", "ny", "nz")}
-    if all(c is not None for c in columns.values()) and len(columns["x"]) != len(geom.vertices):
-        positions = np.column_stack([columns[k] for k in ("x", "y", "z")]).astype(np.float64)
-        normals = np.column_stack([columns[k] for k in ("nx", "ny", "nz")]).astype(np.float64)
-        first = {}
-        for i, p in enumerate(map(tuple, positions)):
-            first.setdefault(p, i)
-        rows = [first.get(tuple(p)) for p in np.asarray(geom.vertices, np.float64)]
-        if all(r is not None for r in rows):
-            return normals[rows]
-    return np.asarray(geom.vertex_normals, np.float64)
+    if any(c is None for c in columns.values()) or len(columns["x"]) == len(geom.vertices):
+        return computed
+    positions = np.column_stack([columns[k] for k in ("x", "y", "z")]).astype(np.float64)
+    normals = np.column_stack([columns[k] for k in ("nx", "ny", "nz")]).astype(np.float64)
+    keys, group = np.unique(positions, axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    first = np.full(len(keys), -1)
+    first[group[::-1]] = np.arange(len(group))[::-1]  # the first file vertex at each position
+    spread = np.zeros(len(keys))
+    np.maximum.at(spread, group, np.max(np.abs(normals - normals[first[group]]), axis=1))
+    vertices = np.asarray(geom.vertices, np.float64)
+    where = np.searchsorted(np.ascontiguousarray(keys).view([("", keys.dtype)] * 3).reshape(-1),
+                            np.ascontiguousarray(vertices).view([("", vertices.dtype)] * 3).reshape(-1))
+    where = np.minimum(where, len(keys) - 1)
+    found = np.all(keys[where] == vertices, axis=1) & (spread[where] <= 1e-6)
+    return np.where(found[:, None], normals[first[where]], computed)
 
 
 def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
@@ -647,10 +684,7 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
                 )
             uvs = None
             break
-        uv = np.asarray(uv, dtype=np.float64)
-        if uv.ndim == 2 and uv.shape[1] == 1:  # OBJ's "vt u": v is 0
-            uv = np.column_stack([uv, np.zeros(len(uv))])
-        uvs.append(uv[:, :2])
+        uvs.append(np.asarray(uv, dtype=np.float64)[:, :2])
     offsets = np.cumsum([0] + [len(p.vertices) for p in parts])
     vertices = np.concatenate([np.asarray(p.vertices, np.float64) for p in parts])
     faces = np.concatenate([np.asarray(p.faces, np.int64) + off for p, off in zip(parts, offsets)])

@@ -2,12 +2,14 @@
 fans, morph targets, sparse indices, camera nodes, required extensions) and OBJ text it trips
 over (tabs, indentation, comments after fields, one-component texture coordinates)."""
 
+import importlib.util
+
 import numpy as np
 import pytest
 from _capture_fixtures import QUAD_POSITIONS, QUAD_UV_GLTF
 
 from pbrfit.errors import CaptureError
-from pbrfit.mesh import _glb_from_chunks, load_mesh
+from pbrfit.mesh import _glb_chunks, _glb_from_chunks, load_mesh
 
 _COMPONENTS = {np.float32: 5126, np.uint32: 5125, np.uint16: 5123, np.uint8: 5121}
 
@@ -71,21 +73,27 @@ def test_morph_targets_move_the_mesh_by_their_weights(tmp_path):
     np.testing.assert_allclose(z(mesh={"weights": [0.5]}, nodes=[{"mesh": 0, "weights": [1.0]}]), 2.0)
     with pytest.raises(CaptureError, match="m.glb: mesh 0 is drawn by nodes with different morph target weights"):
         z(mesh={"weights": [0.5]}, nodes=[{"children": [1, 2]}, {"mesh": 0}, {"mesh": 0, "weights": [1.0]}])
+    # nodes the shown scene does not hold draw nothing: a node in no scene, or in another one
+    np.testing.assert_allclose(z(mesh={"weights": [0.5]}, nodes=[{"mesh": 0}, {"mesh": 0, "weights": [1.0]}]), 1.0)
+    np.testing.assert_allclose(z(mesh={"weights": [0.5]}, nodes=[{"mesh": 0}, {"mesh": 0, "weights": [1.0]}],
+                                 scenes=[{"nodes": [0]}, {"nodes": [1]}], scene=1), 2.0)
 
 
-def test_sparse_indices_are_applied(tmp_path):
-    arrays = [QUAD_POSITIONS, QUAD_UV_GLTF, np.array([0, 1, 2, 0, 0, 0], np.uint16),
-              np.array([4, 5], np.uint8), np.array([2, 3], np.uint16)]
-    tree_edit = {"meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2}]}],
-                 "nodes": [{"mesh": 0}]}
-    path = _glb(tmp_path / "s.glb", arrays, **tree_edit)
-    from pbrfit.mesh import _glb_chunks
-
+@pytest.mark.parametrize("mode, stored, expected", [
+    (4, [0, 1, 2, 0, 0, 0], [[0, 1, 2], [0, 2, 3]]),  # entries 4, 5 replaced by 2, 3
+    (6, [0, 1, 0, 0], [[1, 2, 0], [2, 3, 0]]),  # a fan: entries 2, 3 replaced by 2, 3
+])
+def test_sparse_indices_are_applied(tmp_path, mode, stored, expected):
+    at = [4, 5] if mode == 4 else [2, 3]
+    arrays = [QUAD_POSITIONS, QUAD_UV_GLTF, np.array(stored, np.uint16), np.array(at, np.uint8),
+              np.array([2, 3], np.uint16)]
+    primitive = {"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "mode": mode}
+    path = _glb(tmp_path / "s.glb", arrays, meshes=[{"primitives": [primitive]}], nodes=[{"mesh": 0}])
     version, tree, blob = _glb_chunks(path.read_bytes())
     tree["accessors"][2]["sparse"] = {"count": 2, "indices": {"bufferView": 3, "componentType": 5121},
                                       "values": {"bufferView": 4}}
     path.write_bytes(_glb_from_chunks(version, tree, blob))
-    np.testing.assert_array_equal(load_mesh(path).faces, [[0, 1, 2], [0, 2, 3]])
+    np.testing.assert_array_equal(load_mesh(path).faces, expected)
 
 
 def test_a_mesh_on_or_under_a_camera_node_is_drawn(tmp_path):
@@ -109,12 +117,20 @@ def test_required_extensions_pbrfit_cannot_read_are_refused(tmp_path):
     ok = ["KHR_materials_clearcoat", "KHR_texture_basisu", "KHR_mesh_quantization", "KHR_texture_transform"]
     assert len(load_mesh(_glb(tmp_path / "ok.glb", arrays, extensionsRequired=ok, **tree)).faces) == 2
     for required, message in (
-            (["KHR_draco_mesh_compression"], "the glTF extension KHR_draco_mesh_compression, which pbrfit does "
-                                             r"not read \(write it without compression\)"),
+            (["EXT_meshopt_compression"], "the glTF extension EXT_meshopt_compression, which pbrfit does "
+                                          r"not read \(write it without compression\)"),
             (["EXT_mesh_gpu_instancing", "KHR_materials_ior", "EXT_foo"],
              "the glTF extensions EXT_mesh_gpu_instancing, EXT_foo, which pbrfit does not read$")):
         with pytest.raises(CaptureError, match=r"cannot load mesh .*x.glb: it requires " + message):
             load_mesh(_glb(tmp_path / "x.glb", arrays, extensionsRequired=required, **tree))
+    # Draco: trimesh decodes it with DracoPy, where that is installed
+    draco = _glb(tmp_path / "d.glb", arrays, extensionsRequired=["KHR_draco_mesh_compression"], **tree)
+    if importlib.util.find_spec("DracoPy") is None:
+        with pytest.raises(CaptureError, match=r"KHR_draco_mesh_compression, which pbrfit does not read \(install "
+                                               "DracoPy, with which trimesh decodes Draco, or write it without"):
+            load_mesh(draco)
+    else:
+        assert len(load_mesh(draco).faces) == 2
 
 
 @pytest.mark.parametrize("text", [
@@ -133,7 +149,10 @@ def test_obj_fields_separated_by_any_whitespace_and_comments_after_them(tmp_path
 
 
 def test_obj_one_component_texture_coordinate_has_v_0(tmp_path):
-    """``vt u`` is valid OBJ (v defaults to 0); it raised an IndexError."""
+    """``vt u`` is valid OBJ (v defaults to 0); it raised an IndexError, and mixed with ``vt u v``
+    lines trimesh shifted every texture coordinate after it."""
+    (tmp_path / "mixed.obj").write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nvt 0.5\nvt 1 0.5\nvt 0 1\nf 1/1 2/2 3/3\n")
+    np.testing.assert_allclose(load_mesh(tmp_path / "mixed.obj").visual.uv, [[0.5, 1], [1, 0.5], [0, 0]])
     (tmp_path / "u.obj").write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nvt 0\nvt 1\nvt 0.5\nf 1/1 2/2 3/3\n")
     mesh = load_mesh(tmp_path / "u.obj", require_uv=False)
     np.testing.assert_allclose(mesh.visual.uv, [[0, 1], [1, 1], [0.5, 1]])
@@ -167,6 +186,28 @@ def test_ply_normals_are_kept_where_per_face_texture_coordinates_split_vertices(
     mesh = load_mesh(path)
     assert len(mesh.vertices) > 4  # the seam's copies
     np.testing.assert_allclose(mesh.vertex_normals, np.tile(tilted, (len(mesh.vertices), 1)), atol=1e-6)
+
+
+def test_ply_hard_edges_keep_each_face_its_normal(tmp_path):
+    """Where the file has one vertex per face at a corner (a hard edge, each with its face's
+    normal), a split copy cannot be told by its position: it keeps trimesh's normal, here its
+    face's (found by position alone, two of three corners took the wrong face's normal)."""
+    # a corner of a cube: three squares meeting at the origin, each with its own four vertices
+    vertices, faces, texcoord = [], [], []
+    for axis in range(3):
+        u, v = np.eye(3)[(axis + 1) % 3], np.eye(3)[(axis + 2) % 3]
+        n = np.eye(3)[axis]
+        base = len(vertices)
+        vertices += [[*(a * u + b * v), *n] for a, b in ((0, 0), (1, 0), (1, 1), (0, 1))]
+        faces += [[base, base + 1, base + 2], [base, base + 2, base + 3]]
+        # a uv seam along each square's diagonal (its first corner's uv differs in its two triangles)
+        texcoord += [[[axis / 3, 0], [(axis + 1) / 3, 0], [(axis + 1) / 3, 1]],
+                     [[axis / 3 + 0.01, 0], [(axis + 1) / 3, 1], [axis / 3, 1]]]
+    path = _ply(tmp_path / "c.ply", vertices, faces, ("x", "y", "z", "nx", "ny", "nz"), texcoord)
+    mesh = load_mesh(path)
+    assert len(mesh.vertices) > 12  # split at the seams
+    corner_normals = mesh.vertex_normals[mesh.faces]  # (faces, 3, 3)
+    np.testing.assert_allclose(corner_normals, np.repeat(mesh.face_normals[:, None], 3, axis=1), atol=1e-6)
 
 
 def test_ply_face_index_outside_its_vertices_is_refused_with_texture_coordinates_too(tmp_path):
