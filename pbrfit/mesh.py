@@ -28,8 +28,9 @@ Rules pinned here (tests in ``tests/test_scene.py`` and ``tests/test_mesh.py``):
   holds) are the transformed ones.
 * Other glTF that trimesh alone misreads is read as glTF 2.0 means it (`_prepare_tree`,
   `_gltf_rewrite_primitives`): triangle fans, morph targets under their weights, sparse
-  indices, meshes on or under camera nodes; a file requiring an extension that changes the
-  geometry (Draco, meshopt, GPU instancing, any unknown one) is refused.
+  indices, meshes on or under camera nodes, GPU instancing; a file requiring an extension that
+  changes the geometry and that pbrfit cannot read (Draco without DracoPy, meshopt, any unknown
+  one) is refused.
 * OBJ text is read as the format means it (`_obj_text`): fields separated by any whitespace,
   comments after an element's fields, ``vt u`` with v = 0; a face index 0 is refused.
 """
@@ -205,6 +206,38 @@ _TRIANGLE_FAN = 6
 _UINT32 = 5125
 
 
+_INSTANCING = "EXT_mesh_gpu_instancing"
+
+
+def _expand_instances(tree: dict, buffer) -> None:
+    """EXT_mesh_gpu_instancing: a node drawing its mesh once per instance, at the node's transform
+    times the instance's T R S (its TRANSLATION, ROTATION and SCALE accessors; each defaults to
+    the identity), becomes a node with one child per instance holding the mesh."""
+    nodes = tree.get("nodes") or []
+    for node in list(nodes):
+        attributes = (((node.get("extensions") or {}).get(_INSTANCING) or {}).get("attributes") or {}
+                      if isinstance(node, dict) else {})
+        if not attributes or not isinstance(node.get("mesh"), int):
+            continue
+        values = {name: _read_accessor(tree, buffer, index) for name, index in attributes.items()
+                  if name in ("TRANSLATION", "ROTATION", "SCALE")}
+        counts = {len(v) for v in values.values()}
+        if len(counts) != 1:
+            raise ValueError(f"{_INSTANCING}: the instance attributes of a node differ in count")
+        children = node.setdefault("children", [])
+        for k in range(counts.pop()):
+            child = {"mesh": node["mesh"]}
+            for name, key in (("TRANSLATION", "translation"), ("ROTATION", "rotation"), ("SCALE", "scale")):
+                if name in values:
+                    child[key] = values[name][k].tolist()
+            if "weights" in node:
+                child["weights"] = node["weights"]
+            children.append(len(nodes))
+            nodes.append(child)
+        del node["mesh"]
+        node["extensions"].pop(_INSTANCING)
+
+
 def _gltf_rewrite_primitives(tree: dict, buffer, target: int, start: int) -> bytes:
     """Rewrite what trimesh would misread in the primitives as new accessors, their data in
     buffer ``target`` from byte ``start`` on: returns that data (b"" when nothing needs it; the
@@ -215,7 +248,8 @@ def _gltf_rewrite_primitives(tree: dict, buffer, target: int, start: int) -> byt
       plus Σ wᵢ targetᵢ, glTF 2.0 §3.7.2.2; trimesh draws the base shape), as float32;
     - sparse indices (applied), as uint32;
     - a TRIANGLE_FAN primitive (mode 6, which trimesh drops) as TRIANGLES with triangles
-      (v_{i+1}, v_{i+2}, v_0) (glTF 2.0 §3.7.2.1)."""
+      (v_{i+1}, v_{i+2}, v_0) (glTF 2.0 §3.7.2.1);
+    - and GPU instances as nodes (`_expand_instances`)."""
     blob = bytearray()
     made = {}
 
@@ -232,6 +266,7 @@ def _gltf_rewrite_primitives(tree: dict, buffer, target: int, start: int) -> byt
         tree["accessors"].append(entry)
         return len(tree["accessors"]) - 1
 
+    _expand_instances(tree, buffer)
     shown = _scene_nodes(tree)
     for mesh_index, mesh in enumerate(tree.get("meshes") or []):
         weights = _morph_weights(tree, mesh_index, shown)
@@ -374,7 +409,8 @@ def _file_resolver(tree: dict, folder: Path):
 #: Required glTF extensions (``extensionsRequired``) that leave the geometry as the core spec reads
 #: it, or that pbrfit reads itself: materials, textures, lights and metadata are not read (the
 #: material is what a fit finds), quantized attributes and TEXCOORD_0's transform are.
-_EXTENSIONS_READ = ("KHR_mesh_quantization", "KHR_texture_transform", "KHR_lights_punctual", "KHR_xmp_json_ld")
+_EXTENSIONS_READ = ("KHR_mesh_quantization", "KHR_texture_transform", "KHR_lights_punctual", "KHR_xmp_json_ld",
+                    "EXT_mesh_gpu_instancing")
 _EXTENSION_PREFIXES_NOT_READ = ("KHR_materials_", "KHR_texture_", "EXT_texture_")
 _DRACO = "KHR_draco_mesh_compression"
 
@@ -383,8 +419,7 @@ def _prepare_tree(tree: dict) -> None:
     """Check a glTF's required extensions and give trimesh what it reads right.
 
     A ValueError names the required extensions pbrfit cannot honour (a loader must refuse a file
-    that requires one it does not support: compressed or instanced geometry would come out
-    empty, zero or one instance short). Camera nodes lose their camera: trimesh leaves a node
+    that requires one it does not support: compressed geometry would come out empty or zero). Camera nodes lose their camera: trimesh leaves a node
     with a camera and a mesh, and the meshes under it, out of the scene, which glTF viewers
     draw. Primitives with TEXCOORD_0 and no material get a default one (`_gltf_default_material`)."""
     import importlib.util

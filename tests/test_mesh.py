@@ -96,6 +96,25 @@ def test_sparse_indices_are_applied(tmp_path, mode, stored, expected):
     np.testing.assert_array_equal(load_mesh(path).faces, expected)
 
 
+def test_gpu_instances_are_drawn_at_their_transforms(tmp_path):
+    """EXT_mesh_gpu_instancing: the mesh once per instance, at node transform × instance T R S
+    (trimesh drew it once, at the node's transform)."""
+    translation = np.float32([[0, 0, 1], [0, 0, 2], [5, 0, 0]])
+    rotation = np.float32([[0, 0, 0, 1], [0, 0, 0, 1], [0, 0, np.sqrt(0.5), np.sqrt(0.5)]])  # last: 90° about z
+    scale = np.float32([[1, 1, 1], [2, 2, 2], [1, 1, 1]])
+    arrays = [QUAD_POSITIONS, QUAD_UV_GLTF, np.array([0, 1, 2, 0, 2, 3], np.uint16), translation, rotation, scale]
+    meshes = [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2}]}]
+    instancing = {"EXT_mesh_gpu_instancing": {"attributes": {"TRANSLATION": 3, "ROTATION": 4, "SCALE": 5}}}
+    nodes = [{"mesh": 0, "translation": [0, 10, 0], "extensions": instancing}]
+    mesh = load_mesh(_glb(tmp_path / "i.glb", arrays, meshes=meshes, nodes=nodes,
+                          extensionsUsed=["EXT_mesh_gpu_instancing"], extensionsRequired=["EXT_mesh_gpu_instancing"]))
+    expected = np.concatenate([QUAD_POSITIONS + [0, 10, 1], 2 * QUAD_POSITIONS + [0, 10, 2],
+                               QUAD_POSITIONS[:, [1, 0, 2]] * [-1, 1, 1] + [5, 10, 0]])
+    assert _triangles(mesh) == sorted(
+        tuple(sorted(tuple(float(x) for x in c) for c in expected[f + 4 * k]))
+        for k in range(3) for f in np.array([[0, 1, 2], [0, 2, 3]]))
+
+
 def test_a_mesh_on_or_under_a_camera_node_is_drawn(tmp_path):
     """trimesh left a node holding a camera and a mesh, and the meshes under it, out of the scene
     (the child raised "No path from world->1!")."""
@@ -109,8 +128,8 @@ def test_a_mesh_on_or_under_a_camera_node_is_drawn(tmp_path):
 
 def test_required_extensions_pbrfit_cannot_read_are_refused(tmp_path):
     """A loader must refuse a file requiring an extension it does not support: a Draco or meshopt
-    file came out as zeros or "malformed", an instanced one one instance short. Material, texture
-    and quantization extensions leave what pbrfit reads as it is."""
+    file came out as zeros or "malformed". Material, texture and quantization extensions leave
+    what pbrfit reads as it is."""
     arrays = [QUAD_POSITIONS, QUAD_UV_GLTF, np.array([0, 1, 2, 0, 2, 3], np.uint16)]
     tree = dict(meshes=[{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2}]}],
                 nodes=[{"mesh": 0}])
@@ -119,8 +138,9 @@ def test_required_extensions_pbrfit_cannot_read_are_refused(tmp_path):
     for required, message in (
             (["EXT_meshopt_compression"], "the glTF extension EXT_meshopt_compression, which pbrfit does "
                                           r"not read \(write it without compression\)"),
-            (["EXT_mesh_gpu_instancing", "KHR_materials_ior", "EXT_foo"],
-             "the glTF extensions EXT_mesh_gpu_instancing, EXT_foo, which pbrfit does not read$")):
+            (["EXT_meshopt_compression", "KHR_materials_ior", "EXT_foo"],
+             "the glTF extensions EXT_meshopt_compression, EXT_foo, which pbrfit does not read "
+             r"\(write it without compression\)$")):
         with pytest.raises(CaptureError, match=r"cannot load mesh .*x.glb: it requires " + message):
             load_mesh(_glb(tmp_path / "x.glb", arrays, extensionsRequired=required, **tree))
     # Draco: trimesh decodes it with DracoPy, where that is installed
