@@ -28,9 +28,9 @@ Rules pinned here (tests in ``tests/test_scene.py`` and ``tests/test_mesh.py``):
   holds) are the transformed ones.
 * Other glTF that trimesh alone misreads is read as glTF 2.0 means it (`_prepare_tree`,
   `_gltf_rewrite_primitives`): triangle fans, morph targets under their weights, sparse
-  indices, meshes on or under camera nodes, GPU instancing; a file requiring an extension that
-  changes the geometry and that pbrfit cannot read (Draco without DracoPy, meshopt, any unknown
-  one) is refused.
+  indices, meshes on or under camera nodes, GPU instancing, skinned meshes (drawn at rest); a
+  file requiring an extension that changes the geometry and that pbrfit cannot read (Draco
+  without DracoPy, meshopt, any unknown one) is refused.
 * OBJ text is read as the format means it (`_obj_text`): fields separated by any whitespace,
   comments after an element's fields, ``vt u`` with v = 0; a face index 0 is refused.
 """
@@ -94,7 +94,7 @@ def gltf_file_uris(tree: dict):
 _NORMALIZED = {5120: (np.int8, 127.0, True), 5121: (np.uint8, 255.0, False),
                5122: (np.int16, 32767.0, True), 5123: (np.uint16, 65535.0, False)}
 _COMPONENT_DTYPES = {**{k: v[0] for k, v in _NORMALIZED.items()}, 5125: np.uint32, 5126: np.float32}
-_TYPE_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+_TYPE_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
 #: The textures whose KHR_texture_transform is TEXCOORD_0's, in order of preference.
 _TRANSFORM_TEXTURES = (("pbrMetallicRoughness", "baseColorTexture"),
                        ("pbrMetallicRoughness", "metallicRoughnessTexture"),
@@ -238,6 +238,80 @@ def _expand_instances(tree: dict, buffer) -> None:
         node["extensions"].pop(_INSTANCING)
 
 
+def _local_matrix(node: dict) -> np.ndarray:
+    """A glTF node's local transform: its ``matrix`` (column-major), else T R S (rotation a unit
+    quaternion x, y, z, w)."""
+    if "matrix" in node:
+        return np.asarray(node["matrix"], np.float64).reshape(4, 4).T
+    x, y, z, w = (float(c) for c in node.get("rotation", (0.0, 0.0, 0.0, 1.0)))
+    rotation = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    m = np.eye(4)
+    m[:3, :3] = rotation * np.asarray(node.get("scale", (1.0, 1.0, 1.0)), np.float64)
+    m[:3, 3] = node.get("translation", (0.0, 0.0, 0.0))
+    return m
+
+
+def _global_matrices(tree: dict):
+    """global(i): node i's transform in the world, its ancestors' local transforms composed."""
+    nodes = tree.get("nodes") or []
+    parent = {c: i for i, n in enumerate(nodes) if isinstance(n, dict) for c in n.get("children") or []}
+    cache = {}
+
+    def global_matrix(i: int) -> np.ndarray:
+        chain = [i]
+        while chain[-1] in parent and len(chain) <= len(nodes):
+            chain.append(parent[chain[-1]])
+        m = np.eye(4)
+        for j in reversed(chain):
+            m = m @ _local_matrix(nodes[j])
+        return cache.setdefault(i, m)
+
+    return global_matrix
+
+
+def _skin_in_rest_pose(tree: dict, read, store, shown: list) -> None:
+    """Skinned meshes as glTF draws them at rest (glTF 2.0 §3.7.3): each vertex at
+    Σₖ wₖ Gⱼₖ Bⱼₖ p, with Gⱼ the joint node's global transform, Bⱼ its inverse bind matrix and
+    (jₖ, wₖ) the vertex's JOINTS_n / WEIGHTS_n; the transform of the node holding the mesh is
+    ignored. Normals go through the inverse transpose of the same blend. The node's mesh moves to
+    a new root node of the shown scene, holding a copy whose POSITION and NORMAL are the skinned
+    ones (trimesh applies the node's transform and no skin)."""
+    nodes, scene = tree.get("nodes") or [], tree.get("scene", 0)
+    global_matrix = _global_matrices(tree)
+    for node in shown:
+        if not (isinstance(node.get("skin"), int) and isinstance(node.get("mesh"), int)):
+            continue
+        skin = tree["skins"][node["skin"]]
+        joints = list(skin.get("joints") or [])
+        if "inverseBindMatrices" in skin:
+            inverse_bind = read(skin["inverseBindMatrices"]).reshape(-1, 4, 4).transpose(0, 2, 1)
+        else:
+            inverse_bind = np.tile(np.eye(4), (len(joints), 1, 1))
+        matrices = np.stack([global_matrix(j) @ inverse_bind[k] for k, j in enumerate(joints)])
+        mesh = dict(tree["meshes"][node["mesh"]])
+        mesh["primitives"] = [dict(p, attributes=dict(p.get("attributes") or {})) for p in mesh.get("primitives") or []]
+        for primitive in mesh["primitives"]:
+            attributes = primitive["attributes"]
+            sets = [(attributes[f"JOINTS_{n}"], attributes[f"WEIGHTS_{n}"]) for n in range(8)
+                    if f"JOINTS_{n}" in attributes and f"WEIGHTS_{n}" in attributes]
+            if not sets or "POSITION" not in attributes:
+                continue
+            blend = sum(np.einsum("vk,vkij->vij", read(w), matrices[read(j).astype(np.int64)]) for j, w in sets)
+            position = read(attributes["POSITION"])
+            attributes["POSITION"] = store(np.einsum("vij,vj->vi", blend[:, :3, :3], position) + blend[:, :3, 3],
+                                           "<f4", "VEC3", _FLOAT)
+            if "NORMAL" in attributes:
+                normal = np.einsum("vji,vj->vi", np.linalg.inv(blend[:, :3, :3]), read(attributes["NORMAL"]))
+                normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+                attributes["NORMAL"] = store(normal, "<f4", "VEC3", _FLOAT)
+        tree["meshes"].append(mesh)
+        nodes.append({"mesh": len(tree["meshes"]) - 1})
+        tree["scenes"][scene].setdefault("nodes", []).append(len(nodes) - 1)
+        del node["mesh"], node["skin"]
+
+
 def _gltf_rewrite_primitives(tree: dict, buffer, target: int, start: int) -> bytes:
     """Rewrite what trimesh would misread in the primitives as new accessors, their data in
     buffer ``target`` from byte ``start`` on: returns that data (b"" when nothing needs it; the
@@ -249,12 +323,14 @@ def _gltf_rewrite_primitives(tree: dict, buffer, target: int, start: int) -> byt
     - sparse indices (applied), as uint32;
     - a TRIANGLE_FAN primitive (mode 6, which trimesh drops) as TRIANGLES with triangles
       (v_{i+1}, v_{i+2}, v_0) (glTF 2.0 §3.7.2.1);
-    - and GPU instances as nodes (`_expand_instances`)."""
+    - GPU instances as nodes (`_expand_instances`), skinned meshes at rest
+      (`_skin_in_rest_pose`)."""
     blob = bytearray()
-    made = {}
+    made, stored = {}, {}
 
     def store(values, dtype, kind: str, component: int) -> int:
         data = np.ascontiguousarray(values, dtype=dtype)
+        stored[len(tree["accessors"])] = np.asarray(values, np.float64).reshape(len(data), -1)
         blob.extend(b"\0" * (-(start + len(blob)) % 4))
         tree.setdefault("bufferViews", []).append({"buffer": target, "byteOffset": start + len(blob),
                                                    "byteLength": data.nbytes})
@@ -315,6 +391,7 @@ def _gltf_rewrite_primitives(tree: dict, buffer, target: int, start: int) -> byt
     for node in tree.get("nodes") or []:
         if isinstance(node, dict):
             node.pop("weights", None)
+    _skin_in_rest_pose(tree, lambda i: stored[i] if i in stored else _read_accessor(tree, buffer, i), store, shown)
     return bytes(blob)
 
 

@@ -1,6 +1,7 @@
 """Mesh files read as their formats mean them: glTF primitives trimesh alone misreads (triangle
-fans, morph targets, sparse indices, camera nodes, required extensions) and OBJ text it trips
-over (tabs, indentation, comments after fields, one-component texture coordinates)."""
+fans, morph targets, skins, GPU instances, sparse indices, camera nodes, required extensions)
+and OBJ text it trips over (tabs, indentation, comments after fields, one-component texture
+coordinates)."""
 
 import importlib.util
 
@@ -23,7 +24,7 @@ def _glb(path, arrays, **tree):
         blob += b"\0" * (-len(blob) % 4)
         views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": a.nbytes})
         entry = {"bufferView": len(views) - 1, "componentType": _COMPONENTS[a.dtype.type], "count": len(a),
-                 "type": "SCALAR" if a.ndim == 1 else f"VEC{a.shape[1]}"}
+                 "type": "SCALAR" if a.ndim == 1 else "MAT4" if a.shape[1] == 16 else f"VEC{a.shape[1]}"}
         if a.ndim == 2 and a.shape[1] == 3:
             entry.update(min=a.min(0).tolist(), max=a.max(0).tolist())
         accessors.append(entry)
@@ -113,6 +114,28 @@ def test_gpu_instances_are_drawn_at_their_transforms(tmp_path):
     assert _triangles(mesh) == sorted(
         tuple(sorted(tuple(float(x) for x in c) for c in expected[f + 4 * k]))
         for k in range(3) for f in np.array([[0, 1, 2], [0, 2, 3]]))
+
+
+def test_skinned_meshes_are_drawn_at_rest(tmp_path):
+    """glTF §3.7.3: a vertex at Σ wₖ Gⱼ Bⱼ p, the skinned mesh node's own transform ignored
+    (trimesh applied it, and no skin). Here every vertex weighs two joints at z = 2 and z = 4
+    (inverse bind matrices the identity, and a rotated parent) equally."""
+    joints = np.tile(np.array([[0, 1, 0, 0]], np.uint8), (4, 1))
+    weights = np.tile(np.float32([[0.5, 0.5, 0, 0]]), (4, 1))
+    inverse_bind = np.tile(np.eye(4, dtype=np.float32).reshape(1, 16), (2, 1))
+    normals = np.tile(np.float32([[0, 0, 1]]), (4, 1))
+    arrays = [QUAD_POSITIONS, QUAD_UV_GLTF, np.array([0, 1, 2, 0, 2, 3], np.uint16), joints, weights, inverse_bind,
+              normals]
+    attributes = {"POSITION": 0, "TEXCOORD_0": 1, "JOINTS_0": 3, "WEIGHTS_0": 4, "NORMAL": 6}
+    quarter = [0, 0, float(np.sin(np.pi / 4)), float(np.cos(np.pi / 4))]  # 90° about z
+    nodes = [{"mesh": 0, "skin": 0, "translation": [100, 0, 0]}, {"rotation": quarter, "children": [2, 3]},
+             {"translation": [0, 0, 2]}, {"translation": [0, 0, 4]}]
+    mesh = load_mesh(_glb(tmp_path / "s.glb", arrays, meshes=[{"primitives": [{"attributes": attributes, "indices": 2}]}],
+                          nodes=nodes, skins=[{"joints": [2, 3], "inverseBindMatrices": 5}],
+                          scenes=[{"nodes": [0, 1]}]))
+    turned = QUAD_POSITIONS[:, [1, 0, 2]] * [-1, 1, 1]  # the parent's quarter turn
+    np.testing.assert_allclose(np.sort(mesh.vertices, axis=0), np.sort(turned + [0, 0, 3], axis=0), atol=1e-6)
+    np.testing.assert_allclose(mesh.vertex_normals, np.tile([0, 0, 1], (4, 1)), atol=1e-6)
 
 
 def test_a_mesh_on_or_under_a_camera_node_is_drawn(tmp_path):
