@@ -219,9 +219,11 @@ def _expand_instances(tree: dict, buffer) -> None:
                       if isinstance(node, dict) else {})
         if not attributes or not isinstance(node.get("mesh"), int):
             continue
+        if "skin" in node:
+            raise ValueError(f"a skinned node with {_INSTANCING} instances is not supported")
         values = {name: _read_accessor(tree, buffer, index) for name, index in attributes.items()
                   if name in ("TRANSLATION", "ROTATION", "SCALE")}
-        counts = {len(v) for v in values.values()}
+        counts = {int(tree["accessors"][index]["count"]) for index in attributes.values()}  # custom ones too
         if len(counts) != 1:
             raise ValueError(f"{_INSTANCING}: the instance attributes of a node differ in count")
         children = node.setdefault("children", [])
@@ -298,13 +300,23 @@ def _skin_in_rest_pose(tree: dict, read, store, shown: list) -> None:
                     if f"JOINTS_{n}" in attributes and f"WEIGHTS_{n}" in attributes]
             if not sets or "POSITION" not in attributes:
                 continue
+            if _DRACO in (primitive.get("extensions") or {}):  # its data is decoded later, by trimesh
+                raise ValueError("a skinned Draco-compressed primitive is not supported")
             blend = sum(np.einsum("vk,vkij->vij", read(w), matrices[read(j).astype(np.int64)]) for j, w in sets)
             position = read(attributes["POSITION"])
             attributes["POSITION"] = store(np.einsum("vij,vj->vi", blend[:, :3, :3], position) + blend[:, :3, 3],
                                            "<f4", "VEC3", _FLOAT)
             if "NORMAL" in attributes:
-                normal = np.einsum("vji,vj->vi", np.linalg.inv(blend[:, :3, :3]), read(attributes["NORMAL"]))
-                normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+                # n' ∝ A⁻ᵀ n = cof(A) n / det A, cof(A)'s columns the cross products of A's: defined
+                # where a joint flattens the mesh too (a zero scale hides a part)
+                a = blend[:, :3, :3]
+                columns = (np.cross(a[:, :, 1], a[:, :, 2]), np.cross(a[:, :, 2], a[:, :, 0]),
+                           np.cross(a[:, :, 0], a[:, :, 1]))
+                given = read(attributes["NORMAL"])
+                normal = sum(c * given[:, k:k + 1] for k, c in enumerate(columns))
+                normal *= np.where(np.linalg.det(a) < 0, -1.0, 1.0)[:, None]
+                length = np.linalg.norm(normal, axis=1, keepdims=True)
+                normal = np.where(length > 1e-12, normal / np.maximum(length, 1e-12), given)
                 attributes["NORMAL"] = store(normal, "<f4", "VEC3", _FLOAT)
         tree["meshes"].append(mesh)
         nodes.append({"mesh": len(tree["meshes"]) - 1})
@@ -351,6 +363,8 @@ def _gltf_rewrite_primitives(tree: dict, buffer, target: int, start: int) -> byt
             if _DRACO in (primitive.get("extensions") or {}):  # decoded later, by trimesh (with DracoPy)
                 if _texture_transform(tree, primitive) is not None:
                     raise ValueError("a KHR_texture_transform on a Draco-compressed primitive is not supported")
+                if any(w != 0.0 for w in weights[:len(primitive.get("targets") or [])]):
+                    raise ValueError("morph targets on a Draco-compressed primitive are not supported")
                 continue
             targets = primitive.get("targets") or []
             for name in ("POSITION", "NORMAL", "TEXCOORD_0"):

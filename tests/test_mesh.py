@@ -138,6 +138,71 @@ def test_skinned_meshes_are_drawn_at_rest(tmp_path):
     np.testing.assert_allclose(mesh.vertex_normals, np.tile([0, 0, 1], (4, 1)), atol=1e-6)
 
 
+def _translate(x, y, z):
+    m = np.eye(4)
+    m[:3, 3] = (x, y, z)
+    return m
+
+
+def test_skinning_against_the_spec_formula(tmp_path):
+    """Two joint sets, a column-major inverse bind matrix with a translation (read transposed, it
+    moves nothing), a parent turned about x (its order against the children's translations
+    matters) and a joint turned and scaled unevenly (T R S, and normals by the blend's inverse
+    transpose, not the blend), against Σ wₖ G B p and (Σ wₖ G B)⁻ᵀ n worked out here."""
+    turn_x = np.eye(4)
+    turn_x[1:3, 1:3] = [[0, -1], [1, 0]]  # 90° about x: quaternion (sin 45°, 0, 0, cos 45°)
+    turn_z = np.eye(4)
+    turn_z[:2, :2] = [[0, -1], [1, 0]]  # 90° about z: quaternion (0, 0, sin 45°, cos 45°)
+    scale = np.diag([1.0, 2.0, 1.0, 1.0])
+    g0, g1 = turn_x @ _translate(0, 0, 2) @ turn_z @ scale, turn_x @ _translate(1, 0, 0)
+    b0 = _translate(0, 0, -1)
+    blend = 0.3 * g0 @ b0 + 0.7 * g1
+    tilted = np.float32([0.0, 0.6, 0.8])
+    expected_p = (blend @ np.c_[QUAD_POSITIONS, np.ones(4)].T).T[:, :3]
+    expected_n = np.linalg.inv(blend[:3, :3]).T @ tilted
+    expected_n /= np.linalg.norm(expected_n)
+
+    arrays = [QUAD_POSITIONS, QUAD_UV_GLTF, np.array([0, 1, 2, 0, 2, 3], np.uint16),
+              np.tile(np.array([[0, 1, 0, 0]], np.uint16), (4, 1)), np.tile(np.float32([[0.3, 0.2, 0, 0]]), (4, 1)),
+              np.tile(np.array([[1, 0, 0, 0]], np.uint16), (4, 1)), np.tile(np.float32([[0.5, 0, 0, 0]]), (4, 1)),
+              np.stack([b0.T.reshape(16), np.eye(4).reshape(16)]).astype(np.float32), np.tile(tilted, (4, 1))]
+    attributes = {"POSITION": 0, "TEXCOORD_0": 1, "JOINTS_0": 3, "WEIGHTS_0": 4, "JOINTS_1": 5, "WEIGHTS_1": 6,
+                  "NORMAL": 8}
+    half = float(np.sqrt(0.5))
+    nodes = [{"mesh": 0, "skin": 0, "scale": [3, 3, 3]}, {"rotation": [half, 0, 0, half], "children": [2, 3]},
+             {"translation": [0, 0, 2], "rotation": [0, 0, half, half], "scale": [1, 2, 1]},
+             {"translation": [1, 0, 0]}]
+    mesh = load_mesh(_glb(tmp_path / "s.glb", arrays, nodes=nodes, scenes=[{"nodes": [0, 1]}],
+                          meshes=[{"primitives": [{"attributes": attributes, "indices": 2}]}],
+                          skins=[{"joints": [2, 3], "inverseBindMatrices": 7}]))
+    np.testing.assert_allclose(mesh.vertices, expected_p, atol=1e-5)
+    np.testing.assert_allclose(mesh.vertex_normals, np.tile(expected_n, (4, 1)), atol=1e-5)
+
+
+def test_a_skin_that_flattens_the_mesh_still_loads(tmp_path):
+    """A joint scaled to 0 along an axis (as parts are hidden) has no inverse: the normal goes
+    through the blend's cofactor matrix. A plane flattened along its own normal keeps it."""
+    arrays = [QUAD_POSITIONS, QUAD_UV_GLTF, np.array([0, 1, 2, 0, 2, 3], np.uint16),
+              np.tile(np.array([[0, 0, 0, 0]], np.uint8), (4, 1)), np.tile(np.float32([[1, 0, 0, 0]]), (4, 1)),
+              np.tile(np.float32([[0, 0, 1]]), (4, 1))]
+    attributes = {"POSITION": 0, "TEXCOORD_0": 1, "JOINTS_0": 3, "WEIGHTS_0": 4, "NORMAL": 5}
+    mesh = load_mesh(_glb(tmp_path / "f.glb", arrays, nodes=[{"mesh": 0, "skin": 0}, {"scale": [2, 1, 0]}],
+                          scenes=[{"nodes": [0, 1]}], skins=[{"joints": [1]}],
+                          meshes=[{"primitives": [{"attributes": attributes, "indices": 2}]}]))
+    np.testing.assert_allclose(mesh.vertices, QUAD_POSITIONS * [2, 1, 0])
+    np.testing.assert_allclose(mesh.vertex_normals, np.tile([0, 0, 1], (4, 1)), atol=1e-6)
+
+
+def test_gpu_instances_without_a_transform_are_drawn_where_the_node_is(tmp_path):
+    """Every instance attribute is optional (custom ones, "_ID", count the instances too)."""
+    arrays = [QUAD_POSITIONS, QUAD_UV_GLTF, np.array([0, 1, 2, 0, 2, 3], np.uint16), np.float32([7, 8])]
+    instancing = {"EXT_mesh_gpu_instancing": {"attributes": {"_ID": 3}}}
+    mesh = load_mesh(_glb(tmp_path / "i.glb", arrays, nodes=[{"mesh": 0, "extensions": instancing}],
+                          meshes=[{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2}]}]))
+    assert len(mesh.faces) == 4
+    np.testing.assert_allclose(mesh.vertices[:4], QUAD_POSITIONS)
+
+
 def test_a_mesh_on_or_under_a_camera_node_is_drawn(tmp_path):
     """trimesh left a node holding a camera and a mesh, and the meshes under it, out of the scene
     (the child raised "No path from world->1!")."""
