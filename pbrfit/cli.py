@@ -58,6 +58,10 @@ def _add_render(sub) -> None:
     p.add_argument("capture", help="capture folder or capture.json")
     p.add_argument("--material", required=True, help="material folder (base_color.exr, metallic.exr, ...)")
     p.add_argument("--out", required=True, help="output capture folder (written whole or not at all; replaces only an earlier capture folder)")
+    p.add_argument("--supersample", type=int, default=1, metavar="K",
+                   help="each pixel the mean of K x K samples over its area, as a supersampled render or a camera "
+                        "gives it (the footprint `fit --pixel-samples K` models), its alpha 1 where every sample hits "
+                        f"the mesh; default 1: pixel centres (at most {MAX_SUPERSAMPLE})")
     p.add_argument("--environment", help="relight with this equirect HDR instead of the capture's (the capture's intensity and rotation_deg apply to it)")
     p.add_argument("--lights", help="relight with these global lights: a JSON file, or inline JSON, holding a list of lights "
                         "(KHR_lights_punctual units)")
@@ -93,6 +97,8 @@ def _cmd_render(args) -> int:
     from .views import apply_overrides, load_lights_override, render_capture, write_rendered_capture
 
     start = time.perf_counter()
+    if not 1 <= args.supersample <= MAX_SUPERSAMPLE:
+        raise CaptureError(f"--supersample: must be from 1 to {MAX_SUPERSAMPLE}, got {args.supersample}")
     check_output_dir(args.out, "capture")
     capture = load_capture(args.capture, require_uv=False)
     check_not_inside(capture.root, args.out, "capture being rendered")
@@ -109,7 +115,7 @@ def _cmd_render(args) -> int:
         where = "--lights" if lights_json is not None else str(capture.json_path)
         raise CaptureError(f"{where}: no light: no environment, every light is off and the material emits none, "
                            "so every render would be black (give --lights or --environment)")
-    renders = render_capture(capture, material, cache_dir=_cache_dir(args))
+    renders = render_capture(capture, material, cache_dir=_cache_dir(args), supersample=args.supersample)
     write_rendered_capture(capture, renders, args.out, args.environment, lights_json)
     if not args.quiet:
         print(f"rendered {len(renders)} views to {args.out} in {time.perf_counter() - start:.1f} s")
@@ -615,7 +621,8 @@ def _default_continuation() -> str:
 
 #: The largest image side (`synth --size`) and texture side (`--texture-size`) taken.
 MAX_SIZE = 8192
-#: The most cameras `synth --views` renders, and the largest `synth --supersample`.
+#: The most cameras `synth --views` renders, and the largest `synth --supersample` and
+#: `render --supersample` (memory and time grow as its square).
 MAX_VIEWS = 1024
 MAX_SUPERSAMPLE = 16
 #: The largest `synth --noise` std, in display values (white is 1): far beyond any sensor, and

@@ -121,11 +121,18 @@ def render_capture(
     ibl=None,
     gbuffers: Optional[Sequence[GBuffer]] = None,
     cache_dir: Optional[os.PathLike] = None,
+    supersample: int = 1,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Render every frame as its file would hold it: [(image (H, W, 3), alpha (H, W))].
 
     Exposure, tone map and color space follow each frame; past the mesh, the camera sees the
-    environment (or black without one). `capture`: a `pbrfit.scene.Capture` or its folder.
+    environment (or black without one). `supersample` k > 1 renders k × k samples per pixel,
+    at the centres of a k × k grid of sub-pixels (`pbrfit.observations.pixel_offsets`, the
+    footprint `fit --pixel-samples k` models), and gives each pixel their mean linear radiance
+    before the exposure, tone map and encoding (a supersampled renderer's or a camera's box
+    footprint); alpha is then 1 where every sample hits the mesh, 0 elsewhere (a pixel the
+    silhouette crosses mixes the background in, as data_synth's masks leave it out), and
+    `gbuffers` are not taken. `capture`: a `pbrfit.scene.Capture` or its folder.
     Without `model`, the capture's (`model_for_capture`); without `ibl`, built from the
     capture's environment when the model needs it. A material holding NaN or inf, or a model
     that shades an environment the capture lacks, is refused (`ValueError`); material values
@@ -149,6 +156,14 @@ def render_capture(
     environment = capture_environment(capture)
     if ibl is None and (model.ibl == "split_sum" or model.multiscatter):
         ibl = capture_ibl(capture, environment=environment, model=model)
+    k = int(supersample)
+    if k != supersample or k < 1:
+        raise ValueError(f"supersample must be an integer >= 1, got {supersample!r}")
+    if k > 1:
+        if gbuffers is not None:
+            raise ValueError("gbuffers hold pixel centres only: pass gbuffers=None with supersample > 1")
+        return [_render_supersampled(frame, capture, material, model, ibl, environment, k, cache_dir)
+                for frame in capture.frames]
     gbuffers = gbuffers if gbuffers is not None else capture_gbuffers(capture, cache_dir)
     views = capture_views(capture, gbuffers, use_masks=False)
     out = []
@@ -166,6 +181,30 @@ def render_capture(
         )
         out.append((np.asarray(image), np.asarray(alpha)))
     return out
+
+
+def _render_supersampled(frame, capture, material, model, ibl, environment, k: int, cache_dir):
+    """One frame of `render_capture` with k × k samples per pixel: the frame's camera at k times
+    its resolution (pixel centres at the sub-pixel centres), rendered in linear radiance, box
+    filtered, then encoded as the frame's file holds it."""
+    from .color import encode
+    from .gbuffer import Camera
+
+    c = frame.camera
+    camera = Camera(c.c2w, c.fx * k, c.fy * k, c.cx * k, c.cy * k, c.width * k, c.height * k)
+    view = prepare_view(compute_gbuffer(capture.mesh, camera, frame.lights, cache_dir), frame.lights, None)
+    sky = None
+    if environment is not None:
+        from .environment import environment_lookup
+
+        _, dirs = camera.rays()
+        sky = environment_lookup(environment, jnp.asarray(dirs, jnp.float32))
+    radiance, hit = render_view(view, material, model, ibl, background=sky)  # linear, exposure 0
+    shape = (c.height, k, c.width, k)
+    radiance = np.asarray(radiance, np.float64).reshape(shape + (3,)).mean(axis=(1, 3))
+    alpha = (np.asarray(hit).reshape(shape).min(axis=(1, 3)) > 0).astype(np.float32)
+    image = encode(jnp.asarray(radiance, jnp.float32), frame.exposure, capture.tonemap, frame.color_space)
+    return np.asarray(image), alpha
 
 
 def _image_dtype(frame) -> str:

@@ -15,19 +15,24 @@ def _frames(folder):
 
 
 @pytest.mark.parametrize(
-    "preset,extra,tolerance",
+    "preset,extra,supersample,tolerance",
     [
         # linear EXR under a split-sum environment: float32 rounding only
-        ("sphere-env", ["--format", "exr"], 1e-5),
+        ("sphere-env", ["--format", "exr"], 1, 1e-5),
         # 16-bit sRGB PNG under a flash and lamps: at most one code of rounding
-        ("plane-flash", ["--noise", "0", "--supersample", "1"], 1.0 / 65535 + 1e-7),
+        ("plane-flash", ["--noise", "0", "--supersample", "1"], 1, 1.0 / 65535 + 1e-7),
+        # supersampled as synth renders it (mean linear radiance of k x k samples, then encoded;
+        # the silhouette's pixels mix in the sky, alpha 1 where every sample hits the mesh)
+        ("plane-flash", ["--noise", "0", "--supersample", "2"], 2, 1.0 / 65535 + 1e-7),
+        ("sphere-env", ["--format", "exr", "--supersample", "3"], 3, 1e-5),
     ],
 )
-def test_render_with_truth_reproduces_synth(tmp_path, monkeypatch, preset, extra, tolerance):
+def test_render_with_truth_reproduces_synth(tmp_path, monkeypatch, preset, extra, supersample, tolerance):
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
     cap, out = tmp_path / "cap", tmp_path / "out"
     assert main(["synth", preset, "--out", str(cap), "--size", "24", "--views", "2", "--quiet", *extra]) == 0
-    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--quiet"]) == 0
+    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--quiet",
+                 "--supersample", str(supersample)]) == 0
     frames = _frames(out)
     assert len(frames) == 2
     for frame in _frames(cap):
@@ -138,6 +143,11 @@ def test_render_refuses_to_write_over_its_own_capture_and_takes_inline_lights(tm
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--lights: no light: no environment, every light is off and the material emits" in err[0]
     assert not (tmp_path / "o3").exists()
+    for k in ("0", "17"):
+        assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o4"),
+                     "--supersample", k]) == 2
+        assert capsys.readouterr().err.strip() == f"pbrfit: error: --supersample: must be from 1 to 16, got {k}"
+    assert not (tmp_path / "o4").exists()
 
 
 def test_render_writes_paths_that_leave_the_capture_inside_its_output(tmp_path, monkeypatch):
