@@ -100,6 +100,10 @@ _TRANSFORM_TEXTURES = (("pbrMetallicRoughness", "baseColorTexture"),
                        ("pbrMetallicRoughness", "metallicRoughnessTexture"),
                        (None, "normalTexture"), (None, "occlusionTexture"), (None, "emissiveTexture"))
 _FLOAT = 5126
+_UINT32 = 5125
+_TRIANGLE_FAN = 6
+_INSTANCING = "EXT_mesh_gpu_instancing"
+_DRACO = "KHR_draco_mesh_compression"
 
 
 def _read_view(tree: dict, buffer, view_index: int, offset: int, component: int, count: int, width: int):
@@ -202,13 +206,6 @@ def _morph_weights(tree: dict, mesh_index: int, shown: list) -> list:
     return list(drawn.pop()) if drawn else default
 
 
-_TRIANGLE_FAN = 6
-_UINT32 = 5125
-
-
-_INSTANCING = "EXT_mesh_gpu_instancing"
-
-
 def _expand_instances(tree: dict, buffer) -> None:
     """EXT_mesh_gpu_instancing: a node drawing its mesh once per instance, at the node's transform
     times the instance's T R S (its TRANSLATION, ROTATION and SCALE accessors; each defaults to
@@ -262,13 +259,15 @@ def _global_matrices(tree: dict):
     cache = {}
 
     def global_matrix(i: int) -> np.ndarray:
-        chain = [i]
-        while chain[-1] in parent and len(chain) <= len(nodes):
-            chain.append(parent[chain[-1]])
-        m = np.eye(4)
-        for j in reversed(chain):
-            m = m @ _local_matrix(nodes[j])
-        return cache.setdefault(i, m)
+        if i not in cache:
+            chain = [i]
+            while chain[-1] in parent and len(chain) <= len(nodes):  # (a cycle ends at that length)
+                chain.append(parent[chain[-1]])
+            m = np.eye(4)
+            for j in reversed(chain):
+                m = m @ _local_matrix(nodes[j])
+            cache[i] = m
+        return cache[i]
 
     return global_matrix
 
@@ -503,7 +502,6 @@ def _file_resolver(tree: dict, folder: Path):
 _EXTENSIONS_READ = ("KHR_mesh_quantization", "KHR_texture_transform", "KHR_lights_punctual", "KHR_xmp_json_ld",
                     "EXT_mesh_gpu_instancing")
 _EXTENSION_PREFIXES_NOT_READ = ("KHR_materials_", "KHR_texture_", "EXT_texture_")
-_DRACO = "KHR_draco_mesh_compression"
 
 
 def _prepare_tree(tree: dict) -> None:
