@@ -60,8 +60,9 @@ def _add_render(sub) -> None:
     p.add_argument("--out", required=True, help="output capture folder (written whole or not at all; replaces only an earlier capture folder)")
     p.add_argument("--supersample", type=int, default=1, metavar="K",
                    help="each pixel the mean of K x K samples over its area, as a supersampled render or a camera "
-                        "gives it (the footprint `fit --pixel-samples K` models), its alpha 1 where every sample hits "
-                        f"the mesh; default 1: pixel centres (at most {MAX_SUPERSAMPLE})")
+                        "gives it (the footprint `fit --pixel-samples K` models, for K up to 4), its alpha 1 where "
+                        f"every sample hits the mesh; time grows as K^2; default 1: pixel centres (at most "
+                        f"{MAX_SUPERSAMPLE})")
     p.add_argument("--environment", help="relight with this equirect HDR instead of the capture's (the capture's intensity and rotation_deg apply to it)")
     p.add_argument("--lights", help="relight with these global lights: a JSON file, or inline JSON, holding a list of lights "
                         "(KHR_lights_punctual units)")
@@ -635,7 +636,7 @@ MAX_IBL_SAMPLES = 1 << 20
 MAX_IBL_LEVELS = 256
 #: What to make smaller when a command runs out of memory.
 _LESS = {"fit": "use a smaller --resolution (or fewer or smaller images)",
-         "render": "use smaller or fewer images, or a smaller material",
+         "render": "use smaller or fewer images, a smaller material or a smaller --supersample",
          "synth": "use a smaller --size, --views, --supersample or --texture-size",
          "demo": "free some memory (the demo needs about 2 GB)"}
 

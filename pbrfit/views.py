@@ -128,11 +128,12 @@ def render_capture(
     Exposure, tone map and color space follow each frame; past the mesh, the camera sees the
     environment (or black without one). `supersample` k > 1 renders k × k samples per pixel,
     at the centres of a k × k grid of sub-pixels (`pbrfit.observations.pixel_offsets`, the
-    footprint `fit --pixel-samples k` models), and gives each pixel their mean linear radiance
-    before the exposure, tone map and encoding (a supersampled renderer's or a camera's box
-    footprint); alpha is then 1 where every sample hits the mesh, 0 elsewhere (a pixel the
-    silhouette crosses mixes the background in, as data_synth's masks leave it out), and
-    `gbuffers` are not taken. `capture`: a `pbrfit.scene.Capture` or its folder.
+    footprint `fit --pixel-samples k` models for k up to 4), and gives each pixel their mean
+    linear radiance before the exposure, tone map and encoding (a supersampled renderer's or a
+    camera's box footprint; time grows as k², memory does not); alpha is then 1 where every
+    sample hits the mesh, 0 elsewhere (a pixel the silhouette crosses mixes the background in,
+    as data_synth's masks leave it out), and `gbuffers` are not taken. `capture`: a
+    `pbrfit.scene.Capture` or its folder.
     Without `model`, the capture's (`model_for_capture`); without `ibl`, built from the
     capture's environment when the model needs it. A material holding NaN or inf, or a model
     that shades an environment the capture lacks, is refused (`ValueError`); material values
@@ -184,27 +185,43 @@ def render_capture(
 
 
 def _render_supersampled(frame, capture, material, model, ibl, environment, k: int, cache_dir):
-    """One frame of `render_capture` with k × k samples per pixel: the frame's camera at k times
-    its resolution (pixel centres at the sub-pixel centres), rendered in linear radiance, box
-    filtered, then encoded as the frame's file holds it."""
+    """One frame of `render_capture` with k × k samples per pixel: rendered in linear radiance
+    once per sample position (`pbrfit.observations.pixel_offsets`, the frame's camera with its
+    principal point moved so that its pixel centres fall there, as the fit's footprint samples
+    them), averaged, then encoded as the frame's file holds it. Memory stays that of one sample."""
     from .color import encode
     from .gbuffer import Camera
+    from .observations import _view_rows, pixel_offsets
 
     c = frame.camera
-    camera = Camera(c.c2w, c.fx * k, c.fy * k, c.cx * k, c.cy * k, c.width * k, c.height * k)
-    view = prepare_view(compute_gbuffer(capture.mesh, camera, frame.lights, cache_dir), frame.lights, None)
-    sky = None
-    if environment is not None:
-        from .environment import environment_lookup
+    pixels = c.height * c.width
+    step = max(256, pixels // 16)  # hit counts padded to a multiple: one compile serves most samples
+    total = np.zeros((pixels, 3), np.float64)
+    every = np.ones(pixels, bool)
+    for ox, oy in pixel_offsets(k):
+        # a ray through pixel centre j + 0.5 of this camera passes through j + ox of the frame's
+        camera = Camera(c.c2w, c.fx, c.fy, c.cx + 0.5 - ox, c.cy + 0.5 - oy, c.width, c.height)
+        view = prepare_view(compute_gbuffer(capture.mesh, camera, frame.lights, cache_dir), frame.lights, None)
+        hits = np.asarray(view.pixel)
+        if len(hits):  # padded with repeats of the first hit, which write the same value again
+            view = _view_rows(view, np.concatenate([hits, np.full(-len(hits) % step, hits[0])]))
+        sky = None
+        if environment is not None:
+            from .environment import environment_lookup
 
-        _, dirs = camera.rays()
-        sky = environment_lookup(environment, jnp.asarray(dirs, jnp.float32))
-    radiance, hit = render_view(view, material, model, ibl, background=sky)  # linear, exposure 0
-    shape = (c.height, k, c.width, k)
-    radiance = np.asarray(radiance, np.float64).reshape(shape + (3,)).mean(axis=(1, 3))
-    alpha = (np.asarray(hit).reshape(shape).min(axis=(1, 3)) > 0).astype(np.float32)
-    image = encode(jnp.asarray(radiance, jnp.float32), frame.exposure, capture.tonemap, frame.color_space)
-    return np.asarray(image), alpha
+            _, dirs = camera.rays()
+            sky = environment_lookup(environment, jnp.asarray(dirs, jnp.float32))
+        if len(hits):
+            radiance, _ = render_view(view, material, model, ibl, background=sky)  # linear, exposure 0
+        else:
+            radiance = np.zeros((pixels, 3)) if sky is None else sky
+        total += np.asarray(radiance, np.float64).reshape(-1, 3)
+        hit = np.zeros(pixels, bool)
+        hit[hits] = True
+        every &= hit
+    radiance = jnp.asarray((total / (k * k)).reshape(c.height, c.width, 3), jnp.float32)
+    image = encode(radiance, frame.exposure, capture.tonemap, frame.color_space)
+    return np.asarray(image), every.reshape(c.height, c.width).astype(np.float32)
 
 
 def _image_dtype(frame) -> str:
