@@ -802,6 +802,11 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
             if require_uv:
                 name = part.metadata.get("name", "")
                 label = f" (mesh {name!r})" if name and len(parts) > 1 else ""
+                if obj is not None and (obj.startswith(b"vt ") or b"\nvt " in obj):  # given, but not usable
+                    raise CaptureError(
+                        f"{where}: mesh {path}{label}: its vt texture coordinates do not reach every face corner "
+                        "(a face without vt, or a vt index past the last vt line); texture maps need them all"
+                    )
                 raise CaptureError(
                     f"{where}: mesh {path}{label} has no texture coordinates "
                     "(glTF TEXCOORD_0 / OBJ vt); texture maps need them"

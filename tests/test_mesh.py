@@ -324,3 +324,13 @@ def test_ply_face_index_outside_its_vertices_is_refused_with_texture_coordinates
     path = _ply(tmp_path / "neg.ply", vertices, [[0, 1, -1]], ("x", "y", "z", "s", "t"))
     with pytest.raises(CaptureError, match="neg.ply: face indices run from -1 to 1, outside its 3 vertices"):
         load_mesh(path)
+
+
+@pytest.mark.parametrize("faces", ["f 1/1 2/2 3/3\nf 1 3 4\n", "f 1/1 2/2 3/9\n"])
+def test_obj_texture_coordinates_that_miss_a_corner_are_named(tmp_path, faces):
+    """A face without vt, or a vt index past the last one: trimesh drops the file's uv, and the
+    error said the mesh had none."""
+    (tmp_path / "p.obj").write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\n" + faces)
+    with pytest.raises(CaptureError, match=r"p.obj: its vt texture coordinates do not reach every face corner"):
+        load_mesh(tmp_path / "p.obj")
+    assert len(load_mesh(tmp_path / "p.obj", require_uv=False).faces) >= 1  # a uniform fit needs none
