@@ -39,7 +39,7 @@ from .textures import bilinear_weights
 from .transfer import to_device
 
 __all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "observations_from_views", "observations_from_capture",
-           "pixel_offsets", "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout", "coverage_counts", "neighbour_pairs"]
+           "pixel_offsets", "sample_camera", "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout", "coverage_counts", "neighbour_pairs"]
 
 
 #: Largest n of n × n samples per pixel (`observations_from_capture`): memory and time grow as n².
@@ -199,17 +199,23 @@ def pixel_offsets(n: int) -> np.ndarray:
     return np.stack([xx.ravel(), yy.ravel()], -1)
 
 
+def sample_camera(camera, offset):
+    """``camera`` with its principal point moved so that its pixel centres fall at ``offset``
+    (x, y, one of `pixel_offsets`) of the original's pixels: a ray through pixel centre j + 0.5
+    of a camera whose principal point moved by 0.5 - offset passes through j + offset."""
+    ox, oy = offset
+    return dataclasses.replace(camera, cx=camera.cx + 0.5 - ox, cy=camera.cy + 0.5 - oy)
+
+
 def _sample_views(capture, cache_dir, n: int) -> list:
     """Per frame, the `ViewInputs` of each of the n × n samples (`pixel_offsets`), kept to the
     pixels that every sample sees (each sample's silhouettes and masks applied)."""
     from .views import capture_gbuffers, capture_views
 
     per_sample = []
-    for ox, oy in pixel_offsets(n):
-        # a ray through pixel centre j + 0.5 of a camera whose principal point moved by
-        # 0.5 - offset passes through j + offset of the original camera
-        shifted = dataclasses.replace(capture, frames=[dataclasses.replace(f, camera=dataclasses.replace(
-            f.camera, cx=f.camera.cx + 0.5 - ox, cy=f.camera.cy + 0.5 - oy)) for f in capture.frames])
+    for offset in pixel_offsets(n):
+        shifted = dataclasses.replace(capture, frames=[dataclasses.replace(f, camera=sample_camera(f.camera, offset))
+                                                       for f in capture.frames])
         per_sample.append(capture_views(shifted, capture_gbuffers(shifted, cache_dir)))
     out = []
     for k in range(len(capture.frames)):

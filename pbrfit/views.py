@@ -172,16 +172,21 @@ def render_capture(
         background = None
         if environment is not None:  # what the camera sees past the mesh
             from .color import encode
-            from .environment import environment_lookup
 
-            _, dirs = frame.camera.rays()
-            sky = environment_lookup(environment, jnp.asarray(dirs, jnp.float32))
-            background = encode(sky, frame.exposure, capture.tonemap, frame.color_space)
+            background = encode(_sky(environment, frame.camera), frame.exposure, capture.tonemap, frame.color_space)
         image, alpha = render_view(
             view, material, model, ibl, frame.exposure, capture.tonemap, frame.color_space, background=background
         )
         out.append((np.asarray(image), np.asarray(alpha)))
     return out
+
+
+def _sky(environment, camera):
+    """The environment's radiance along each pixel's ray (H · W, 3): what a camera sees past the mesh."""
+    from .environment import environment_lookup
+
+    _, dirs = camera.rays()
+    return environment_lookup(environment, jnp.asarray(dirs, jnp.float32))
 
 
 def _render_supersampled(frame, capture, material, model, ibl, environment, k: int, cache_dir):
@@ -190,27 +195,20 @@ def _render_supersampled(frame, capture, material, model, ibl, environment, k: i
     principal point moved so that its pixel centres fall there, as the fit's footprint samples
     them), averaged, then encoded as the frame's file holds it. Memory stays that of one sample."""
     from .color import encode
-    from .gbuffer import Camera
-    from .observations import _view_rows, pixel_offsets
+    from .observations import _view_rows, pixel_offsets, sample_camera
 
     c = frame.camera
     pixels = c.height * c.width
     step = max(256, pixels // 16)  # hit counts padded to a multiple: one compile serves most samples
     total = np.zeros((pixels, 3), np.float64)
     every = np.ones(pixels, bool)
-    for ox, oy in pixel_offsets(k):
-        # a ray through pixel centre j + 0.5 of this camera passes through j + ox of the frame's
-        camera = Camera(c.c2w, c.fx, c.fy, c.cx + 0.5 - ox, c.cy + 0.5 - oy, c.width, c.height)
+    for offset in pixel_offsets(k):
+        camera = sample_camera(c, offset)
         view = prepare_view(compute_gbuffer(capture.mesh, camera, frame.lights, cache_dir), frame.lights, None)
         hits = np.asarray(view.pixel)
         if len(hits):  # padded with repeats of the first hit, which write the same value again
             view = _view_rows(view, np.concatenate([hits, np.full(-len(hits) % step, hits[0])]))
-        sky = None
-        if environment is not None:
-            from .environment import environment_lookup
-
-            _, dirs = camera.rays()
-            sky = environment_lookup(environment, jnp.asarray(dirs, jnp.float32))
+        sky = None if environment is None else _sky(environment, camera)
         if len(hits):
             radiance, _ = render_view(view, material, model, ibl, background=sky)  # linear, exposure 0
         else:

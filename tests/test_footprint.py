@@ -16,7 +16,8 @@ import pytest
 from pbrfit.fit import PROBE_STEPS, SEARCH_AFTER, fit, map_rmse, model_for_capture
 from pbrfit.gbuffer import Camera, compute_gbuffer
 from pbrfit.io import read_material
-from pbrfit.observations import PIXEL_FIELDS, coverage_counts, observations_from_capture, pixel_offsets, texel_layout
+from pbrfit.observations import (PIXEL_FIELDS, coverage_counts, observations_from_capture, pixel_offsets, sample_camera,
+                                 texel_layout)
 from pbrfit.scene import load_capture
 from pbrfit.sharding import pad_observations, pad_pixel_rows
 from pbrfit.solvers import (NEIGHBOUR_OFFSETS, Problem, gauss_newton_factors, gn_product, gradient, linearize,
@@ -38,6 +39,20 @@ def capture_dir(tmp_path_factory):
 @pytest.fixture(scope="module")
 def capture(capture_dir):
     return load_capture(capture_dir)
+
+
+def test_a_sample_camera_looks_through_its_offset_of_each_pixel():
+    """Each pixel centre's ray of `sample_camera(camera, offset)` projects, in the original
+    camera, to that pixel's corner plus the offset (off-centre principal point, fx != fy)."""
+    turn = np.eye(4)
+    turn[:3, :3] = [[0.6, 0.0, 0.8], [0.0, 1.0, 0.0], [-0.8, 0.0, 0.6]]
+    turn[:3, 3] = [0.3, -0.2, 2.0]
+    camera = Camera(turn, 9.0, 7.0, 3.1, 2.4, 6, 5)
+    for offset in ((0.25, 0.75), (0.9, 0.1)):
+        origins, dirs = sample_camera(camera, offset).rays()
+        xy = camera.project(origins + 2.0 * dirs)
+        jj, ii = np.meshgrid(np.arange(6), np.arange(5))
+        np.testing.assert_allclose(xy, np.stack([jj + offset[0], ii + offset[1]], -1), atol=1e-9)
 
 
 def test_pixel_offsets_are_subpixel_centres():
