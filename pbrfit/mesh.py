@@ -338,10 +338,12 @@ def _gltf_rewrite_primitives(tree: dict, buffer, target: int, start: int) -> byt
       (`_skin_in_rest_pose`)."""
     blob = bytearray()
     made, stored = {}, {}
+    skinned = bool(tree.get("skins"))  # only skinning reads back what is stored here
 
     def store(values, dtype, kind: str, component: int) -> int:
         data = np.ascontiguousarray(values, dtype=dtype)
-        stored[len(tree["accessors"])] = np.asarray(values, np.float64).reshape(len(data), -1)
+        if skinned:
+            stored[len(tree["accessors"])] = np.asarray(values, np.float64).reshape(len(data), -1)
         blob.extend(b"\0" * (-(start + len(blob)) % 4))
         tree.setdefault("bufferViews", []).append({"buffer": target, "byteOffset": start + len(blob),
                                                    "byteLength": data.nbytes})
@@ -404,7 +406,8 @@ def _gltf_rewrite_primitives(tree: dict, buffer, target: int, start: int) -> byt
     for node in tree.get("nodes") or []:
         if isinstance(node, dict):
             node.pop("weights", None)
-    _skin_in_rest_pose(tree, lambda i: stored[i] if i in stored else _read_accessor(tree, buffer, i), store, shown)
+    if skinned:
+        _skin_in_rest_pose(tree, lambda i: stored[i] if i in stored else _read_accessor(tree, buffer, i), store, shown)
     return bytes(blob)
 
 
