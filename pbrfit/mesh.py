@@ -104,6 +104,12 @@ _UINT32 = 5125
 _TRIANGLE_FAN = 6
 _INSTANCING = "EXT_mesh_gpu_instancing"
 _DRACO = "KHR_draco_mesh_compression"
+#: A normal shorter than this has no direction (a skin that flattens the mesh along it): the
+#: file's own normal stands in.
+NORMAL_FLOOR = 1e-12
+#: The file's normals at one position agree where no component differs by more than this
+#: (float32 writes of the same vector); else the position is a hard edge (`_file_normals`).
+NORMALS_AGREE = 1e-6
 
 
 def _read_view(tree: dict, buffer, view_index: int, offset: int, component: int, count: int, width: int):
@@ -315,7 +321,7 @@ def _skin_in_rest_pose(tree: dict, read, store, shown: list) -> None:
                 normal = sum(c * given[:, k:k + 1] for k, c in enumerate(columns))
                 normal *= np.where(np.linalg.det(a) < 0, -1.0, 1.0)[:, None]
                 length = np.linalg.norm(normal, axis=1, keepdims=True)
-                normal = np.where(length > 1e-12, normal / np.maximum(length, 1e-12), given)
+                normal = np.where(length > NORMAL_FLOOR, normal / np.maximum(length, NORMAL_FLOOR), given)
                 attributes["NORMAL"] = store(normal, "<f4", "VEC3", _FLOAT)
         tree["meshes"].append(mesh)
         nodes.append({"mesh": len(tree["meshes"]) - 1})
@@ -754,7 +760,7 @@ def _file_normals(geom) -> np.ndarray:
     where = np.searchsorted(np.ascontiguousarray(keys).view([("", keys.dtype)] * 3).reshape(-1),
                             np.ascontiguousarray(vertices).view([("", vertices.dtype)] * 3).reshape(-1))
     where = np.minimum(where, len(keys) - 1)
-    found = np.all(keys[where] == vertices, axis=1) & (spread[where] <= 1e-6)
+    found = np.all(keys[where] == vertices, axis=1) & (spread[where] <= NORMALS_AGREE)
     return np.where(found[:, None], normals[first[where]], computed)
 
 
