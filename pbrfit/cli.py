@@ -207,7 +207,9 @@ def _cmd_synth(args) -> int:
 
 
 def _add_fit(sub) -> None:
-    from .fit import DEFAULT_SOLVER, IBL_MODES, MATERIAL_MAPS, MAX_STEPS, SOLVERS
+    from .fit_options import IBL_MODES, MATERIAL_MAPS
+    from .fit_pass import MAX_STEPS
+    from .runner import DEFAULT_SOLVER, SOLVERS
     from .noise import NOISE_LEVELS
     from .observations import MAX_PIXEL_SAMPLES
     from .pixel_ibl import PixelIBLSettings
@@ -294,8 +296,9 @@ def _add_fit(sub) -> None:
 
 def _fit_options(args) -> dict:
     """Keyword arguments of `pbrfit.fit.fit` from the command line (errors name the option)."""
-    from .fit import (COARSE_STEPS, DEFAULT_SOLVER, LOSS_SCALE, MATERIAL_MAPS, OptionNames, check_options,
-                      fit_arguments)
+    from .fit_options import LOSS_SCALE, MATERIAL_MAPS, OptionNames, check_options, fit_arguments
+    from .fit_pass import COARSE_STEPS
+    from .runner import DEFAULT_SOLVER
     from .io import read_map
     from .observations import MAX_PIXEL_SAMPLES
     from .pixel_ibl import MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
@@ -388,7 +391,7 @@ def _continuation(text: str) -> tuple:
         weights = tuple(float(w) for w in text.split(","))
     except ValueError:
         weights = ()
-    from .fit import FLOAT32_MAX
+    from .fit_options import FLOAT32_MAX
 
     if not weights or not all(math.isfinite(w) and 0 <= w <= FLOAT32_MAX for w in weights):
         raise CaptureError(f"--continuation: expected 'none' or comma-separated weights >= 0 within float32, "
@@ -446,7 +449,7 @@ def _loss_history(steps: list, report: dict) -> list:
     re-fits (tagged "check") only those of a channel made uniform. With an estimated noise level
     only the weighted fit's steps (tagged "weighted"): its loss is of the weighted residuals, on
     another scale than the first fit's."""
-    from .fit import uniform_channels
+    from .selection import uniform_channels
 
     if any(h.get("weighted") for h in steps):
         steps = [h for h in steps if h.get("weighted")]
@@ -501,7 +504,8 @@ def run_fit(capture, out, options: dict, cache_dir=None, quiet: bool = False):
 
 
 def _summary(result, errors) -> str:
-    from .fit import compile_summary, uniform_channels
+    from .runner import compile_summary
+    from .selection import uniform_channels
 
     r = result.report
     h, w = r["resolution"]
@@ -540,7 +544,7 @@ def _summary(result, errors) -> str:
 def _cmd_fit(args) -> int:
     from pathlib import Path
 
-    from .fit import MATERIAL_MAPS
+    from .fit_options import MATERIAL_MAPS
     from .io import check_not_inside, check_output_dir
     from .scene import load_capture
 
@@ -615,7 +619,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _default_continuation() -> str:
-    from .fit import CONTINUATION
+    from .fit_pass import CONTINUATION
 
     return ",".join(str(w) for w in CONTINUATION)
 
@@ -631,7 +635,7 @@ MAX_SUPERSAMPLE = 16
 MAX_NOISE = 100.0
 #: The most Monte Carlo sample steps (`--ibl-samples`) and tabulated roughness levels
 #: (`--ibl-levels`) taken: far beyond any use, and within the int32 counters of the jitted loops
-#: (`pbrfit.fit.MAX_SOLVER_STEPS` bounds `--max-steps`, `MAX_MAP_SIDE` `--resolution`).
+#: (`pbrfit.fit_options.MAX_SOLVER_STEPS` bounds `--max-steps`, `MAX_MAP_SIDE` `--resolution`).
 MAX_IBL_SAMPLES = 1 << 20
 MAX_IBL_LEVELS = 256
 #: What to make smaller when a command runs out of memory.

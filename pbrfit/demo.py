@@ -69,7 +69,7 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
 
     from .cli import run_fit
     from .errors import CaptureError
-    from .fit import compile_summary
+    from .runner import compile_summary
     from .io import check_output_dir, read_material
     from .scene import load_capture
     from .views import default_cache_dir

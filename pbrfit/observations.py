@@ -39,7 +39,8 @@ from .textures import bilinear_weights
 from .transfer import to_device
 
 __all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "observations_from_views", "observations_from_capture",
-           "pixel_offsets", "sample_camera", "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout", "coverage_counts", "neighbour_pairs"]
+           "pixel_offsets", "sample_camera", "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout", "layout_for",
+           "coverage_counts", "neighbour_pairs"]
 
 
 #: Largest n of n × n samples per pixel (`observations_from_capture`): memory and time grow as n².
@@ -317,6 +318,11 @@ def uniform_layout(obs: Observations) -> TexelLayout:
     index = jnp.zeros((p, 4), jnp.int32)
     weight = jnp.zeros((p, 4), jnp.float32).at[:, 0].set(1.0)
     return TexelLayout(index, weight, (1, 1))
+
+
+def layout_for(obs: Observations, shape: tuple[int, int], wrap: str = "repeat") -> TexelLayout:
+    """`uniform_layout` for a (1, 1) map, else `texel_layout`."""
+    return uniform_layout(obs) if tuple(shape) == (1, 1) else texel_layout(obs, shape, wrap)
 
 
 def coverage_counts(layout: TexelLayout, samples: int = 1) -> np.ndarray:

@@ -25,7 +25,7 @@ The repair finds the cluster by its misfit and starts it again from outside:
 2. `fill_from_nearest`: each flagged texel takes the fitted values of the nearest well-determined
    texel that is not flagged (the basin of the patch around it).
 3. The fit's coordinate search (`pbrfit.initialisation.coordinate_search`, `REPAIR_ROUNDS`
-   sweeps) and `REPAIR_STEPS` solver steps follow (`pbrfit.fit`), moving only the flagged
+   sweeps) and `REPAIR_STEPS` solver steps follow (`run_repair`), moving only the flagged
    texels and their well-determined neighbours (`repair_region`: the eight around each, which a
    pixel's bilinear taps read together with it); every other texel keeps its value.
 4. `improved_clusters`: the moved texels fall into clusters that share no pixel, so each
@@ -71,19 +71,27 @@ compile to every fit.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Optional
 
+import jax
 import numpy as np
 from jaxtyping import Bool, Float, Int
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from .uncertainty import block_standard_errors
+from .initialisation import coordinate_search, parity_classes
+from .parameters import CHANNELS
+from .runner import DEFAULT_SOLVER, jitted_normal_blocks, problem_energy, problem_key, timed
+from .solvers import Problem
+from .transfer import to_device
+from .uncertainty import block_standard_errors, residual_variance
 
 __all__ = ["MISFIT_FACTOR", "MISFIT_FLOOR", "WELL_SEEN_FRACTION", "REPAIR_ROUNDS", "REPAIR_STEPS", "REPAIR_PASSES",
            "REPAIR_PROGRESS", "OUTLIER_DEVIATION", "OUTLIER_REFERENCES", "OUTLIER_PEELS", "OUTLIER_PEEL_SHARE",
            "OUTLIER_EVIDENCE", "OUTLIER_SPREAD", "texel_misfit", "misfit_texels", "identifiable_texels",
-           "well_seen_texels", "outlier_texels", "repair_region", "fill_from_nearest", "improved_clusters"]
+           "well_seen_texels", "outlier_texels", "repair_region", "fill_from_nearest", "improved_clusters",
+           "repair_skipped", "run_repair"]
 
 #: A texel is flagged where its mean squared residual exceeds this many times the median.
 MISFIT_FACTOR = 10.0
@@ -345,3 +353,104 @@ def improved_clusters(
         threshold = margin + spread * np.sqrt(2.0 * p)
     better = e_after < e_before - threshold
     return read & better[np.maximum(cluster, 0)], n, int(np.sum(better))
+
+
+def repair_skipped(solver, final, channels) -> Optional[str]:
+    """Why the basin repair does not apply to a fit, or None where it does."""
+    if tuple(final) == (1, 1):
+        return "a uniform material"
+    if solver != DEFAULT_SOLVER:
+        return f"needs the {DEFAULT_SOLVER} solver"
+    if not np.any(np.asarray(channels) > 0):
+        return "no channel is fitted"
+    return None
+
+
+def run_repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, channels, num_free: int,
+            where: dict):
+    """Texels the solve left in a wrong basin, started again from their neighbours
+    (`pbrfit.repair`): (x, linearisation, report). Each pass flags texels, copies into them the
+    nearest unflagged one's values, runs the coordinate search and `REPAIR_STEPS` steps over the
+    flagged texels and their neighbours (all others held), puts back the clusters whose pixels do
+    not fit better (`improved_clusters`), and is kept where the objective then falls. The misfit
+    passes flag the well-seen identifiable texels whose pixels fit worse than the noise explains
+    (`misfit_texels`) and go on while one lowers the objective by more than `REPAIR_PROGRESS`, up
+    to `REPAIR_PASSES`; then one pass flags the identifiable texels out of line with their
+    neighbours (`outlier_texels`) and keeps a cluster only where its pixels' Σ ||r||² fell by more
+    than (`OUTLIER_EVIDENCE` + `OUTLIER_SPREAD` √(2p)) residual variances, p its free channels.
+    Each report entry's "kind" says which."""
+    t = shape[0] * shape[1]
+    seen_t = np.asarray(seen[:t], bool)
+    obs = problem.obs
+    scale = float(np.mean(np.square(np.asarray(obs.pixel_rows(obs.target), np.float64))))
+    index, weight, free = np.asarray(problem.index), np.asarray(problem.weight), np.asarray(problem.free)
+    fitted = np.asarray(channels) > 0
+    classes = to_device(parity_classes(shape))
+    key = ("repair", tuple(shape)) + problem_key(problem)
+    static = (REPAIR_ROUNDS, bool(channels[3] > 0))
+    xs = np.asarray(xs, np.float32)
+    energy = problem_energy(linearization[0], xs, problem)
+    passes = []
+
+    def judged():
+        """(misfit flags, well-seen identifiable texels, identifiable texels) at the current
+        linearisation."""
+        r, jac = linearization
+        mean, count = texel_misfit(np.asarray(r), index, weight, problem.samples, problem.num_texels)
+        blocks = np.asarray(jitted_normal_blocks(jac, problem))[:t]
+        identifiable = identifiable_texels(blocks, fitted, seen_t)
+        trusted = well_seen_texels(count[:t], seen_t) & identifiable
+        return misfit_texels(mean[:t], count[:t], seen_t, scale) & trusted, trusted, identifiable
+
+    def run_pass(kind, flagged, trusted, margin, spread=0.0):
+        """One pass over ``flagged``: its report entry appended, and whether it was kept."""
+        nonlocal xs, linearization, energy
+        entry = dict(kind=kind, flagged=int(np.sum(flagged)))
+        passes.append(entry)
+        if not np.any(flagged):
+            return False
+        moving = np.zeros(problem.num_texels, bool)
+        moving[:t] = repair_region(flagged, trusted, tuple(shape))
+        region = dataclasses.replace(problem, free=jax.device_put(free * moving[:, None], problem.free.sharding))
+        y = fill_from_nearest(xs, flagged, trusted, tuple(shape), free)
+        where["repair"] = len(passes)
+        y = timed(compiler, key, coordinate_search, "repair", to_device(y, np.float32), region, classes, *static)
+        y, info = runner(to_device(y, np.float32), region, REPAIR_STEPS, num_free)
+        # residuals and pixel Jacobians do not depend on which texels move: the full problem's
+        after = runner.linearization
+        better, clusters, improved = improved_clusters(moving, linearization[0], after[0], index, weight,
+                                                       problem.samples, margin, spread, np.sum(free > 0, axis=1))
+        z = np.asarray(y, np.float32)
+        if improved and not np.array_equal(better, moving):
+            # the other clusters back where they were, linearised there (step 0, still tagged "repair")
+            z = np.where(better[:, None], z, xs)
+            runner(to_device(z, np.float32), problem, 0, num_free)
+            after = runner.linearization
+        where.pop("repair")
+        e_after = problem_energy(after[0], z, problem)
+        kept = improved > 0 and e_after < energy
+        entry.update(moved=int(np.sum(moving)), clusters=clusters, clusters_kept=improved if kept else 0,
+                     texels_kept=int(np.sum(better)) if kept else 0, energy_before=energy, energy_after=e_after,
+                     steps=info["steps"], kept=bool(kept))
+        if kept:
+            xs, linearization, energy = z, after, e_after
+        return kept
+
+    misfit, trusted, identifiable = judged()
+    for _ in range(REPAIR_PASSES):
+        if not np.any(misfit):
+            break
+        before = energy
+        if not run_pass("misfit", misfit, trusted, 0.0):
+            break  # nothing moved: the flags below are those at hand
+        misfit, trusted, identifiable = judged()
+        if before - energy <= REPAIR_PROGRESS * before:
+            break
+    # the material channels only: a normal map's slopes span a wider range, and bump detail is out
+    # of line with its neighbours by nature. Well seen or not: a wrong basin hides in a corner
+    # that few pixels read as well.
+    material = fitted & (np.arange(fitted.size) < len(CHANNELS))
+    sigma2 = residual_variance(energy, 3 * obs.num_pixels, num_free)
+    run_pass("outliers", outlier_texels(xs[:t], material, identifiable, tuple(shape)), identifiable,
+             OUTLIER_EVIDENCE * sigma2, OUTLIER_SPREAD * sigma2)
+    return xs, linearization, dict(passes=passes)

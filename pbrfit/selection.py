@@ -47,17 +47,26 @@ count as no parameter in the threshold.
 
 from __future__ import annotations
 
+import dataclasses
+import math
+from typing import Optional
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jaxtyping import Array, Float
 
+from .parameters import lower, upper
+from .runner import DEFAULT_SOLVER, jitted_normal_blocks, problem_energy
 from .solvers import Problem, gauss_newton_factors, gn_product, gradient, normal_blocks, pcg
-from .uncertainty import block_standard_errors
+from .transfer import to_device
+from .uncertainty import block_standard_errors, residual_variance
 
 __all__ = ["SELECTABLE", "WALD_MARGIN", "NEWTON_STEPS", "aic_statistic", "prefers_uniform", "texel_precisions",
-           "profile_hessian", "uniform_direction", "wald_statistic", "weighted_value", "newton_value"]
+           "profile_hessian", "uniform_direction", "wald_statistic", "weighted_value", "newton_value", "REFIT_STEPS",
+           "NEWTON_TOL", "uniform_channels", "uniform_check_skipped", "run_uniform_check"]
 
 #: Channels the test may make uniform: (name, channel index). Base colour is always a map.
 SELECTABLE = (("metallic", 3), ("roughness", 4))
@@ -75,6 +84,14 @@ PRECONDITIONER_RIDGE = 1e-5
 #: ... plus this fraction of the mean diagonal, for a block whose entries are all 0 (a texel
 #: whose other channels no pixel constrains).
 PRECONDITIONER_FLOOR = 1e-12
+#: The uniform check (``uniform_check=True``, `run_uniform_check`): steps of each re-fit of the
+#: other channels at a trial common value (on noisy images they stop at this cap, leaving
+#: E_uniform a little high, which leans the test towards the map; the re-fits also continue the
+#: map fit's own descent, which leans it the other way where that had not converged), and the
+#: Newton step on that value, in units of its standard error, below which the value is final (it
+#: moves the test statistic by its square).
+REFIT_STEPS = 10
+NEWTON_TOL = 1.0
 
 
 def texel_precisions(blocks: np.ndarray, channels: np.ndarray, seen: np.ndarray) -> np.ndarray:
@@ -162,3 +179,93 @@ def aic_statistic(loss_uniform: float, loss_map: float, sigma2: float) -> float:
 def prefers_uniform(statistic: float, texels: int) -> bool:
     """Akaike's choice: the common value where Δ ≤ 2 (T − 1) for a map of T free texels."""
     return statistic <= 2.0 * (texels - 1)
+
+
+def uniform_channels(report: dict) -> list[str]:
+    """Names of the channels a fit's uniform check made one common value (its report's
+    "uniform_check" entries with ``uniform``)."""
+    return [name for name, c in report.get("uniform_check", {}).items() if isinstance(c, dict) and c.get("uniform")]
+
+
+def uniform_check_skipped(solver, loss, smooth, final, channels) -> Optional[str]:
+    """Why the uniform check does not apply to a fit, or None where it does."""
+    if tuple(final) == (1, 1):
+        return "a uniform material"
+    if solver != DEFAULT_SOLVER:
+        return f"needs the {DEFAULT_SOLVER} solver"
+    if loss != "l2":
+        return f"needs the l2 loss (the test reads the data term as a Gaussian likelihood), not {loss}"
+    if smooth > 0:
+        return "the smoothness prior already ties the texels together"
+    if not any(channels[c] > 0 for _, c in SELECTABLE):
+        return "neither metallic nor roughness is fitted"
+    return None
+
+
+def run_uniform_check(runner, problem: Problem, xs, linearization, channels, seen, num_pixels: int, where: dict):
+    """Metallic, then roughness, as one common value where Akaike's criterion prefers it to a map:
+    (x, linearisation, problem, report, uniform) of the model kept, with
+    ``uniform`` {channel: value} of the channels made uniform."""
+    channels = np.asarray(channels, np.float32).copy()
+    k = len(channels)
+    lo, hi = lower(k), upper(k)
+    seen_t = np.asarray(seen[: problem.num_texels], bool)
+    n_seen = int(np.sum(seen_t))
+    r, jac = linearization
+    e_map = problem_energy(r, xs, problem)  # no prior here: the check is skipped with one
+    sigma2 = residual_variance(e_map, 3 * num_pixels, n_seen * int(np.sum(channels)))
+    xs = np.asarray(xs, np.float32)
+    report, uniform = {}, {}
+    precision = None  # per-texel precisions of the model as it stands (recomputed when a channel goes)
+    for name, c in SELECTABLE:
+        if channels[c] == 0:
+            continue
+        if precision is None:
+            precision = texel_precisions(np.asarray(jitted_normal_blocks(jac, problem)), channels > 0, seen_t)
+        s = precision[seen_t, c]
+        n_texels = int(np.sum(s > 0))  # the texels whose channel c the images constrain at all
+        if n_texels < 2:
+            report[name] = dict(uniform=False, texels=n_texels, skipped="fewer than two texels constrain it")
+            continue
+        threshold = 2.0 * (n_texels - 1)
+        value = weighted_value(xs[seen_t, c], s, float(lo[c]), float(hi[c]))
+        wald = wald_statistic(xs[seen_t, c], s, value, sigma2)
+        entry = dict(texels=n_texels, threshold=threshold, wald=wald)
+        if wald > WALD_MARGIN * threshold:
+            report[name] = dict(entry, uniform=False)
+            continue
+        reduced_channels = channels.copy()
+        reduced_channels[c] = 0.0
+        free = (seen_t[:, None] * reduced_channels[None, :]).astype(np.float32)
+        reduced = dataclasses.replace(problem, free=jax.device_put(free, problem.free.sharding))
+        direction = jax.device_put(uniform_direction(seen_t, c, k)[None], problem.free.sharding)
+        num_free = n_seen * int(np.sum(reduced_channels))
+        x_red, steps, values, converged = xs, 0, [], False
+        where["check"] = name
+        for i in range(NEWTON_STEPS + 1):
+            values.append(value)
+            x_red = np.array(x_red, np.float32)
+            x_red[seen_t, c] = value
+            x_red, info = runner(to_device(x_red, np.float32), reduced, REFIT_STEPS, num_free)
+            steps += info["steps"]
+            r_red, jac_red = runner.linearization
+            if i == NEWTON_STEPS:
+                break
+            p, g = profile_hessian(r_red, jac_red, to_device(x_red, np.float32), reduced, direction)
+            curvature, slope = float(np.asarray(p)[0, 0]), float(np.asarray(g)[0])
+            new = newton_value(value, slope, curvature, float(lo[c]), float(hi[c]))
+            converged = curvature > 0 and abs(new - value) <= NEWTON_TOL * math.sqrt(sigma2 / curvature)
+            if converged or not curvature > 0:
+                break
+            value = new
+        where.pop("check")
+        e_uniform = problem_energy(r_red, x_red, reduced)
+        statistic = aic_statistic(e_uniform, e_map, sigma2)
+        keep = prefers_uniform(statistic, n_texels)
+        report[name] = dict(entry, uniform=keep, statistic=statistic, value=value, steps=steps, values=values,
+                            converged=converged)
+        if keep:
+            xs, linearization, problem, e_map = np.asarray(x_red, np.float32), (r_red, jac_red), reduced, e_uniform
+            jac, channels, precision = jac_red, reduced_channels, None
+            uniform[c] = value
+    return xs, linearization, problem, report, uniform

@@ -15,10 +15,15 @@ from scipy import ndimage
 
 from pbrfit.color import encode
 import pbrfit.fit
+import pbrfit.fit_pass
 import pbrfit.initialisation
+import pbrfit.repair
+import pbrfit.runner
+import pbrfit.selection
 import pbrfit.solvers
-from pbrfit.fit import (RELEASED_STEPS, SEARCH_AFTER, SETTLE_STEPS, SOLVERS, default_resolution, fit_arguments,
-                        fit_observations, map_rmse, schedule)
+from pbrfit.fit import SOLVERS, default_resolution, fit_observations, map_rmse, schedule
+from pbrfit.fit_options import fit_arguments
+from pbrfit.fit_pass import RELEASED_STEPS, SEARCH_AFTER, SETTLE_STEPS
 from pbrfit.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, grid_initialise, parity_classes
 from pbrfit.lights import point_light
 from pbrfit.material import Material
@@ -520,7 +525,7 @@ def test_coverage_counts_the_fits_own_wrap():
 
 def test_compiler_prefetches_waits_and_reraises():
     clock = {}
-    compiler = pbrfit.fit._Compiler(clock)
+    compiler = pbrfit.runner.Compiler(clock)
     square = jax.jit(lambda v: v * v)
     x = jnp.arange(3.0)
     compiler.prefetch("square", square, x)
@@ -541,13 +546,13 @@ def test_compiler_prefetches_waits_and_reraises():
     compiler.close()
     assert not compiler.pending and compiler.executor is None
     with jax.enable_x64(True):  # the caller's thread-local setting holds in the compile thread
-        wide = pbrfit.fit._Compiler({})
+        wide = pbrfit.runner.Compiler({})
         x64 = jnp.arange(3.0)
         ones = jax.jit(lambda v: jnp.ones(v.shape))  # float64 only where the trace sees x64 on
         wide.prefetch("ones", ones, x64)
         assert wide.get("ones", ones, x64)(x64).dtype == jnp.float64
         wide.close()
-    off = pbrfit.fit._Compiler({}, background=False)
+    off = pbrfit.runner.Compiler({}, background=False)
     off.prefetch("square", square, x)
     assert not off.pending and off.executor is None
 
@@ -579,7 +584,7 @@ def test_continuation_is_reported_scales_with_the_data_and_is_released(monkeypat
     short = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + RELEASED_STEPS - 1, continuation=(0.01,))
     assert short.report["continuation"] is None
     off = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + 1, search=False, continuation=())
-    monkeypatch.setattr(pbrfit.fit, "RELEASED_STEPS", 1)
+    monkeypatch.setattr(pbrfit.fit_pass, "RELEASED_STEPS", 1)
     # (no uniform check or repair: their re-fits would take more steps)
     held = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + 1, search=False, continuation=(10.0,),
                             uniform_check=False, repair=False)
@@ -744,7 +749,7 @@ def test_uniform_check_finds_one_roughness_and_keeps_a_binary_metallic_map(monke
     np.testing.assert_array_equal(np.asarray(res.uncertainty), np.asarray(off.uncertainty))
     assert map_rmse(truth, res)["metallic"] < 0.03  # measured 0.013
     # re-fitted anyway, the common value loses by far and the map fit is returned as it was
-    monkeypatch.setattr(pbrfit.fit, "WALD_MARGIN", np.inf)
+    monkeypatch.setattr(pbrfit.selection, "WALD_MARGIN", np.inf)
     forced = fit_observations(obs, resolution=8, max_steps=40)
     metal = forced.report["uniform_check"]["metallic"]
     assert not metal["uniform"] and metal["statistic"] > 10 * metal["threshold"] and metal["steps"] > 0, metal
@@ -757,7 +762,7 @@ def test_uniform_check_finds_one_roughness_and_keeps_a_binary_metallic_map(monke
 
 
 def test_uniform_check_says_why_it_was_skipped():
-    skipped = pbrfit.fit._uniform_check_skipped
+    skipped = pbrfit.selection.uniform_check_skipped
     on = np.array([1, 1, 1, 1, 1], np.float32)
     assert skipped("structured", "l2", 0.0, (8, 8), on) is None
     assert skipped("structured", "l2", 0.0, (1, 1), on) == "a uniform material"
@@ -839,7 +844,7 @@ def test_repair_outlier_pass_finds_a_cluster_the_misfit_misses(monkeypatch):
     it), restarts it and the fit becomes exact."""
     truth = _patches(10)
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
-    monkeypatch.setattr(pbrfit.fit, "misfit_texels", lambda mean, count, seen, scale: np.zeros(len(seen), bool))
+    monkeypatch.setattr(pbrfit.repair, "misfit_texels", lambda mean, count, seen, scale: np.zeros(len(seen), bool))
     res = fit_observations(obs, resolution=8, max_steps=40)
     err = map_rmse(truth, res)
     assert err["roughness"] < 1e-3 and err["base_color"] < 1e-3, err
@@ -866,9 +871,9 @@ def test_repair_puts_back_the_clusters_judged_no_better(monkeypatch):
         judged.update(moving=moving, better=better)
         return better, 2, 1
 
-    monkeypatch.setattr(pbrfit.fit, "improved_clusters", half)
-    monkeypatch.setattr(pbrfit.fit, "REPAIR_PASSES", 1)
-    monkeypatch.setattr(pbrfit.fit, "outlier_texels", lambda x, channels, trusted, shape: np.zeros(64, bool))
+    monkeypatch.setattr(pbrfit.repair, "improved_clusters", half)
+    monkeypatch.setattr(pbrfit.repair, "REPAIR_PASSES", 1)
+    monkeypatch.setattr(pbrfit.repair, "outlier_texels", lambda x, channels, trusted, shape: np.zeros(64, bool))
     res = fit_observations(obs, resolution=8, max_steps=40, uniform_check=False)
     p, last = res.report["repair"]["passes"]
     assert last == dict(kind="outliers", flagged=0)

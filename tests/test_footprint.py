@@ -13,7 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pbrfit.fit import PROBE_STEPS, SEARCH_AFTER, fit, map_rmse, model_for_capture
+from pbrfit.fit import fit, map_rmse, model_for_capture
+from pbrfit.fit_pass import PROBE_STEPS, SEARCH_AFTER
 from pbrfit.gbuffer import Camera, compute_gbuffer
 from pbrfit.io import read_material
 from pbrfit.observations import (PIXEL_FIELDS, coverage_counts, observations_from_capture, pixel_offsets, sample_camera,
@@ -355,7 +356,7 @@ def test_select_footprint_needs_samples_and_centres(capture):
 def test_footprint_choice_by_image_kind(capture):
     """``"auto"`` tries 2 × 2 samples for display-referred images only; an integer is taken as
     given; precomputed views hold centres."""
-    from pbrfit.fit import AUTO_PIXEL_SAMPLES, footprint_choice
+    from pbrfit.footprint import AUTO_PIXEL_SAMPLES, footprint_choice
 
     linear = dataclasses.replace(capture, frames=[dataclasses.replace(f, color_space="linear") for f in capture.frames],
                                  color_space="linear")
@@ -372,7 +373,7 @@ def test_auto_footprint_skips_the_samples_on_a_large_capture(capture, capture_di
     """Beyond `AUTO_MAX_PIXELS` image pixels the automatic choice keeps to pixel centres (four
     times the rows would not pay), and the report says so. (The fit is given the capture's
     folder: `pbrfit.fit` reads it.)"""
-    import pbrfit.fit as fit_module
+    import pbrfit.footprint as fit_module
 
     pixels = sum(f.image.shape[0] * f.image.shape[1] for f in capture.frames)
     monkeypatch.setattr(fit_module, "AUTO_MAX_PIXELS", pixels - 1)

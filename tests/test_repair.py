@@ -200,10 +200,10 @@ def test_fill_from_nearest_copies_free_channels_of_the_nearest_source():
 
 
 def test_repair_says_why_it_was_skipped():
-    from pbrfit.fit import _repair_skipped
+    from pbrfit.repair import repair_skipped
 
     on = np.ones(5, np.float32)
-    assert _repair_skipped("structured", (8, 8), on) is None
-    assert _repair_skipped("structured", (1, 1), on) == "a uniform material"
-    assert _repair_skipped("lm", (8, 8), on) == "needs the structured solver"
-    assert _repair_skipped("structured", (8, 8), np.zeros(5)) == "no channel is fitted"
+    assert repair_skipped("structured", (8, 8), on) is None
+    assert repair_skipped("structured", (1, 1), on) == "a uniform material"
+    assert repair_skipped("lm", (8, 8), on) == "needs the structured solver"
+    assert repair_skipped("structured", (8, 8), np.zeros(5)) == "no channel is fitted"

@@ -223,7 +223,7 @@ def _multi_device_report() -> dict:
     x0_sh = grid_initialise(_start(problem), sharded)
     out["init_diff"] = float(jnp.max(jnp.abs(x0 - x0_sh)))
 
-    # As `pbrfit.fit._Runner` does: ahead-of-time compile, then run.
+    # As `pbrfit.runner.Runner` does: ahead-of-time compile, then run.
     args = (x0, problem, jnp.asarray(30, jnp.int32), 1e-7, 1e-6)
     x, stats, r, jac = structured_lm.lower(*args).compile()(*args)
     args_sh = (x0, sharded, jnp.asarray(30, jnp.int32), 1e-7, 1e-6)
