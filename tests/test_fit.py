@@ -242,7 +242,8 @@ def test_fit_arguments_resolve_and_refuse():
     (dict(model=Model(metallic=False)), "metallic is fitted, and the model has no metal lobe"),
     (dict(model="ggx"), "model: expected a pbrfit.Model"), (dict(devices=jax.devices()[0]), "devices"),
     (dict(noise_level="bad"), "noise_level"), (dict(loss="l3"), "loss"), (dict(init="foo"), "init"),
-    (dict(wrap="x"), "wrap"),
+    (dict(wrap="x"), "wrap"), (dict(solver="newton"), "solver: must be one of structured, lm"),
+    (dict(maps="uv"), "maps: must be 'texture' or 'none', got 'uv'"),
 ])
 def test_fit_refuses_options_out_of_range_or_unread(options, match):
     """Refused before any work (no compile: these run in milliseconds); the command line refuses
