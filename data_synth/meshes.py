@@ -302,7 +302,7 @@ def load_mesh(path, normalize: bool = False) -> MeshData:
 
 def write_glb(path, mesh: MeshData) -> None:
     """Write the mesh as a binary glTF (positions, normals, TEXCOORD_0), atomically."""
-    from pbrfit.io import atomic_path
+    from pbrfit.atomic import atomic_path
 
     tm = mesh.to_trimesh()
     data = tm.export(file_type="glb", include_normals=True)

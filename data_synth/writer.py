@@ -279,7 +279,10 @@ def synthesize(
 ) -> SynthResult:
     """Render `scene` and write its capture folder at `out` (see the module docstring)."""
     from pbrfit.environment import load_environment
-    from pbrfit.io import atomic_dir, write_gltf, write_image, write_material
+    from pbrfit.atomic import atomic_dir
+    from pbrfit.gltf_export import write_gltf
+    from pbrfit.io import write_image
+    from pbrfit.material_files import write_material
     from pbrfit.mesh import load_mesh
 
     t0 = time.perf_counter()

@@ -59,7 +59,7 @@ def run(scenes, mc_samples: int, pixel_samples, out: Path):
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
     from pbrfit.fit import fit
-    from pbrfit.io import read_material
+    from pbrfit.material_files import read_material
     from pbrfit.observations import observations_from_capture
     from pbrfit.pixel_ibl import PixelIBLSettings, pixel_ibl
     from pbrfit.scene import load_capture

@@ -46,7 +46,7 @@ def run(scenes, seeds: int) -> list[dict]:
     from data_synth.writer import synthesize
     from pbrfit.demo import recovery_table
     from pbrfit.fit import fit
-    from pbrfit.io import read_material
+    from pbrfit.material_files import read_material
     from pbrfit.scene import load_capture
 
     rows = []

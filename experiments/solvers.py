@@ -191,7 +191,7 @@ def run(scenes, configs):
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
     from pbrfit.fit import _ibl_for_capture, fit_observations, model_for_capture
-    from pbrfit.io import read_material
+    from pbrfit.material_files import read_material
     from pbrfit.observations import observations_from_capture
     from pbrfit.scene import load_capture
 

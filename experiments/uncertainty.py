@@ -60,7 +60,7 @@ def run(draws: int, radii, noise_models=NOISE_MODELS, noise_levels=NOISE_LEVELS)
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
     from pbrfit.fit import fit
-    from pbrfit.io import read_material
+    from pbrfit.material_files import read_material
     from pbrfit.scene import load_capture
 
     rows = []

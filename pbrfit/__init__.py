@@ -45,8 +45,8 @@ _LAZY = {
     "render_capture": ("views", "render_capture"),
     "FitResult": ("fit", "FitResult"),
     "PixelIBLSettings": ("pixel_ibl", "PixelIBLSettings"),
-    "read_material": ("io", "read_material"),
-    "write_material": ("io", "write_material"),
+    "read_material": ("material_files", "read_material"),
+    "write_material": ("material_files", "write_material"),
 }
 
 __all__ = ["brdf", "color", "CaptureError", "Material", "Model", "fit", *_LAZY]

@@ -92,7 +92,9 @@ def _cmd_render(args) -> int:
 
     import numpy as np
 
-    from .io import check_not_inside, check_output_dir, needs_texture_coordinates, read_material
+    from .atomic import check_not_inside, check_output_dir
+    from .gltf_export import needs_texture_coordinates
+    from .material_files import read_material
     from .mesh import check_uv_layout
     from .scene import load_capture
     from .views import apply_overrides, load_lights_override, render_capture, write_rendered_capture
@@ -161,7 +163,7 @@ def _cmd_synth(args) -> int:
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
 
-    from .io import check_output_dir
+    from .atomic import check_output_dir
 
     bounds = (("size", 1, MAX_SIZE), ("views", 1, MAX_VIEWS), ("supersample", 1, MAX_SUPERSAMPLE),
               ("texture_size", 1, MAX_SIZE), ("ibl_samples", 1, MAX_IBL_SAMPLES), ("seed", 0, None))
@@ -299,7 +301,7 @@ def _fit_options(args) -> dict:
     from .fit_options import LOSS_SCALE, MATERIAL_MAPS, OptionNames, check_options, fit_arguments
     from .fit_pass import COARSE_STEPS
     from .runner import DEFAULT_SOLVER
-    from .io import read_map
+    from .material_files import read_map
     from .observations import MAX_PIXEL_SAMPLES
     from .pixel_ibl import MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
     from .solvers import CG_RTOL
@@ -471,7 +473,7 @@ def run_fit(capture, out, options: dict, cache_dir=None, quiet: bool = False):
     import numpy as np
 
     from .fit import fit, map_rmse
-    from .io import read_material
+    from .material_files import read_material
     from .outputs import write_fit_output
 
     truth = None
@@ -545,7 +547,7 @@ def _cmd_fit(args) -> int:
     from pathlib import Path
 
     from .fit_options import MATERIAL_MAPS
-    from .io import check_not_inside, check_output_dir
+    from .atomic import check_not_inside, check_output_dir
     from .scene import load_capture
 
     options = _fit_options(args)
@@ -712,7 +714,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except OSError as err:
         # the system refused a file (a name too long, a full disk, no permission, a read-only
         # place): one line naming it; anything else is a bug and keeps its traceback
-        from .io import REFUSED_ERRNOS
+        from .atomic import REFUSED_ERRNOS
 
         if err.errno not in REFUSED_ERRNOS:
             raise

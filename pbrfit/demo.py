@@ -70,7 +70,8 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
     from .cli import run_fit
     from .errors import CaptureError
     from .runner import compile_summary
-    from .io import check_output_dir, read_material
+    from .atomic import check_output_dir
+    from .material_files import read_material
     from .scene import load_capture
     from .views import default_cache_dir
 

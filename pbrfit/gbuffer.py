@@ -47,7 +47,7 @@ import trimesh
 from jaxtyping import Bool, Float, Int
 
 from .errors import CaptureError
-from .io import write_cache_file
+from .atomic import write_cache_file
 from .raycast import NORM_FLOOR, PARALLEL_EPS, cast, has_embree, make_first_hit
 
 __all__ = [

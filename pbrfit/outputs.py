@@ -127,7 +127,10 @@ def write_fit_output(
     targets: per view (image as the file holds it, mask); renders: per view the fitted render in
     the same space. Both optional (no contact sheets without them).
     """
-    from .io import atomic_dir, write_gltf, write_image, write_material
+    from .atomic import atomic_dir
+    from .gltf_export import write_gltf
+    from .io import write_image
+    from .material_files import write_material
 
     out_dir = Path(out_dir)
     uncertainty = np.asarray(uncertainty, np.float32)

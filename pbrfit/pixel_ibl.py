@@ -67,7 +67,7 @@ from jaxtyping import Array, Float
 from . import brdf
 from .environment import (Environment, direction_to_uv, dot3, from_environment_frame, sample_equirect,
                           to_environment_frame)
-from .io import write_cache_file
+from .atomic import write_cache_file
 from .model import Model
 from .montecarlo import (_batch, _hash32, _uniforms, default_lut, environment_pdf, environment_sampler,
                          ggx_vndf_pdf, sample_cosine, sample_environment, sample_ggx_vndf, tangent_frame)

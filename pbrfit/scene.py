@@ -57,7 +57,7 @@ import numpy as np
 
 from .errors import CaptureError
 from .gbuffer import Camera, camera_axes
-from .io import _LDR_MAX, ImageInfo, _srgb_decode, color_channels, data_window_mask, read_image, read_image_info
+from .io import _LDR_MAX, ImageInfo, color_channels, data_window_mask, read_image, read_image_info, srgb_decoded
 from .lights import FLOAT32_MAX, Light, _loc, _number, _triple, color_and_intensity, flash_light, light_from_json
 from .mesh import load_mesh
 
@@ -469,7 +469,7 @@ def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposu
     nonfinite = bad & mask  # an error only if the mesh covers one (known after ray casting)
     if bad.any():
         rgb = np.where(bad[..., None], 0.0, rgb).astype(np.float32)
-    image = _srgb_decode(rgb) if color_space == "srgb" else np.ascontiguousarray(rgb, dtype=np.float32)
+    image = srgb_decoded(rgb) if color_space == "srgb" else np.ascontiguousarray(rgb, dtype=np.float32)
 
     frame_lights_raw = frame_raw.get("lights", [])
     if not isinstance(frame_lights_raw, list):

@@ -142,7 +142,7 @@ def render_capture(
     from .scene import Capture, load_capture
 
     if isinstance(capture, (str, os.PathLike)):
-        from .io import needs_texture_coordinates
+        from .gltf_export import needs_texture_coordinates
 
         capture = load_capture(capture, require_uv=needs_texture_coordinates(material))
     if not isinstance(capture, Capture):
@@ -310,7 +310,8 @@ def write_rendered_capture(
     without ``format`` gets it, so the output loads as a capture. The folder is built under a
     temporary name and renamed into place, so a failure leaves nothing.
     """
-    from .io import atomic_dir, write_image
+    from .atomic import atomic_dir
+    from .io import write_image
     from .scene import CAPTURE_FORMAT
 
     raw = copy.deepcopy(capture.raw)

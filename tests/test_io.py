@@ -7,22 +7,11 @@ import pytest
 from _capture_fixtures import QUAD_UV_GLTF, glb_accessor, glb_image, read_glb, write_quad_glb
 from pbrfit.color import linear_to_srgb, srgb_to_linear
 from pbrfit.errors import CaptureError
-from pbrfit.io import (
-    atomic_dir,
-    CacheWarning,
-    OUTPUT_MARKER,
-    check_not_inside,
-    check_output_dir,
-    atomic_path,
-    read_image,
-    read_image_info,
-    read_map,
-    read_material,
-    write_gltf,
-    write_image,
-    write_cache_file,
-    write_material,
-)
+from pbrfit.atomic import (OUTPUT_MARKER, CacheWarning, atomic_dir, atomic_path, check_not_inside, check_output_dir,
+                           write_cache_file)
+from pbrfit.gltf_export import write_gltf
+from pbrfit.io import read_image, read_image_info, write_image
+from pbrfit.material_files import read_map, read_material, write_material
 from pbrfit.material import Material
 
 
@@ -46,7 +35,7 @@ def test_atomic_outputs_get_the_modes_the_umask_gives(tmp_path, monkeypatch):
     import os
     import stat
 
-    from pbrfit import io as pio
+    from pbrfit import atomic as pio
 
     plain_file, plain_dir = tmp_path / "plain", tmp_path / "plaindir"
     plain_file.write_text("x")
@@ -156,7 +145,7 @@ def test_signals_are_held_while_an_output_is_swapped_in():
     would lose both: the swap holds the signals, which arrive right after it."""
     import signal
 
-    from pbrfit.io import _signals_held
+    from pbrfit.atomic import _signals_held
 
     got = []
     previous = signal.signal(signal.SIGTERM, lambda signum, frame: got.append(signum))

@@ -678,7 +678,7 @@ def test_png_offsets_do_not_move_the_image(tmp_path):
 
 
 def test_cropped_material_exr_is_refused(tmp_path):
-    from pbrfit.io import read_map
+    from pbrfit.material_files import read_map
 
     _write_cropped_exr(tmp_path / "roughness.exr", np.ones((2, 2, 1), np.float32), (1, 1), (0, 0, 4, 4))
     with pytest.raises(CaptureError, match="cropped OpenEXR"):
@@ -686,7 +686,8 @@ def test_cropped_material_exr_is_refused(tmp_path):
 
 
 def test_occlusion_and_emissive_maps_are_checked_like_the_others(tmp_path):
-    from pbrfit.io import read_material, write_image, write_material
+    from pbrfit.io import write_image
+    from pbrfit.material_files import read_material, write_material
     from pbrfit.material import Material
 
     m = Material.uniform([0.5, 0.5, 0.5], 0.0, 0.5, size=2)

@@ -316,7 +316,7 @@ def _same_light(a, b):
 
 
 def test_capture_round_trip_linear(peer_capture):
-    from pbrfit.io import read_material
+    from pbrfit.material_files import read_material
     from pbrfit.scene import load_capture
 
     cap = load_capture(peer_capture.path)
@@ -366,7 +366,7 @@ def test_capture_round_trip_srgb_png_flash(flash_capture):
 
 
 def test_rerender_with_truth_reproduces_images(peer_capture):
-    from pbrfit.io import read_material
+    from pbrfit.material_files import read_material
     from pbrfit.scene import load_capture
     from pbrfit.views import render_capture
 
@@ -381,7 +381,7 @@ def test_rerender_with_truth_reproduces_images(peer_capture):
 def test_monte_carlo_environment_matches_the_per_pixel_integrals(tmp_path):
     """A scene rendered with ``ibl="monte_carlo"`` agrees with the fit's per-pixel integrals of the
     true maps: two exact integrators, so within their noise and without bias."""
-    from pbrfit.io import read_material
+    from pbrfit.material_files import read_material
     from pbrfit.material import material_at
     from pbrfit.observations import observations_from_capture
     from pbrfit.pixel_ibl import PixelIBLSettings, pixel_ibl
