@@ -78,8 +78,9 @@ def write_material(directory: str | os.PathLike, material) -> list[Path]:
     that is a file are refused with `CaptureError` before anything is written.
     """
     directory = Path(directory)
-    base, metallic, roughness = map_array(material.base_color), map_array(material.metallic), map_array(material.roughness)
-    normal, occlusion, emissive = (map_array(getattr(material, name, None)) for name in ("normal", "occlusion", "emissive"))
+    base, metallic, roughness = (map_array(m) for m in (material.base_color, material.metallic, material.roughness))
+    normal, occlusion, emissive = (map_array(getattr(material, name, None)) for name in ("normal", "occlusion",
+                                                                                         "emissive"))
     for name, values, top in (("base_color", base, 1.0), ("metallic", metallic, 1.0), ("roughness", roughness, 1.0),
                               ("occlusion", occlusion, 1.0), ("normal", normal, None), ("emissive", emissive, None)):
         if values is None:

@@ -263,7 +263,7 @@ def _copy_mesh(src: Path, root_out: Path, rel: str) -> list[str]:
         return [rel]
     from urllib.parse import quote
 
-    from .mesh import gltf_file_uris
+    from .gltf_read import gltf_file_uris
 
     try:
         doc = json.loads(src.read_text(encoding="utf-8"))

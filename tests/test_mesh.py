@@ -10,7 +10,8 @@ import pytest
 from _capture_fixtures import QUAD_POSITIONS, QUAD_UV_GLTF
 
 from pbrfit.errors import CaptureError
-from pbrfit.mesh import _glb_chunks, _glb_from_chunks, load_mesh
+from pbrfit.gltf_read import glb_chunks, glb_from_chunks
+from pbrfit.mesh import load_mesh
 
 _COMPONENTS = {np.float32: 5126, np.uint32: 5125, np.uint16: 5123, np.uint8: 5121}
 
@@ -31,7 +32,7 @@ def _glb(path, arrays, **tree):
         blob += a.tobytes()
     tree = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], **tree,
             "buffers": [{"byteLength": len(blob)}], "bufferViews": views, "accessors": accessors}
-    path.write_bytes(_glb_from_chunks(2, tree, blob))
+    path.write_bytes(glb_from_chunks(2, tree, blob))
     return path
 
 
@@ -90,10 +91,10 @@ def test_sparse_indices_are_applied(tmp_path, mode, stored, expected):
               np.array([2, 3], np.uint16)]
     primitive = {"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "mode": mode}
     path = _glb(tmp_path / "s.glb", arrays, meshes=[{"primitives": [primitive]}], nodes=[{"mesh": 0}])
-    version, tree, blob = _glb_chunks(path.read_bytes())
+    version, tree, blob = glb_chunks(path.read_bytes())
     tree["accessors"][2]["sparse"] = {"count": 2, "indices": {"bufferView": 3, "componentType": 5121},
                                       "values": {"bufferView": 4}}
-    path.write_bytes(_glb_from_chunks(version, tree, blob))
+    path.write_bytes(glb_from_chunks(version, tree, blob))
     np.testing.assert_array_equal(load_mesh(path).faces, expected)
 
 

@@ -751,14 +751,14 @@ def _quad_glb(path, edit=None):
     """The fixture quad as a GLB (normals written), its JSON chunk passed through ``edit``."""
     import trimesh
 
-    from pbrfit.mesh import _glb_chunks, _glb_from_chunks
+    from pbrfit.gltf_read import glb_chunks, glb_from_chunks
 
     quad = trimesh.Trimesh(QUAD_POSITIONS, [[0, 1, 2], [0, 2, 3]], process=False)
     quad.vertex_normals  # computed: the export writes them
-    version, tree, binary = _glb_chunks(quad.export(file_type="glb"))
+    version, tree, binary = glb_chunks(quad.export(file_type="glb"))
     if edit is not None:
         edit(tree)
-    path.write_bytes(_glb_from_chunks(version, tree, binary))
+    path.write_bytes(glb_from_chunks(version, tree, binary))
     return path
 
 
