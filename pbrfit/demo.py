@@ -67,7 +67,7 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
 
-    from .cli import run_fit
+    from .fit_command import run_fit
     from .errors import CaptureError
     from .runner import compile_summary
     from .atomic import check_output_dir

@@ -72,7 +72,7 @@ from .model import Model
 from .montecarlo import (_batch, _hash32, _uniforms, default_lut, environment_pdf, environment_sampler,
                          ggx_vndf_pdf, sample_cosine, sample_environment, sample_ggx_vndf, tangent_frame)
 
-__all__ = ["PixelIBLSettings", "MIN_LEVELS", "MIN_SAMPLES", "PixelIBL", "LOBES", "lobes_for", "pixel_ibl", "interpolate_lobes",
+__all__ = ["PixelIBLSettings", "MIN_LEVELS", "MIN_SAMPLES", "MAX_LEVELS", "MAX_SAMPLES", "PixelIBL", "LOBES", "lobes_for", "pixel_ibl", "interpolate_lobes",
            "shade_pixel_ibl", "pixel_dfg"]
 
 #: Every lobe a model can need (see the module docstring).
@@ -88,6 +88,11 @@ PIXEL_CHUNK = {"cpu": 2048, "accelerator": 16384}
 #: The fewest roughness levels (a spline needs two nodes) and sample steps `PixelIBLSettings` takes.
 MIN_LEVELS = 2
 MIN_SAMPLES = 1
+#: ... and the most: far beyond any use, and within the int32 counters of the jitted loops
+#: (`pbrfit fit --ibl-levels`, `--ibl-samples`; `pbrfit synth --ibl-samples` for its Monte Carlo
+#: renders).
+MAX_LEVELS = 256
+MAX_SAMPLES = 1 << 20
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,10 +114,11 @@ class PixelIBLSettings:
     seed: int = 0
 
     def __post_init__(self):
-        if int(self.levels) < MIN_LEVELS:
-            raise ValueError(f"PixelIBLSettings.levels must be >= {MIN_LEVELS}, got {self.levels!r}")
-        if int(self.samples) < MIN_SAMPLES:
-            raise ValueError(f"PixelIBLSettings.samples must be >= {MIN_SAMPLES}, got {self.samples!r}")
+        if not MIN_LEVELS <= int(self.levels) <= MAX_LEVELS:
+            raise ValueError(f"PixelIBLSettings.levels must be from {MIN_LEVELS} to {MAX_LEVELS}, got {self.levels!r}")
+        if not MIN_SAMPLES <= int(self.samples) <= MAX_SAMPLES:
+            raise ValueError(f"PixelIBLSettings.samples must be from {MIN_SAMPLES} to {MAX_SAMPLES}, "
+                             f"got {self.samples!r}")
 
 
 class PixelIBL(eqx.Module):

@@ -70,10 +70,11 @@ def test_fit_with_an_estimated_noise_level(capture, tmp_path, monkeypatch, capsy
 
 
 def test_noise_level_option_reaches_the_fit():
-    from pbrfit.cli import _fit_options, build_parser
+    from pbrfit.cli import build_parser
+    from pbrfit.cli_fit import fit_options
 
     def options(*extra):
-        return _fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
+        return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
 
     assert options()["noise_level"] == "uniform" and options("--noise-level", "estimated")["noise_level"] == "estimated"
 
@@ -250,9 +251,10 @@ def test_bad_fit_options_exit_2_and_write_nothing(capture, tmp_path, capsys, ext
 
 def test_options_that_mean_nothing_else_parse():
     """'none' or the default spelled out is no conflict: only what another mode would ignore is."""
-    from pbrfit.cli import _fit_options, build_parser
+    from pbrfit.cli import build_parser
+    from pbrfit.cli_fit import fit_options
 
-    parse = lambda *extra: _fit_options(build_parser().parse_args(["fit", "cap", "--out", "o", *extra]))
+    parse = lambda *extra: fit_options(build_parser().parse_args(["fit", "cap", "--out", "o", *extra]))
     assert parse("--solver", "lm", "--continuation", "none")["continuation"] == ()
     assert parse("--maps", "none", "--continuation", "none", "--smooth", "0")["maps"] == "none"
     assert parse("--ibl", "per_pixel", "--ibl-samples", "64")["pixel_ibl_settings"].samples == 64
@@ -452,114 +454,117 @@ def test_per_pixel_ibl_without_an_environment_warns_and_fits(capture, tmp_path, 
 def test_summary_line_names_the_footprint():
     from types import SimpleNamespace
 
-    from pbrfit.cli import _summary
+    from pbrfit.cli_fit import fit_summary
 
     report = dict(resolution=[8, 8], solver="structured", steps=30, final_loss=2.0, wall_time=5.0,
                   times=dict(compile=1.0), pixel_samples=2,
                   footprint=dict(selected=2, energies={"2": 2.0, "1": 3.5}, pixels=10))
-    line = _summary(SimpleNamespace(report=report), {})
+    line = fit_summary(SimpleNamespace(report=report), {})
     assert "2x2 samples per pixel (auto: data loss 2.000e+00 against 3.500e+00 at centres)" in line
     report.update(pixel_samples=1, footprint=dict(selected=1, energies={"2": 3.5, "1": 2.0}, pixels=10))
-    assert "pixel centres (auto: data loss 2.000e+00 against 3.500e+00 with 2x2)" in _summary(
+    assert "pixel centres (auto: data loss 2.000e+00 against 3.500e+00 with 2x2)" in fit_summary(
         SimpleNamespace(report=report), {})
     report["footprint"] = dict(selected=1, skipped="too many")
-    assert "pixel centres (auto: 2x2 samples skipped, too many pixels)" in _summary(SimpleNamespace(report=report), {})
+    assert "pixel centres (auto: 2x2 samples skipped, too many pixels)" in fit_summary(SimpleNamespace(report=report), {})
     report.pop("footprint")
-    assert "samples" not in _summary(SimpleNamespace(report=report), {})
-    assert "5.0 s (compile 1.0 s)" in _summary(SimpleNamespace(report=report), {})
+    assert "samples" not in fit_summary(SimpleNamespace(report=report), {})
+    assert "5.0 s (compile 1.0 s)" in fit_summary(SimpleNamespace(report=report), {})
     report["times"]["compile_background"] = 6.5
-    assert "5.0 s (compile 1.0 s, 6.5 s more overlapped)" in _summary(SimpleNamespace(report=report), {})
-    assert "uniform" not in _summary(SimpleNamespace(report=report), {})
+    assert "5.0 s (compile 1.0 s, 6.5 s more overlapped)" in fit_summary(SimpleNamespace(report=report), {})
+    assert "uniform" not in fit_summary(SimpleNamespace(report=report), {})
     report["uniform_check"] = dict(metallic=dict(uniform=True, value=0.0), roughness=dict(uniform=False))
-    assert "30 steps, loss 2.000e+00, one value for metallic 0 (uniform check); " in _summary(
+    assert "30 steps, loss 2.000e+00, one value for metallic 0 (uniform check); " in fit_summary(
         SimpleNamespace(report=report), {})
-    assert "repair" not in _summary(SimpleNamespace(report=report), {})
+    assert "repair" not in fit_summary(SimpleNamespace(report=report), {})
     report["repair"] = dict(passes=[
         dict(flagged=5, moved=12, clusters=3, clusters_kept=2, texels_kept=8, energy_before=4.0, energy_after=2.5,
              kept=True),
         dict(flagged=2, moved=6, clusters=1, clusters_kept=1, texels_kept=6, energy_before=2.5, energy_after=2.0,
              kept=True),
         dict(flagged=1, moved=4, clusters=1, clusters_kept=0, texels_kept=0, energy_before=2.0, kept=False)])
-    assert ", repair re-solved 14 texels in 3 clusters (loss 4.000e+00 -> 2.000e+00)" in _summary(
+    assert ", repair re-solved 14 texels in 3 clusters (loss 4.000e+00 -> 2.000e+00)" in fit_summary(
         SimpleNamespace(report=report), {})
     report["repair"]["passes"] = report["repair"]["passes"][1:]
-    assert ", repair re-solved 6 texels in 1 cluster (loss 2.500e+00 -> 2.000e+00)" in _summary(
+    assert ", repair re-solved 6 texels in 1 cluster (loss 2.500e+00 -> 2.000e+00)" in fit_summary(
         SimpleNamespace(report=report), {})
     # --noise-level estimated: the repair was the first fit's, whose loss the summary gives too
     report["noise_level"] = dict(mode="estimated", sigma=[0.01, 0.02], first_fit=dict(final_loss=2.0))
     assert (", the first fit's repair re-solved 6 texels in 1 cluster (loss 2.500e+00 -> 2.000e+00), weighted by "
-            "the estimated noise level (0.01 to 0.02; first fit loss 2.000e+00)") in _summary(
+            "the estimated noise level (0.01 to 0.02; first fit loss 2.000e+00)") in fit_summary(
         SimpleNamespace(report=report), {})
 
 
 def test_loss_history_keeps_the_kept_footprint_only():
-    from pbrfit.cli import _loss_history
+    from pbrfit.fit_command import loss_history
 
     steps = [dict(loss=9.0), dict(loss=5.0), dict(loss=4.0, footprint=1), dict(loss=3.0, footprint=1),
              dict(loss=2.0, footprint=2)]
-    assert _loss_history(steps, dict(footprint=dict(selected=2))) == [
+    assert loss_history(steps, dict(footprint=dict(selected=2))) == [
         dict(step=0, loss=9.0), dict(step=1, loss=5.0), dict(step=2, loss=2.0)]
-    assert [h["loss"] for h in _loss_history(steps, dict(footprint=dict(selected=1)))] == [9.0, 5.0, 4.0, 3.0]
-    assert [h["loss"] for h in _loss_history(steps[:2], {})] == [9.0, 5.0]
+    assert [h["loss"] for h in loss_history(steps, dict(footprint=dict(selected=1)))] == [9.0, 5.0, 4.0, 3.0]
+    assert [h["loss"] for h in loss_history(steps[:2], {})] == [9.0, 5.0]
 
 
 def test_loss_history_keeps_the_weighted_fit_only():
-    from pbrfit.cli import _loss_history
+    from pbrfit.fit_command import loss_history
 
     steps = [dict(loss=9.0), dict(loss=5.0, footprint=1), dict(loss=4.0, footprint=2), dict(loss=3.0, repair=1),
              dict(loss=2.5, weighted=True), dict(loss=2.0, weighted=True, repair=1)]
     report = dict(footprint=dict(selected=2), repair=dict(passes=[dict(kept=True)]))
-    assert [h["loss"] for h in _loss_history(steps, report)] == [2.5, 2.0]
-    assert [h["step"] for h in _loss_history(steps, report)] == [0, 1]
-    assert [h["loss"] for h in _loss_history(steps[:4], report)] == [9.0, 4.0, 3.0]
+    assert [h["loss"] for h in loss_history(steps, report)] == [2.5, 2.0]
+    assert [h["step"] for h in loss_history(steps, report)] == [0, 1]
+    assert [h["loss"] for h in loss_history(steps[:4], report)] == [9.0, 4.0, 3.0]
 
 
 def test_loss_history_keeps_kept_repair_passes_only():
-    from pbrfit.cli import _loss_history
+    from pbrfit.fit_command import loss_history
 
     steps = [dict(loss=9.0), dict(loss=5.0), dict(loss=3.0, repair=1), dict(loss=4.0, repair=2)]
     passes = [dict(flagged=3, kept=True), dict(flagged=2, kept=False)]
-    assert [h["loss"] for h in _loss_history(steps, dict(repair=dict(passes=passes)))] == [9.0, 5.0, 3.0]
-    assert [h["loss"] for h in _loss_history(steps, dict(repair=dict(skipped="a uniform material")))] == [9.0, 5.0]
+    assert [h["loss"] for h in loss_history(steps, dict(repair=dict(passes=passes)))] == [9.0, 5.0, 3.0]
+    assert [h["loss"] for h in loss_history(steps, dict(repair=dict(skipped="a uniform material")))] == [9.0, 5.0]
 
 
 def test_loss_history_keeps_uniform_check_refits_only_where_kept():
-    from pbrfit.cli import _loss_history
+    from pbrfit.fit_command import loss_history
 
     steps = [dict(loss=9.0), dict(loss=5.0), dict(loss=6.0, check="metallic"), dict(loss=5.5, check="metallic"),
              dict(loss=7.0, check="roughness")]
     checks = dict(metallic=dict(uniform=True), roughness=dict(uniform=False))
-    assert [h["loss"] for h in _loss_history(steps, dict(uniform_check=checks))] == [9.0, 5.0, 6.0, 5.5]
-    assert [h["loss"] for h in _loss_history(steps, dict(uniform_check=dict(metallic=dict(uniform=False))))] == [
+    assert [h["loss"] for h in loss_history(steps, dict(uniform_check=checks))] == [9.0, 5.0, 6.0, 5.5]
+    assert [h["loss"] for h in loss_history(steps, dict(uniform_check=dict(metallic=dict(uniform=False))))] == [
         9.0, 5.0]
-    assert [h["loss"] for h in _loss_history(steps[:2], dict(uniform_check=dict(skipped="a uniform material")))] == [
+    assert [h["loss"] for h in loss_history(steps[:2], dict(uniform_check=dict(skipped="a uniform material")))] == [
         9.0, 5.0]
 
 
 def test_no_uniform_check_option_reaches_the_fit():
-    from pbrfit.cli import _fit_options, build_parser
+    from pbrfit.cli import build_parser
+    from pbrfit.cli_fit import fit_options
 
     def options(*extra):
-        return _fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
+        return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
 
     assert options()["uniform_check"] is True and options("--no-uniform-check")["uniform_check"] is False
 
 
 def test_cg_rtol_option_reaches_the_fit():
-    from pbrfit.cli import _fit_options, build_parser
+    from pbrfit.cli import build_parser
+    from pbrfit.cli_fit import fit_options
 
     def options(*extra):
-        return _fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
+        return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
 
     assert options("--cg-rtol", "0.01")["cg_rtol"] == 0.01
     assert "cg_rtol" not in options()  # the library's default, CG_RTOL
 
 
 def test_uncertainty_radius_option_reaches_the_fit():
-    from pbrfit.cli import _fit_options, build_parser
+    from pbrfit.cli import build_parser
+    from pbrfit.cli_fit import fit_options
 
     def options(*extra):
-        return _fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
+        return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
 
     assert options("--uncertainty-radius", "0")["uncertainty_radius"] == 0
     assert options("--uncertainty-radius", "2")["uncertainty_radius"] == 2

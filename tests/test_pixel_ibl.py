@@ -170,6 +170,11 @@ def test_shade_dispatches_and_checks_the_lobes():
         shade(jnp.asarray(n), jnp.asarray(v), zero_lights, zero_lights, base, metal, rough, model, None)
     with pytest.raises(ValueError, match="levels"):
         PixelIBLSettings(levels=1)
+    # beyond the int32 counters' reach: refused as the command line refuses it
+    with pytest.raises(ValueError, match=r"levels must be from 2 to 256, got 257"):
+        PixelIBLSettings(levels=257)
+    with pytest.raises(ValueError, match=r"samples must be from 1 to 1048576, got 1048577"):
+        PixelIBLSettings(samples=(1 << 20) + 1)
 
 
 def test_chunked_rendering_carries_each_pixels_rows():
