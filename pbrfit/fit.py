@@ -146,10 +146,10 @@ def fit_observations(
     check_kinds(**{name: value for name, value in locals().items() if name in _KIND_DEFAULTS})
     fit, fixed = fit_arguments(fit, fixed)
     check_model(model, fit)
-    check_normals(model, fit)
     check_options(resolution=resolution, maps=maps, solver=solver, max_steps=max_steps, coarse_steps=coarse_steps,
                   rtol=rtol, atol=atol, cg_rtol=cg_rtol, loss_scale=loss_scale, smooth=smooth,
                   coarse_to_fine=coarse_to_fine, continuation=continuation, uncertainty_radius=uncertainty_radius)
+    check_normals(model, fit)
     kwargs = {name: value for name, value in locals().items() if name not in ("obs", "noise_level")}  # the arguments
     if noise_level == "uniform":
         result, _ = fit_pass(obs, **kwargs)
@@ -162,6 +162,7 @@ def fit_observations(
     return result
 
 
+#: `fit_observations`'s defaults of the options `pbrfit.fit_options.check_options` checks.
 _OPTION_DEFAULTS = {name: param.default for name, param in inspect.signature(fit_observations).parameters.items()
                     if name in inspect.signature(check_options).parameters}
 #: ... and of those `pbrfit.fit_options.check_kinds` checks.
@@ -250,7 +251,7 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             samples (`fit_observations`). ``"auto"`` (default, `footprint_choice`): pixel
             centres for linear HDR images (and with precomputed ``views``); for display-referred
             ones (sRGB, tone mapped) the last steps run both ways, at centres and with 2 × 2
-            samples (these stop after `PROBE_STEPS` when they do not yet match better), and the
+            samples (these stop after `pbrfit.fit_pass.PROBE_STEPS` when they do not yet match better), and the
             fit whose images match better is kept (the report's "footprint" entry gives both
             energies, and each fit's step count, the shared start's included).
         ibl: how the capture's environment light is integrated, ``"split_sum"`` (default: Karis

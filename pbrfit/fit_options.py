@@ -27,10 +27,11 @@ __all__ = ["OptionNames", "fit_arguments", "held_report", "check_options", "chec
 IBL_MODES = ("split_sum", "per_pixel")
 #: Default scale of the robust losses, in image units (a few times a typical noise level).
 LOSS_SCALE = 0.05
+#: The material maps a fit can fit or hold (``fit=``, ``fixed=``); "normal" can only be fitted.
 MATERIAL_MAPS = ("base_color", "metallic", "roughness")
 #: The largest finite float32, the solve's precision: the bound of every real-valued option.
 FLOAT32_MAX = float(np.finfo(np.float32).max)
-#: The largest map side an explicit ``resolution`` takes (the default stops at `MAX_RESOLUTION`).
+#: The largest map side an explicit ``resolution`` takes (the default stops at `pbrfit.resolution.MAX_RESOLUTION`).
 MAX_MAP_SIDE = 8192
 #: The most solver steps ``max_steps`` (and ``coarse_steps``) takes: far beyond any use, and within
 #: the int32 step counters of the jitted loops.
@@ -122,7 +123,7 @@ def fit_arguments(fit=None, fixed: Optional[Mapping] = None,
 def check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, atol, cg_rtol, loss_scale, smooth,
                   coarse_to_fine, continuation, uncertainty_radius, names: OptionNames = OptionNames()) -> None:
     """`ValueError` (worded with ``names``) for option values out of range, or given to a mode
-    that does not read them: `fit`, `fit_observations` and the command line refuse alike."""
+    that does not read them: `fit`, `pbrfit.fit.fit_observations` and the command line refuse alike."""
     say = names.option
     if not isinstance(solver, str) or solver not in SOLVERS:
         raise ValueError(f"{say('solver')}: must be one of {', '.join(SOLVERS)}, got {solver!r}")
@@ -220,7 +221,7 @@ def check_kinds(*, progress, level_factor, devices, **switches) -> None:
 
 
 def check_names(*, noise_level, loss, init, wrap, pixel_samples="auto") -> None:
-    """`ValueError` for a named choice out of its list (`fit_observations`; `pbrfit.fit` before
+    """`ValueError` for a named choice out of its list (`pbrfit.fit.fit_observations`; `pbrfit.fit` before
     it reads the capture and casts its rays, with ``pixel_samples`` too)."""
     from .observations import MAX_PIXEL_SAMPLES
     from .textures import WRAPS

@@ -97,7 +97,7 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
               atol, cg_rtol, loss, loss_scale, smooth, coarse_to_fine, init, search, continuation, devices,
               level_factor, wrap, progress, setup_time, centres, centre_ibl, select_footprint, background_compile,
               uniform_check, repair, uncertainty_radius, start=None, shared=None) -> tuple[FitResult, np.ndarray]:
-    """One fit (`fit_observations`): the result and the final (T, K) texel values. ``start``:
+    """One fit (`pbrfit.fit.fit_observations`): the result and the final (T, K) texel values. ``start``:
     (T, K) values to start from at the final level (no grid start, no coarser levels);
     ``shared``: a dict that keeps the solver runner, its compiler (whose clock collects every
     pass's times) and the progress callback's ``where`` from one pass to the next (empty: this

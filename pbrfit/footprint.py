@@ -51,7 +51,7 @@ def footprint_choice(capture, pixel_samples="auto", views=None) -> tuple[int, bo
     time) is not paid unless asked for, although antialiased HDR renders average pixels too; for
     precomputed `views`, which hold pixel centres; and for display-referred captures of more than
     `AUTO_MAX_PIXELS` pixels, for which `skipped` says so (else None). select says to fit both
-    footprints and keep the one that explains the images better (`fit_observations`)."""
+    footprints and keep the one that explains the images better (`pbrfit.fit.fit_observations`)."""
     if not isinstance(pixel_samples, str):
         return pixel_samples, False, None
     if pixel_samples != "auto":

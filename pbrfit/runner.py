@@ -123,7 +123,7 @@ def timed(compiler: Compiler, key, fn, name: str, *args):
 
 class Runner:
     """Runs a solver, compiled ahead of time once per problem shape (`Compiler`): once per fit,
-    or twice when the start runs on pixel centres (`fit_observations`); an optimistix solver
+    or twice when the start runs on pixel centres (`pbrfit.fit.fit_observations`); an optimistix solver
     also once per step budget (its loop length is static)."""
 
     def __init__(self, solver, rtol, atol, progress, compiler: Compiler, cg_rtol: float = CG_RTOL):
