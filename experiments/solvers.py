@@ -159,7 +159,8 @@ def _oracle(obs, model, ibl, truth, resolution, max_steps=40):
     from pbrfit.material import Material
     from pbrfit.observations import coverage_counts, neighbour_pairs, texel_layout
     from pbrfit.parameters import channel_mask
-    from pbrfit.solvers import Problem, objective, structured_lm
+    from pbrfit.objective import Problem, objective
+    from pbrfit.solvers import structured_lm
 
     layout = texel_layout(obs, resolution, "repeat")
     seen = coverage_counts(layout).reshape(-1) > 0

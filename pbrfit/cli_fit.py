@@ -16,7 +16,7 @@ def add_fit(sub) -> None:
     from .noise import NOISE_LEVELS
     from .observations import MAX_PIXEL_SAMPLES
     from .pixel_ibl import PixelIBLSettings
-    from .solvers import LOSSES
+    from .objective import LOSSES
 
     p = sub.add_parser("fit", help="fit base color, metallic and roughness maps to a capture")
     p.add_argument("capture", help="capture folder, capture.json or NeRF-style transforms.json")

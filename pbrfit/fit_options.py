@@ -16,7 +16,8 @@ from .model import Model
 from .noise import NOISE_LEVELS
 from .parameters import FIT_GROUPS, prior
 from .runner import DEFAULT_SOLVER, SOLVERS
-from .solvers import CG_RTOL, LOSSES
+from .objective import LOSSES
+from .solvers import CG_RTOL
 from .uncertainty import MAX_UNCERTAINTY_RADIUS
 
 __all__ = ["OptionNames", "fit_arguments", "held_report", "check_options", "check_kinds", "check_names",

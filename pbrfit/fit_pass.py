@@ -30,7 +30,7 @@ from .resolution import default_resolution, schedule
 from .runner import DEFAULT_SOLVER, Compiler, Runner, jitted_normal_blocks, problem_key, timed
 from .selection import SELECTABLE, run_uniform_check, uniform_check_skipped
 from .sharding import pixel_mesh, shard_problem
-from .solvers import Problem
+from .objective import Problem
 from .textures import resample_map, sample_bilinear
 from .transfer import to_device
 
@@ -328,7 +328,7 @@ def _finish_level(runner, problem: Problem, x, info, steps: int, num_free: int, 
 
 def continuation_scale(jac, problem: Problem) -> float:
     """The data's mean curvature per fitted texel and channel, in base colour where it is fitted:
-    the mean diagonal of the per-texel blocks of JᵀJ (`pbrfit.solvers.normal_blocks`) over the
+    the mean diagonal of the per-texel blocks of JᵀJ (`pbrfit.normal_matrix.normal_blocks`) over the
     free base-colour channels (else over all free channels); 1 where nothing is free or the
     mean is not a positive number."""
     diag = np.diagonal(np.asarray(jitted_normal_blocks(jac, problem)), axis1=1, axis2=2)

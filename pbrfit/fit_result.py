@@ -17,7 +17,7 @@ from .observations import coverage_counts, layout_for
 from .parameters import CHANNELS, NORMAL_CHANNELS, lower, normal_from_slopes, upper
 from .runner import jitted_neighbour_blocks, jitted_normal_blocks
 from .selection import profile_hessian, uniform_direction
-from .solvers import linearize, objective, pixel_residuals
+from .objective import linearize, objective, pixel_residuals
 from .textures import resample_map
 from .transfer import to_device
 from .uncertainty import WINDOW_RADIUS, residual_variance, window_radii, window_standard_errors

@@ -16,7 +16,7 @@ import jax
 import numpy as np
 
 from .observations import MAX_PIXEL_SAMPLES, Observations
-from .solvers import Problem, pixel_residuals
+from .objective import Problem, pixel_residuals
 from .transfer import to_device
 
 __all__ = ["footprint_choice", "footprint_energies", "centres_explain_better", "samples_side", "final_residuals",

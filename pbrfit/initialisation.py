@@ -57,8 +57,8 @@ from .color import encode, inverse_tonemap, srgb_to_linear, tonemap
 from .brdf import MIN_ROUGHNESS
 from .parameters import LOWER, UPPER
 from .render import shade
-from .solvers import (Problem, _scatter, _smooth_residuals, _to_rows, objective, pixel_residuals, robust_residual,
-                      sample_texels, shading_normal)
+from .objective import (Problem, objective, pixel_residuals, robust_residual, sample_texels, scatter_texels,
+                        shading_normal, smooth_residuals, to_rows)
 
 __all__ = ["ROUGHNESS_CANDIDATES", "METALLIC_CANDIDATES", "BLEND_METALLIC_CANDIDATES", "grid_initialise", "coordinate_search", "parity_classes"]
 
@@ -154,8 +154,8 @@ def _per_texel_base(l0, a, y, weight, problem: Problem, num=None):
     numerator, when already scattered)."""
     w = weight[:, :, None]
     if num is None:
-        num = _scatter(w * (a * (y - l0))[:, None, :], problem)
-    den = _scatter(w * (a * a)[:, None, :], problem)
+        num = scatter_texels(w * (a * (y - l0))[:, None, :], problem)
+    den = scatter_texels(w * (a * a)[:, None, :], problem)
     return num / jnp.maximum(den, _NORMAL_FLOOR)
 
 
@@ -170,10 +170,10 @@ def _solve_base_joint(l0, a, y, problem: Problem, steps: Optional[int] = None):
     w = problem.weight[:, :, None]
 
     def normal_op(b):  # AᵀA b
-        return _scatter(w * (a * a * sample_texels(b, problem))[:, None, :], problem)
+        return scatter_texels(w * (a * a * sample_texels(b, problem))[:, None, :], problem)
 
-    diag = jnp.maximum(_scatter(w * w * (a * a)[:, None, :], problem), _NORMAL_FLOOR)
-    rhs = _scatter(w * (a * (y - l0))[:, None, :], problem)  # also the per-texel solve's numerator
+    diag = jnp.maximum(scatter_texels(w * w * (a * a)[:, None, :], problem), _NORMAL_FLOOR)
+    rhs = scatter_texels(w * (a * (y - l0))[:, None, :], problem)  # also the per-texel solve's numerator
     b = _per_texel_base(l0, a, y, problem.weight, problem, num=rhs)
     r = rhs - normal_op(b)
     z = r / diag
@@ -223,7 +223,7 @@ def grid_initialise(x_fixed, problem: Problem):
         b_p = sample_texels(jnp.concatenate([base_t, x_fixed[:, 3:]], axis=1), problem)[:, :3]
         value = encode(l0 + b_p * a, obs.exposure[:, None], obs.tonemap, obs.color_space)
         err = jnp.sum(((value - obs.target) * obs.residual_weight) ** 2, axis=1)
-        score = _scatter((problem.weight * err[:, None])[:, :, None], problem)[:, 0]
+        score = scatter_texels((problem.weight * err[:, None])[:, :, None], problem)[:, 0]
         return base_t, score
 
     cands = _candidates(ROUGHNESS_CANDIDATES, x_fixed.dtype)
@@ -245,7 +245,7 @@ def parity_classes(shape: tuple[int, int]) -> np.ndarray:
 def _texel_scores(err, problem: Problem):
     """(T,) Σ of the errors of the pixels that read each texel (with nonzero weight)."""
     reads = (problem.weight > 0).astype(err.dtype)
-    return _scatter((reads * err[:, None])[:, :, None], problem)[:, 0]
+    return scatter_texels((reads * err[:, None])[:, :, None], problem)[:, 0]
 
 
 def _pair_scores(pair, problem: Problem):
@@ -257,7 +257,7 @@ def _pair_scores(pair, problem: Problem):
 
 def _prior_scores(x, problem: Problem):
     """(T,) Σ of the squared smoothness-prior residuals of the pairs each texel is in."""
-    s = _smooth_residuals(x, problem)
+    s = smooth_residuals(x, problem)
     return _pair_scores(jnp.sum(s * s, axis=1), problem)
 
 
@@ -269,11 +269,11 @@ def _energies(x, problem: Problem):
     texels that share no pixel and no pair (one parity class; with several samples per pixel,
     texels two apart can share a pixel, and `coordinate_search` checks the whole objective)."""
     r = pixel_residuals(x, problem)
-    s = _smooth_residuals(x, problem)
+    s = smooth_residuals(x, problem)
     err = jnp.sum(r * r, axis=1)
     pair = jnp.sum(s * s, axis=1)
     # with several samples per pixel, a pixel's error counts once per sample reading the texel
-    local = _texel_scores(_to_rows(err, problem), problem)
+    local = _texel_scores(to_rows(err, problem), problem)
     return local + _pair_scores(pair, problem), 0.5 * (jnp.sum(err) + jnp.sum(pair))
 
 

@@ -14,7 +14,7 @@ the pixel's centre. With ``pixel_samples`` n > 1 each usable pixel becomes n × 
 (`pixel_offsets`: the centres of an n × n grid of sub-pixels, a box filter, which is exactly an
 n × n supersampled capture), consecutive in every per-pixel field (``samples`` = n², the pixel's
 target repeated), and the objective compares the *mean linear radiance* of a pixel's samples with
-its value (`pbrfit.solvers`). A pixel is usable only where every sample hits the mesh.
+its value (`pbrfit.objective`). A pixel is usable only where every sample hits the mesh.
 
 A `TexelLayout` says which texels each pixel reads at one map resolution: the four bilinear
 texels and weights of `pbrfit.textures.bilinear_weights` (the exact sparsity of the problem),

@@ -3,7 +3,7 @@
 These solvers know nothing of bounds or of the problem's block structure, so they work on the
 sine storage of `pbrfit.parameters` (``value = lo + (hi - lo)(1 + sin z)/2``, bounds reached at
 finite z) with the fixed and unobserved channels masked back to their values, and see the
-residuals of `pbrfit.solvers.residuals` as a black box:
+residuals of `pbrfit.objective.residuals` as a black box:
 
 - ``lm``: `optx.LevenbergMarquardt` with a matrix-free normal-equations CG (`lx.Normal(lx.CG)`);
   its default QR would materialise the (pixels × parameters) Jacobian.
@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 
 from .parameters import from_sine, lower, to_sine, upper
-from .solvers import Problem, residuals
+from .objective import Problem, residuals
 
 __all__ = ["OPTX_SOLVERS", "BFGS_MAX_PARAMETERS", "ADAM_LEARNING_RATE", "START_MARGIN", "make_solver", "optx_solve",
            "truncated_cg"]

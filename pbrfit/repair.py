@@ -83,7 +83,7 @@ from scipy.sparse import csgraph
 from .initialisation import coordinate_search, parity_classes
 from .parameters import CHANNELS
 from .runner import DEFAULT_SOLVER, jitted_normal_blocks, problem_energy, problem_key, timed
-from .solvers import Problem
+from .objective import Problem
 from .transfer import to_device
 from .uncertainty import block_standard_errors, residual_variance
 
@@ -172,7 +172,7 @@ def misfit_texels(
 def identifiable_texels(
     blocks: Float[np.ndarray, "T K K"], channels: Bool[np.ndarray, " K"], seen: Bool[np.ndarray, " T"],
 ) -> Bool[np.ndarray, " T"]:
-    """Seen texels whose normal-matrix block D_t (`pbrfit.solvers.normal_blocks`) constrains every
+    """Seen texels whose normal-matrix block D_t (`pbrfit.normal_matrix.normal_blocks`) constrains every
     fitted channel: the texels whose standard errors `pbrfit.uncertainty.block_standard_errors`
     finds finite (no eigenvalue of the block below its floor touches a fitted channel)."""
     channels = np.asarray(channels, bool)

@@ -1,7 +1,7 @@
 """Solver runs compiled ahead of time, and the jitted evaluations a fit's passes share.
 
 `Runner` runs the fit's solver (the structured one, `pbrfit.solvers.structured_lm`, or an
-optimistix one, `pbrfit.optx_solvers`) on a `pbrfit.solvers.Problem`, compiled once per problem
+optimistix one, `pbrfit.optx_solvers`) on a `pbrfit.objective.Problem`, compiled once per problem
 shape by `Compiler`, which can compile in a background thread while the fit does other work and
 keeps compile time apart from run time. `timed` runs any other jitted pass (the grid start, the
 coordinate search) the same way.
@@ -18,7 +18,9 @@ import jax
 import numpy as np
 
 from .optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
-from .solvers import CG_RTOL, Problem, neighbour_blocks, normal_blocks, objective, structured_lm
+from .objective import Problem, objective
+from .normal_matrix import neighbour_blocks, normal_blocks
+from .solvers import CG_RTOL, structured_lm
 from .transfer import to_device
 
 __all__ = ["DEFAULT_SOLVER", "SOLVERS", "Compiler", "Runner", "timed", "problem_key", "compile_summary",

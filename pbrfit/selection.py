@@ -36,7 +36,7 @@ error is sqrt(σ̂² / that curvature), or, with both channels uniform, from the
 
 Before any re-fit, a Wald statistic W = Σ_t s_t (x_t − c₀)² / σ̂² of the map's own values about
 their precision-weighted mean c₀ approximates Δ, with s_t = 1 / [(D_t)⁻¹]_cc the channel's
-precision in texel t from its own Gauss-Newton block D_t (`pbrfit.solvers.normal_blocks`, the
+precision in texel t from its own Gauss-Newton block D_t (`pbrfit.normal_matrix.normal_blocks`, the
 other channels of the texel re-fitted; 0 where `pbrfit.uncertainty` finds the channel
 unconstrained). The blocks leave out what neighbouring texels share, so s_t overstates the
 precision (on the tests' scene W was twice Δ; on the noisy peer planes 0.7 to 1.4 times it); a
@@ -60,7 +60,9 @@ from jaxtyping import Array, Float
 
 from .parameters import lower, upper
 from .runner import DEFAULT_SOLVER, jitted_normal_blocks, problem_energy
-from .solvers import Problem, gauss_newton_factors, gn_product, gradient, normal_blocks, pcg
+from .objective import Problem
+from .normal_matrix import gauss_newton_factors, gn_product, gradient, normal_blocks
+from .solvers import pcg
 from .transfer import to_device
 from .uncertainty import block_standard_errors, residual_variance
 

@@ -2,9 +2,9 @@
 
 The solver's work is per pixel: every step renders each pixel, takes its 3 × 5 Jacobian by
 forward mode and scatters w_pk J_pᵀ r_p and w_pk² J_pᵀ J_p onto its texels
-(`pbrfit.solvers`). The per-texel arrays (T × 5 values, their 5 × 5 blocks, the CG vectors)
-are small next to the per-pixel ones (P × 3 × 5 Jacobians, with P in the millions for a
-real capture). So the scheme is data parallel over pixels:
+(`pbrfit.objective`, `pbrfit.normal_matrix`). The per-texel arrays (T × 5 values, their 5 × 5
+blocks, the CG vectors) are small next to the per-pixel ones (P × 3 × 5 Jacobians, with P in the
+millions for a real capture). So the scheme is data parallel over pixels:
 
 - every per-pixel array of a `Problem` (the `Observations` fields, the (P, 4) texel `index`
   and `weight`, per-pixel IBL integrals) is split along its leading axis over a one-axis
@@ -54,7 +54,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, Float, Int
 
 from .observations import PIXEL_FIELDS, Observations, TexelLayout
-from .solvers import Problem
+from .objective import Problem
 
 __all__ = ["PIXEL_AXIS", "PAD_NORMAL", "PAD_VIEW", "PAD_LIGHT", "padded_size", "pad_observations", "pad_pixel_rows",
            "pad_layout", "pixel_mesh", "pixel_sharding", "shard_problem"]
@@ -104,7 +104,7 @@ def pad_observations(obs: Observations, multiple: int) -> tuple[Observations, in
 
     Returns the padded observations and the number of real rows (the first rows; pixels × samples
     per pixel, padded to a multiple of `multiple` pixels). Padded
-    pixels have zero residual and zero Jacobian in `pbrfit.solvers.pixel_residuals` and
+    pixels have zero residual and zero Jacobian in `pbrfit.objective.pixel_residuals` and
     `linearize` for every model, environment, tone map, colour space and loss.
     """
     padded = _padded_pixel_fields(obs, multiple)

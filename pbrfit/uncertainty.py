@@ -3,7 +3,7 @@
 Near the optimum of a least-squares problem with independent residual noise of variance σ², the
 covariance of the estimate is σ² (JᵀJ)⁻¹ (e.g. Nocedal & Wright, "Numerical Optimization",
 2nd ed., section 10.3; Hartley & Zisserman, section 5.2). We keep the per-texel 5 × 5 diagonal
-blocks D_t of JᵀJ (`pbrfit.solvers.normal_blocks`) restricted to the fitted channels, invert
+blocks D_t of JᵀJ (`pbrfit.normal_matrix.normal_blocks`) restricted to the fitted channels, invert
 them, and scale by the residual variance σ̂² = 2 E / (residuals - parameters). Inverting a block
 alone gives each texel's error with its neighbours held at their values: pixels read four texels
 at once (bilinear filtering), so a texel trades off against its neighbours, and the errors come
@@ -11,7 +11,7 @@ out optimistic (the conditional variance, not the marginal one).
 
 `window_standard_errors` takes that coupling in: for each texel it builds the normal matrix of
 the (2r + 1)² texels around it from the diagonal blocks and the neighbour blocks
-(`pbrfit.solvers.neighbour_blocks`), and inverts it. The texel's block of that inverse is
+(`pbrfit.normal_matrix.neighbour_blocks`), and inverts it. The texel's block of that inverse is
 (D_t - B_t S_t⁻¹ B_tᵀ)⁻¹, with S_t the other texels' matrix and B_t their coupling to t (a Schur
 complement): the texel's error with the window's other texels free and the texels beyond it
 held. The errors grow with r, from the per-texel blocks' (r = 0) towards the marginal
@@ -105,7 +105,7 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
                       seen: np.ndarray, radius: int) -> np.ndarray:
     """(T, K, K) precision of each texel's channels with the other texels of its window free:
     P_t = D_t - B_t S_t⁻¹ B_tᵀ (float64), from the diagonal blocks D (T, K, K), the neighbour
-    blocks C (T, 4, K, K) of `pbrfit.solvers.neighbour_blocks`, the (K,) or (T, K) fitted-channel mask and
+    blocks C (T, 4, K, K) of `pbrfit.normal_matrix.neighbour_blocks`, the (K,) or (T, K) fitted-channel mask and
     the (T,) observed-texel mask. Fixed channels and unobserved texels take no part (their rows
     are replaced by the identity). S is Jacobi-scaled and gets a `WINDOW_RIDGE` before the solve."""
     h, w = shape
@@ -116,7 +116,7 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
     n = len(offsets)
     if n == 1:
         return np.asarray(blocks, np.float64)
-    from .solvers import NEIGHBOUR_OFFSETS
+    from .normal_matrix import NEIGHBOUR_OFFSETS
 
     codes = {o: q for q, o in enumerate(NEIGHBOUR_OFFSETS)}
     # each (a, b) block of a window's matrix: D of texel a, C of texel a towards b, or C of b

@@ -17,6 +17,7 @@ from pbrfit.color import encode
 import pbrfit.fit
 import pbrfit.fit_pass
 import pbrfit.initialisation
+import pbrfit.objective
 import pbrfit.repair
 import pbrfit.runner
 import pbrfit.selection
@@ -32,7 +33,8 @@ from pbrfit.observations import coverage_counts, neighbour_pairs, observations_f
 from pbrfit.parameters import LOWER, UPPER, from_sine, to_sine
 from pbrfit.repair import REPAIR_PROGRESS
 from pbrfit.render import ViewInputs, light_arrays, radiance_view
-from pbrfit.solvers import Problem, objective, structured_lm
+from pbrfit.objective import Problem, objective
+from pbrfit.solvers import structured_lm
 
 RES = 24  # pixels per view side
 
@@ -366,7 +368,7 @@ def test_joint_base_colour_solve_matches_a_dense_solve(monkeypatch):
     a[::7] = 0.0  # pixels whose radiance does not depend on the base colour
     a[:, 2] = 0.0  # a channel no pixel constrains
     a, l0 = jnp.asarray(a), jnp.asarray(rng.uniform(0.0, 0.1, (p, 3)), jnp.float32)
-    y = l0 + a * pbrfit.solvers.sample_texels(b_true, problem)
+    y = l0 + a * pbrfit.objective.sample_texels(b_true, problem)
     err = {n: np.abs(np.asarray(_solve_base_joint(l0, a, y, problem, n)) - np.asarray(b_true))[:, :2].max()
            for n in (0, 3, 40)}
     per_texel = np.abs(np.asarray(_solve_base(l0, a, y, problem.weight, problem)) - np.asarray(b_true))[:, :2].max()
@@ -672,7 +674,7 @@ def _dense_profile_sigma(obs, res, uniform):
     problem = dataclasses.replace(_texel_problem(_checker()), obs=obs,
                                   pair_weight=jnp.zeros(len(neighbour_pairs((8, 8)))))
     x = np.asarray(_stack(res.material))
-    jac = np.asarray(jax.jacfwd(lambda v: pbrfit.solvers.pixel_residuals(v.reshape(-1, 5), problem).ravel())(
+    jac = np.asarray(jax.jacfwd(lambda v: pbrfit.objective.pixel_residuals(v.reshape(-1, 5), problem).ravel())(
         jnp.asarray(x.ravel())), np.float64)
     h = jac.T @ jac
     d = np.zeros((len(uniform), 64, 5))

@@ -21,8 +21,9 @@ from pbrfit.observations import (PIXEL_FIELDS, coverage_counts, observations_fro
                                  texel_layout)
 from pbrfit.scene import load_capture
 from pbrfit.sharding import pad_observations, pad_pixel_rows
-from pbrfit.solvers import (NEIGHBOUR_OFFSETS, Problem, gauss_newton_factors, gn_product, gradient, linearize,
-                            neighbour_blocks, normal_blocks, pixel_residuals)
+from pbrfit.objective import Problem, linearize, pixel_residuals
+from pbrfit.normal_matrix import (NEIGHBOUR_OFFSETS, gauss_newton_factors, gn_product, gradient, neighbour_blocks,
+                                  normal_blocks)
 
 MAP = (8, 8)
 

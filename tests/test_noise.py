@@ -10,7 +10,7 @@ import pytest
 from pbrfit.fit import fit_observations
 from pbrfit.noise import MIN_BIN_COUNT, NOISE_BINS, NOISE_FLOOR, NoiseLevel, estimate_noise_level
 from pbrfit.observations import neighbour_pairs, observations_from_views, texel_layout
-from pbrfit.solvers import Problem, linearize, pixel_residuals
+from pbrfit.objective import Problem, linearize, pixel_residuals
 
 from test_fit import VIEWS, _checker, _images
 

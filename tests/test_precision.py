@@ -27,7 +27,8 @@ from pbrfit.observations import neighbour_pairs, observations_from_views, texel_
 from pbrfit.optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
 from pbrfit.pixel_ibl import PixelIBLSettings, _integrate, lobes_for, pixel_ibl
 from pbrfit.render import ViewInputs, light_arrays, radiance_view
-from pbrfit.solvers import Problem, structured_lm
+from pbrfit.objective import Problem
+from pbrfit.solvers import structured_lm
 
 _DOT = re.compile(r"dot_general.*?precision = \[(\w+), (\w+)\]")
 

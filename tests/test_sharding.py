@@ -30,7 +30,8 @@ from pbrfit.observations import PIXEL_FIELDS, Observations, coverage_counts, nei
 from pbrfit.render import shade
 from pbrfit.sharding import (PAD_LIGHT, PAD_NORMAL, PAD_VIEW, PIXEL_AXIS, pad_layout, pad_observations, pad_pixel_rows,
                              padded_size, pixel_mesh, shard_problem)
-from pbrfit.solvers import Problem, gradient, linearize, normal_blocks, objective, pixel_residuals
+from pbrfit.objective import Problem, linearize, objective, pixel_residuals
+from pbrfit.normal_matrix import gradient, normal_blocks
 
 DEVICES = 4
 PIXELS = 1001          # not a multiple of DEVICES: the sharded problem is padded to 1004
