@@ -39,6 +39,17 @@ MAX_MAP_SIDE = 8192
 MAX_SOLVER_STEPS = 1_000_000
 
 
+def _integer(x) -> bool:
+    """An integer option's value: a Python or numpy integer, not a bool."""
+    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
+
+
+def _real(x) -> bool:
+    """A real-valued option's value: a Python or numpy integer or float, not a bool (``smooth=True``
+    is no weight) and not complex."""
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
+
+
 @dataclasses.dataclass(frozen=True)
 class OptionNames:
     """How `fit_arguments` and `check_options` name what they refuse: by the Python keyword
@@ -133,8 +144,7 @@ def check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, at
     if resolution is not None:
         sides = [resolution] if np.ndim(resolution) == 0 else list(np.ravel(resolution))
         if (np.ndim(resolution) != 0 and len(sides) != 2) or any(
-                isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer)) or not 1 <= r <= MAX_MAP_SIDE
-                for r in sides):
+                not _integer(r) or not 1 <= r <= MAX_MAP_SIDE for r in sides):
             want = "an integer" if names.flags else "an integer N or a pair (H, W) of integers"
             raise ValueError(f"{say('resolution')}: must be {want} from 1 to {MAX_MAP_SIDE}, got {resolution!r}")
     for name, value, least in (("max_steps", max_steps, 1), ("coarse_steps", coarse_steps, 0),
@@ -142,20 +152,19 @@ def check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, at
         most = MAX_UNCERTAINTY_RADIUS if name == "uncertainty_radius" else MAX_SOLVER_STEPS
         if value is None and name == "max_steps":  # the solver's own default
             continue
-        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or not least <= value <= most:
+        if not _integer(value) or not least <= value <= most:
             raise ValueError(f"{say(name)}: must be an integer from {least} to {most}, got {value!r}")
     for name, value in (("rtol", rtol), ("atol", atol), ("smooth", smooth)):
-        if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value >= 0):
+        if not (_real(value) and math.isfinite(value) and value >= 0):
             raise ValueError(f"{say(name)}: must be a finite number >= 0, got {value!r}")
         if value > FLOAT32_MAX:  # the solve runs in float32
             raise ValueError(f"{say(name)}: must be at most {FLOAT32_MAX:.3g} (float32), got {value!r}")
     weights = () if continuation is None else np.ravel(np.asarray(continuation, dtype=object))
-    if not all(isinstance(w, (int, float, np.number)) and not isinstance(w, (bool, np.bool_)) and math.isfinite(w)
-               and 0 <= w <= FLOAT32_MAX for w in weights):
+    if not all(_real(w) and math.isfinite(w) and 0 <= w <= FLOAT32_MAX for w in weights):
         raise ValueError(f"{say('continuation')}: expected weights >= 0 within float32, got {continuation!r}")
-    if not (isinstance(loss_scale, (int, float, np.number)) and math.isfinite(loss_scale) and loss_scale > 0):
+    if not (_real(loss_scale) and math.isfinite(loss_scale) and loss_scale > 0):
         raise ValueError(f"{say('loss_scale')}: must be a finite number > 0, got {loss_scale!r}")
-    if not (isinstance(cg_rtol, (int, float, np.number)) and 0.0 < cg_rtol < 1.0):
+    if not (_real(cg_rtol) and 0.0 < cg_rtol < 1.0):
         raise ValueError(f"{say('cg_rtol')}: must be a number in (0, 1), got {cg_rtol!r}")
     given_continuation = continuation is not None and len(np.ravel(continuation)) > 0 \
         and tuple(np.ravel(continuation)) != CONTINUATION
@@ -208,8 +217,7 @@ def check_kinds(*, progress, level_factor, devices, **switches) -> None:
             raise ValueError(f"{name}: expected True or False, got {value!r}")
     if progress is not None and not callable(progress):
         raise ValueError(f"progress: expected a function of one dict, or None, got {progress!r}")
-    if isinstance(level_factor, (bool, np.bool_)) or not isinstance(level_factor, (int, np.integer)) \
-            or level_factor < 2:
+    if not _integer(level_factor) or level_factor < 2:
         raise ValueError(f"level_factor: expected an integer >= 2, got {level_factor!r}")
     if devices is not None:
         try:
@@ -231,8 +239,7 @@ def check_names(*, noise_level, loss, init, wrap, pixel_samples="auto") -> None:
                                  ("init", init, ("grid", "prior")), ("wrap", wrap, WRAPS)):
         if not isinstance(value, str) or value not in choices:
             raise ValueError(f"{name} must be one of {', '.join(choices)}, got {value!r}")
-    whole = isinstance(pixel_samples, (int, np.integer)) and not isinstance(pixel_samples, (bool, np.bool_))
-    if pixel_samples != "auto" and not (whole and 1 <= pixel_samples <= MAX_PIXEL_SAMPLES):
+    if pixel_samples != "auto" and not (_integer(pixel_samples) and 1 <= pixel_samples <= MAX_PIXEL_SAMPLES):
         raise ValueError(f"pixel_samples must be 'auto' or an integer from 1 to {MAX_PIXEL_SAMPLES}, "
                          f"got {pixel_samples!r}")
 

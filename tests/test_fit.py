@@ -246,6 +246,8 @@ def test_fit_arguments_resolve_and_refuse():
     (dict(noise_level="bad"), "noise_level"), (dict(loss="l3"), "loss"), (dict(init="foo"), "init"),
     (dict(wrap="x"), "wrap"), (dict(solver="newton"), "solver: must be one of structured, lm"),
     (dict(maps="uv"), "maps: must be 'texture' or 'none', got 'uv'"),
+    (dict(smooth=True), "smooth: must be a finite number >= 0, got True"), (dict(rtol=1j), "rtol: must be a finite"),
+    (dict(loss="huber", loss_scale=np.complex64(1)), "loss_scale"), (dict(continuation=(True,)), "continuation"),
 ])
 def test_fit_refuses_options_out_of_range_or_unread(options, match):
     """Refused before any work (no compile: these run in milliseconds); the command line refuses
