@@ -39,8 +39,8 @@ from .textures import bilinear_weights
 from .transfer import to_device
 
 __all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "observations_from_views", "observations_from_capture",
-           "pixel_offsets", "sample_camera", "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout", "layout_for",
-           "coverage_counts", "neighbour_pairs"]
+           "pixel_offsets", "sample_camera", "view_rows", "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout",
+           "layout_for", "coverage_counts", "neighbour_pairs"]
 
 
 #: Largest n of n × n samples per pixel (`observations_from_capture`): memory and time grow as n².
@@ -221,11 +221,11 @@ def _sample_views(capture, cache_dir, n: int) -> list:
     out = []
     for k in range(len(capture.frames)):
         common = functools.reduce(np.intersect1d, [np.asarray(v[k].pixel) for v in per_sample])
-        out.append([_view_rows(v[k], common) for v in per_sample])
+        out.append([view_rows(v[k], common) for v in per_sample])
     return out
 
 
-def _view_rows(view, pixels: np.ndarray):
+def view_rows(view, pixels: np.ndarray):
     """`view` kept to `pixels` (sorted flat indices it holds)."""
     rows = np.searchsorted(np.asarray(view.pixel), pixels)
     return jax.tree_util.tree_map(lambda a: to_device(np.asarray(a)[rows]), view)  # every per-pixel array

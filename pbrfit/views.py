@@ -203,7 +203,7 @@ def _render_supersampled(frame, capture, material, model, ibl, environment, k: i
     principal point moved so that its pixel centres fall there, as the fit's footprint samples
     them), averaged, then encoded as the frame's file holds it. Memory stays that of one sample."""
     from .color import encode
-    from .observations import _view_rows, pixel_offsets, sample_camera
+    from .observations import pixel_offsets, sample_camera, view_rows
 
     c = frame.camera
     pixels = c.height * c.width
@@ -215,7 +215,7 @@ def _render_supersampled(frame, capture, material, model, ibl, environment, k: i
         view = prepare_view(compute_gbuffer(capture.mesh, camera, frame.lights, cache_dir), frame.lights, None)
         hits = np.asarray(view.pixel)
         if len(hits):  # padded with repeats of the first hit, which write the same value again
-            view = _view_rows(view, np.concatenate([hits, np.full(-len(hits) % step, hits[0])]))
+            view = view_rows(view, np.concatenate([hits, np.full(-len(hits) % step, hits[0])]))
         sky = None if environment is None else _sky(environment, camera)
         if len(hits):
             radiance, _ = render_view(view, material, model, ibl, background=sky)  # linear, exposure 0
