@@ -33,6 +33,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .errors import CaptureError
+from .json_fields import field_loc, number_field, triple_field
 from .transfer import to_device
 
 __all__ = [
@@ -266,76 +267,21 @@ _ALLOWED_KEYS = {
 }
 
 
-def _loc(where: str, key: str) -> str:
-    """``where`` + ``key`` for messages: ``capture.json: flash`` + ``intensity`` gives
-    ``capture.json: flash.intensity``; a bare json file name gives ``capture.json: intensity``."""
-    return f"{where}: {key}" if where.endswith(".json") else f"{where}.{key}"
-
-
-#: The largest magnitude a number of a capture may have: the solve runs in float32.
-FLOAT32_MAX = float(np.finfo(np.float32).max)
-
-
-def _shown(value, limit: int = 40) -> str:
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-def _as_float(value, loc: str, what: str = "a finite number") -> float:
-    """`value` (a JSON number) as a float, or `CaptureError` at `loc`: not a number (bools and
-    strings are not), not finite, or beyond float32's range (an integer of 400 digits, 1e40)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise CaptureError(f"{loc}: expected {what}, got {_shown(value)}")
-    try:
-        f = float(value)
-    except OverflowError:
-        f = math.inf
-    if not math.isfinite(f):
-        raise CaptureError(f"{loc}: expected {what}, got {_shown(value)}")
-    if abs(f) > FLOAT32_MAX:
-        raise CaptureError(f"{loc}: {_shown(value)} is beyond float32's range (|x| <= 3.4e38)")
-    return f
-
-
-def _number(d: Mapping[str, Any], key: str, where: str, default: float | None) -> float:
-    if key not in d:
-        if default is None:
-            raise CaptureError(f"{where}: missing key '{key}'")
-        return float(default)
-    return _as_float(d[key], _loc(where, key))
-
-
-def _triple(d: Mapping[str, Any], key: str, where: str, default=None) -> np.ndarray:
-    if key not in d:
-        if default is None:
-            raise CaptureError(f"{where}: missing key '{key}'")
-        return np.asarray(default, dtype=np.float64)
-    value = d[key]
-    if isinstance(value, np.ndarray):
-        value = value.tolist()
-    if not isinstance(value, (list, tuple)) or len(value) != 3 or any(
-            isinstance(v, bool) or not isinstance(v, (int, float)) for v in value):
-        raise CaptureError(f"{_loc(where, key)}: expected 3 numbers, got {_shown(value)}")
-    if any(isinstance(v, float) and not math.isfinite(v) for v in value):
-        raise CaptureError(f"{_loc(where, key)}: values must be finite, got {_shown(value)}")
-    return np.array([_as_float(v, _loc(where, key), "finite numbers") for v in value], np.float64)
-
-
 def _direction(d: Mapping[str, Any], where: str) -> np.ndarray:
-    v = _triple(d, "direction", where)
+    v = triple_field(d, "direction", where)
     if np.linalg.norm(v) < _MIN_DIRECTION_NORM:
-        raise CaptureError(f"{_loc(where, 'direction')}: zero vector has no direction")
+        raise CaptureError(f"{field_loc(where, 'direction')}: zero vector has no direction")
     return v
 
 
 def color_and_intensity(d: Mapping[str, Any], where: str) -> tuple[np.ndarray, float]:
     """A light object's ``color`` (default white) and ``intensity`` (default 1), both >= 0."""
-    color = _triple(d, "color", where, (1.0, 1.0, 1.0))
+    color = triple_field(d, "color", where, (1.0, 1.0, 1.0))
     if np.any(color < 0):
-        raise CaptureError(f"{_loc(where, 'color')}: negative color {d['color']!r}")
-    intensity = _number(d, "intensity", where, 1.0)
+        raise CaptureError(f"{field_loc(where, 'color')}: negative color {d['color']!r}")
+    intensity = number_field(d, "intensity", where, 1.0)
     if intensity < 0:
-        raise CaptureError(f"{_loc(where, 'intensity')}: negative intensity {intensity!r}")
+        raise CaptureError(f"{field_loc(where, 'intensity')}: negative intensity {intensity!r}")
     return color, intensity
 
 
@@ -354,7 +300,7 @@ def light_from_json(d: Any, where: str) -> Light:
         raise CaptureError(f"{where}: missing key 'type' (one of {', '.join(KINDS)})")
     kind = d["type"]
     if kind not in KINDS:
-        raise CaptureError(f"{_loc(where, 'type')}: unknown light type {kind!r} (expected one of {', '.join(KINDS)})")
+        raise CaptureError(f"{field_loc(where, 'type')}: unknown light type {kind!r} (expected one of {', '.join(KINDS)})")
     allowed = _ALLOWED_KEYS[kind]
     for key in d:
         if key not in allowed:
@@ -362,16 +308,16 @@ def light_from_json(d: Any, where: str) -> Light:
                 f"{where}: unknown key {key!r} for a {kind} light (allowed: {', '.join(allowed)})"
             )
     color, intensity = color_and_intensity(d, where)
-    range_ = _number(d, "range", where, 0.0)
+    range_ = number_field(d, "range", where, 0.0)
     if range_ < 0:
-        raise CaptureError(f"{_loc(where, 'range')}: negative range {range_!r} (0 means infinite)")
+        raise CaptureError(f"{field_loc(where, 'range')}: negative range {range_!r} (0 means infinite)")
     if kind == "directional":  # KHR_lights_punctual: range is for point and spot lights only, unused here
         return directional_light(_direction(d, where), color, intensity)
-    position = _triple(d, "position", where)
+    position = triple_field(d, "position", where)
     if kind == "point":
         return point_light(position, color, intensity, range_)
-    inner = _number(d, "inner_cone_angle", where, DEFAULT_INNER_CONE_ANGLE)
-    outer = _number(d, "outer_cone_angle", where, DEFAULT_OUTER_CONE_ANGLE)
+    inner = number_field(d, "inner_cone_angle", where, DEFAULT_INNER_CONE_ANGLE)
+    outer = number_field(d, "outer_cone_angle", where, DEFAULT_OUTER_CONE_ANGLE)
     if not (0.0 <= inner < outer <= math.pi / 2 + 1e-9):
         raise CaptureError(
             f"{where}: cone angles must satisfy 0 <= inner_cone_angle < outer_cone_angle <= pi/2, "

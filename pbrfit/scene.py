@@ -3,7 +3,8 @@
 `load_capture` turns a capture folder into a `Capture`: the mesh, one `Frame` per image (pixels
 in linear float32, mask, camera, lights, exposure), the environment and the image encoding.
 Every problem with the input raises `pbrfit.errors.CaptureError` with one line naming the file or
-key and what is wrong.
+key and what is wrong. The frames are read by `pbrfit.capture_frames`, their cameras by
+`pbrfit.capture_cameras`, and every field is checked by `pbrfit.json_fields`.
 
 Rules pinned here (tests in ``tests/test_scene.py``):
 
@@ -48,17 +49,18 @@ Rules pinned here (tests in ``tests/test_scene.py``):
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
 import numpy as np
 
+from .capture_cameras import PINHOLE_MODELS, check_distortion
+from .capture_frames import IMAGE_SUFFIXES, NERF_FRAME_KEYS, PBRFIT_FRAME_KEYS, Frame, load_frame, resolve_image_path
 from .errors import CaptureError
-from .gbuffer import Camera, camera_axes
-from .io import _LDR_MAX, ImageInfo, color_channels, data_window_mask, read_image, read_image_info, srgb_decoded
-from .lights import FLOAT32_MAX, Light, _loc, _number, _triple, color_and_intensity, flash_light, light_from_json
+from .io import read_image_info
+from .json_fields import check_keys, number_field, object_field, string_field, triple_field, without_nulls
+from .lights import Light, color_and_intensity, light_from_json
 from .mesh import load_mesh
 
 __all__ = [
@@ -78,10 +80,6 @@ __all__ = [
 
 CAPTURE_FORMAT = "pbrfit-capture/1"
 WORLD_UPS = ("+y", "+z")
-#: When a capture gives both intrinsics forms, fl_x and the fl_x implied by camera_angle_x must
-#: agree to this relative tolerance (rounding in the writer), else the capture is refused.
-INTRINSICS_RTOL = 1e-2
-
 PBRFIT_TOP_LEVEL_KEYS = (
     "format", "mesh", "world_up", "camera_angle_x", "fl_x", "fl_y", "cx", "cy",
     "frames", "lights", "flash", "environment", "images", "extras",
@@ -95,29 +93,9 @@ NERF_TOP_LEVEL_KEYS = (
     "n_extra_learnable_dims", "white_transparent", "black_transparent", "orientation_override",
     "fisheye_crop_radius",
 )  # fmt: skip
-PBRFIT_FRAME_KEYS = ("file_path", "transform_matrix", "mask_path", "lights", "exposure",
-                     "fl_x", "fl_y", "cx", "cy", "extras")  # fmt: skip
-NERF_FRAME_KEYS = ("w", "h", "k1", "k2", "k3", "k4", "p1", "p2", "rotation", "colmap_im_id",
-                   "sharpness", "depth_path", "depth_file_path", "time")  # fmt: skip
-_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-_PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
 _IMAGES_KEYS = ("color_space", "tonemap", "exposure", "extras")
 _FLASH_KEYS = ("color", "intensity", "offset", "extras")
 _ENVIRONMENT_KEYS = ("file", "intensity", "rotation_deg", "extras")
-
-#: suffixes taken as "has an extension"; any other path is tried with .png, then .exr appended
-IMAGE_SUFFIXES = (".exr", ".hdr", ".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".tga")
-_TRY_SUFFIXES = (".png", ".exr")
-_LINEAR_FORMATS = ("openexr", "hdr")
-_SRGB_FORMATS = ("png", "jpeg")
-# Premultiplied integer colour (a TIFF's) is divided by alpha only from this coverage up: below
-# it the colour's few codes hold too little of the surface to recover. Float colour (OpenEXR)
-# is divided wherever alpha is nonzero, the spec's "nonzero = use the pixel".
-_MIN_UNPREMULTIPLY_ALPHA = 1.0 / 256.0
-# The last row of a camera-to-world matrix must be (0, 0, 0, 1) to this tolerance.
-_AFFINE_ROW_TOL = 1e-6
-#: The largest |exposure| in EV a frame may have: 2^64 ≈ 1.8e19 leaves float32 room for the radiance.
-MAX_EXPOSURE = 64.0
 
 
 @dataclass(frozen=True)
@@ -127,44 +105,6 @@ class EnvironmentSpec:
     file: Path
     intensity: float = 1.0
     rotation_deg: float = 0.0
-
-
-@dataclass
-class Frame:
-    """One view.
-
-    Attributes:
-        file_path: the image file (resolved).
-        image: (H, W, 3) float32 linear RGB (sRGB-decoded when the frame is sRGB); 0 where the
-            file held NaN or inf.
-        mask: (H, W) bool, pixels to use (mask file, alpha, or all).
-        saturated: (H, W) bool, LDR pixels with a color channel at the maximum code.
-        nonfinite: (H, W) bool, pixels of the mask whose file values were NaN or inf (set to 0
-            in ``image``): a fit that would read one refuses the capture
-            (`pbrfit.observations.observations_from_capture`); off the mesh they do no harm.
-        mask_source: where ``mask`` came from: ``"file"`` (mask_path), ``"alpha"``, or ``"none"``
-            (every pixel; a fit then leaves out the mesh's silhouette pixels, see
-            `pbrfit.views.capture_views`).
-        camera: `pbrfit.gbuffer.Camera`.
-        lights: global lights + the frame's lights + the flash (as a point light).
-        exposure: effective EV (``images.exposure + frames[i].exposure``).
-        color_space: how the file was encoded (``"linear"`` or ``"srgb"``).
-        info: the file's `pbrfit.io.ImageInfo` (type, bit depth, alpha channel).
-        index: position in ``frames``.
-    """
-
-    file_path: Path
-    image: np.ndarray
-    mask: np.ndarray
-    saturated: np.ndarray
-    camera: Camera
-    lights: tuple[Light, ...]
-    exposure: float
-    color_space: str = "linear"
-    info: Optional[ImageInfo] = None
-    index: int = 0
-    nonfinite: Optional[np.ndarray] = None
-    mask_source: str = "none"
 
 
 @dataclass
@@ -195,66 +135,7 @@ class Capture:
         return getattr(self.mesh.visual, "uv", None)
 
 
-# --- small validators ----------------------------------------------------------------------------
-def _check_keys(obj: Mapping, allowed, where: str, what: str) -> None:
-    for key in obj:
-        if key not in allowed:
-            raise CaptureError(f"{where}: unknown key {key!r} in {what} (allowed: {', '.join(allowed)})")
-
-
-def _object(value: Any, where: str) -> Mapping:
-    if not isinstance(value, Mapping):
-        raise CaptureError(f"{where}: expected an object, got {type(value).__name__}")
-    return value
-
-
-def _without_nulls(value):
-    """`value` with every object key whose value is null removed, at any depth (``extras`` left as
-    written): null means absent, so an optional key falls back to its default and a required one
-    is reported missing."""
-    if isinstance(value, dict):
-        return {k: (v if k == "extras" else _without_nulls(v)) for k, v in value.items() if v is not None}
-    if isinstance(value, list):
-        return [_without_nulls(v) for v in value]
-    return value
-
-
-def _nonzero(values: np.ndarray) -> np.ndarray:
-    """A mask's "nonzero = use the pixel" (negative values included; NaN is not a value)."""
-    return (values != 0) & ~np.isnan(values)
-
-
-def _positive(d: Mapping, key: str, where: str) -> Optional[float]:
-    if key not in d:
-        return None
-    value = _number(d, key, where, None)
-    if value <= 0:
-        raise CaptureError(f"{_loc(where, key)}: must be > 0, got {value!r}")
-    return value
-
-
-def _string(d: Mapping, key: str, where: str) -> str:
-    value = d[key]
-    if not isinstance(value, str) or not value:
-        raise CaptureError(f"{_loc(where, key)}: expected a non-empty string, got {value!r}")
-    return value
-
-
 # --- paths ---------------------------------------------------------------------------------------
-def resolve_image_path(root: Path, rel: str, where: str) -> Path:
-    """Resolve an image path from capture.json (see the extension-less rule in the module doc)."""
-    path = root / rel
-    if path.suffix.lower() in IMAGE_SUFFIXES:
-        candidates = [path]
-    else:
-        candidates = [path.with_name(path.name + s) for s in _TRY_SUFFIXES] + [path]
-    for candidate in candidates:
-        if candidate.is_file():
-            return candidate
-    tried = " or ".join(str(c) for c in candidates)
-    raise CaptureError(f"{where}: image file not found: {tried}")
-
-
 def _json_path(path: Path) -> Path:
     if path.is_dir():
         for name in ("capture.json", "transforms.json"):
@@ -282,212 +163,31 @@ def _read_json(path: Path) -> dict:
     return raw
 
 
-# --- frames --------------------------------------------------------------------------------------
-def _matrix(frame: Mapping, where: str) -> np.ndarray:
-    if "transform_matrix" not in frame:
-        raise CaptureError(f"{where}: missing key 'transform_matrix'")
-    value = frame["transform_matrix"]
-    if isinstance(value, np.ndarray):
-        value = value.tolist()
-    if isinstance(value, (list, tuple)) and all(isinstance(row, (list, tuple)) for row in value):
-        bad = [v for row in value for v in row if isinstance(v, bool) or not isinstance(v, (int, float))]
-        if bad:
-            raise CaptureError(f"{_loc(where, 'transform_matrix')}: expected a 4x4 array of numbers, "
-                               f"got {bad[0]!r} in it")
-    try:
-        m = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError, OverflowError):
-        raise CaptureError(f"{_loc(where, 'transform_matrix')}: expected a 4x4 array of numbers") from None
-    if m.shape != (4, 4):
-        raise CaptureError(f"{_loc(where, 'transform_matrix')}: expected shape 4x4, got {'x'.join(map(str, m.shape)) or 'a scalar'}")
-    if not np.all(np.isfinite(m)):
-        raise CaptureError(f"{_loc(where, 'transform_matrix')}: non-finite values")
-    if np.max(np.abs(m)) > FLOAT32_MAX:
-        raise CaptureError(f"{_loc(where, 'transform_matrix')}: values beyond float32's range (|x| <= 3.4e38)")
-    if np.max(np.abs(m[3] - [0.0, 0.0, 0.0, 1.0])) > _AFFINE_ROW_TOL:
-        raise CaptureError(f"{_loc(where, 'transform_matrix')}: last row must be [0, 0, 0, 1], got {m[3].tolist()}")
-    return camera_axes(m, _loc(where, "transform_matrix"))
-
-
-def _camera(top: Mapping, frame: Mapping, c2w: np.ndarray, width: int, height: int, where: str, name: str, image: Path) -> Camera:
-    for key in ("w", "h"):
-        for obj, owner in ((frame, where), (top, name)):
-            if key in obj:
-                value = _number(obj, key, owner, None)
-                expected = width if key == "w" else height
-                if value != expected:
-                    raise CaptureError(
-                        f"{_loc(owner, key)}: says {value:g} but image {image} is {width}x{height} (w x h)"
-                    )
-                break
-    fl_x = _positive(frame, "fl_x", where)
-    frame_fl_x = fl_x is not None  # a frame's own intrinsics override the global ones
-    if fl_x is None:
-        fl_x = _positive(top, "fl_x", name)
-    fl_y = _positive(frame, "fl_y", where) or _positive(top, "fl_y", name)  # with either form of fx
-    if fl_x is not None:
-        fx, fy = fl_x, fl_y or fl_x
-        if "camera_angle_x" in top and not frame_fl_x:  # both global forms (instant-ngp writes both): must agree
-            fx_angle = _fov_focal(top, "camera_angle_x", width, name)
-            if not abs(fl_x - fx_angle) <= INTRINSICS_RTOL * fx_angle:
-                raise CaptureError(
-                    f"{where}: fl_x {fl_x:g} disagrees with camera_angle_x {top['camera_angle_x']!r} "
-                    f"(= fl_x {fx_angle:.6g} at width {width}); give one of the two or make them agree"
-                )
-    elif "camera_angle_x" in top:
-        fx, fy = _fov_focal(top, "camera_angle_x", width, name), fl_y
-        if fy is None:
-            fy = _fov_focal(top, "camera_angle_y", height, name) if "camera_angle_y" in top else fx
-    else:
-        raise CaptureError(f"{where}: no intrinsics: give camera_angle_x, or fl_x (top level or per frame)")
-    cx = _number(frame, "cx", where, None) if "cx" in frame else _number(top, "cx", name, 0.5 * width)
-    cy = _number(frame, "cy", where, None) if "cy" in frame else _number(top, "cy", name, 0.5 * height)
-    if not (0.0 <= cx <= width and 0.0 <= cy <= height):
-        raise CaptureError(
-            f"{where}: principal point (cx, cy) = ({cx:g}, {cy:g}) lies outside the {width}x{height} image {image}"
-        )
-    try:
-        return Camera(c2w, fx, fy, cx, cy, width, height)
-    except CaptureError as err:
-        raise CaptureError(f"{where}: {err}") from None
-
-
-def _fov_focal(top, key: str, size: int, name: str) -> float:
-    """The focal length in pixels of the field of view ``top[key]`` (radians, in (0, pi)) across
-    `size` pixels: ``size / (2 tan(angle / 2))``."""
-    angle = _number(top, key, name, None)
-    if not 0.0 < angle < math.pi:
-        raise CaptureError(f"{name}: {key}: must be in (0, pi) radians, got {angle!r}")
-    return 0.5 * size / math.tan(0.5 * angle)
-
-
-def _default_color_space(info: ImageInfo) -> str:
-    if info.file_format in _LINEAR_FORMATS:
-        return "linear"
-    if info.file_format in _SRGB_FORMATS:
-        return "srgb"
-    return "srgb" if (info.is_ldr and info.bits == 8) else "linear"
-
-
-def _rgb(pixels: np.ndarray, info: ImageInfo, where: str) -> np.ndarray:
-    color = color_channels(info, where)
-    if len(color) == 3:
-        return pixels[..., color]
-    if len(color) == 1:
-        return np.repeat(pixels[..., color], 3, axis=-1)
-    raise CaptureError(f"{where}: image {info.path} has {info.channels} channels; expected gray, RGB or RGBA")
-
-
-def _check_distortion(obj: Mapping, where: str) -> None:
-    for key in _DISTORTION_KEYS:
-        if key in obj and _number(obj, key, where, None) != 0.0:
-            raise CaptureError(f"{_loc(where, key)}: lens distortion is not supported; undistort the images first")
-
-
 def _parse_flash(raw: Mapping, name: str) -> Optional[tuple[np.ndarray, float, np.ndarray]]:
     """``flash`` -> (color, intensity, offset), or None."""
     if raw.get("flash") is None:
         return None
     where = f"{name}: flash"
-    flash = _object(raw["flash"], where)
-    _check_keys(flash, _FLASH_KEYS, where, "flash")
+    flash = object_field(raw["flash"], where)
+    check_keys(flash, _FLASH_KEYS, where, "flash")
     color, intensity = color_and_intensity(flash, where)
-    return color, intensity, _triple(flash, "offset", where, (0.0, 0.0, 0.0))
+    return color, intensity, triple_field(flash, "offset", where, (0.0, 0.0, 0.0))
 
 
 def _parse_environment(raw: Mapping, name: str, root: Path) -> Optional[EnvironmentSpec]:
     if raw.get("environment") is None:
         return None
     where = f"{name}: environment"
-    env = _object(raw["environment"], where)
-    _check_keys(env, _ENVIRONMENT_KEYS, where, "environment")
+    env = object_field(raw["environment"], where)
+    check_keys(env, _ENVIRONMENT_KEYS, where, "environment")
     if "file" not in env:
         raise CaptureError(f"{where}: missing key 'file'")
-    env_file = root / _string(env, "file", where)
+    env_file = root / string_field(env, "file", where)
     read_image_info(env_file, f"{where}.file")  # exists and is an image (header only)
-    intensity = _number(env, "intensity", where, 1.0)
+    intensity = number_field(env, "intensity", where, 1.0)
     if intensity < 0:
         raise CaptureError(f"{where}.intensity: negative intensity {intensity!r}")
-    return EnvironmentSpec(env_file, intensity, _number(env, "rotation_deg", where, 0.0))
-
-
-def _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposure, global_lights, flash) -> Frame:
-    """Validate and load ``frames[i]`` (see the module docstring for the rules)."""
-    where = f"{name}: frames[{i}]"
-    frame_raw = _object(frame_raw, where)
-    _check_keys(frame_raw, PBRFIT_FRAME_KEYS + NERF_FRAME_KEYS, where, "a frame")
-    _check_distortion(frame_raw, where)
-    if "file_path" not in frame_raw:
-        raise CaptureError(f"{where}: missing key 'file_path'")
-    c2w = _matrix(frame_raw, where)
-    file_path = resolve_image_path(root, _string(frame_raw, "file_path", where), f"{where}.file_path")
-    pixels, info = read_image(file_path, f"{where}.file_path")
-    height, width = pixels.shape[:2]
-    camera = _camera(raw, frame_raw, c2w, width, height, where, name, file_path)
-
-    rgb = _rgb(pixels, info, f"{where}.file_path")
-    least_alpha = _MIN_UNPREMULTIPLY_ALPHA if info.is_ldr else float(np.finfo(np.float32).tiny)
-    overflow = np.zeros((height, width), bool)
-    if info.associated_alpha:  # premultiplied (EXR): partly covered pixels get the surface's color back
-        alpha = pixels[..., info.alpha_channel : info.alpha_channel + 1]
-        partial = (alpha >= least_alpha) & (alpha < 1.0)
-        with np.errstate(over="ignore"):
-            divided = np.where(partial, rgb / np.where(partial, alpha, 1.0), rgb).astype(np.float32)
-        # a colour too bright for float32 once divided by a tiny alpha: not used (the file holds no NaN)
-        overflow = np.all(np.isfinite(rgb), axis=-1) & ~np.all(np.isfinite(divided), axis=-1)
-        rgb = np.where(overflow[..., None], 0.0, divided).astype(np.float32)
-    color_space = color_space_override or _default_color_space(info)
-    saturated = np.zeros((height, width), bool)
-    if info.is_ldr:
-        code_max = float(_LDR_MAX[info.format])
-        saturated = np.any(rgb >= (code_max - 0.5) / code_max, axis=-1)
-
-    if "mask_path" in frame_raw:
-        mask_file = resolve_image_path(root, _string(frame_raw, "mask_path", where), f"{where}.mask_path")
-        mask_pixels, mask_info = read_image(mask_file, f"{where}.mask_path")
-        if mask_pixels.shape[:2] != (height, width):
-            raise CaptureError(
-                f"{_loc(where, 'mask_path')}: mask {mask_file} is {mask_pixels.shape[1]}x{mask_pixels.shape[0]}, "
-                f"image is {width}x{height}"
-            )
-        mask = _nonzero(mask_pixels[..., 0])
-        if mask_info.alpha_channel is not None and mask_info.alpha_channel != 0:  # an RGBA mask: alpha too
-            mask &= _nonzero(mask_pixels[..., mask_info.alpha_channel])
-        mask_source = "file"
-    elif info.alpha_channel is not None:
-        alpha = pixels[..., info.alpha_channel]
-        # premultiplied integer colour under an alpha too small to divide by (above) stays darkened: not used
-        mask = alpha >= least_alpha if info.associated_alpha else _nonzero(alpha)
-        mask_source = "alpha"
-    else:
-        mask_source = "none"
-        mask = np.ones((height, width), bool)
-    mask &= data_window_mask(info)  # a cropped OpenEXR: the display window's empty part is not observed
-    mask &= ~overflow
-
-    bad = ~np.all(np.isfinite(rgb), axis=-1)
-    nonfinite = bad & mask  # an error only if the mesh covers one (known after ray casting)
-    if bad.any():
-        rgb = np.where(bad[..., None], 0.0, rgb).astype(np.float32)
-    image = srgb_decoded(rgb) if color_space == "srgb" else np.ascontiguousarray(rgb, dtype=np.float32)
-
-    frame_lights_raw = frame_raw.get("lights", [])
-    if not isinstance(frame_lights_raw, list):
-        raise CaptureError(f"{_loc(where, 'lights')}: expected a list of lights")
-    lights = global_lights + tuple(
-        light_from_json(d, f"{where}.lights[{k}]") for k, d in enumerate(frame_lights_raw)
-    )
-    if flash is not None:
-        lights = lights + (flash_light(c2w, *flash),)
-    exposure = base_exposure + _number(frame_raw, "exposure", where, 0.0)
-    if abs(exposure) > MAX_EXPOSURE:  # 2^EV times a radiance would leave float32's range
-        raise CaptureError(f"{_loc(where, 'exposure')}: exposure {exposure:g} EV (with images.exposure) is beyond "
-                           f"±{MAX_EXPOSURE:g} EV")
-    return Frame(
-        file_path=file_path, image=image, mask=mask, saturated=saturated, nonfinite=nonfinite,
-        mask_source=mask_source, camera=camera,
-        lights=lights, exposure=exposure, color_space=color_space, info=info, index=i,
-    )  # fmt: skip
+    return EnvironmentSpec(env_file, intensity, number_field(env, "rotation_deg", where, 0.0))
 
 
 # --- the loader ----------------------------------------------------------------------------------
@@ -505,7 +205,7 @@ def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
     name = str(json_path)
     raw = _read_json(json_path)
     try:
-        raw = _without_nulls(raw)
+        raw = without_nulls(raw)
     except RecursionError:  # parsed, but deeper than Python's stack walks
         raise CaptureError(f"{name}: invalid capture: JSON nested too deeply") from None
 
@@ -516,13 +216,13 @@ def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
     elif not json_path.name.startswith("transforms"):
         raise CaptureError(f"{name}: missing key 'format' (expected {CAPTURE_FORMAT!r})")
     allowed_top = PBRFIT_TOP_LEVEL_KEYS + NERF_TOP_LEVEL_KEYS
-    _check_keys(raw, allowed_top, name, "the top level")
-    _check_distortion(raw, name)
+    check_keys(raw, allowed_top, name, "the top level")
+    check_distortion(raw, name)
     if raw.get("is_fisheye", False):
         raise CaptureError(f"{name}: is_fisheye: fisheye cameras are not supported")
-    if "camera_model" in raw and raw["camera_model"] not in _PINHOLE_MODELS:
+    if "camera_model" in raw and raw["camera_model"] not in PINHOLE_MODELS:
         raise CaptureError(
-            f"{name}: camera_model: {raw['camera_model']!r} is not supported (expected one of {', '.join(_PINHOLE_MODELS)})"
+            f"{name}: camera_model: {raw['camera_model']!r} is not supported (expected one of {', '.join(PINHOLE_MODELS)})"
         )
 
     world_up = raw.get("world_up", "+y")
@@ -530,8 +230,8 @@ def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
         raise CaptureError(f"{name}: world_up: unknown value {world_up!r} (expected '+y' or '+z')")
 
     # images
-    images = _object(raw.get("images", {}), f"{name}: images")
-    _check_keys(images, _IMAGES_KEYS, f"{name}: images", "images")
+    images = object_field(raw.get("images", {}), f"{name}: images")
+    check_keys(images, _IMAGES_KEYS, f"{name}: images", "images")
     color_space_override = images.get("color_space")
     if color_space_override is not None and color_space_override not in COLOR_SPACES:
         raise CaptureError(
@@ -540,7 +240,7 @@ def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
     tonemap = images.get("tonemap", "none")
     if tonemap not in TONEMAPS:
         raise CaptureError(f"{name}: images.tonemap: unknown tone map {tonemap!r} (expected one of {', '.join(TONEMAPS)})")
-    base_exposure = _number(images, "exposure", f"{name}: images", 0.0)
+    base_exposure = number_field(images, "exposure", f"{name}: images", 0.0)
 
     # lights, flash, environment
     lights_raw = raw.get("lights", [])
@@ -553,7 +253,7 @@ def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
     # mesh
     if "mesh" not in raw:
         raise CaptureError(f"{name}: missing key 'mesh' (the object's triangle mesh file)")
-    mesh_path = root / _string(raw, "mesh", name)
+    mesh_path = root / string_field(raw, "mesh", name)
     mesh = load_mesh(mesh_path, f"{name}: mesh", require_uv=require_uv)
 
     # frames
@@ -567,7 +267,7 @@ def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
     frames = []
     for i, frame_raw in enumerate(frames_raw):
         frames.append(
-            _load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposure, global_lights, flash)
+            load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposure, global_lights, flash)
         )
 
     # the space a fit compares in: the frames' own, or linear when their file types' defaults mix
