@@ -26,32 +26,39 @@ _AFFINE_ROW_TOL = 1e-6
 
 
 def camera_to_world(frame: Mapping, where: str) -> np.ndarray:
+    """The frame's ``transform_matrix``: 4 × 4 numbers, finite, within float32's range, with the
+    affine last row (0, 0, 0, 1); its rotation part then checked by `pbrfit.gbuffer.camera_axes`."""
     if "transform_matrix" not in frame:
         raise CaptureError(f"{where}: missing key 'transform_matrix'")
+    at = field_loc(where, "transform_matrix")
     value = frame["transform_matrix"]
     if isinstance(value, np.ndarray):
         value = value.tolist()
     if isinstance(value, (list, tuple)) and all(isinstance(row, (list, tuple)) for row in value):
         bad = [v for row in value for v in row if isinstance(v, bool) or not isinstance(v, (int, float))]
         if bad:
-            raise CaptureError(f"{field_loc(where, 'transform_matrix')}: expected a 4x4 array of numbers, "
+            raise CaptureError(f"{at}: expected a 4x4 array of numbers, "
                                f"got {bad[0]!r} in it")
     try:
         m = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):
-        raise CaptureError(f"{field_loc(where, 'transform_matrix')}: expected a 4x4 array of numbers") from None
+        raise CaptureError(f"{at}: expected a 4x4 array of numbers") from None
     if m.shape != (4, 4):
-        raise CaptureError(f"{field_loc(where, 'transform_matrix')}: expected shape 4x4, got {'x'.join(map(str, m.shape)) or 'a scalar'}")
+        raise CaptureError(f"{at}: expected shape 4x4, got {'x'.join(map(str, m.shape)) or 'a scalar'}")
     if not np.all(np.isfinite(m)):
-        raise CaptureError(f"{field_loc(where, 'transform_matrix')}: non-finite values")
+        raise CaptureError(f"{at}: non-finite values")
     if np.max(np.abs(m)) > FLOAT32_MAX:
-        raise CaptureError(f"{field_loc(where, 'transform_matrix')}: values beyond float32's range (|x| <= 3.4e38)")
+        raise CaptureError(f"{at}: values beyond float32's range (|x| <= 3.4e38)")
     if np.max(np.abs(m[3] - [0.0, 0.0, 0.0, 1.0])) > _AFFINE_ROW_TOL:
-        raise CaptureError(f"{field_loc(where, 'transform_matrix')}: last row must be [0, 0, 0, 1], got {m[3].tolist()}")
-    return camera_axes(m, field_loc(where, "transform_matrix"))
+        raise CaptureError(f"{at}: last row must be [0, 0, 0, 1], got {m[3].tolist()}")
+    return camera_axes(m, at)
 
 
-def frame_camera(top: Mapping, frame: Mapping, c2w: np.ndarray, width: int, height: int, where: str, name: str, image: Path) -> Camera:
+def frame_camera(top: Mapping, frame: Mapping, c2w: np.ndarray, width: int, height: int, where: str, name: str,
+                 image: Path) -> Camera:
+    """The frame's pinhole `Camera` for an image of ``width`` × ``height``: intrinsics from the
+    frame, else the top level ``top`` (``fl_x`` form, or ``camera_angle_x``), checked against the
+    image's size (``w``, ``h``) and against each other when both forms are given."""
     for key in ("w", "h"):
         for obj, owner in ((frame, where), (top, name)):
             if key in obj:
