@@ -71,9 +71,9 @@ class SynthResult:
 
 
 def frame_camera(scene: Scene, c2w: np.ndarray, supersample: int = 1):
-    """The `pbrfit.gbuffer.Camera` of a frame (as `pbrfit.scene.load_capture` builds it from
+    """The `pbrfit.camera.Camera` of a frame (as `pbrfit.scene.load_capture` builds it from
     ``camera_angle_x``), at `supersample` times the image size."""
-    from pbrfit.gbuffer import Camera
+    from pbrfit.camera import Camera
 
     k = int(supersample)
     return Camera.from_fov(c2w, scene.camera_angle_x, scene.width * k, scene.height * k)

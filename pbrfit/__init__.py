@@ -39,7 +39,7 @@ __version__ = "0.1.0"
 _LAZY = {
     "load_capture": ("scene", "load_capture"),
     "Capture": ("scene", "Capture"),
-    "Camera": ("gbuffer", "Camera"),
+    "Camera": ("camera", "Camera"),
     "GBuffer": ("gbuffer", "GBuffer"),
     "compute_gbuffer": ("gbuffer", "compute_gbuffer"),
     "render_capture": ("views", "render_capture"),

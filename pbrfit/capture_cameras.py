@@ -11,7 +11,7 @@ from typing import Mapping
 import numpy as np
 
 from .errors import CaptureError
-from .gbuffer import Camera, camera_axes
+from .camera import Camera, camera_axes
 from .json_fields import FLOAT32_MAX, field_loc, number_field, positive_field
 
 __all__ = ["camera_to_world", "frame_camera", "fov_focal", "check_distortion", "INTRINSICS_RTOL", "PINHOLE_MODELS"]
@@ -27,7 +27,7 @@ _AFFINE_ROW_TOL = 1e-6
 
 def camera_to_world(frame: Mapping, where: str) -> np.ndarray:
     """The frame's ``transform_matrix``: 4 × 4 numbers, finite, within float32's range, with the
-    affine last row (0, 0, 0, 1); its rotation part then checked by `pbrfit.gbuffer.camera_axes`."""
+    affine last row (0, 0, 0, 1); its rotation part then checked by `pbrfit.camera.camera_axes`."""
     if "transform_matrix" not in frame:
         raise CaptureError(f"{where}: missing key 'transform_matrix'")
     at = field_loc(where, "transform_matrix")

@@ -12,7 +12,7 @@ import numpy as np
 
 from .capture_cameras import camera_to_world, check_distortion, frame_camera
 from .errors import CaptureError
-from .gbuffer import Camera
+from .camera import Camera
 from .io import _LDR_MAX, ImageInfo, color_channels, data_window_mask, read_image, srgb_decoded
 from .json_fields import check_keys, field_loc, number_field, object_field, string_field
 from .lights import Light, flash_light, light_from_json
@@ -54,7 +54,7 @@ class Frame:
         mask_source: where ``mask`` came from: ``"file"`` (mask_path), ``"alpha"``, or ``"none"``
             (every pixel; a fit then leaves out the mesh's silhouette pixels, see
             `pbrfit.views.capture_views`).
-        camera: `pbrfit.gbuffer.Camera`.
+        camera: `pbrfit.camera.Camera`.
         lights: global lights + the frame's lights + the flash (as a point light).
         exposure: effective EV (``images.exposure + frames[i].exposure``).
         color_space: how the file was encoded (``"linear"`` or ``"srgb"``).

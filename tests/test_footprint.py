@@ -15,7 +15,8 @@ import pytest
 
 from pbrfit.fit import fit, map_rmse, model_for_capture
 from pbrfit.fit_pass import PROBE_STEPS, SEARCH_AFTER
-from pbrfit.gbuffer import Camera, compute_gbuffer
+from pbrfit.camera import Camera
+from pbrfit.gbuffer import compute_gbuffer
 from pbrfit.material_files import read_material
 from pbrfit.observations import (PIXEL_FIELDS, coverage_counts, observations_from_capture, pixel_offsets, sample_camera,
                                  texel_layout)

@@ -8,7 +8,8 @@ import trimesh
 
 from pbrfit import gbuffer as gb
 from pbrfit.errors import CaptureError
-from pbrfit.gbuffer import Camera, compute_gbuffer
+from pbrfit.camera import Camera
+from pbrfit.gbuffer import compute_gbuffer
 
 
 @dataclasses.dataclass(frozen=True)
