@@ -109,7 +109,9 @@ class Camera:
         xx, yy = np.meshgrid(x, y)  # (H, W), row index = y
         d_cam = np.stack([(xx - self.cx) / self.fx, -(yy - self.cy) / self.fy, -np.ones_like(xx)], -1)
         world = d_cam @ self.c2w[:3, :3].T
-        directions = world / np.linalg.norm(world, axis=-1, keepdims=True)  # (never zero: camera-space z is -1)
+        norm = np.linalg.norm(world, axis=-1, keepdims=True)  # >= 1 (camera-space z is -1), or not finite
+        with np.errstate(invalid="ignore"):  # a focal length so small that a ray is infinite: no ray (zero)
+            directions = np.where(norm > 0, world / np.where(norm > 0, norm, 1.0), 0.0)
         origins = np.broadcast_to(self.center, directions.shape).copy()
         return origins, directions
 

@@ -26,6 +26,7 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 def shown(value, limit: int = 40) -> str:
+    """``repr(value)`` for a message, cut to ``limit`` characters."""
     text = repr(value)
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
@@ -47,6 +48,7 @@ def as_float(value, loc: str, what: str = "a finite number") -> float:
 
 
 def number_field(d: Mapping[str, Any], key: str, where: str, default: float | None) -> float:
+    """``d[key]`` as a finite float (`as_float`), or ``default`` when absent (None: required)."""
     if key not in d:
         if default is None:
             raise CaptureError(f"{where}: missing key '{key}'")
@@ -55,6 +57,7 @@ def number_field(d: Mapping[str, Any], key: str, where: str, default: float | No
 
 
 def triple_field(d: Mapping[str, Any], key: str, where: str, default=None) -> np.ndarray:
+    """``d[key]`` as 3 finite float64 numbers, or ``default`` when absent (None: required)."""
     if key not in d:
         if default is None:
             raise CaptureError(f"{where}: missing key '{key}'")
@@ -71,12 +74,14 @@ def triple_field(d: Mapping[str, Any], key: str, where: str, default=None) -> np
 
 
 def check_keys(obj: Mapping, allowed, where: str, what: str) -> None:
+    """`CaptureError` for the first key of ``obj`` not in ``allowed``, naming ``what`` it is in."""
     for key in obj:
         if key not in allowed:
             raise CaptureError(f"{where}: unknown key {key!r} in {what} (allowed: {', '.join(allowed)})")
 
 
 def object_field(value: Any, where: str) -> Mapping:
+    """``value`` if it is a JSON object, else `CaptureError`."""
     if not isinstance(value, Mapping):
         raise CaptureError(f"{where}: expected an object, got {type(value).__name__}")
     return value
@@ -94,6 +99,7 @@ def without_nulls(value):
 
 
 def positive_field(d: Mapping, key: str, where: str) -> Optional[float]:
+    """``d[key]`` as a number > 0, or None when absent."""
     if key not in d:
         return None
     value = number_field(d, key, where, None)
@@ -103,6 +109,7 @@ def positive_field(d: Mapping, key: str, where: str) -> Optional[float]:
 
 
 def string_field(d: Mapping, key: str, where: str) -> str:
+    """``d[key]`` as a non-empty string."""
     value = d[key]
     if not isinstance(value, str) or not value:
         raise CaptureError(f"{field_loc(where, key)}: expected a non-empty string, got {value!r}")

@@ -17,6 +17,9 @@ A pixel's residual (3 numbers) depends on its K sampled values only, so its Jaco
 J_p = ∂r_p/∂m_p (3 × K), computed exactly by forward mode (K tangents, `jax.jacfwd`, vmapped over
 pixels; `linearize`); with S samples per pixel, J_ps = ∂r_p/∂m_ps (3 × K) per sample.
 `pbrfit.normal_matrix` assembles the Gauss-Newton matrix from them, `pbrfit.solvers` solves.
+`Problem` holds one fitting problem; the gathers and scatters between pixels and texels
+(`to_rows`, `by_pixel`, `scatter_texels`) and the prior's `laplacian` and `prior_degree` serve
+both.
 
 Precision: every contraction here passes ``precision=HIGHEST``; JAX's default lets a GPU
 multiply float32 in TF32 (10-bit mantissa), too coarse for the normal equations.
@@ -189,6 +192,8 @@ def pixel_residuals(x: Float[Array, "T K"], problem: Problem) -> Float[Array, "P
 
 
 def smooth_residuals(x, problem: Problem):
+    """The smoothness prior's residuals sqrt(smooth) (x_a - x_b) over the weighted neighbour
+    pairs, in the channels the fit frees."""
     a, b = problem.pairs[:, 0], problem.pairs[:, 1]
     chan = jnp.max(problem.free, axis=0)  # channels the fit frees
     return jnp.sqrt(problem.smooth) * problem.pair_weight[:, None] * chan * (x[a] - x[b])
@@ -246,6 +251,8 @@ def scatter_texels(values, problem: Problem):
 
 
 def laplacian(v, problem: Problem):
+    """L v, the prior's graph Laplacian over the weighted neighbour pairs (freed channels): its
+    gradient and Gauss-Newton product are smooth L x and smooth L v."""
     a, b = problem.pairs[:, 0], problem.pairs[:, 1]
     chan = jnp.max(problem.free, axis=0)
     d = problem.pair_weight[:, None] * chan * (v[a] - v[b])
@@ -254,6 +261,7 @@ def laplacian(v, problem: Problem):
 
 
 def prior_degree(problem: Problem):
+    """(T,) each texel's weighted neighbour count: the diagonal of the prior's L."""
     t = problem.num_texels
     w = problem.pair_weight
     return jax.ops.segment_sum(w, problem.pairs[:, 0], num_segments=t) + jax.ops.segment_sum(

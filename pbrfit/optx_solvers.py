@@ -192,7 +192,7 @@ def optx_solve(x0, problem: Problem, solver, least_squares: bool, max_steps: int
         return 0.5 * (jnp.sum(r * r) + jnp.sum(s * s))
 
     # optimistix, lineax and optax contract at JAX's default precision, which is TF32 on GPUs;
-    # the fit's float32 contractions all run at full precision (`pbrfit.solvers`).
+    # the fit's float32 contractions all run at full precision (`pbrfit.objective`, `pbrfit.normal_matrix`).
     with jax.default_matmul_precision("highest"):
         if least_squares:
             sol = optx.least_squares(res, solver, z0, max_steps=max_steps, throw=False)

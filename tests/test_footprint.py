@@ -1,4 +1,4 @@
-"""Pixel footprints: n × n samples per pixel (`pbrfit.observations`, `pbrfit.solvers`).
+"""Pixel footprints: n × n samples per pixel (`pbrfit.observations`, `pbrfit.objective`).
 
 A small supersampled flash capture (data_synth's plane-flash: 2 × 2 supersampled 16-bit sRGB
 PNGs, noiseless here) is synthesised once for the module.
