@@ -96,7 +96,7 @@ def _cmd_render(args) -> int:
     from .atomic import check_not_inside, check_output_dir
     from .gltf_export import needs_texture_coordinates
     from .material_files import read_material
-    from .mesh import check_uv_layout
+    from .uv_layout import check_uv_layout
     from .scene import load_capture
     from .views import apply_overrides, load_lights_override, render_capture, write_rendered_capture
 

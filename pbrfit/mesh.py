@@ -46,8 +46,9 @@ import numpy as np
 
 from .errors import CaptureError
 from .gltf_read import load_gltf_scene
+from .uv_layout import check_uv_layout, shared_uv_space
 
-__all__ = ["load_mesh", "check_uv_layout", "MESH_SUFFIXES"]
+__all__ = ["load_mesh", "MESH_SUFFIXES"]
 
 #: The file's normals at one position agree where no component differs by more than this
 #: (float32 writes of the same vector); else the position is a hard edge (`_file_normals`).
@@ -113,18 +114,6 @@ MAX_COORDINATE = 1e18
 
 #: The triangle-mesh formats read (through trimesh).
 MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
-
-
-#: Below this total uv area (in units of the texture square) a mesh's texture coordinates lay out
-#: nothing: every texel would be seen through no triangle or through all of them.
-UV_AREA_MIN = 1e-10
-
-
-def _uv_area(uv: np.ndarray, faces: np.ndarray) -> float:
-    """Σ over triangles of the uv triangle's area, ½ |(uv1 - uv0) × (uv2 - uv0)|."""
-    a, b, c = (uv[faces[:, k]] for k in range(3))
-    cross = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-    return float(0.5 * np.sum(np.abs(cross)))
 
 
 @contextlib.contextmanager
@@ -343,17 +332,23 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     mesh.metadata["file"] = str(path)
     if require_uv:
         check_uv_layout(mesh, where)
+        _warn_shared_uv_space(parts, uvs, where, path)
     return mesh
 
 
-def check_uv_layout(mesh, where: str = "mesh") -> None:
-    """Raise `CaptureError` unless a loaded mesh's texture coordinates lay out an area texture
-    maps can be read through (total uv area above `UV_AREA_MIN`)."""
-    path = mesh.metadata.get("file", "")
-    uv = getattr(mesh.visual, "uv", None)
-    if uv is None:
-        raise CaptureError(f"{where}: mesh {path} has no texture coordinates (glTF TEXCOORD_0 / OBJ vt); "
-                           "texture maps need them")
-    if _uv_area(np.asarray(uv, np.float64), np.asarray(mesh.faces)) <= UV_AREA_MIN:
-        raise CaptureError(f"{where}: mesh {path}: texture coordinates span no area (every triangle's uv area "
-                           "is 0, e.g. all equal); texture maps need a uv layout")
+def _warn_shared_uv_space(parts, uvs, where: str, path: Path) -> None:
+    """A warning where two of the file's materials lay their texture coordinates over the same
+    texture space (`pbrfit.uv_layout.shared_uv_space`): the fit's one set of maps would mix them."""
+    import warnings
+
+    named = [(str(name), uv, np.asarray(part.faces)) for part, uv in zip(parts, uvs)
+             if (name := getattr(getattr(part.visual, "material", None), "name", None))]
+    if len({name for name, _, _ in named}) < 2:
+        return
+    shared = shared_uv_space(named)
+    if shared is not None:
+        a, b, share = shared
+        warnings.warn(f"{where}: mesh {path}: materials {a!r} and {b!r} use the same texture space ({share:.0%} of "
+                      "the smaller one's): pbrfit fits one set of maps for the whole mesh, so there each texel is "
+                      "fitted to both materials' pixels; give each material its own part of the uv square",
+                      stacklevel=3)

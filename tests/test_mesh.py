@@ -335,3 +335,53 @@ def test_obj_texture_coordinates_that_miss_a_corner_are_named(tmp_path, faces):
     with pytest.raises(CaptureError, match=r"p.obj: its vt texture coordinates do not reach every face corner"):
         load_mesh(tmp_path / "p.obj")
     assert len(load_mesh(tmp_path / "p.obj", require_uv=False).faces) >= 1  # a uniform fit needs none
+
+
+_TWO_QUADS = """mtllib m.mtl
+v 0 0 0
+v 1 0 0
+v 1 1 0
+v 0 1 0
+v 2 0 0
+v 3 0 0
+v 3 1 0
+v 2 1 0
+{vt}
+usemtl red
+f 1/1 2/2 3/3
+f 1/1 3/3 4/4
+usemtl {second}
+f 5/{a} 6/{b} 7/{c}
+f 5/{a} 7/{c} 8/{d}
+"""
+
+
+@pytest.mark.parametrize("vt, second, corners, warned", [
+    ("vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1", "blue", (1, 2, 3, 4), True),  # each over the whole square
+    ("vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nvt 2 0\nvt 3 0\nvt 3 1\nvt 2 1", "blue", (5, 6, 7, 8), True),  # repeated
+    ("vt 0 0\nvt .5 0\nvt .5 1\nvt 0 1\nvt .5 0\nvt 1 0\nvt 1 1\nvt .5 1", "blue", (5, 6, 7, 8), False),  # halves
+    ("vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1", "red", (1, 2, 3, 4), False),  # one material, its uv shared by two parts
+])
+def test_materials_sharing_texture_space_are_warned_of(tmp_path, vt, second, corners, warned):
+    """A file whose materials each lay out the whole uv square (their own textures, in the file)
+    would have both fitted into pbrfit's one set of maps: the load says so; a material's texture
+    coordinates repeated a square over (the maps repeat) count as the same space; materials in
+    their own halves, or one material over two parts, load quietly."""
+    import warnings
+
+    (tmp_path / "m.mtl").write_text("newmtl red\nKd 1 0 0\nnewmtl blue\nKd 0 0 1\n")
+    a, b, c, d = corners
+    (tmp_path / "q.obj").write_text(_TWO_QUADS.format(vt=vt, second=second, a=a, b=b, c=c, d=d))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mesh = load_mesh(tmp_path / "q.obj")
+    said = [str(w.message) for w in caught]
+    assert len(mesh.faces) == 4
+    if warned:
+        assert len(said) == 1 and "materials 'blue' and 'red' use the same texture space (100%" in said[0], said
+    else:
+        assert not said, said
+    with warnings.catch_warnings(record=True) as caught:  # a uniform fit reads no maps: nothing to say
+        warnings.simplefilter("always")
+        load_mesh(tmp_path / "q.obj", require_uv=False)
+    assert not caught
