@@ -156,7 +156,9 @@ def prepare_tree(tree: dict) -> None:
     A ValueError names the required extensions pbrfit cannot honour (a loader must refuse a file
     that requires one it does not support: compressed geometry would come out empty or zero). Camera nodes lose their camera: trimesh leaves a node
     with a camera and a mesh, and the meshes under it, out of the scene, which glTF viewers
-    draw. Primitives with TEXCOORD_0 and no material get a default one (`_gltf_default_material`)."""
+    draw. Primitives with TEXCOORD_0 and no material get a default one (`_gltf_default_material`),
+    and unnamed materials their index as a name ("material 3"), so that the mesh's materials can be
+    told apart once trimesh has loaded them."""
     import importlib.util
 
     read = _EXTENSIONS_READ
@@ -173,6 +175,9 @@ def prepare_tree(tree: dict) -> None:
     for node in tree.get("nodes") or []:
         if isinstance(node, dict):
             node.pop("camera", None)
+    for index, material in enumerate(tree.get("materials") or []):
+        if isinstance(material, dict) and not material.get("name"):  # (told apart by name: `pbrfit.uv_layout`)
+            material["name"] = f"material {index}"
     _gltf_default_material(tree)
 
 

@@ -385,3 +385,28 @@ def test_materials_sharing_texture_space_are_warned_of(tmp_path, vt, second, cor
         warnings.simplefilter("always")
         load_mesh(tmp_path / "q.obj", require_uv=False)
     assert not caught
+
+
+def test_unnamed_gltf_materials_are_told_apart(tmp_path):
+    """glTF materials need no name: an unnamed one is known by its index, so two of them over
+    the same uv square are warned of too."""
+    import warnings
+
+    import trimesh
+    from trimesh.visual.material import PBRMaterial
+    from trimesh.visual.texture import TextureVisuals
+
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    scene = trimesh.Scene()
+    for k, color in enumerate(([255, 0, 0, 255], [0, 0, 255, 255])):
+        visual = TextureVisuals(uv=uv, material=PBRMaterial(baseColorFactor=color))
+        scene.add_geometry(trimesh.Trimesh(QUAD_POSITIONS + [2.0 * k, 0, 0], faces, visual=visual, process=False),
+                           geom_name=f"quad{k}")
+    scene.export(tmp_path / "two.glb")
+    assert [m.get("name") for m in glb_chunks((tmp_path / "two.glb").read_bytes())[1]["materials"]] == [None, None]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        load_mesh(tmp_path / "two.glb")
+    assert len(caught) == 1, caught
+    assert "materials 'material 0' and 'material 1' use the same texture space (100%" in str(caught[0].message)
