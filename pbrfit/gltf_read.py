@@ -36,7 +36,7 @@ def _gltf_default_material(tree: dict) -> bool:
     if not missing:
         return False
     materials = tree.setdefault("materials", [])
-    materials.append({"name": "pbrfit-default"})
+    materials.append({"name": "(no material)"})
     for prim in missing:
         prim["material"] = len(materials) - 1
     return True
@@ -156,9 +156,9 @@ def prepare_tree(tree: dict) -> None:
     A ValueError names the required extensions pbrfit cannot honour (a loader must refuse a file
     that requires one it does not support: compressed geometry would come out empty or zero). Camera nodes lose their camera: trimesh leaves a node
     with a camera and a mesh, and the meshes under it, out of the scene, which glTF viewers
-    draw. Primitives with TEXCOORD_0 and no material get a default one (`_gltf_default_material`),
-    and unnamed materials their index as a name ("material 3"), so that the mesh's materials can be
-    told apart once trimesh has loaded them."""
+    draw. Primitives with TEXCOORD_0 and no material get a default one (`_gltf_default_material`).
+    Every material gets a name of its own, so that they can be told apart once trimesh has loaded
+    them: an unnamed one its index ("material 3"), a repeated name its index after it."""
     import importlib.util
 
     read = _EXTENSIONS_READ
@@ -175,10 +175,13 @@ def prepare_tree(tree: dict) -> None:
     for node in tree.get("nodes") or []:
         if isinstance(node, dict):
             node.pop("camera", None)
-    for index, material in enumerate(tree.get("materials") or []):
-        if isinstance(material, dict) and not material.get("name"):  # (told apart by name: `pbrfit.uv_layout`)
-            material["name"] = f"material {index}"
     _gltf_default_material(tree)
+    names = set()  # materials are told apart by name once loaded (`pbrfit.uv_layout`): one each
+    for index, material in enumerate(tree.get("materials") or []):
+        if isinstance(material, dict):
+            name = str(material.get("name") or f"material {index}")
+            material["name"] = name if name not in names else f"{name} (material {index})"
+            names.add(material["name"])
 
 
 def load_gltf_scene(path: Path):

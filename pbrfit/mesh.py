@@ -349,6 +349,5 @@ def _warn_shared_uv_space(parts, uvs, where: str, path: Path) -> None:
     if shared is not None:
         a, b, share = shared
         warnings.warn(f"{where}: mesh {path}: materials {a!r} and {b!r} use the same texture space ({share:.0%} of "
-                      "the smaller one's): pbrfit fits one set of maps for the whole mesh, so there each texel is "
-                      "fitted to both materials' pixels; give each material its own part of the uv square",
-                      stacklevel=3)
+                      f"{a!r}'s): pbrfit fits one set of maps for the whole mesh, so there each texel is fitted to "
+                      "both materials' pixels; give each material its own part of the uv square", stacklevel=3)

@@ -4,6 +4,7 @@ and OBJ text it trips over (tabs, indentation, comments after fields, one-compon
 coordinates)."""
 
 import importlib.util
+import re
 
 import numpy as np
 import pytest
@@ -378,7 +379,7 @@ def test_materials_sharing_texture_space_are_warned_of(tmp_path, vt, second, cor
     said = [str(w.message) for w in caught]
     assert len(mesh.faces) == 4
     if warned:
-        assert len(said) == 1 and "materials 'blue' and 'red' use the same texture space (100%" in said[0], said
+        assert len(said) == 1 and "materials 'blue' and 'red' use the same texture space (100% of 'blue'" in said[0], said
     else:
         assert not said, said
     with warnings.catch_warnings(record=True) as caught:  # a uniform fit reads no maps: nothing to say
@@ -387,11 +388,11 @@ def test_materials_sharing_texture_space_are_warned_of(tmp_path, vt, second, cor
     assert not caught
 
 
-def test_unnamed_gltf_materials_are_told_apart(tmp_path):
-    """glTF materials need no name: an unnamed one is known by its index, so two of them over
-    the same uv square are warned of too."""
-    import warnings
-
+@pytest.mark.parametrize("names, told", [((None, None), ("material 0", "material 1")),
+                                          (("Material", "Material"), ("Material", "Material (material 1)"))])
+def test_gltf_materials_are_told_apart_whatever_their_names(tmp_path, names, told):
+    """glTF materials need no name, nor different ones: each is known by its index where its
+    name does not tell it apart, so two of them over the same uv square are warned of too."""
     import trimesh
     from trimesh.visual.material import PBRMaterial
     from trimesh.visual.texture import TextureVisuals
@@ -399,14 +400,58 @@ def test_unnamed_gltf_materials_are_told_apart(tmp_path):
     faces = np.array([[0, 1, 2], [0, 2, 3]])
     uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
     scene = trimesh.Scene()
-    for k, color in enumerate(([255, 0, 0, 255], [0, 0, 255, 255])):
-        visual = TextureVisuals(uv=uv, material=PBRMaterial(baseColorFactor=color))
+    for k, (name, color) in enumerate(zip(names, ([255, 0, 0, 255], [0, 0, 255, 255]))):
+        visual = TextureVisuals(uv=uv, material=PBRMaterial(name=name, baseColorFactor=color))
         scene.add_geometry(trimesh.Trimesh(QUAD_POSITIONS + [2.0 * k, 0, 0], faces, visual=visual, process=False),
                            geom_name=f"quad{k}")
     scene.export(tmp_path / "two.glb")
-    assert [m.get("name") for m in glb_chunks((tmp_path / "two.glb").read_bytes())[1]["materials"]] == [None, None]
+    assert [m.get("name") for m in glb_chunks((tmp_path / "two.glb").read_bytes())[1]["materials"]] == list(names)
+    (said,) = _load_warnings(tmp_path / "two.glb")
+    pair = re.search(r"materials '([^']+)' and '([^']+)' use the same texture space \(100%", said)
+    assert pair and sorted(pair.groups()) == sorted(told), said
+
+
+def _quads_obj(path, quads):
+    """An OBJ (and its MTL) of one flat quad per (material, u0, u1, v0, v1), side by side in
+    space, each over its uv rectangle."""
+    names = sorted({q[0] for q in quads})
+    (path.parent / "q.mtl").write_text("".join(f"newmtl {n}\nKd 1 1 1\n" for n in names))
+    lines, groups = ["mtllib q.mtl"], {n: [] for n in names}
+    for k, (name, u0, u1, v0, v1) in enumerate(quads):
+        lines += [f"v {2 * k + x} {y} 0" for x, y in ((0, 0), (1, 0), (1, 1), (0, 1))]
+        lines += [f"vt {u} {v}" for u, v in ((u0, v0), (u1, v0), (u1, v1), (u0, v1))]
+        i = 4 * k + 1
+        groups[name] += [f"f {i}/{i} {i + 1}/{i + 1} {i + 2}/{i + 2}", f"f {i}/{i} {i + 2}/{i + 2} {i + 3}/{i + 3}"]
+    for name in names:
+        lines += [f"usemtl {name}"] + groups[name]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _load_warnings(path):
+    import warnings
+
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        load_mesh(tmp_path / "two.glb")
-    assert len(caught) == 1, caught
-    assert "materials 'material 0' and 'material 1' use the same texture space (100%" in str(caught[0].message)
+        load_mesh(path)
+    return [str(w.message) for w in caught]
+
+
+def test_materials_that_only_meet_share_no_texture_space(tmp_path):
+    """Materials meeting along seams cover the grid cells the seams cross alike: that is no
+    shared space, however narrow the regions (a strip 0.05 wide, a 16 × 16 checker)."""
+    _quads_obj(tmp_path / "strip.obj", [("red", 0, 0.5, 0, 1), ("blue", 0.5, 0.55, 0, 1)])
+    assert _load_warnings(tmp_path / "strip.obj") == []
+    tiles = [("red" if (i + j) % 2 else "blue", i / 16, (i + 1) / 16, j / 16, (j + 1) / 16)
+             for i in range(16) for j in range(16)]
+    _quads_obj(tmp_path / "checker.obj", tiles)
+    assert _load_warnings(tmp_path / "checker.obj") == []
+
+
+def test_texture_space_repeats_across_the_squares_border(tmp_path):
+    """The maps repeat: a quad over u in [0.8, 1.2] reads the texels of u in [0, 0.2] as well,
+    so a material over u in [0, 0.15] shares them."""
+    _quads_obj(tmp_path / "wrap.obj", [("red", 0.8, 1.2, 0, 1), ("blue", 0, 0.15, 0, 1)])
+    (said,) = _load_warnings(tmp_path / "wrap.obj")
+    assert re.search(r"materials 'blue' and 'red' use the same texture space \((9\d|100)% of 'blue'", said), said
+    _quads_obj(tmp_path / "apart.obj", [("red", 0.8, 1.2, 0, 1), ("blue", 0.3, 0.6, 0, 1)])
+    assert _load_warnings(tmp_path / "apart.obj") == []
