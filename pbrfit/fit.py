@@ -32,6 +32,11 @@ proportional to the signal.
 Pixels can be split over several devices (``devices=``, `pbrfit.sharding`). The result carries
 the maps, per-texel standard errors (`pbrfit.uncertainty`), per-texel coverage, the fitted
 renders of every view and a report.
+
+This module is the API. The options and their checks are `pbrfit.fit_options`, one pass over
+the levels is `pbrfit.fit_pass` (its solver runs `pbrfit.runner`), the map size
+`pbrfit.resolution`, the pixel footprint `pbrfit.footprint`, and the result and its report
+`pbrfit.fit_result`.
 """
 
 from __future__ import annotations
