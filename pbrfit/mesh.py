@@ -95,7 +95,6 @@ def _flatten(scene, where: str, path: Path) -> list:
             continue
         normals = _file_normals(geom) @ np.linalg.inv(t[:3, :3])  # (M^-T n) as rows
         normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
-        faces = np.asarray(geom.faces, np.int64)
         if np.linalg.det(t[:3, :3]) < 0:
             faces = faces[:, ::-1]
         part = trimesh.Trimesh(
