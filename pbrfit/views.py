@@ -214,10 +214,9 @@ def _render_supersampled(frame, capture, material, model, ibl, environment, k: i
         camera = sample_camera(c, offset)
         view = prepare_view(compute_gbuffer(capture.mesh, camera, frame.lights, cache_dir), frame.lights, None)
         hits = np.asarray(view.pixel)
+        sky = None if environment is None else _sky(environment, camera)
         if len(hits):  # padded with repeats of the first hit, which write the same value again
             view = view_rows(view, np.concatenate([hits, np.full(-len(hits) % step, hits[0])]))
-        sky = None if environment is None else _sky(environment, camera)
-        if len(hits):
             radiance, _ = render_view(view, material, model, ibl, background=sky)  # linear, exposure 0
         else:
             radiance = np.zeros((pixels, 3)) if sky is None else sky
