@@ -4,19 +4,10 @@ Every public BRDF term, `brdf.evaluate_cosines` under each `Model` variant, `brd
 sRGB curves, exposure and tone maps of `color` are checked at 1st order (gradient) and 2nd order
 (Hessian) over a grid of cosines, alpha / roughness and colors.
 
-Finite differences (our own, not ``jax.test_util``): central differences with one step of
-Richardson extrapolation, so the truncation error is O(h^4):
-
-    D1(h)  = (f(x + h e_i) - f(x - h e_i)) / 2h                                  (d/dx_i)
-    D2(h)  = (f(x + h e_i) - 2 f(x) + f(x - h e_i)) / h^2                         (d^2/dx_i^2)
-    D11(h) = (f(x+h e_i+h e_j) - f(x+h e_i-h e_j) - f(x-h e_i+h e_j) + f(x-h e_i-h e_j)) / 4h^2
-    estimate = (4 D(h/2) - D(h)) / 3
-
-with h = `STEP_1` for the gradient and `STEP_2` for the Hessian. Clamps and branch switches are
-kinks where no derivative exists: a point closer than `KINK_MARGIN` to one, in any input, is skipped
-(counted in `CheckResult.skipped`). The relative error at a point and derivative component is
-|autodiff - fd| / max(|autodiff|, |fd|, SCALE_FLOOR[order] (1 + |f(x)|)); a check passes when its worst
-point is within its tolerance.
+Autodiff (forward over reverse) is compared with float64 central finite differences,
+Richardson-extrapolated (`pbrfit.finite_differences`: the stencils, steps and error measure). Points
+within `KINK_MARGIN` of a clamp or branch switch are skipped (counted in `CheckResult.skipped`); a
+check passes when its worst point's relative error is within `TOLERANCE[order]`.
 """
 
 from __future__ import annotations
@@ -32,22 +23,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import brdf, color
+from .finite_differences import KINK_MARGIN, STEP_1, STEP_2, fd_estimates, rel_error, stencil_points
 from .model import Model
 
-__all__ = ["CheckResult", "run_checks", "print_report", "STEP_1", "STEP_2", "KINK_MARGIN", "TOLERANCE"]
+__all__ = ["CheckResult", "run_checks", "print_report", "all_specs", "model_label", "MODEL_VARIANTS", "TOLERANCE"]
 
-#: Finite-difference step for the gradient (float64: roundoff ~ eps |f| / h ~ 1e-12 |f|).
-STEP_1 = 1e-4
-#: Finite-difference step for the Hessian (roundoff ~ eps |f| / h^2 ~ 1e-10 |f|).
-STEP_2 = 1e-3
-#: Points closer than this to a clamp or branch switch (in any input) are skipped: the stencils
-#: reach STEP_2 along one input and STEP_2 along another, and must not straddle the kink.
-KINK_MARGIN = 2.0 * STEP_2
-#: Relative errors are measured against max(|autodiff|, |fd|, SCALE_FLOOR[order] (1 + |f(x)|)), so a
-#: derivative that is exactly zero (or negligible next to the function) is compared with the
-#: function's own scale. The floors sit well above the finite differences' roundoff in float64,
-#: ~1e-12 |f| (1st order) and ~1e-9 |f| (2nd order, Richardson-amplified).
-SCALE_FLOOR = {1: 1e-6, 2: 1e-3}
 #: Pass thresholds on the maximum relative error, by order.
 TOLERANCE = {1: 1e-5, 2: 1e-4}
 
@@ -313,78 +293,6 @@ def all_specs() -> list:
     )
 
 
-# --- Finite differences --------------------------------------------------------------------------
-def _offsets(k: int):
-    """Unit stencil offsets: first-order (2k), second-order diagonal (2k) and mixed (4 per pair)."""
-    eye = np.eye(k)
-    first = np.concatenate([eye, -eye])  # +e_i for i, then -e_i
-    pairs = list(itertools.combinations(range(k), 2))
-    mixed = []
-    for i, j in pairs:
-        for si, sj in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
-            mixed.append(si * eye[i] + sj * eye[j])
-    mixed = np.array(mixed).reshape(-1, k) if mixed else np.zeros((0, k))
-    return first, mixed, pairs
-
-
-def _fd_estimates(values, x_count, k, pairs, h1, h2):
-    """Richardson-extrapolated gradient (N, k) and Hessian (N, k, k) from stencil values."""
-
-    def unpack(v):
-        v = v.reshape(x_count, -1)
-        f0 = v[:, 0]
-        v = v[:, 1:]
-        # layout per point: [f(x)] + for step in (h1, h1/2): first (2k) + for step in (h2, h2/2): first (2k) + mixed
-        return f0, v
-
-    f0, rest = unpack(values)
-    n_first = 2 * k
-    n_mixed = 4 * len(pairs)
-    blocks = []
-    pos = 0
-    for size in (n_first, n_first, n_first + n_mixed, n_first + n_mixed):
-        blocks.append(rest[:, pos : pos + size])
-        pos += size
-
-    def grad_est(block, h):
-        return (block[:, :k] - block[:, k : 2 * k]) / (2.0 * h)
-
-    def hess_est(block, h):
-        hess = np.zeros((x_count, k, k))
-        diag = (block[:, :k] - 2.0 * f0[:, None] + block[:, k : 2 * k]) / (h * h)
-        hess[:, np.arange(k), np.arange(k)] = diag
-        mixed = block[:, 2 * k :].reshape(x_count, len(pairs), 4)
-        for p, (i, j) in enumerate(pairs):
-            m = mixed[:, p]
-            val = (m[:, 0] - m[:, 1] - m[:, 2] + m[:, 3]) / (4.0 * h * h)
-            hess[:, i, j] = hess[:, j, i] = val
-        return hess
-
-    g = (4.0 * grad_est(blocks[1], h1 / 2) - grad_est(blocks[0], h1)) / 3.0
-    hm = (4.0 * hess_est(blocks[3], h2 / 2) - hess_est(blocks[2], h2)) / 3.0
-    return f0, g, hm
-
-
-def _stencil_points(x: np.ndarray, h1: float, h2: float):
-    n, k = x.shape
-    first, mixed, pairs = _offsets(k)
-    offs = [np.zeros((1, k))]
-    for h in (h1, h1 / 2):
-        offs.append(first * h)
-    for h in (h2, h2 / 2):
-        offs.append(np.concatenate([first, mixed]) * h)
-    offs = np.concatenate(offs)  # (P, k)
-    return (x[:, None, :] + offs[None]).reshape(-1, k), pairs
-
-
-def _rel_error(ad, fd, fval, order):
-    floor = SCALE_FLOOR[order] * (1.0 + np.abs(fval))
-    floor = floor.reshape(floor.shape + (1,) * (ad.ndim - 1))
-    den = np.maximum(np.maximum(np.abs(ad), np.abs(fd)), floor)
-    err = np.abs(ad - fd) / den
-    return np.where(np.isfinite(ad) & np.isfinite(fd), err, np.inf)
-
-
 def _prepare(spec: _Spec, h1: float, h2: float):
     """The grid minus points near kinks, the stencil points, and the autodiff+stencil function."""
     grid = np.asarray(spec.grid, dtype=np.float64)
@@ -395,7 +303,7 @@ def _prepare(spec: _Spec, h1: float, h2: float):
     if spec.skip is not None:
         keep &= ~spec.skip(grid)
     x = grid[keep]
-    pts, pairs = _stencil_points(x, h1, h2)
+    pts, pairs = stencil_points(x, h1, h2)
     fn = spec.fn
 
     def one(xi):
@@ -414,10 +322,10 @@ def _prepare(spec: _Spec, h1: float, h2: float):
 
 def _compare(spec: _Spec, x, pairs, skipped, outputs, h1: float, h2: float) -> list:
     values, g_ad, h_ad = (np.asarray(a, dtype=np.float64) for a in outputs)
-    fval, g_fd, h_fd = _fd_estimates(values, len(x), x.shape[1], pairs, h1, h2)
+    fval, g_fd, h_fd = fd_estimates(values, len(x), x.shape[1], pairs, h1, h2)
     results = []
     for order, ad, fd in ((1, g_ad, g_fd), (2, h_ad, h_fd)):
-        err = _rel_error(ad, fd, fval, order)
+        err = rel_error(ad, fd, fval, order)
         idx = np.unravel_index(int(np.argmax(err)), err.shape)
         worst = float(err[idx])
         point = {name: float(x[idx[0], i]) for i, name in enumerate(spec.names)}
