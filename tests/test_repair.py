@@ -1,9 +1,9 @@
-"""The basin repair's host-side pieces (`pbrfit.repair`); the whole repair is tested in test_fit."""
+"""The basin repair's host-side pieces (`pbrfit.repair`, `pbrfit.misfit`); the whole repair is tested in test_fit."""
 
 import numpy as np
 
-from pbrfit.repair import (fill_from_nearest, identifiable_texels, improved_clusters, misfit_texels, outlier_texels,
-                           repair_region, texel_misfit, well_seen_texels)
+from pbrfit.misfit import identifiable_texels, misfit_texels, outlier_texels, texel_misfit, well_seen_texels
+from pbrfit.repair import fill_from_nearest, improved_clusters, repair_region
 
 
 def test_texel_misfit_means_each_texels_reading_rows():
