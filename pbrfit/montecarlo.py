@@ -46,8 +46,7 @@ __all__ = [
     "sample_environment",
     "environment_pdf",
     "monte_carlo_radiance",
-    "default_lut",
-]
+    "default_lut", "hash32", "counter_uniforms", "sample_batch"]
 
 #: Rec. 709 / sRGB luminance weights (linear RGB).
 LUMINANCE = (0.2126, 0.7152, 0.0722)
@@ -219,7 +218,7 @@ def _as_column(x, like):
 MC_BATCH_ELEMENTS = 1 << 16
 
 
-def _hash32(x):
+def hash32(x):
     """lowbias32 integer hash (C. Wellons, "Hash function prospector", 2018): uint32 -> uint32."""
     x = x ^ (x >> 16)
     x = x * jnp.uint32(0x7FEB352D)
@@ -228,18 +227,18 @@ def _hash32(x):
     return x ^ (x >> 16)
 
 
-def _uniforms(seed, sample, dims: int, dtype):
+def counter_uniforms(seed, sample, dims: int, dtype):
     """(len(sample), *seed.shape, dims) uniforms in [0, 1): a counter-based hash of (seed, sample, dim).
 
     Cheaper to compile than threefry inside the sample loop (seconds less per model), and
     independent across points, samples and dimensions for Monte Carlo purposes.
     """
     c = sample.reshape((-1,) + (1,) * seed.ndim + (1,)) * jnp.uint32(dims) + jnp.arange(dims, dtype=jnp.uint32)
-    x = _hash32(seed[None, ..., None] ^ _hash32(c))
+    x = hash32(seed[None, ..., None] ^ hash32(c))
     return (x >> 8).astype(dtype) * (1.0 / (1 << 24))
 
 
-def _batch(samples: int, points: int) -> int:
+def sample_batch(samples: int, points: int) -> int:
     """Largest power-of-two divisor of ``samples`` with batch × points <= MC_BATCH_ELEMENTS (>= 1)."""
     b = 1
     while samples % (2 * b) == 0 and 2 * b * max(points, 1) <= MC_BATCH_ELEMENTS:
@@ -282,10 +281,10 @@ def _mc(env, n, v, base_color, metallic, roughness, dfg, model, samples, batch, 
 
     kd = jax.random.key_data(key).reshape(-1).astype(jnp.uint32)
     points = jnp.arange(int(np.prod(n.shape[:-1])), dtype=jnp.uint32).reshape(n.shape[:-1])
-    seed = _hash32(kd[0] ^ _hash32(kd[-1] ^ _hash32(points)))
+    seed = hash32(kd[0] ^ hash32(kd[-1] ^ hash32(points)))
 
     def step(acc, k):
-        u = _uniforms(seed, k * batch + jnp.arange(batch, dtype=jnp.uint32), 6, n.dtype)
+        u = counter_uniforms(seed, k * batch + jnp.arange(batch, dtype=jnp.uint32), 6, n.dtype)
         h = to_world(sample_ggx_vndf(v_loc, alpha, u[..., 1:3]))
         l_spec = 2 * dot3(v, h)[..., None] * h - v
         l_diff = to_world(sample_cosine(u[..., 1:3]))
@@ -325,5 +324,5 @@ def monte_carlo_radiance(env: Environment, n: Float[Array, "P 3"], v: Float[Arra
         nv = jnp.clip(dot3(n, v), 0.0, 1.0)
         dfg = lookup_brdf_lut(jnp.asarray(default_lut(model), n.dtype), nv, roughness[..., 0])
     samples = int(samples)
-    batch = _batch(samples, int(np.prod(n.shape[:-1])))
+    batch = sample_batch(samples, int(np.prod(n.shape[:-1])))
     return _mc(env, n, jnp.asarray(v, n.dtype), base_color, metallic, roughness, dfg, model, samples, batch, key)

@@ -103,7 +103,7 @@ def test_tables_are_cached_by_everything_they_depend_on(tmp_path, monkeypatch):
     def fail(*args, **kwargs):
         raise AssertionError("integrated again")
 
-    monkeypatch.setattr(module, "_integrate", fail)
+    monkeypatch.setattr(module, "integrate_lobes", fail)
     again = pixel_ibl(SKY, n, v, Model(), settings, cache_dir=tmp_path)
     np.testing.assert_array_equal(np.asarray(again.table), np.asarray(first.table))
     for changed in (dict(settings=PixelIBLSettings(levels=3, samples=16)), dict(model=Model(fresnel="dielectric")),

@@ -25,7 +25,8 @@ from pbrfit.model import Model
 from pbrfit.montecarlo import monte_carlo_radiance
 from pbrfit.observations import neighbour_pairs, observations_from_views, texel_layout
 from pbrfit.optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
-from pbrfit.pixel_ibl import PixelIBLSettings, _integrate, lobes_for, pixel_ibl
+from pbrfit.lobe_integrals import integrate_lobes
+from pbrfit.pixel_ibl import PixelIBLSettings, lobes_for, pixel_ibl
 from pbrfit.render import ViewInputs, light_arrays, radiance_view
 from pbrfit.objective import Problem
 from pbrfit.solvers import structured_lm
@@ -112,8 +113,8 @@ def test_per_pixel_integrals():
     env = procedural_sky(16)
     n = jnp.tile(jnp.array([[0.0, 1.0, 0.0]]), (4, 1))
     for model in (Model(), Model(fresnel="dielectric", diffuse="burley", multiscatter=True)):
-        _check(lambda nn: _integrate(env, jnp.zeros((64, 64, 2)), nn, nn, jnp.uint32(0), jnp.uint32(0), model=model,
-                                     lobes=lobes_for(model), levels=3, samples=4, batch=2), n)
+        _check(lambda nn: integrate_lobes(env, jnp.zeros((64, 64, 2)), nn, nn, jnp.uint32(0), jnp.uint32(0), model=model,
+                                           lobes=lobes_for(model), levels=3, samples=4, batch=2), n)
 
 
 @pytest.mark.parametrize("per_pixel", [False, True])
