@@ -100,7 +100,9 @@ def clamp_inward(x: Float[ArrayLike, "*batch"], lo: float, hi: Optional[float] =
     from inside. jnp.maximum and jnp.clip give 1/2 at a tie, so a roughness held on a bound of
     the fit's box (`pbrfit.parameters`: MIN_ROUGHNESS, 1) had a half (at 1) or a quarter (at the
     floor, through two floors) of its Jacobian column, and Gauss-Newton steps and standard
-    errors two to four times too large there."""
+    errors two to four times too large there. Every clamp of this module is this one: a cosine
+    at the end of its domain (n·h = 1 at a highlight's peak, n·v = 1 looking straight down, n·l
+    = 0 at the terminator) has its derivative from inside too."""
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):  # an integer roughness too: the floor is not an integer
         x = x.astype(jnp.result_type(float))
@@ -120,7 +122,7 @@ def _alpha(alpha):
 
 
 def _cos(x):
-    return jnp.clip(jnp.asarray(x), COS_MIN, 1.0)
+    return clamp_inward(x, COS_MIN, 1.0)
 
 
 def safe_normalize(x: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3"]:
@@ -158,9 +160,9 @@ def half_vector_sin2(n: Float[ArrayLike, "*batch 3"], v: Float[ArrayLike, "*batc
     c2 = c[..., 0] * c[..., 0] + c[..., 1] * c[..., 1] + c[..., 2] * c[..., 2]
     s2 = v_plus_l_sq(v, l)
     wide = s2 >= NORM2_MIN
-    nh = jnp.clip((n[..., 0] * s[..., 0] + n[..., 1] * s[..., 1] + n[..., 2] * s[..., 2]) / math.sqrt(NORM2_MIN),
+    nh = clamp_inward((n[..., 0] * s[..., 0] + n[..., 1] * s[..., 1] + n[..., 2] * s[..., 2]) / math.sqrt(NORM2_MIN),
                   0.0, 1.0)
-    return jnp.where(wide, jnp.clip(c2 / jnp.where(wide, s2, 1.0), 0.0, 1.0), (1.0 - nh) * (1.0 + nh))
+    return jnp.where(wide, clamp_inward(c2 / jnp.where(wide, s2, 1.0), 0.0, 1.0), (1.0 - nh) * (1.0 + nh))
 
 
 def half_vector_cosines(n_dot_v, n_dot_l, v_dot_l, v_plus_l_sq=None):
@@ -177,8 +179,8 @@ def half_vector_cosines(n_dot_v, n_dot_l, v_dot_l, v_plus_l_sq=None):
     if v_plus_l_sq is None:
         v_plus_l_sq = 2.0 + 2.0 * jnp.asarray(v_dot_l)
     length = jnp.sqrt(jnp.maximum(v_plus_l_sq, NORM2_MIN))
-    n_dot_h = jnp.clip((n_dot_v + n_dot_l) / length, 0.0, 1.0)
-    v_dot_h = jnp.clip(0.5 * v_plus_l_sq / length, 0.0, 1.0)
+    n_dot_h = clamp_inward((n_dot_v + n_dot_l) / length, 0.0, 1.0)
+    v_dot_h = clamp_inward(0.5 * v_plus_l_sq / length, 0.0, 1.0)
     return n_dot_h, v_dot_h
 
 
@@ -186,7 +188,7 @@ def half_vector_cosines(n_dot_v, n_dot_l, v_dot_l, v_plus_l_sq=None):
 def _sin2(nh, sin2_h):
     """1 - (n·h)²: ``sin2_h`` when the caller has it from the vectors (`half_vector_sin2`), else
     (1 - n·h)(1 + n·h) from the cosine."""
-    return (1.0 - nh) * (1.0 + nh) if sin2_h is None else jnp.clip(jnp.asarray(sin2_h), 0.0, 1.0)
+    return (1.0 - nh) * (1.0 + nh) if sin2_h is None else clamp_inward(jnp.asarray(sin2_h), 0.0, 1.0)
 
 
 def d_ggx(n_dot_h, alpha, sin2_h=None):
@@ -200,7 +202,7 @@ def d_ggx(n_dot_h, alpha, sin2_h=None):
     Normalised so that ∫ D(h) (n·h) dω_h = 1 over the hemisphere.
     """
     a2 = jnp.square(_alpha(alpha))
-    nh = jnp.clip(n_dot_h, 0.0, 1.0)
+    nh = clamp_inward(n_dot_h, 0.0, 1.0)
     front = jnp.asarray(n_dot_h) > 0.0
     b = jnp.where(front, _sin2(nh, sin2_h) + nh * nh * a2, 1.0)  # double where: b may be 0 behind
     return jnp.where(front, a2 * _INV_PI / (b * b), 0.0)
@@ -229,7 +231,7 @@ def d_beckmann(n_dot_h, alpha, sin2_h=None):
 def _ggx_root(n_dot_x, alpha):
     """sqrt(alpha^2 + (1 - alpha^2)(n·x)^2) = n·x sqrt(1 + alpha^2 tan^2 theta); > 0 for alpha > 0."""
     a2 = jnp.square(_alpha(alpha))
-    c = jnp.clip(n_dot_x, 0.0, 1.0)
+    c = clamp_inward(n_dot_x, 0.0, 1.0)
     return jnp.sqrt(a2 + (1.0 - a2) * c * c)
 
 
@@ -251,7 +253,7 @@ def g1_smith_ggx(n_dot_x, alpha):
 
     Walter et al. 2007, eq. 34. The second form has no division by n·x: G1(0) = 0 exactly.
     """
-    c = jnp.clip(n_dot_x, 0.0, 1.0)
+    c = clamp_inward(n_dot_x, 0.0, 1.0)
     return 2.0 * c / (c + _ggx_root(c, alpha))
 
 
@@ -287,8 +289,8 @@ def v_smith_ggx_correlated(n_dot_v, n_dot_l, alpha):
 
 def v_smith_ggx_separable(n_dot_v, n_dot_l, alpha):
     """V = G1(v) G1(l) / (4 n·v n·l) = 1 / ((n·v + root_v)(n·l + root_l)), roots as in `g1_smith_ggx`."""
-    nv = jnp.clip(n_dot_v, 0.0, 1.0)
-    nl = jnp.clip(n_dot_l, 0.0, 1.0)
+    nv = clamp_inward(n_dot_v, 0.0, 1.0)
+    nl = clamp_inward(n_dot_l, 0.0, 1.0)
     return 1.0 / ((nv + _ggx_root(nv, alpha)) * (nl + _ggx_root(nl, alpha)))
 
 
@@ -339,8 +341,8 @@ def k_ibl(alpha):
 
 def g_schlick_ggx(n_dot_x, k):
     """Schlick-GGX G1: n·x / (n·x (1 - k) + k) (Schlick 1994, as used by Karis 2013). k >= `K_MIN`."""
-    c = jnp.clip(n_dot_x, 0.0, 1.0)
-    k = jnp.maximum(k, K_MIN)
+    c = clamp_inward(n_dot_x, 0.0, 1.0)
+    k = clamp_inward(k, K_MIN)
     return c / (c * (1.0 - k) + k)
 
 
@@ -351,9 +353,9 @@ def g2_schlick_ggx(n_dot_v, n_dot_l, k):
 
 def v_schlick_ggx(n_dot_v, n_dot_l, k):
     """V = G2 / (4 n·v n·l) = 1 / (4 (n·v (1 - k) + k)(n·l (1 - k) + k)) for the Schlick-GGX product."""
-    nv = jnp.clip(n_dot_v, 0.0, 1.0)
-    nl = jnp.clip(n_dot_l, 0.0, 1.0)
-    k = jnp.maximum(k, K_MIN)
+    nv = clamp_inward(n_dot_v, 0.0, 1.0)
+    nl = clamp_inward(n_dot_l, 0.0, 1.0)
+    k = clamp_inward(k, K_MIN)
     return 0.25 / ((nv * (1.0 - k) + k) * (nl * (1.0 - k) + k))
 
 
@@ -364,7 +366,7 @@ def f_schlick(v_dot_h, f0, f90=1.0):
     The fifth power is written as products, so its derivative at v·h = 1 is exactly 0.
     Broadcasts a scalar cosine against an RGB f0 when given `v_dot_h[..., None]`.
     """
-    m = 1.0 - jnp.clip(v_dot_h, 0.0, 1.0)
+    m = 1.0 - clamp_inward(v_dot_h, 0.0, 1.0)
     m2 = m * m
     return f0 + (f90 - f0) * (m2 * m2 * m)
 
@@ -376,7 +378,7 @@ def f_dielectric(cos_theta, ior):
     F = 1/2 ((g - c)/(g + c))^2 (1 + ((c (g + c) - 1) / (c (g - c) + 1))^2)   (Walter et al. 2007, eq. 22)
     g^2 is floored at `NORM2_MIN` (it reaches 0 only for eta = 1 at grazing incidence).
     """
-    c = jnp.clip(cos_theta, 0.0, 1.0)
+    c = clamp_inward(cos_theta, 0.0, 1.0)
     g = jnp.sqrt(jnp.maximum(jnp.square(ior) - 1.0 + c * c, NORM2_MIN))
     a = (g - c) / (g + c)
     b = (c * (g + c) - 1.0) / (c * (g - c) + 1.0)
@@ -406,7 +408,7 @@ def diffuse_burley(n_dot_v, n_dot_l, l_dot_h, roughness):
     Burley 2012, section 5.3, with `roughness` perceptual as in Disney's parameterisation
     (Filament's Fd_Burley passes alpha instead). Times the diffuse color.
     """
-    f90 = 0.5 + 2.0 * jnp.asarray(roughness) * jnp.square(jnp.clip(l_dot_h, 0.0, 1.0))
+    f90 = 0.5 + 2.0 * jnp.asarray(roughness) * jnp.square(clamp_inward(l_dot_h, 0.0, 1.0))
     return _INV_PI * f_schlick(n_dot_l, 1.0, f90) * f_schlick(n_dot_v, 1.0, f90)
 
 
@@ -535,8 +537,8 @@ def evaluate_cosines(
     metallic = per_point(metallic, name="metallic")
     roughness = clamp_inward(per_point(roughness, name="roughness"), 0.0, 1.0)
     lit = (n_dot_v > 0.0) & (n_dot_l > 0.0)
-    nv = jnp.clip(n_dot_v, 0.0, 1.0)
-    nl = jnp.clip(n_dot_l, 0.0, 1.0)
+    nv = clamp_inward(n_dot_v, 0.0, 1.0)
+    nl = clamp_inward(n_dot_l, 0.0, 1.0)
     rough = roughness[..., 0]
 
     f0 = specular_f0(base_color, metallic, model)

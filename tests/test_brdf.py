@@ -848,6 +848,38 @@ def test_roughness_derivative_at_the_bounds_is_the_inside_one():
     assert float(jax.grad(lambda r: brdf.clamp_inward(r, 0.0, 1.0))(1.5)) == 0.0
 
 
+_IBL_GEOMETRY = Model(geometry="schlick_ggx_ibl")
+#: (term of one input, the end of its domain, the side its inside lies on)
+_DOMAIN_ENDS = [
+    ("v_smith_ggx_correlated at n·v = 1", lambda x: brdf.v_smith_ggx_correlated(x, 0.5, 0.1), 1.0, -1),
+    ("d_ggx at n·h = 1", lambda x: brdf.d_ggx(x, 0.3), 1.0, -1),
+    ("g1_smith_ggx at n·x = 0", lambda x: brdf.g1_smith_ggx(x, 0.1), 0.0, 1),
+    ("g1_smith_ggx at n·x = 1", lambda x: brdf.g1_smith_ggx(x, 0.5), 1.0, -1),
+    ("g_schlick_ggx at n·x = 0", lambda x: brdf.g_schlick_ggx(x, 0.2), 0.0, 1),
+    ("f_schlick at v·h = 0", lambda x: brdf.f_schlick(x, 0.04), 0.0, 1),
+    ("f_dielectric at cos = 0", lambda x: brdf.f_dielectric(x, 1.5), 0.0, 1),
+    ("diffuse_burley at l·h = 1", lambda x: brdf.diffuse_burley(0.5, 0.5, x, 0.5), 1.0, -1),
+    ("evaluate_cosines at n·v = 1", lambda x: brdf.evaluate_cosines(
+        x, 0.6, 0.95, 0.9, jnp.full(3, 0.5), 0.0, 0.3)[..., 0], 1.0, -1),
+    ("evaluate_cosines at n·l = 1", lambda x: brdf.evaluate_cosines(
+        0.6, x, 0.95, 0.9, jnp.full(3, 0.5), 0.0, 0.3)[..., 0], 1.0, -1),
+    # k_ibl(MIN_ROUGHNESS²) is K_MIN exactly: the floor of k ties there
+    ("Schlick-GGX (IBL k) at MIN_ROUGHNESS", lambda r: brdf.evaluate_cosines(
+        0.05, 0.05, 0.9999, 0.05, jnp.full(3, 0.5), 1.0, r, _IBL_GEOMETRY)[..., 0], brdf.MIN_ROUGHNESS, 1),
+]
+
+
+@pytest.mark.parametrize("name, f, end, side", _DOMAIN_ENDS, ids=[c[0] for c in _DOMAIN_ENDS])
+def test_derivative_at_the_end_of_a_domain_is_the_inside_one(name, f, end, side, x64):
+    """At the end of an input's domain (a cosine at 0 or 1: a highlight's peak, a camera looking
+    straight down; k at its floor) jax.grad gives the one-sided derivative from inside, as at the
+    roughness bounds: a clamp by jnp.clip or jnp.maximum would give half of it (less through two)."""
+    h = 1e-6
+    f0, f1, f2 = (float(f(jnp.float64(end + side * i * h))) for i in range(3))
+    inside = side * (-3.0 * f0 + 4.0 * f1 - f2) / (2.0 * h)  # second-order one-sided difference
+    np.testing.assert_allclose(float(jax.grad(f)(jnp.float64(end))), inside, rtol=1e-5, err_msg=name)
+
+
 def test_masking_terms_vanish_at_and_below_the_horizon():
     """χ⁺(n·x): the cosines' floor (`COS_MIN`) must not leave G above 0 there."""
     for c in (0.0, -0.5):
