@@ -322,14 +322,17 @@ def build_ibl(env: Environment, settings: IBLSettings = IBLSettings(), model: Op
                      env.world_up, env.rotation_deg, settings.specular_direction)
 
 
-def brdf_tables(settings: IBLSettings = IBLSettings(), model: Optional[Model] = None) -> IBLTables:
+def brdf_tables(settings: IBLSettings = IBLSettings(), model: Optional[Model] = None,
+                dtype=jnp.float32) -> IBLTables:
     """The split sum's BRDF tables alone (LUT, diffuse and dielectric albedo), with an empty
     environment (black irradiance, one black prefiltered texel): what ``Model(multiscatter=True)``
     reads for its energy compensation (`brdf.energy_compensation`, the DFG LUT) under punctual
-    lights alone, where there is no environment to build `build_ibl` from."""
+    lights alone, where there is no environment to build `build_ibl` from. In ``dtype`` (as
+    `build_ibl`'s are in the environment's), so that shading float32 inputs stays float32 with
+    x64 enabled."""
     model = model or Model()
-    spec = _specular_tables(settings.lut_size, settings.lut_samples, model)
-    dif = diffuse_lut(settings.lut_size, settings.lut_samples, model)
+    spec = _specular_tables(settings.lut_size, settings.lut_samples, model).astype(dtype)
+    dif = diffuse_lut(settings.lut_size, settings.lut_samples, model).astype(dtype)
     return IBLTables(jnp.zeros((9, 3), spec.dtype), jnp.zeros((1, 1, 1, 3), spec.dtype), spec[..., :2], dif,
                      spec[..., 2:], "sh9", ((1, 1),))
 

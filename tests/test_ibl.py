@@ -375,6 +375,10 @@ def test_brdf_tables_are_build_ibls_without_the_environment(sky_tables):
     for name in ("lut", "diffuse", "dielectric"):
         np.testing.assert_array_equal(np.asarray(getattr(alone, name)), np.asarray(getattr(full, name)), err_msg=name)
     assert not np.any(np.asarray(alone.irradiance)) and not np.any(np.asarray(alone.prefiltered))
+    with jax.enable_x64(True):  # float32 tables with x64 on too: float32 shading is not promoted
+        tables = brdf_tables(SMALL)
+        assert {getattr(tables, name).dtype for name in ("lut", "diffuse", "dielectric", "irradiance")} == {
+            jnp.dtype(jnp.float32)}
 
 
 def test_prefiltered_roughness_derivative_at_the_ends_is_from_inside(sky_tables):
