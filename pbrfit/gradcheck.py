@@ -8,6 +8,10 @@ Autodiff (forward over reverse) is compared with float64 central finite differen
 Richardson-extrapolated (`pbrfit.finite_differences`: the stencils, steps and error measure). Points
 within `KINK_MARGIN` of a clamp or branch switch are skipped (counted in `CheckResult.skipped`); a
 check passes when its worst point's relative error is within `TOLERANCE[order]`.
+
+Finite differences cannot reach the ends of the domains (a cosine at 0 or 1, roughness at its
+floor), where the project promises finite values and gradients: `run_ends` evaluates every term
+there, at each input's kinks and about a float32 ulp either side, in float32 and in float64.
 """
 
 from __future__ import annotations
@@ -28,8 +32,9 @@ from .model import Model
 
 __all__ = ["CheckResult", "run_checks", "print_report", "all_specs", "model_label", "MODEL_VARIANTS", "TOLERANCE"]
 
-#: Pass thresholds on the maximum relative error, by order.
-TOLERANCE = {1: 1e-5, 2: 1e-4}
+#: Pass thresholds on the maximum relative error, by order (0: the share of points at the
+#: domains' ends where a value or gradient is not finite).
+TOLERANCE = {0: 0.0, 1: 1e-5, 2: 1e-4}
 
 #: Fixed weights that turn an RGB (or other vector) output into the scalar that is differentiated;
 #: unequal so that a wrong channel cannot cancel.
@@ -43,7 +48,10 @@ class CheckResult:
     """Outcome of one gradient check.
 
     term: what was differentiated (a function name, with the Model variant for evaluate_cosines).
-    order: 1 (gradient) or 2 (Hessian). max_rel_error: worst relative error over the grid.
+    order: 1 (gradient) or 2 (Hessian) against finite differences, or 0: the values and gradients
+    at the ends of the inputs' domains are finite (`run_ends`; max_rel_error is then the share of
+    points where one is not, and the tolerance 0). dtype: what it ran in.
+    max_rel_error: worst relative error over the grid.
     worst_point: the inputs at the worst point, the derivative component (``wrt``), and the
     autodiff and finite-difference values there. passed: max_rel_error <= tolerance.
     checked / skipped: grid points compared / skipped for lying within `KINK_MARGIN` of a kink.
@@ -57,6 +65,7 @@ class CheckResult:
     tolerance: float
     checked: int = 0
     skipped: int = 0
+    dtype: str = "float64"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,8 +80,8 @@ class _Spec:
 
 # --- Grids -------------------------------------------------------------------------------------
 COSINES = (0.05, 0.2, 0.5, 0.8, 0.95)
-ALPHAS = (0.01, 0.1, 0.3, 0.7)
-ROUGHNESS = (0.1, 0.3, 0.6, 0.9)
+ALPHAS = (0.005, 0.01, 0.1, 0.3, 0.7)
+ROUGHNESS = (0.06, 0.1, 0.3, 0.6, 0.9)
 _COS_KINKS = (0.0, brdf.COS_MIN, 1.0)
 _ALPHA_KINKS = (brdf.MIN_ALPHA,)
 _ROUGH_KINKS = (0.0, brdf.MIN_ROUGHNESS, 1.0)
@@ -343,12 +352,72 @@ def _compare(spec: _Spec, x, pairs, skipped, outputs, h1: float, h2: float) -> l
 _COMPILER_OPTIONS = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 
 
-def run_checks(specs: Optional[Sequence[_Spec]] = None) -> list:
-    """Run every gradient check in float64; returns one `CheckResult` per (term, order).
+# --- The ends of the domains ------------------------------------------------------------------
+#: Where the sweep evaluates around each kink (a clamp, a branch switch, a domain's end): on it,
+#: and about one float32 ulp of 1 either side.
+ENDS_OFFSETS = (0.0, -1e-7, 1e-7)
+#: The sweep runs in float32, as a fit does, and in float64.
+ENDS_DTYPES = (np.float32, np.float64)
+#: Most points per term: a larger product of the inputs' ends is sampled (a fixed draw), which
+#: keeps `evaluate_cosines`' 118,098 combinations per model from taking most of the run time.
+ENDS_MAX_POINTS = 8192
+
+
+def ends_grid(spec: _Spec) -> np.ndarray:
+    """Points at the ends of ``spec``'s domains: per input, its kinks ± `ENDS_OFFSETS` (or, for an
+    input without kinks, the least and greatest values of its grid), every combination (at most
+    `ENDS_MAX_POINTS` of them)."""
+    axes = []
+    for i, kinks in enumerate(spec.kinks):
+        col = np.asarray(spec.grid)[:, i]
+        axes.append(sorted({k + d for k in kinks for d in ENDS_OFFSETS} or {float(col.min()), float(col.max())}))
+    grid = _grid(*axes)
+    if len(grid) > ENDS_MAX_POINTS:
+        grid = grid[np.sort(np.random.default_rng(0).choice(len(grid), ENDS_MAX_POINTS, replace=False))]
+    return grid
+
+
+def _ends_results(spec: _Spec, grid: np.ndarray, outputs, dtype) -> CheckResult:
+    values, grads = (np.asarray(a, np.float64) for a in outputs)
+    bad = ~(np.isfinite(values) & np.all(np.isfinite(grads), axis=1))
+    point = {}
+    if bad.any():
+        i = int(np.argmax(bad))
+        point = {name: float(grid[i, j]) for j, name in enumerate(spec.names)}
+        point.update(value=float(values[i]), gradient=[float(g) for g in grads[i]])
+    return CheckResult(spec.term, 0, float(bad.mean()), point, not bad.any(), TOLERANCE[0], len(grid), 0,
+                       np.dtype(dtype).name)
+
+
+def run_ends(specs: Optional[Sequence[_Spec]] = None) -> list:
+    """Values and gradients at the ends of every input's domain (`ends_grid`), in float32 and in
+    float64: one `CheckResult` (order 0) per (term, dtype), passed where all are finite. Finite
+    differences cannot reach there (a stencil straddles the kink); the derivatives' values at
+    the ends are tested in ``tests/test_brdf.py`` (the one-sided derivative from inside)."""
+    specs = all_specs() if specs is None else list(specs)
+    grids = [ends_grid(spec) for spec in specs]
+    results = []
+    for dtype in ENDS_DTYPES:
+        with jax.enable_x64(dtype == np.float64):
+            runs = [jax.vmap(jax.value_and_grad(spec.fn)) for spec in specs]
+            args = [jnp.asarray(g.astype(dtype)) for g in grids]
+            lowered = jax.jit(lambda args: [run(a) for run, a in zip(runs, args)]).lower(args)
+            try:
+                program = lowered.compile(_COMPILER_OPTIONS)
+            except Exception:  # an XLA build without these options: compile with the defaults
+                program = lowered.compile()
+            outputs = program(args)
+        results.extend(_ends_results(spec, grid, out, dtype) for spec, grid, out in zip(specs, grids, outputs))
+    return results
+
+
+def run_checks(specs: Optional[Sequence[_Spec]] = None, ends: bool = True) -> list:
+    """Run every gradient check; returns one `CheckResult` per (term, order), and with ``ends``
+    the sweep of the domains' ends (`run_ends`, order 0, one per term and dtype) after them.
 
     For each function: autodiff gradient and Hessian (forward over reverse) at every grid point,
-    against the Richardson-extrapolated central differences of its values (see module docstring).
-    ``specs`` defaults to `all_specs()`.
+    against the Richardson-extrapolated central differences of its values, in float64 (see
+    module docstring). ``specs`` defaults to `all_specs()`.
     """
     h1, h2 = STEP_1, STEP_2
     with jax.enable_x64(True):
@@ -366,12 +435,13 @@ def run_checks(specs: Optional[Sequence[_Spec]] = None) -> list:
         for spec, prep, out in zip(specs, prepared, outputs):
             _, _, x, pairs, skipped = prep
             results.extend(_compare(spec, x, pairs, skipped, out, h1, h2))
-    return results
+    return results + (run_ends(specs) if ends else [])
 
 
 # --- Report ------------------------------------------------------------------------------------
 def _fmt_point(point: dict) -> str:
-    inputs = [f"{k}={v:.4g}" for k, v in point.items() if k not in ("wrt", "autodiff", "finite_difference")]
+    inputs = [f"{k}={v:.4g}" for k, v in point.items()
+              if k not in ("wrt", "autodiff", "finite_difference", "value", "gradient")]
     extra = f" {point['wrt']}" if "wrt" in point else ""
     return " ".join(inputs) + extra
 
@@ -384,10 +454,11 @@ def print_report(results: Sequence[CheckResult], quiet: bool = False) -> bool:
     rows = [r for r in results if not (quiet and r.passed)]
     if rows:
         width = max(len(r.term) for r in rows)
-        print(f"{'term':<{width}}  order  max rel error  tol      points  skipped  result  worst point")
+        print(f"{'term':<{width}}  {'check':<12}  max rel error  tol      points  skipped  result  worst point")
         for r in rows:
+            check = f"ends {r.dtype}" if r.order == 0 else f"order {r.order}"
             print(
-                f"{r.term:<{width}}  {r.order:>5}  {r.max_rel_error:13.2e}  {r.tolerance:7.0e}  {r.checked:>6}  "
+                f"{r.term:<{width}}  {check:<12}  {r.max_rel_error:13.2e}  {r.tolerance:7.0e}  {r.checked:>6}  "
                 f"{r.skipped:>7}  {'pass' if r.passed else 'FAIL':<6}  {_fmt_point(r.worst_point)}"
             )
     if not quiet:
@@ -401,13 +472,17 @@ def print_report(results: Sequence[CheckResult], quiet: bool = False) -> bool:
             f"finite differences: float64, central, Richardson-extrapolated, steps {STEP_1:g} (1st order) and "
             f"{STEP_2:g} (2nd order); points within {KINK_MARGIN:g} of a clamp or branch switch are skipped"
         )
+        print("ends: values and gradients finite at each input's kinks (clamps, branch switches, domain ends) "
+              f"and {ENDS_OFFSETS[-1]:g} either side, in float32 and float64; max rel error is the share that is not")
     failed = [r for r in results if not r.passed]
     worst1 = max((r.max_rel_error for r in results if r.order == 1), default=0.0)
     worst2 = max((r.max_rel_error for r in results if r.order == 2), default=0.0)
     terms = len({r.term for r in results})
+    ends = [r for r in results if r.order == 0]
+    swept = f"; {sum(r.checked for r in ends)} points at the domains' ends" if ends else ""
     print(
         f"check-grads: {'PASS' if ok else 'FAIL'}: {terms} terms, {len(results)} checks, {len(failed)} failed; "
-        f"max rel error {worst1:.1e} (1st order), {worst2:.1e} (2nd order)"
+        f"max rel error {worst1:.1e} (1st order), {worst2:.1e} (2nd order){swept}"
     )
     return ok
 

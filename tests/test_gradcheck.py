@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 import pytest
 
 from pbrfit import brdf, gradcheck
@@ -27,9 +28,12 @@ def test_run_checks_passes(results):
         assert f"evaluate_cosines[{gradcheck.model_label(model)}]" in terms
     for name in ("srgb_to_linear", "linear_to_srgb", "tonemap_aces_hill", "tonemap_khronos_neutral"):
         assert name in terms
-    assert {r.order for r in results} == {1, 2}
+    assert {r.order for r in results} == {0, 1, 2}
     assert all(r.checked > 0 and r.tolerance == gradcheck.TOLERANCE[r.order] for r in results)
-    assert all(set(r.worst_point) >= {"wrt", "autodiff", "finite_difference"} for r in results)
+    assert all(set(r.worst_point) >= {"wrt", "autodiff", "finite_difference"} for r in results if r.order > 0)
+    # every term is also swept at the ends of its inputs' domains, in float32 and in float64
+    ends = {(r.term, r.dtype) for r in results if r.order == 0}
+    assert ends == {(t, d) for t in terms for d in ("float32", "float64")}
     r = results[0]
     with pytest.raises(dataclasses.FrozenInstanceError):
         r.passed = False  # type: ignore[misc]
@@ -56,6 +60,47 @@ def test_wrong_first_derivative_is_caught(monkeypatch):
     res = {r.order: r for r in gradcheck.run_checks(_spec("d_ggx"))}
     assert not res[1].passed and res[1].max_rel_error > 1e-3
     assert res[1].worst_point["wrt"] == "d/dn·h"
+
+
+def test_wrong_derivative_at_low_roughness_is_caught(monkeypatch):
+    """Twice the derivative below alpha 0.009 (roughness 0.095, above the fit's floor 0.045): the
+    grid reaches alpha 0.005."""
+    true_d = brdf.d_ggx
+
+    @jax.custom_jvp
+    def d_wrong(n_dot_h, alpha):
+        return true_d(n_dot_h, alpha)
+
+    @d_wrong.defjvp
+    def _(primals, tangents):
+        out, tan = jax.jvp(true_d, primals, tangents)
+        return out, jnp.where(primals[1] < 0.009, 2.0 * tan, tan)
+
+    monkeypatch.setattr(brdf, "d_ggx", d_wrong)
+    res = [r for r in gradcheck.run_checks(_spec("d_ggx"), ends=False) if r.order == 1]
+    assert not res[0].passed and res[0].worst_point["alpha"] < 0.009, res
+
+
+def test_nan_gradient_at_a_domain_end_is_caught(monkeypatch):
+    """A NaN derivative at n·h = 1 (a highlight's peak), where no finite-difference stencil can
+    go: the ends sweep fails, in both dtypes, and names the point."""
+    true_d = brdf.d_ggx
+
+    @jax.custom_jvp
+    def d_nan(n_dot_h, alpha):
+        return true_d(n_dot_h, alpha)
+
+    @d_nan.defjvp
+    def _(primals, tangents):
+        out, tan = jax.jvp(true_d, primals, tangents)
+        return out, tan * jnp.where(primals[0] >= 0.9999, jnp.nan, 1.0)
+
+    monkeypatch.setattr(brdf, "d_ggx", d_nan)
+    res = gradcheck.run_checks(_spec("d_ggx"))
+    assert all(r.passed for r in res if r.order > 0)
+    ends = [r for r in res if r.order == 0]
+    assert len(ends) == 2 and not any(r.passed for r in ends)
+    assert all(r.worst_point["n·h"] >= 0.9999 and 0 < r.max_rel_error < 1 for r in ends)
 
 
 def test_wrong_second_derivative_is_caught(monkeypatch):
