@@ -235,8 +235,7 @@ def _cmd_fit(args) -> int:
               file=sys.stderr)
     result, errors = run_fit(capture, out, options, _cache_dir(args), args.quiet)
     if not args.quiet:
-        print(fit_summary(result, errors))
-        print(f"wrote {out}")
+        print(f"{fit_summary(result, errors)}; wrote {out}")
     return EXIT_OK
 
 

@@ -227,6 +227,8 @@ def fit_summary(result, errors) -> str:
                      f"{foot['energies'][other]:.3e} {'at centres' if other == '1' else f'with {other}x{other}'})")
     elif n > 1:
         parts[0] += f", {n}x{n} samples per pixel"
+    if r.get("unseen_texels"):  # no view sees them: left at the prior, σ +inf (coverage.exr 0)
+        parts[0] += f", {r['unseen_texels']} of {h * w} texels unseen (not fitted: coverage 0)"
     uniform = [f"{name} {r['uniform_check'][name]['value']:.4g}" for name in uniform_channels(r)]
     if uniform:  # the uniform check found no support for these maps in the images
         parts[0] += ", one value for " + " and ".join(uniform) + " (uniform check)"

@@ -58,7 +58,7 @@ from .errors import CaptureError
 from .fit_options import (IBL_MODES, LOSS_SCALE, check_kinds, check_model, check_names, check_normals, check_options,
                           fit_arguments, held_report)
 from .fit_pass import COARSE_STEPS, CONTINUATION, fit_pass
-from .fit_result import FitResult, map_rmse
+from .fit_result import FitResult, closed_times, map_rmse
 from .footprint import footprint_choice
 from .model import Model
 from .noise import estimate_noise_level
@@ -211,9 +211,10 @@ def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
         second_kwargs["ibl"] = kwargs["centre_ibl"]
     second, _ = fit_pass(weighted, shared=shared, **second_kwargs)
     report = second.report
-    report["times"] = dict(report["times"], setup=float(kwargs["setup_time"]),
-                           post=first.report["times"].get("post", 0.0) + report["times"].get("post", 0.0))
     report["wall_time"] = float(kwargs["setup_time"] + time.perf_counter() - t_start)
+    report["times"] = closed_times(dict(report["times"], setup=float(kwargs["setup_time"]),
+                                        post=first.report["times"].get("post", 0.0) + report["times"].get("post", 0.0)),
+                                   report["wall_time"])
     report["steps"] += first.report["steps"]
     if footprint is not None:
         report["footprint"] = footprint

@@ -27,7 +27,7 @@ from .observations import Observations, coverage_counts, layout_for, neighbour_p
 from .parameters import FIT_GROUPS, channel_mask, prior
 from .repair import repair_skipped, run_repair
 from .resolution import default_resolution, schedule
-from .runner import DEFAULT_SOLVER, Compiler, Runner, jitted_normal_blocks, problem_key, timed
+from .runner import DEFAULT_SOLVER, Compiler, Runner, jitted_normal_blocks, problem_key, timed, timed_rest
 from .selection import SELECTABLE, run_uniform_check, uniform_check_skipped
 from .sharding import pixel_mesh, shard_problem
 from .objective import Problem
@@ -35,7 +35,7 @@ from .textures import resample_map, sample_bilinear
 from .transfer import to_device
 
 __all__ = ["fit_pass", "continuation_scale", "with_smooth", "COARSE_STEPS", "MAX_STEPS", "SEARCH_AFTER",
-           "SEARCH_ROUNDS", "CONTINUATION", "SETTLE_STEPS", "RELEASED_STEPS", "PROBE_STEPS"]
+           "SEARCH_ROUNDS", "CONTINUATION", "SETTLE_STEPS", "RELEASED_STEPS", "PROBE_STEPS", "TURNED_OFF"]
 
 #: Default step limits: per coarse level, and for the final level.
 COARSE_STEPS = 20
@@ -91,6 +91,10 @@ def _upsample(x: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     v = (np.arange(h) + 0.5) / h
     uv = np.stack(np.meshgrid(u, v, indexing="xy"), -1)
     return np.asarray(sample_bilinear(jnp.asarray(x), jnp.asarray(uv), "clamp"))
+
+
+#: The report's "skipped" entry of a stage the caller turned off (``repair=False``, ``--no-uniform-check``).
+TURNED_OFF = "turned off"
 
 
 def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, solver, max_steps, coarse_steps, rtol,
@@ -267,8 +271,9 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
             if skipped is not None:
                 repaired = dict(skipped=skipped)
             else:
-                xs, linearization, repaired = run_repair(runner, compiler, problem, xs, linearization, final, seen,
-                                                      channels, num_free, where)
+                with timed_rest(clock, "repair"):
+                    xs, linearization, repaired = run_repair(runner, compiler, problem, xs, linearization, final, seen,
+                                                          channels, num_free, where)
                 x = xs[:t_final].reshape(final + (k,))
         checks, uniform = {}, {}
         if uniform_check:
@@ -276,8 +281,9 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
             if skipped is not None:
                 checks = dict(skipped=skipped)
             else:
-                xs, linearization, problem, checks, uniform = run_uniform_check(
-                    runner, problem, xs, linearization, channels, seen, obs.num_pixels, where)
+                with timed_rest(clock, "uniform_check"):
+                    xs, linearization, problem, checks, uniform = run_uniform_check(
+                        runner, problem, xs, linearization, channels, seen, obs.num_pixels, where)
                 x = xs[:t_final].reshape(final + (k,))
     finally:
         compiler.close()
@@ -292,9 +298,18 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
                 checks[name]["sigma"] = float(np.asarray(result.uncertainty)[..., c][seen[:t_final].reshape(final)][0])
         result.report["uniform_check"] = checks
         result.report["steps"] += sum(c.get("steps", 0) for c in checks.values() if isinstance(c, dict))
+    else:
+        result.report["uniform_check"] = dict(skipped=TURNED_OFF)
     if repair:
         result.report["repair"] = repaired
         result.report["steps"] += sum(p.get("steps", 0) for p in repaired.get("passes", ()))
+    else:
+        result.report["repair"] = dict(skipped=TURNED_OFF)
+    # when each level stops (`pbrfit.fit.fit_observations`), and the robust loss's scale
+    result.report["stopping"] = dict(max_steps=int(max_steps), coarse_steps=int(coarse_steps), rtol=float(rtol),
+                                     atol=float(atol))
+    if loss != "l2":
+        result.report["loss_scale"] = float(loss_scale)
     result.report["continuation"] = annealed
     if solver == DEFAULT_SOLVER:
         result.report["cg_rtol"] = float(cg_rtol)

@@ -22,7 +22,7 @@ from .textures import resample_map
 from .transfer import to_device
 from .uncertainty import WINDOW_RADIUS, residual_variance, window_radii, window_standard_errors
 
-__all__ = ["FitResult", "finish", "map_rmse"]
+__all__ = ["FitResult", "closed_times", "finish", "map_rmse"]
 
 
 @dataclasses.dataclass
@@ -38,7 +38,7 @@ class FitResult:
             view sees.
         coverage: (H, W) pixel observations per texel (0 = never seen; such texels keep `PRIOR`).
         report: model, solver, steps (also as "iterations", the capture spec's word), times
-            (setup / compile / solve), final loss, per-view PSNR, devices, the levels run and the
+            (`closed_times`), final loss, per-view PSNR, devices, the levels run and the
             uniform check's tests.
         images: per view, the fitted render in the images' own space (H, W, 3); targets: the
             images; masks: (H, W) bool, the pixels that entered the objective.
@@ -51,6 +51,18 @@ class FitResult:
     images: list
     targets: list
     masks: list
+
+
+def closed_times(times: dict, wall: float) -> dict:
+    """A fit's time split, closed: ``times`` (setup: reading the capture and casting rays; compile:
+    waiting for compiles; solve: solver steps; init, search: the grid start and the coordinate
+    search; repair, uniform_check: those stages' own work; post: the outputs' arrays) with
+    "other", the rest of ``wall`` (host-side work between stages: each level's problem), so that
+    the entries sum to the wall time. "compile_background", compiles overlapped with the fit's
+    own work in another thread, is apart from the sum."""
+    times = {k: float(v) for k, v in times.items() if k != "other"}
+    spent = sum(v for k, v in times.items() if k != "compile_background")
+    return dict(times, other=max(float(wall) - spent, 0.0))
 
 
 def finish(obs, problem, x, final, channels, seen, model, solver, history, loss, smooth, times, t_post, t_start,
@@ -143,13 +155,14 @@ def finish(obs, problem, x, final, channels, seen, model, solver, history, loss,
         pixels=int(obs.num_pixels),
         pixel_samples=samples_side(obs),
         observed_texels=int(np.sum(coverage > 0)),
+        unseen_texels=int(np.sum(coverage == 0)),  # left at the prior (or held), σ +inf
         psnr=psnr,
-        times={name: float(v) for name, v in times.items()},
         wall_time=float(times["setup"] + time.perf_counter() - t_start),
         devices=sorted(str(d) for d in problem.obs.target.sharding.device_set),
         uncertainty=dict(radius=int(uncertainty_radius), window=[2 * r + 1 for r in window_radii(tuple(final),
                                                                                                uncertainty_radius)]),
     )
+    report["times"] = closed_times(times, report["wall_time"])
     if tuple(final) == (1, 1):  # a uniform material: the five numbers and their standard errors
         report["material"] = dict(base_color=[float(v) for v in x[0, 0, 0:3]], metallic=float(x[0, 0, 3]),
                                   roughness=float(x[0, 0, 4]))

@@ -10,6 +10,7 @@ coordinate search) the same way.
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import itertools
 import time
 from typing import Mapping
@@ -23,7 +24,7 @@ from .normal_matrix import neighbour_blocks, normal_blocks
 from .solvers import CG_RTOL, structured_lm
 from .transfer import to_device
 
-__all__ = ["DEFAULT_SOLVER", "SOLVERS", "Compiler", "Runner", "timed", "problem_key", "compile_summary",
+__all__ = ["DEFAULT_SOLVER", "SOLVERS", "Compiler", "Runner", "timed", "timed_rest", "problem_key", "compile_summary",
            "jitted_normal_blocks", "jitted_neighbour_blocks", "problem_energy"]
 
 DEFAULT_SOLVER = "structured"
@@ -112,6 +113,24 @@ def compile_summary(times: Mapping[str, float]) -> str:
 def problem_key(problem: Problem) -> tuple:
     """What an executable over `problem` is specialised to: rows per pixel and the shapes."""
     return (problem.obs.samples, tuple(problem.index.shape), tuple(problem.free.shape), tuple(problem.pairs.shape))
+
+
+#: Clock entries that are not time on the fit's own thread (`Compiler`'s overlapped compiles).
+_OFF_THREAD = ("compile_background",)
+
+
+@contextlib.contextmanager
+def timed_rest(clock: dict, name: str):
+    """Add to ``clock[name]`` the wall time of the block that no other entry of ``clock`` took
+    meanwhile: a stage's own work (its host-side steps and jitted evaluations compiled on first
+    use), with its solver steps, searches and waited-for compiles counted where they are."""
+    counted = lambda: sum(v for k, v in clock.items() if k not in _OFF_THREAD)  # noqa: E731
+    before, t0 = counted(), time.perf_counter()
+    try:
+        yield
+    finally:
+        rest = (time.perf_counter() - t0) - (counted() - before)
+        clock[name] = clock.get(name, 0.0) + max(rest, 0.0)
 
 
 def timed(compiler: Compiler, key, fn, name: str, *args):

@@ -65,7 +65,11 @@ def test_fit_with_an_estimated_noise_level(capture, tmp_path, monkeypatch, capsy
     assert level["mode"] == "estimated" and len(level["sigma"]) == len(level["values"]) >= 1
     assert report["steps"] > level["first_fit"]["steps"] > 0
     assert report["footprint"]["selected"] in (1, 2) and report["pixel_samples"] == report["footprint"]["selected"]
-    assert "weighted by the estimated noise level" in capsys.readouterr().out
+    lines = capsys.readouterr().out.strip().splitlines()  # one summary line (no progress bar off a terminal)
+    assert len(lines) == 1 and "weighted by the estimated noise level" in lines[0], lines
+    assert lines[0].endswith(f"; wrote {out}")
+    # both fits' times, and the rest as "other", add up to the wall time
+    assert sum(v for k, v in report["times"].items() if k != "compile_background") == pytest.approx(report["wall_time"])
     assert max(report["truth_rmse"].values()) < 0.1, report["truth_rmse"]
 
 
@@ -472,6 +476,9 @@ def test_summary_line_names_the_footprint():
     report["times"]["compile_background"] = 6.5
     assert "5.0 s (compile 1.0 s, 6.5 s more overlapped)" in fit_summary(SimpleNamespace(report=report), {})
     assert "uniform" not in fit_summary(SimpleNamespace(report=report), {})
+    assert "unseen" not in fit_summary(SimpleNamespace(report=dict(report, unseen_texels=0)), {})
+    assert ", 7 of 64 texels unseen (not fitted: coverage 0)" in fit_summary(
+        SimpleNamespace(report=dict(report, unseen_texels=7)), {})
     report["uniform_check"] = dict(metallic=dict(uniform=True, value=0.0), roughness=dict(uniform=False))
     assert "30 steps, loss 2.000e+00, one value for metallic 0 (uniform check); " in fit_summary(
         SimpleNamespace(report=report), {})

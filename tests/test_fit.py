@@ -24,7 +24,8 @@ import pbrfit.selection
 import pbrfit.solvers
 from pbrfit.fit import SOLVERS, default_resolution, fit_observations, map_rmse, schedule
 from pbrfit.fit_options import fit_arguments
-from pbrfit.fit_pass import RELEASED_STEPS, SEARCH_AFTER, SETTLE_STEPS
+from pbrfit.fit_options import LOSS_SCALE
+from pbrfit.fit_pass import COARSE_STEPS, RELEASED_STEPS, SEARCH_AFTER, SETTLE_STEPS, TURNED_OFF
 from pbrfit.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, grid_initialise, parity_classes
 from pbrfit.lights import point_light
 from pbrfit.material import Material
@@ -276,6 +277,7 @@ def test_srgb_targets_and_huber_loss():
     error = {loss: (np.max(np.abs(np.asarray(r.material.base_color).ravel() - [0.5, 0.4, 0.3])),
                     abs(float(r.material.roughness[0, 0, 0]) - 0.4)) for loss, r in fits.items()}
     assert fits["huber"].report["loss"] == "huber" and fits["l2"].report["loss"] == "l2"
+    assert fits["huber"].report["loss_scale"] == pytest.approx(LOSS_SCALE) and "loss_scale" not in fits["l2"].report
     assert error["huber"][0] < 0.008 and error["huber"][1] < 3e-3, error
     assert error["l2"][0] > 0.015 and error["l2"][1] > 6e-3, error
     assert fits["huber"].report["uniform_check"] == dict(skipped="a uniform material")
@@ -478,6 +480,11 @@ def test_fit_reports_the_search():
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
     res = fit_observations(obs, resolution=8, max_steps=40)
     assert "search_moved" in res.report["levels"][-1] and "search" in res.report["times"]
+    # every stage's time, and the rest as "other": they add up to the wall time
+    times = res.report["times"]
+    assert {"setup", "compile", "solve", "init", "search", "repair", "uniform_check", "post", "other"} <= set(times)
+    assert sum(v for k, v in times.items() if k != "compile_background") == pytest.approx(res.report["wall_time"])
+    assert res.report["stopping"] == dict(max_steps=40, coarse_steps=COARSE_STEPS, rtol=1e-6, atol=1e-5)
     off = fit_observations(obs, resolution=8, max_steps=40, search=False)
     assert "search_moved" not in off.report["levels"][-1] and "search" not in off.report["times"]
 
@@ -699,7 +706,7 @@ def test_uniform_check_makes_an_unsupported_map_one_value():
     obs = _noisy_checker_obs(truth)
     on = fit_observations(obs, resolution=8, max_steps=40)
     off = fit_observations(obs, resolution=8, max_steps=40, uniform_check=False)
-    assert "uniform_check" not in off.report
+    assert off.report["uniform_check"] == dict(skipped=TURNED_OFF)
     check = on.report["uniform_check"]
     metal, rough = check["metallic"], check["roughness"]
     assert metal["uniform"] and metal["statistic"] <= metal["threshold"] == 2 * (64 - 1), check
@@ -813,7 +820,7 @@ def test_repair_restarts_a_cluster_left_in_a_wrong_basin():
     truth = _patches(10)
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
     plain = fit_observations(obs, resolution=8, max_steps=40, repair=False)
-    assert "repair" not in plain.report and map_rmse(truth, plain)["roughness"] > 0.05
+    assert plain.report["repair"] == dict(skipped=TURNED_OFF) and map_rmse(truth, plain)["roughness"] > 0.05
     res = fit_observations(obs, resolution=8, max_steps=40)
     err = map_rmse(truth, res)
     assert err["roughness"] < 1e-4 and err["base_color"] < 1e-4 and err["metallic"] < 1e-4, err
