@@ -110,7 +110,7 @@ def _cmd_render(args) -> int:
     material = read_material(args.material)
     if needs_texture_coordinates(material):  # not a uniform one (1 x 1 maps, as `fit --maps none` writes)
         check_uv_layout(capture.mesh, f"{capture.json_path}: mesh")
-    lights_json = load_lights_override(args.lights) if args.lights else None
+    lights_json = load_lights_override(args.lights) if args.lights is not None else None
     capture = apply_overrides(capture, args.environment, lights_json)
     emits = material.emissive is not None and np.any(np.asarray(material.emissive) > 0)
     if capture.environment is None and not emits and not any(

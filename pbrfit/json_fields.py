@@ -4,6 +4,7 @@ numbers (bools and strings are not), finite and within float32's range, as the s
 
 from __future__ import annotations
 
+import json
 import math
 from typing import Any, Mapping, Optional
 
@@ -11,8 +12,37 @@ import numpy as np
 
 from .errors import CaptureError
 
-__all__ = ["FLOAT32_MAX", "field_loc", "shown", "as_float", "number_field", "triple_field", "positive_field",
+__all__ = ["JSONError", "parse_json", "FLOAT32_MAX", "field_loc", "shown", "as_float", "number_field", "triple_field", "positive_field",
            "string_field", "object_field", "check_keys", "without_nulls"]
+
+
+class JSONError(ValueError):
+    """A text that is not the JSON a capture holds; the message says where and why, in one line."""
+
+
+def _unique_keys(pairs: list) -> dict:
+    keys = {}
+    for key, value in pairs:
+        if key in keys:  # json.loads would keep the last one, without a word
+            raise JSONError(f"invalid JSON: key {shown(key)} twice in one object")
+        keys[key] = value
+    return keys
+
+
+def parse_json(text: str) -> Any:
+    """``json.loads`` with every way a text can fail it as one `JSONError`: a syntax error (its line
+    and column), a key twice in one object (which JSON leaves undefined and Python reads as the
+    last), an integer past Python's limit on digits, nesting deeper than Python recurses."""
+    try:
+        return json.loads(text, object_pairs_hook=_unique_keys)
+    except json.JSONDecodeError as err:
+        raise JSONError(f"invalid JSON at line {err.lineno} column {err.colno}: {err.msg}") from None
+    except RecursionError:
+        raise JSONError("invalid JSON: nested too deeply") from None
+    except JSONError:
+        raise
+    except ValueError as err:  # int("9" * 5000): "Exceeds the limit (4300 digits) for integer string conversion"
+        raise JSONError(f"invalid JSON: a number too long to read ({str(err).splitlines()[0]})") from None
 
 
 def field_loc(where: str, key: str) -> str:

@@ -48,7 +48,6 @@ Rules pinned here (tests in ``tests/test_scene.py``):
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Optional
@@ -59,7 +58,7 @@ from .capture_cameras import PINHOLE_MODELS, check_distortion
 from .capture_frames import IMAGE_SUFFIXES, NERF_FRAME_KEYS, PBRFIT_FRAME_KEYS, Frame, load_frame, resolve_image_path
 from .errors import CaptureError
 from .io import read_image_info
-from .json_fields import check_keys, number_field, object_field, string_field, triple_field, without_nulls
+from .json_fields import JSONError, check_keys, parse_json, number_field, object_field, string_field, triple_field, without_nulls
 from .lights import Light, color_and_intensity, light_from_json
 from .mesh import load_mesh
 
@@ -153,11 +152,9 @@ def _read_json(path: Path) -> dict:
     except (OSError, UnicodeDecodeError) as err:
         raise CaptureError(f"{path}: cannot read ({type(err).__name__}: {err})".splitlines()[0]) from None
     try:
-        raw = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise CaptureError(f"{path}: invalid JSON at line {err.lineno} column {err.colno}: {err.msg}") from None
-    except RecursionError:
-        raise CaptureError(f"{path}: invalid capture: JSON nested too deeply") from None
+        raw = parse_json(text)
+    except JSONError as err:
+        raise CaptureError(f"{path}: {err}") from None
     if not isinstance(raw, dict):
         raise CaptureError(f"{path}: expected a JSON object at the top level, got {type(raw).__name__}")
     return raw

@@ -21,6 +21,7 @@ import numpy as np
 
 from .errors import CaptureError
 from .gbuffer import GBuffer, compute_gbuffer, silhouette
+from .json_fields import JSONError, parse_json
 from .material import Material
 from .model import Model
 from .render import ViewInputs, prepare_view, render_view
@@ -370,21 +371,21 @@ def load_lights_override(path: os.PathLike | str) -> list:
     if text.startswith(("[", "{")):
         path = "--lights"
         try:
-            data = json.loads(text)
-        except json.JSONDecodeError as err:
-            raise CaptureError(f"--lights: invalid JSON: {err}") from None
-        except RecursionError:
-            raise CaptureError("--lights: invalid JSON: nested too deeply") from None
+            data = parse_json(text)
+        except JSONError as err:
+            raise CaptureError(f"--lights: {err}") from None
+    elif not text:
+        raise CaptureError("--lights: empty (a JSON list of lights, or a file holding one)")
     else:
         path = Path(path)
         try:
-            data = json.loads(path.read_text())
+            data = parse_json(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise CaptureError(f"{path}: no such lights file") from None
-        except RecursionError:
-            raise CaptureError(f"{path}: cannot read lights: JSON nested too deeply") from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        except JSONError as err:
             raise CaptureError(f"{path}: cannot read lights: {err}") from None
+        except (OSError, UnicodeDecodeError) as err:
+            raise CaptureError(f"{path}: cannot read lights: {err}".splitlines()[0]) from None
     if isinstance(data, dict):
         data = data.get("lights")
     if not isinstance(data, list):

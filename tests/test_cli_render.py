@@ -137,6 +137,16 @@ def test_render_refuses_to_write_over_its_own_capture_and_takes_inline_lights(tm
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o2"), "--lights",
                  "[" * 100000 + "]" * 100000]) == 2
     assert "--lights: invalid JSON: nested too deeply" in capsys.readouterr().err
+    lights = '[{"type": "point", "position": [0, 0, 3], "intensity": %s}]'
+    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o2"), "--lights",
+                 lights % ("9" * 5000)]) == 2
+    assert "--lights: invalid JSON: a number too long to read" in capsys.readouterr().err
+    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o2"), "--lights",
+                 lights.replace('"type": "point"', '"type": "point", "type": "spot"') % 5]) == 2
+    assert "--lights: invalid JSON: key 'type' twice in one object" in capsys.readouterr().err
+    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o2"), "--lights",
+                 ""]) == 2  # not the capture's own lights, silently
+    assert "--lights: empty" in capsys.readouterr().err
     # no light and no environment: every render would be black
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o3"), "--lights",
                  "[]"]) == 2

@@ -435,8 +435,11 @@ MALFORMED = {
     "matrix string": (lambda d, r: _frame0(d)["transform_matrix"][0].__setitem__(0, "1.0"), "capture.json: frames[0].transform_matrix: expected a 4x4 array of numbers, got '1.0' in it"),
     "matrix shear": (lambda d, r: _frame0(d)["transform_matrix"][0].__setitem__(1, _frame0(d)["transform_matrix"][0][1] + 0.5), "capture.json: frames[0].transform_matrix: the camera's axes (rotation columns) are not perpendicular"),
     "matrix mirrored": (lambda d, r: [row.__setitem__(0, -row[0]) for row in _frame0(d)["transform_matrix"][:3]], "capture.json: frames[0].transform_matrix: the camera's axes are mirrored"),
-    "JSON nested too deeply": (lambda d, r: _write_text(r, "capture.json", "[" * 100000 + "]" * 100000), "capture.json: invalid capture: JSON nested too deeply"),
-    "JSON nested deeper than Python walks": (lambda d, r: _write_text(r, "capture.json", json.dumps(d)[:-1] + ', "lights": ' + "[" * 700 + "]" * 700 + "}"), "json: invalid capture: JSON nested too deeply"),
+    "JSON nested too deeply": (lambda d, r: _write_text(r, "capture.json", "[" * 100000 + "]" * 100000), "capture.json: invalid JSON: nested too deeply"),
+    "key twice": (lambda d, r: _write_text(r, "capture.json", json.dumps(d)[:-1] + ', "mesh": "other.obj"}'), "capture.json: invalid JSON: key 'mesh' twice in one object"),
+    "key twice in a frame": (lambda d, r: _write_text(r, "capture.json", json.dumps(d).replace('"file_path"', '"file_path": "x.png", "file_path"', 1)), "capture.json: invalid JSON: key 'file_path' twice in one object"),
+    "integer of 5000 digits": (lambda d, r: _write_text(r, "capture.json", json.dumps(d)[:-1] + ', "camera_angle_y": ' + "9" * 5000 + "}"), "capture.json: invalid JSON: a number too long to read"),
+    "JSON nested deeper than Python walks": (lambda d, r: _write_text(r, "capture.json", json.dumps(d)[:-1] + ', "deep": ' + "[" * 700 + "]" * 700 + "}"), "json: invalid capture: JSON nested too deeply"),
 }  # fmt: skip
 
 
