@@ -327,9 +327,15 @@ def _stdout_closed() -> bool:
     return True
 
 
+def _printable(text: str) -> str:
+    """``text`` with each control character escaped as Python writes it (a newline or a terminal
+    escape in a file name becomes ``\\n``, ``\\x1b``): a message stays one line, and shows the name."""
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
+
+
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
     """Warnings as one line, like the errors: ``pbrfit: warning: <message>``."""
-    print(f"pbrfit: warning: {str(message).splitlines()[0] if str(message) else category.__name__}",
+    print(f"pbrfit: warning: {_printable(str(message).splitlines()[0]) if str(message) else category.__name__}",
           file=sys.stderr if file is None else file)
 
 
@@ -365,7 +371,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             raise
         return 141  # 128 + SIGPIPE, as a shell reports a command whose reader left (`| head -1`)
     except CaptureError as err:
-        print(f"pbrfit: error: {err}", file=sys.stderr)
+        print(f"pbrfit: error: {_printable(str(err))}", file=sys.stderr)
         return EXIT_USAGE
     except OSError as err:
         # the system refused a file (a name too long, a full disk, no permission, a read-only
@@ -375,7 +381,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if err.errno not in REFUSED_ERRNOS:
             raise
         where = f"{err.filename}: " if err.filename else ""
-        print(f"pbrfit: error: {where}{err.strerror or err}", file=sys.stderr)
+        print(f"pbrfit: error: {_printable(f'{where}{err.strerror or err}')}", file=sys.stderr)
         return EXIT_USAGE
     except Exception as err:
         # out of memory: numpy's MemoryError (its message names the size) or XLA's RESOURCE_EXHAUSTED;

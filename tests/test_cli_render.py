@@ -308,3 +308,22 @@ def test_no_command_a_closed_pipe_and_warnings_are_one_line(capsys, monkeypatch)
     monkeypatch.setitem(cli._COMMANDS, "demo", child_pipe)
     with pytest.raises(BrokenPipeError):
         main(["demo"])
+
+
+def test_control_characters_in_a_message_are_escaped(capsys, monkeypatch):
+    """A file name with a newline or a terminal escape (capture.json may hold any string) is shown
+    escaped: the error stays one line and cannot write to the terminal."""
+    import warnings
+
+    import pbrfit.cli as cli
+    from pbrfit.errors import CaptureError
+
+    def command(args):
+        warnings.warn("images/\x1b[2Jx.png: odd")
+        raise CaptureError("capture.json: frames[1].file_path: not found: images/0\n01.exr")
+
+    monkeypatch.setitem(cli._COMMANDS, "demo", command)
+    assert main(["demo"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "pbrfit: warning: images/\\x1b[2Jx.png: odd",
+        "pbrfit: error: capture.json: frames[1].file_path: not found: images/0\\n01.exr"]
