@@ -156,9 +156,19 @@ def _obj_text(path: Path, where: str) -> bytes:
     texture coordinate ``vt u`` (v = 0) are valid OBJ, which trimesh misreads (drops the line,
     fails, or shifts every texture coordinate after it). `CaptureError` when a face names index 0,
     as files written counting from 0 do: OBJ counts from 1 (negative: back from the last), and
-    trimesh reads 0 as the last vertex, shifting every face. Each rewrite runs only where its
-    cause is in the file (a pass over every line in Python took a third of a 1M-face OBJ's load)."""
+    trimesh reads 0 as the last vertex, shifting every face. A file that is not UTF-8 is read as
+    Latin-1 (a comment or a name in another encoding); one with NUL bytes is not a text OBJ. Each
+    rewrite runs only where its cause is in the file (a pass over every line in Python took a
+    third of a 1M-face OBJ's load)."""
     text = path.read_bytes()
+    try:
+        text.decode("utf-8")
+    except UnicodeDecodeError:
+        # trimesh would guess the encoding with charset_normalizer, which pbrfit does not require;
+        # OBJ's syntax is ASCII, so names and comments in another 8-bit encoding are read as Latin-1
+        if b"\0" in text:
+            raise CaptureError(f"{where}: mesh {path}: not a text OBJ file (it holds binary data)") from None
+        text = text.decode("latin-1").encode("utf-8")
     if b"\t" in text:
         text = text.replace(b"\t", b" ")
     if text.startswith(b" ") or b"\n " in text:
