@@ -98,7 +98,8 @@ def _cmd_render(args) -> int:
     from .material_files import read_material
     from .uv_layout import check_uv_layout
     from .scene import load_capture
-    from .views import apply_overrides, load_lights_override, render_capture, write_rendered_capture
+    from .views import (apply_overrides, environment_is_dark, load_lights_override, render_capture,
+                        write_rendered_capture)
 
     start = time.perf_counter()
     if not 1 <= args.supersample <= MAX_SUPERSAMPLE:
@@ -113,11 +114,11 @@ def _cmd_render(args) -> int:
     lights_json = load_lights_override(args.lights) if args.lights is not None else None
     capture = apply_overrides(capture, args.environment, lights_json)
     emits = material.emissive is not None and np.any(np.asarray(material.emissive) > 0)
-    if capture.environment is None and not emits and not any(
-            float(light.intensity) * float(np.max(np.asarray(light.color))) > 0.0
-            for frame in capture.frames for light in frame.lights):
+    if not emits and not any(float(light.intensity) * float(np.max(np.asarray(light.color))) > 0.0
+                             for frame in capture.frames for light in frame.lights) and environment_is_dark(capture):
         where = "--lights" if lights_json is not None else str(capture.json_path)
-        raise CaptureError(f"{where}: no light: no environment, every light is off and the material emits none, "
+        sky = "no environment" if capture.environment is None else f"the environment {capture.environment.file} is black"
+        raise CaptureError(f"{where}: no light: {sky}, every light is off and the material emits none, "
                            "so every render would be black (give --lights or --environment)")
     renders = render_capture(capture, material, cache_dir=_cache_dir(args), supersample=args.supersample)
     write_rendered_capture(capture, renders, args.out, args.environment, lights_json)

@@ -375,6 +375,12 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     pixel_samples, select, skipped = footprint_choice(capture, pixel_samples, views)
     obs = observations_from_capture(capture, cache_dir=cache_dir, views=views, pixel_samples=pixel_samples)
     centres = None if obs.samples == 1 else observations_from_capture(capture, cache_dir=cache_dir, views=views)
+    if not np.max(np.asarray(obs.light_radiance), initial=0.0) > 0.0:  # (without an environment: refused above)
+        from .views import environment_is_dark
+
+        if environment_is_dark(capture):
+            raise CaptureError(f"{capture.json_path}: no light reaches the mesh: the environment "
+                               f"{capture.environment.file} is black, and every light is off or points away")
     t_ibl = time.perf_counter()
     centre_tables = None
     if model.ibl == "per_pixel":

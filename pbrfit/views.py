@@ -29,7 +29,7 @@ from .render import ViewInputs, prepare_view, render_view
 __all__ = [
     "default_cache_dir",
     "model_for_capture",
-    "capture_environment",
+    "capture_environment", "environment_is_dark",
     "capture_ibl",
     "capture_gbuffers",
     "capture_views",
@@ -78,6 +78,13 @@ def capture_environment(capture):
 
     spec = capture.environment
     return load_environment(spec.file, capture.world_up, spec.intensity, spec.rotation_deg)
+
+
+def environment_is_dark(capture) -> bool:
+    """Whether no light comes from the capture's environment: there is none, or its radiance
+    (times its intensity; negative values read as 0) is 0 everywhere. Reads the file."""
+    env = capture_environment(capture)
+    return env is None or not float(np.max(np.asarray(env.radiance), initial=0.0)) > 0.0
 
 
 def capture_ibl(capture, settings=None, environment=None, model: Optional[Model] = None):

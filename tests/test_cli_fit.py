@@ -370,9 +370,18 @@ def _lights_off(data, cap):
         light["intensity"] = 0.0
 
 
+def _lights_off_under_a_black_sky(data, cap):
+    from pbrfit.io import write_image
+
+    _lights_off(data, cap)
+    write_image(cap / "black.exr", np.zeros((8, 16, 3), np.float32), "float")
+    data["environment"] = {"file": "black.exr"}
+
+
 @pytest.mark.parametrize(
     "edit,message",
-    [(_all_masks_zero, "no usable pixels"), (_lights_off, "no light reaches the mesh")],
+    [(_all_masks_zero, "no usable pixels"), (_lights_off, "no light reaches the mesh"),
+     (_lights_off_under_a_black_sky, "black.exr is black, and every light is off")],
 )
 def test_captures_that_leave_nothing_to_fit_exit_2(capture, tmp_path, capsys, monkeypatch, edit, message):
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))

@@ -147,6 +147,14 @@ def test_render_refuses_to_write_over_its_own_capture_and_takes_inline_lights(tm
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o2"), "--lights",
                  ""]) == 2  # not the capture's own lights, silently
     assert "--lights: empty" in capsys.readouterr().err
+    # no light and a black environment: the same
+    from pbrfit.io import write_image
+
+    write_image(tmp_path / "black.exr", np.zeros((8, 16, 3), np.float32), "float")
+    assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o3"), "--lights",
+                 "[]", "--environment", str(tmp_path / "black.exr")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--lights: no light: the environment " in err[0] and "black.exr is black" in err[0]
     # no light and no environment: every render would be black
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o3"), "--lights",
                  "[]"]) == 2
