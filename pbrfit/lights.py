@@ -262,7 +262,7 @@ _COMMON_KEYS = ("type", "name", "color", "intensity", "extras")
 _ALLOWED_KEYS = {
     "point": _COMMON_KEYS + ("position", "range"),
     "spot": _COMMON_KEYS + ("position", "direction", "range", "inner_cone_angle", "outer_cone_angle"),
-    # `range` is tolerated on a directional light only as 0 (some writers emit it everywhere)
+    # `range` on a directional light is checked and ignored (some writers emit it for every light)
     "directional": _COMMON_KEYS + ("direction", "range"),
 }
 
@@ -291,9 +291,10 @@ def light_from_json(d: Any, where: str) -> Light:
     ``where`` names the object in messages (``"capture.json: lights[2]"``). Raises
     `CaptureError` for a non-object, an unknown ``type``, an unknown key, a missing position or
     direction, a negative intensity or range, bad cone angles (KHR_lights_punctual:
-    0 <= inner < outer <= pi/2), a zero direction, or a directional light with ``range > 0``.
-    Defaults: color white, intensity 1, range 0 (infinite), cones 0 and pi/4 (KHR defaults).
-    """
+    0 <= inner < outer <= pi/2) or a zero direction. A directional light's ``range`` is checked
+    and ignored (KHR_lights_punctual defines it for point and spot lights; exporters write it for
+    every light). Defaults: color white, intensity 1, range 0 (infinite), cones 0 and pi/4 (KHR
+    defaults)."""
     if not isinstance(d, Mapping):
         raise CaptureError(f"{where}: expected a light object, got {type(d).__name__}")
     if "type" not in d:
