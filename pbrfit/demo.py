@@ -12,7 +12,7 @@ from pathlib import Path
 
 from .parameters import FIT_GROUPS
 
-__all__ = ["run_demo", "recovery_table", "CONFIDENT_SIGMA"]
+__all__ = ["run_demo", "recovery_table", "CONFIDENT_SIGMA", "DEMO_FOLDERS"]
 
 
 #: The demo's "confident" texels: those whose reported standard error is at most this.
@@ -59,6 +59,10 @@ def _table(rows: list[dict], observed: int) -> str:
     return "\n".join(lines)
 
 
+#: What the demo writes in its --out folder: the synthesized capture and the fit's output.
+DEMO_FOLDERS = ("capture", "fit")
+
+
 def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **scene) -> int:
     """Synthesize, fit and report; returns the exit status. `scene` overrides the preset's
     parameters (``size``, ``views``, ``texture_size``...; see `data_synth.presets.make_scene`)."""
@@ -82,6 +86,11 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise CaptureError(f"{out}: exists and is not a folder; choose another --out")
+    if out.is_dir():  # as fit and render refuse a folder they did not write: the demo's holds its two
+        other = sorted(p.name for p in out.iterdir() if p.name not in DEMO_FOLDERS)
+        if other:
+            shown = ", ".join(other[:3]) + (f" and {len(other) - 3} more" if len(other) > 3 else "")
+            raise CaptureError(f"{out}: holds what the demo did not write ({shown}); choose another --out")
     check_output_dir(out / "capture", "capture")
     check_output_dir(out / "fit", "fit")
     start = time.perf_counter()
