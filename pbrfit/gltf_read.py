@@ -81,14 +81,24 @@ def _buffer_reader(tree: dict, folder: Path, binary=None):
 
 
 def glb_chunks(data: bytes):
-    """(version, JSON tree, BIN chunk or None) of a GLB file."""
+    """(version, JSON tree, BIN chunk or None) of a GLB file; ValueError, in words, where the file
+    is too short for its header, is not a GLB, or its JSON chunk is cut short or not JSON."""
+    if len(data) < 20:
+        raise ValueError(f"not a GLB file: {len(data)} bytes, shorter than its headers (20 bytes)")
     magic, version, _ = struct.unpack_from("<III", data, 0)
     if magic != _GLB_MAGIC:
         raise ValueError("not a GLB file (bad magic)")
     json_len, chunk_type = struct.unpack_from("<II", data, 12)
     if chunk_type != _CHUNK_JSON:
         raise ValueError("first GLB chunk is not JSON")
-    tree = json.loads(data[20 : 20 + json_len])
+    if 20 + json_len > len(data):
+        raise ValueError(f"truncated GLB file: its JSON chunk needs {json_len} bytes, {len(data) - 20} are left")
+    try:
+        tree = json.loads(data[20 : 20 + json_len])
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"GLB file's JSON chunk is not valid JSON ({str(err).splitlines()[0]})") from None
+    if not isinstance(tree, dict):
+        raise ValueError(f"GLB file's JSON chunk is a {type(tree).__name__}, not an object")
     at, binary = 20 + json_len, None
     while binary is None and at + 8 <= len(data):  # the first BIN chunk (other kinds are skipped)
         length, kind = struct.unpack_from("<II", data, at)
@@ -195,7 +205,12 @@ def load_gltf_scene(path: Path):
         binary = _store_rewritten_primitives(tree, path.parent, binary)
         data = glb_from_chunks(version, tree, binary)
         return trimesh.load_scene(_io.BytesIO(data), file_type="glb", resolver=resolver, process=False)
-    tree = json.loads(data)
+    try:
+        tree = json.loads(data)
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"not a glTF file: its JSON is not valid ({str(err).splitlines()[0]})") from None
+    if not isinstance(tree, dict):
+        raise ValueError(f"not a glTF file: its JSON is a {type(tree).__name__}, not an object")
     resolver = _file_resolver(tree, path.parent)
     prepare_tree(tree)
     _store_rewritten_primitives(tree, path.parent, None)

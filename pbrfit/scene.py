@@ -149,7 +149,9 @@ def _json_path(path: Path) -> Path:
 def _read_json(path: Path) -> dict:
     try:
         text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as err:
+    except UnicodeDecodeError:
+        raise CaptureError(f"{path}: not a capture.json: not UTF-8 text (a binary file?)") from None
+    except OSError as err:
         raise CaptureError(f"{path}: cannot read ({type(err).__name__}: {err})".splitlines()[0]) from None
     try:
         raw = parse_json(text)

@@ -243,6 +243,27 @@ def test_required_extensions_pbrfit_cannot_read_are_refused(tmp_path):
         assert len(load_mesh(draco).faces) == 2
 
 
+def test_broken_gltf_files_are_named_in_words(tmp_path):
+    """An empty or cut GLB and a .gltf that is not JSON were refused with the parser's words
+    ("unpack_from requires a buffer of at least 12 bytes", "Expecting value: line 1 column 741")."""
+    arrays = [QUAD_POSITIONS, QUAD_UV_GLTF, np.array([0, 1, 2, 0, 2, 3], np.uint16)]
+    tree = dict(meshes=[{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2}]}],
+                nodes=[{"mesh": 0}])
+    whole = _glb(tmp_path / "whole.glb", arrays, **tree).read_bytes()
+    for name, data, message in (
+            ("empty.glb", b"", "not a GLB file: 0 bytes, shorter than its headers"),
+            ("cut.glb", whole[:40], "truncated GLB file: its JSON chunk needs"),
+            ("list.glb", glb_from_chunks(2, [], None), "GLB file's JSON chunk is a list, not an object")):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(CaptureError, match=f"cannot load mesh .*{name}: {message}"):
+            load_mesh(tmp_path / name)
+    for name, text, message in (("cut.gltf", '{"asset": {"version": "2.0"}, "nodes": [', "its JSON is not valid"),
+                                ("list.gltf", "[1, 2]", "its JSON is a list, not an object")):
+        (tmp_path / name).write_text(text)
+        with pytest.raises(CaptureError, match=f"cannot load mesh .*{name}: not a glTF file: {message}"):
+            load_mesh(tmp_path / name)
+
+
 @pytest.mark.parametrize("text", [
     "v\t0 0 0\nv\t1 0 0\nv\t1 1 0\nv\t0 1 0\nvt\t0 0\nvt\t1 0\nvt\t1 0.75\nvt\t0 0.75\nf\t1/1 2/2 3/3\nf\t1/1 3/3 4/4\n",
     "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 0.75\nvt 0 0.75\n"
