@@ -227,6 +227,21 @@ def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
     return second
 
 
+def _warn_unused_frames(capture, obs: Observations) -> None:
+    """Warn, in one line, of the frames none of whose pixels enter the fit (each masked out,
+    saturated, or off the mesh: a camera that looks away, a mask of zeros): they are left out."""
+    index = np.asarray(obs.view_index)
+    counts = np.bincount(index[index >= 0], minlength=len(capture.frames))
+    unused = [k for k, count in enumerate(counts[: len(capture.frames)]) if count == 0]
+    if unused:
+        import warnings
+
+        named = ", ".join(f"frames[{k}] ({capture.frames[k].file_path})" for k in unused[:3])
+        more = f" and {len(unused) - 3} more" if len(unused) > 3 else ""
+        warnings.warn(f"{capture.json_path}: {named}{more}: no usable pixel (each masked out, saturated or off the "
+                      "mesh); left out of the fit", UserWarning, stacklevel=3)
+
+
 def _fitted_values(result: FitResult, obs: Observations) -> np.ndarray:
     """(P, 3) the fitted render's value at each pixel of `obs` (its first sample row's view and
     pixel; `obs` is the footprint the fit kept, every pixel of which it rendered)."""
@@ -375,6 +390,7 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     pixel_samples, select, skipped = footprint_choice(capture, pixel_samples, views)
     obs = observations_from_capture(capture, cache_dir=cache_dir, views=views, pixel_samples=pixel_samples)
     centres = None if obs.samples == 1 else observations_from_capture(capture, cache_dir=cache_dir, views=views)
+    _warn_unused_frames(capture, obs)
     if not np.max(np.asarray(obs.light_radiance), initial=0.0) > 0.0:  # (without an environment: refused above)
         from .views import environment_is_dark
 

@@ -393,6 +393,22 @@ def test_captures_that_leave_nothing_to_fit_exit_2(capture, tmp_path, capsys, mo
     assert not out.exists()
 
 
+def test_a_frame_with_no_usable_pixel_is_named(capture, tmp_path, capsys, monkeypatch):
+    """A camera that looks away from the mesh contributes nothing: the fit goes on without it,
+    and says which frame (its PSNR was null in report.json, without a word)."""
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+
+    def look_away(data, cap):
+        data["frames"][1]["transform_matrix"][0][3] += 1e6
+
+    cap = _broken_copy(capture, tmp_path, look_away)
+    out = tmp_path / "out"
+    assert main(["fit", str(cap), "--out", str(out), "--maps", "none", "--max-steps", "5", "--quiet"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pbrfit: warning: ") and "frames[1] (" in err[0], err
+    assert "no usable pixel" in err[0] and "frames[0]" not in err[0] and "frames[2]" not in err[0]
+
+
 def test_uniform_fit_of_a_mesh_without_uvs_and_a_map_held_from_a_folder(capture, tmp_path, monkeypatch, capsys):
     import shutil
 
