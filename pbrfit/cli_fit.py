@@ -126,7 +126,10 @@ def fit_options(args) -> dict:
             flag = name.replace("_", "-")
             if name in fixed:
                 raise CaptureError(f"--{flag}-from: --{flag} holds {name} at a value too; give one of the two")
-            fixed[name], held_by[name] = read_map(folder, name), f"--{flag}-from"
+            try:
+                fixed[name], held_by[name] = read_map(folder, name), f"--{flag}-from"
+            except CaptureError as err:  # the option that named the folder, then what is wrong with it
+                raise CaptureError(f"--{flag}-from: {err}") from None
     continuation = _continuation(default_continuation() if args.continuation is None else args.continuation)
     # a flag a mode does not read is refused even at its default value (check_options, which sees
     # values only, refuses values other than the default)

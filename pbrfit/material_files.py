@@ -135,7 +135,8 @@ def read_map(directory: str | os.PathLike, name: str) -> np.ndarray:
         raise ValueError(f"unknown map {name!r}")
     directory = Path(directory)
     if not directory.is_dir():
-        raise CaptureError(f"material folder not found: {directory}")
+        what = "is a file, not a material folder" if directory.exists() else "material folder not found"
+        raise CaptureError(f"{directory}: {what}")
     exr, png = directory / f"{name}.exr", directory / ("base_color.png" if name == "base_color" else "metallic_roughness.png")
     if exr.is_file():
         pixels, info = _read_whole_exr(exr)

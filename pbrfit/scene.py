@@ -217,7 +217,10 @@ def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
     allowed_top = PBRFIT_TOP_LEVEL_KEYS + NERF_TOP_LEVEL_KEYS
     check_keys(raw, allowed_top, name, "the top level")
     check_distortion(raw, name)
-    if raw.get("is_fisheye", False):
+    fisheye = raw.get("is_fisheye", False)
+    if not (isinstance(fisheye, int) and fisheye in (0, 1)):  # true, false, 1 or 0; a string "false" is not false
+        raise CaptureError(f"{name}: is_fisheye: expected true or false, got {fisheye!r:.40}")
+    if fisheye:
         raise CaptureError(f"{name}: is_fisheye: fisheye cameras are not supported")
     if "camera_model" in raw and raw["camera_model"] not in PINHOLE_MODELS:
         raise CaptureError(
