@@ -106,8 +106,10 @@ def clamp_inward(x: Float[ArrayLike, "*batch"], lo: float, hi: Optional[float] =
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):  # an integer roughness too: the floor is not an integer
         x = x.astype(jnp.result_type(float))
-    out = jnp.where(x < lo, jnp.asarray(lo, x.dtype), x)
-    return out if hi is None else jnp.where(x > hi, jnp.asarray(hi, x.dtype), out)
+    # the bounds as Python numbers: weakly typed, so a Python-float x stays weak as under jnp.clip
+    # (with x64 on, a float32 array beside it keeps float32)
+    out = jnp.where(x < lo, float(lo), x)
+    return out if hi is None else jnp.where(x > hi, float(hi), out)
 
 
 def alpha_from_roughness(roughness: Float[ArrayLike, "*batch"]) -> Float[Array, "*batch"]:

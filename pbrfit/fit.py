@@ -85,12 +85,12 @@ def model_for_capture(capture, fit: Sequence[str] = ("base_color", "metallic", "
     return scene_model(capture, metallic=metal)
 
 
-def _ibl_for_capture(capture, model: Model):
+def _ibl_for_capture(capture, model: Model, environment=None):
     if model.ibl is None and not model.multiscatter:
         return None
     from .views import capture_ibl
 
-    return capture_ibl(capture, model=model)
+    return capture_ibl(capture, model=model, environment=environment)
 
 
 def fit_observations(
@@ -391,21 +391,23 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     obs = observations_from_capture(capture, cache_dir=cache_dir, views=views, pixel_samples=pixel_samples)
     centres = None if obs.samples == 1 else observations_from_capture(capture, cache_dir=cache_dir, views=views)
     _warn_unused_frames(capture, obs)
-    if not np.max(np.asarray(obs.light_radiance), initial=0.0) > 0.0:  # (without an environment: refused above)
-        from .views import environment_is_dark
-
-        if environment_is_dark(capture):
-            raise CaptureError(f"{capture.json_path}: no light reaches the mesh: the environment "
-                               f"{capture.environment.file} is black, and every light is off or points away")
     t_ibl = time.perf_counter()
-    centre_tables = None
-    if model.ibl == "per_pixel":
+    lit = bool(np.max(np.asarray(obs.light_radiance), initial=0.0) > 0.0)
+    env = None
+    if model.ibl is not None or not lit:  # (read once: the tables and the check below share it)
         from .views import capture_environment
 
+        env = capture_environment(capture)
+    if not lit and (env is None or not np.max(np.asarray(env.radiance), initial=0.0) > 0.0):
+        # (no environment at all was refused with the observations)
+        raise CaptureError(f"{capture.json_path}: no light reaches the mesh: the environment "
+                           f"{capture.environment.file} is black, and every light is off or points away")
+    centre_tables = None
+    if model.ibl == "per_pixel":
         report = kwargs.get("progress")
         parts = [obs] if centres is None else [centres, obs]
         rows = np.cumsum([0] + [o.num_rows for o in parts])
-        both = pixel_ibl(capture_environment(capture), np.concatenate([np.asarray(o.normal) for o in parts]),
+        both = pixel_ibl(env, np.concatenate([np.asarray(o.normal) for o in parts]),
                          np.concatenate([np.asarray(o.view) for o in parts]), model, pixel_ibl_settings,
                          cache_dir=cache_dir, progress=None if report is None else (
                              lambda done, total: report(dict(stage="ibl", done=done, total=total))))
@@ -413,7 +415,7 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
         if centres is not None:
             centre_tables = dataclasses.replace(both, table=both.table[: rows[1]])
     else:
-        tables = _ibl_for_capture(capture, model)
+        tables = _ibl_for_capture(capture, model, env)
     t_ibl = time.perf_counter() - t_ibl
     result = fit_observations(obs, model=model, ibl=tables, setup_time=time.perf_counter() - t0, centres=centres,
                               centre_ibl=centre_tables, select_footprint=select, **kwargs)

@@ -880,6 +880,15 @@ def test_derivative_at_the_end_of_a_domain_is_the_inside_one(name, f, end, side,
     np.testing.assert_allclose(float(jax.grad(f)(jnp.float64(end))), inside, rtol=1e-5, err_msg=name)
 
 
+def test_python_float_inputs_keep_float32_with_x64_on(x64):
+    """A Python float beside float32 arrays is weakly typed, clamped or not: float32 out (a
+    clamp whose bounds took the input's dtype made a Python-float cosine float64)."""
+    x = jnp.full(3, 0.3, jnp.float32)
+    for out in (brdf.f_schlick(0.5, x), brdf.g_schlick_ggx(x, 0.1), jax.jit(lambda c: brdf.d_ggx(c, x))(0.5),
+                brdf.v_smith_ggx_correlated(0.5, 0.4, x)):
+        assert out.dtype == jnp.float32
+
+
 def test_masking_terms_vanish_at_and_below_the_horizon():
     """χ⁺(n·x): the cosines' floor (`COS_MIN`) must not leave G above 0 there."""
     for c in (0.0, -0.5):
