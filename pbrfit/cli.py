@@ -335,8 +335,8 @@ def _printable(text: str) -> str:
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """Warnings as one line, like the errors: ``pbrfit: warning: <message>``."""
-    print(f"pbrfit: warning: {_printable(str(message).splitlines()[0]) if str(message) else category.__name__}",
+    """Warnings as one line, like the errors: ``pbrfit: warning: <message>`` (`_printable`)."""
+    print(f"pbrfit: warning: {_printable(str(message).rstrip()) if str(message) else category.__name__}",
           file=sys.stderr if file is None else file)
 
 

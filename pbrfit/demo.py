@@ -7,6 +7,7 @@ capture goes to ``OUT/capture`` and the fit to ``OUT/fit``.
 
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 
@@ -61,6 +62,9 @@ def _table(rows: list[dict], observed: int) -> str:
 
 #: What the demo writes in its --out folder: the synthesized capture and the fit's output.
 DEMO_FOLDERS = ("capture", "fit")
+#: ... and what a demo killed while writing them leaves (`pbrfit.atomic.atomic_dir`'s folders
+#: beside them), which the next demo may find.
+_LEFTOVER = re.compile(r"\.(?:capture|fit)\..+\.(?:tmp|old)")
 
 
 def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **scene) -> int:
@@ -87,7 +91,7 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
     if out.exists() and not out.is_dir():
         raise CaptureError(f"{out}: exists and is not a folder; choose another --out")
     if out.is_dir():  # as fit and render refuse a folder they did not write: the demo's holds its two
-        other = sorted(p.name for p in out.iterdir() if p.name not in DEMO_FOLDERS)
+        other = sorted(p.name for p in out.iterdir() if p.name not in DEMO_FOLDERS and not _LEFTOVER.fullmatch(p.name))
         if other:
             shown = ", ".join(other[:3]) + (f" and {len(other) - 3} more" if len(other) > 3 else "")
             raise CaptureError(f"{out}: holds what the demo did not write ({shown}); choose another --out")

@@ -218,8 +218,7 @@ def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
     report["steps"] += first.report["steps"]
     if footprint is not None:
         report["footprint"] = footprint
-    if "repair" in first.report:
-        report["repair"] = first.report["repair"]
+    report["repair"] = first.report["repair"]  # (the second fit runs none)
     report["noise_level"] = dict(mode="estimated", **level.describe(), first_fit=dict(
         steps=first.report["steps"], final_loss=first.report["final_loss"],
         residual_sigma=first.report["residual_sigma"], psnr=first.report["psnr"], levels=first.report["levels"],
@@ -227,10 +226,11 @@ def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
     return second
 
 
-def _warn_unused_frames(capture, obs: Observations) -> None:
-    """Warn, in one line, of the frames none of whose pixels enter the fit (each masked out,
-    saturated, or off the mesh: a camera that looks away, a mask of zeros): they are left out."""
-    index = np.asarray(obs.view_index)
+def _warn_unused_frames(capture, *observations: Optional[Observations]) -> None:
+    """Warn, in one line, of the frames none of whose pixels enter the fit under any footprint it
+    may choose (``observations``: the samples' and the centres'; each pixel masked out, saturated
+    or off the mesh: a camera that looks away, a mask of zeros): they are left out."""
+    index = np.concatenate([np.asarray(o.view_index) for o in observations if o is not None])
     counts = np.bincount(index[index >= 0], minlength=len(capture.frames))
     unused = [k for k, count in enumerate(counts[: len(capture.frames)]) if count == 0]
     if unused:
@@ -390,7 +390,7 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     pixel_samples, select, skipped = footprint_choice(capture, pixel_samples, views)
     obs = observations_from_capture(capture, cache_dir=cache_dir, views=views, pixel_samples=pixel_samples)
     centres = None if obs.samples == 1 else observations_from_capture(capture, cache_dir=cache_dir, views=views)
-    _warn_unused_frames(capture, obs)
+    _warn_unused_frames(capture, obs, centres)
     t_ibl = time.perf_counter()
     lit = bool(np.max(np.asarray(obs.light_radiance), initial=0.0) > 0.0)
     env = None

@@ -54,7 +54,8 @@ class FitResult:
 
 
 def closed_times(times: dict, wall: float) -> dict:
-    """A fit's time split, closed: ``times`` (setup: reading the capture and casting rays; compile:
+    """A fit's time split, closed: ``times`` (setup: reading the capture, casting rays and building
+    the environment's tables (the report's "ibl" entry gives their part); compile:
     waiting for compiles; solve: solver steps; init, search: the grid start and the coordinate
     search; repair, uniform_check: those stages' own work; post: the outputs' arrays) with
     "other", the rest of ``wall`` (host-side work between stages: each level's problem), so that

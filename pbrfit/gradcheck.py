@@ -20,6 +20,7 @@ import dataclasses
 import itertools
 import math
 import time
+import zlib
 from typing import Callable, Optional, Sequence
 
 import jax
@@ -365,16 +366,22 @@ ENDS_MAX_POINTS = 8192
 
 def ends_grid(spec: _Spec) -> np.ndarray:
     """Points at the ends of ``spec``'s domains: per input, its kinks ± `ENDS_OFFSETS` (or, for an
-    input without kinks, the least and greatest values of its grid), every combination (at most
-    `ENDS_MAX_POINTS` of them)."""
-    axes = []
-    for i, kinks in enumerate(spec.kinks):
-        col = np.asarray(spec.grid)[:, i]
-        axes.append(sorted({k + d for k in kinks for d in ENDS_OFFSETS} or {float(col.min()), float(col.max())}))
-    grid = _grid(*axes)
-    if len(grid) > ENDS_MAX_POINTS:
-        grid = grid[np.sort(np.random.default_rng(0).choice(len(grid), ENDS_MAX_POINTS, replace=False))]
-    return grid
+    input without kinks, the least and greatest values of its grid), every combination. Where
+    there are more than `ENDS_MAX_POINTS`, every point with each input exactly on an end is
+    kept, and the rest drawn from the others (a draw of its own per term)."""
+    grid = np.asarray(spec.grid)
+    ends = [sorted(kinks) or sorted({float(grid[:, i].min()), float(grid[:, i].max())})
+            for i, kinks in enumerate(spec.kinks)]
+    axes = [sorted({k + d for k in kinks for d in ENDS_OFFSETS}) if kinks else ends[i]
+            for i, kinks in enumerate(spec.kinks)]
+    points = _grid(*axes)
+    if len(points) <= ENDS_MAX_POINTS:
+        return points
+    on_ends = np.all([np.isin(points[:, i], ends[i]) for i in range(points.shape[1])], axis=0)
+    near = np.flatnonzero(~on_ends)
+    rng = np.random.default_rng(zlib.crc32(spec.term.encode()))
+    drawn = rng.choice(near, max(ENDS_MAX_POINTS - int(on_ends.sum()), 0), replace=False)
+    return points[np.sort(np.concatenate([np.flatnonzero(on_ends), drawn]))]
 
 
 def _ends_results(spec: _Spec, grid: np.ndarray, outputs, dtype) -> CheckResult:

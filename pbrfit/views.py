@@ -392,7 +392,7 @@ def load_lights_override(path: os.PathLike | str) -> list:
         except JSONError as err:
             raise CaptureError(f"{path}: cannot read lights: {err}") from None
         except (OSError, UnicodeDecodeError) as err:
-            raise CaptureError(f"{path}: cannot read lights: {err}".splitlines()[0]) from None
+            raise CaptureError(f"{path}: cannot read lights: {err}") from None
     if isinstance(data, dict):
         data = data.get("lights")
     if not isinstance(data, list):

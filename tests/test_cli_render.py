@@ -140,7 +140,7 @@ def test_render_refuses_to_write_over_its_own_capture_and_takes_inline_lights(tm
     lights = '[{"type": "point", "position": [0, 0, 3], "intensity": %s}]'
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o2"), "--lights",
                  lights % ("9" * 5000)]) == 2
-    assert "--lights: invalid JSON: a number too long to read" in capsys.readouterr().err
+    assert "--lights: invalid JSON: an integer of more than 4300 digits" in capsys.readouterr().err
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o2"), "--lights",
                  lights.replace('"type": "point"', '"type": "point", "type": "spot"') % 5]) == 2
     assert "--lights: invalid JSON: key 'type' twice in one object" in capsys.readouterr().err
@@ -308,7 +308,7 @@ def test_no_command_a_closed_pipe_and_warnings_are_one_line(capsys, monkeypatch)
     with monkeypatch.context() as m:
         m.setattr(sys, "stdout", Closed())
         assert main(["demo"]) == 141
-    assert capsys.readouterr().err.splitlines() == ["pbrfit: warning: a warning of"]
+    assert capsys.readouterr().err.splitlines() == ["pbrfit: warning: a warning of\\ntwo lines"]
 
     def child_pipe(args):  # another pipe broke, stdout is fine: a bug, raised
         raise BrokenPipeError(32, "Broken pipe")
@@ -327,11 +327,11 @@ def test_control_characters_in_a_message_are_escaped(capsys, monkeypatch):
     from pbrfit.errors import CaptureError
 
     def command(args):
-        warnings.warn("images/\x1b[2Jx.png: odd")
+        warnings.warn("images/\x1b[2Jx\n.png: odd")
         raise CaptureError("capture.json: frames[1].file_path: not found: images/0\n01.exr")
 
     monkeypatch.setitem(cli._COMMANDS, "demo", command)
     assert main(["demo"]) == 2
     assert capsys.readouterr().err.splitlines() == [
-        "pbrfit: warning: images/\\x1b[2Jx.png: odd",
+        "pbrfit: warning: images/\\x1b[2Jx\\n.png: odd",
         "pbrfit: error: capture.json: frames[1].file_path: not found: images/0\\n01.exr"]

@@ -53,7 +53,8 @@ def test_demo_refuses_to_replace_folders_it_did_not_write(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fit"]
     (tmp_path / "fit" / "thesis.tex").unlink()
     (tmp_path / "notes.txt").write_text("keep")  # a user's folder: nothing is written beside their files
+    (tmp_path / ".fit.k2j3.tmp").mkdir()  # what a demo killed while writing leaves: not the user's
     assert main(["demo", "--out", str(tmp_path), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "holds what the demo did not write (notes.txt)" in err[0]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["fit", "notes.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".fit.k2j3.tmp", "fit", "notes.txt"]

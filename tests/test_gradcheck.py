@@ -143,3 +143,18 @@ def test_print_report_returns_false_on_failure(results, capsys):
     assert gradcheck.print_report(bad, quiet=True) is False
     out = capsys.readouterr().out
     assert "FAIL" in out and results[0].term in out
+
+
+def test_ends_grid_holds_every_point_exactly_on_the_ends():
+    """Where the ends' combinations are too many and are drawn, every point with each input on
+    an end (a cosine at 0 or 1, roughness at its floor) is kept: only the points a float32 ulp
+    off are drawn."""
+    import itertools
+
+    spec = next(s for s in gradcheck.all_specs() if s.term == "evaluate_cosines[default]")
+    grid = gradcheck.ends_grid(spec)
+    ends = [sorted(k) or sorted({float(spec.grid[:, i].min()), float(spec.grid[:, i].max())})
+            for i, k in enumerate(spec.kinks)]
+    corners = set(itertools.product(*ends))
+    assert len(corners) > 100 and corners <= set(map(tuple, grid.tolist()))
+    assert len(grid) == gradcheck.ENDS_MAX_POINTS == len({tuple(p) for p in grid.tolist()})

@@ -440,7 +440,7 @@ MALFORMED = {
     "is_fisheye a string": (lambda d, r: d.update(is_fisheye="false"), "capture.json: is_fisheye: expected true or false, got 'false'"),
     "key twice": (lambda d, r: _write_text(r, "capture.json", json.dumps(d)[:-1] + ', "mesh": "other.obj"}'), "capture.json: invalid JSON: key 'mesh' twice in one object"),
     "key twice in a frame": (lambda d, r: _write_text(r, "capture.json", json.dumps(d).replace('"file_path"', '"file_path": "x.png", "file_path"', 1)), "capture.json: invalid JSON: key 'file_path' twice in one object"),
-    "integer of 5000 digits": (lambda d, r: _write_text(r, "capture.json", json.dumps(d)[:-1] + ', "camera_angle_y": ' + "9" * 5000 + "}"), "capture.json: invalid JSON: a number too long to read"),
+    "integer of 5000 digits": (lambda d, r: _write_text(r, "capture.json", json.dumps(d)[:-1] + ', "camera_angle_y": ' + "9" * 5000 + "}"), "capture.json: invalid JSON: an integer of more than 4300 digits"),
     "JSON nested deeper than Python walks": (lambda d, r: _write_text(r, "capture.json", json.dumps(d)[:-1] + ', "deep": ' + "[" * 700 + "]" * 700 + "}"), "json: invalid capture: JSON nested too deeply"),
 }  # fmt: skip
 
