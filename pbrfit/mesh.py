@@ -37,6 +37,7 @@ Rules pinned here (tests in ``tests/test_scene.py`` and ``tests/test_mesh.py``):
 
 from __future__ import annotations
 
+import codecs
 import contextlib
 import io as _io
 import re
@@ -156,11 +157,19 @@ def _obj_text(path: Path, where: str) -> bytes:
     texture coordinate ``vt u`` (v = 0) are valid OBJ, which trimesh misreads (drops the line,
     fails, or shifts every texture coordinate after it). `CaptureError` when a face names index 0,
     as files written counting from 0 do: OBJ counts from 1 (negative: back from the last), and
-    trimesh reads 0 as the last vertex, shifting every face. A file that is not UTF-8 is read as
+    trimesh reads 0 as the last vertex, shifting every face. A byte-order mark is read (UTF-8's
+    cost trimesh the first line: a vertex, and every face shifted), a file that is not UTF-8 as
     Latin-1 (a comment or a name in another encoding); one with NUL bytes is not a text OBJ. Each
     rewrite runs only where its cause is in the file (a pass over every line in Python took a
     third of a 1M-face OBJ's load)."""
     text = path.read_bytes()
+    if text.startswith(codecs.BOM_UTF8):  # (trimesh read it as part of the first line, which it dropped)
+        text = text[len(codecs.BOM_UTF8):]
+    elif text.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+        try:
+            text = text.decode("utf-16").encode("utf-8")
+        except UnicodeDecodeError:
+            raise CaptureError(f"{where}: mesh {path}: not a text OBJ file (a UTF-16 mark, then no UTF-16 text)") from None
     try:
         text.decode("utf-8")
     except UnicodeDecodeError:

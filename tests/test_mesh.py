@@ -281,12 +281,19 @@ def test_obj_fields_separated_by_any_whitespace_and_comments_after_them(tmp_path
 
 def test_obj_in_another_encoding_loads_and_binary_data_is_named(tmp_path):
     """A comment or a name in Latin-1 (not UTF-8) was refused as "No module named
-    'charset_normalizer'" (trimesh's guess at the encoding, which pbrfit does not require)."""
+    'charset_normalizer'" (trimesh's guess at the encoding, which pbrfit does not require); a
+    UTF-8 byte-order mark cost the first line, and UTF-16 was refused as binary."""
     quad = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 0.75\nvt 0 0.75\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n"
     (tmp_path / "latin.obj").write_bytes("# exported by Café 3D\no plaque_été\n".encode("latin-1") + quad.encode())
     mesh = load_mesh(tmp_path / "latin.obj")
     np.testing.assert_allclose(mesh.vertices, QUAD_POSITIONS)
     np.testing.assert_allclose(mesh.visual.uv, QUAD_UV_GLTF)
+    for name, data in (("bom8.obj", b"\xef\xbb\xbf" + quad.encode()),  # the first vertex was dropped
+                       ("bom16.obj", quad.encode("utf-16"))):  # refused as binary
+        (tmp_path / name).write_bytes(data)
+        mesh = load_mesh(tmp_path / name)
+        np.testing.assert_allclose(mesh.vertices, QUAD_POSITIONS, err_msg=name)
+        np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [0, 2, 3]])
     (tmp_path / "binary.obj").write_bytes(bytes(range(256)) * 4)
     with pytest.raises(CaptureError, match=r"binary.obj: not a text OBJ file \(it holds binary data\)"):
         load_mesh(tmp_path / "binary.obj")
