@@ -151,33 +151,37 @@ def _line_at(text: bytes, at: int) -> tuple[int, int]:
     return start, end - (text[end - 1:end] == b"\r")
 
 
+def _as_utf8(text: bytes, what: str) -> bytes:
+    """An OBJ's bytes as UTF-8, as trimesh's parser reads them: a byte-order mark read
+    (UTF-8's, which trimesh took as part of the first line; UTF-16 text), a file that is not
+    UTF-8 read as Latin-1 (a comment or a name in another 8-bit encoding: trimesh would guess
+    with charset_normalizer, which pbrfit does not require). NUL bytes: `CaptureError`, not text."""
+    if text.startswith(codecs.BOM_UTF8):
+        return text[len(codecs.BOM_UTF8):]
+    if text.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+        try:
+            return text.decode("utf-16").encode("utf-8")
+        except UnicodeDecodeError:
+            raise CaptureError(f"{what}: not a text OBJ file (a UTF-16 mark, then no UTF-16 text)") from None
+    try:
+        text.decode("utf-8")
+    except UnicodeDecodeError:
+        if b"\0" in text:
+            raise CaptureError(f"{what}: not a text OBJ file (it holds binary data)") from None
+        return text.decode("latin-1").encode("utf-8")
+    return text
+
+
 def _obj_text(path: Path, where: str) -> bytes:
     """An OBJ file's text as trimesh's parser reads it as the format means it: fields separated by
     tabs as by spaces, indented lines, a comment after an element's fields and a one-component
     texture coordinate ``vt u`` (v = 0) are valid OBJ, which trimesh misreads (drops the line,
     fails, or shifts every texture coordinate after it). `CaptureError` when a face names index 0,
     as files written counting from 0 do: OBJ counts from 1 (negative: back from the last), and
-    trimesh reads 0 as the last vertex, shifting every face. A byte-order mark is read (UTF-8's
-    cost trimesh the first line: a vertex, and every face shifted), a file that is not UTF-8 as
-    Latin-1 (a comment or a name in another encoding); one with NUL bytes is not a text OBJ. Each
+    trimesh reads 0 as the last vertex, shifting every face. Its encoding: `_as_utf8`. Each
     rewrite runs only where its cause is in the file (a pass over every line in Python took a
     third of a 1M-face OBJ's load)."""
-    text = path.read_bytes()
-    if text.startswith(codecs.BOM_UTF8):  # (trimesh read it as part of the first line, which it dropped)
-        text = text[len(codecs.BOM_UTF8):]
-    elif text.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
-        try:
-            text = text.decode("utf-16").encode("utf-8")
-        except UnicodeDecodeError:
-            raise CaptureError(f"{where}: mesh {path}: not a text OBJ file (a UTF-16 mark, then no UTF-16 text)") from None
-    try:
-        text.decode("utf-8")
-    except UnicodeDecodeError:
-        # trimesh would guess the encoding with charset_normalizer, which pbrfit does not require;
-        # OBJ's syntax is ASCII, so names and comments in another 8-bit encoding are read as Latin-1
-        if b"\0" in text:
-            raise CaptureError(f"{where}: mesh {path}: not a text OBJ file (it holds binary data)") from None
-        text = text.decode("latin-1").encode("utf-8")
+    text = _as_utf8(path.read_bytes(), f"{where}: mesh {path}")
     if b"\t" in text:
         text = text.replace(b"\t", b" ")
     if text.startswith(b" ") or b"\n " in text:
