@@ -43,8 +43,9 @@ def _spec(term):
     return [s for s in gradcheck.all_specs() if s.term == term]
 
 
-def test_wrong_first_derivative_is_caught(monkeypatch):
-    """A custom_jvp whose derivative is 1 % off in n·h: the gradient check fails at 1st order."""
+def _d_ggx_with_tangent(tangent):
+    """`brdf.d_ggx` whose JVP's tangent is ``tangent(primals, tangents, jvp)`` (a wrong
+    derivative), ``jvp(primals, tangents)`` the true one's."""
     true_d = brdf.d_ggx
 
     @jax.custom_jvp
@@ -53,10 +54,14 @@ def test_wrong_first_derivative_is_caught(monkeypatch):
 
     @d_wrong.defjvp
     def _(primals, tangents):
-        out, tan = jax.jvp(true_d, primals, (tangents[0] * 1.01, tangents[1]))
-        return out, tan
+        return true_d(*primals), tangent(primals, tangents, lambda p, t: jax.jvp(true_d, p, t)[1])
 
-    monkeypatch.setattr(brdf, "d_ggx", d_wrong)
+    return d_wrong
+
+
+def test_wrong_first_derivative_is_caught(monkeypatch):
+    """A custom_jvp whose derivative is 1 % off in n·h: the gradient check fails at 1st order."""
+    monkeypatch.setattr(brdf, "d_ggx", _d_ggx_with_tangent(lambda p, t, jvp: jvp(p, (t[0] * 1.01, t[1]))))
     res = {r.order: r for r in gradcheck.run_checks(_spec("d_ggx"))}
     assert not res[1].passed and res[1].max_rel_error > 1e-3
     assert res[1].worst_point["wrt"] == "d/dn·h"
@@ -65,18 +70,8 @@ def test_wrong_first_derivative_is_caught(monkeypatch):
 def test_wrong_derivative_at_low_roughness_is_caught(monkeypatch):
     """Twice the derivative below alpha 0.009 (roughness 0.095, above the fit's floor 0.045): the
     grid reaches alpha 0.005."""
-    true_d = brdf.d_ggx
-
-    @jax.custom_jvp
-    def d_wrong(n_dot_h, alpha):
-        return true_d(n_dot_h, alpha)
-
-    @d_wrong.defjvp
-    def _(primals, tangents):
-        out, tan = jax.jvp(true_d, primals, tangents)
-        return out, jnp.where(primals[1] < 0.009, 2.0 * tan, tan)
-
-    monkeypatch.setattr(brdf, "d_ggx", d_wrong)
+    monkeypatch.setattr(brdf, "d_ggx", _d_ggx_with_tangent(
+        lambda p, t, jvp: jnp.where(p[1] < 0.009, 2.0, 1.0) * jvp(p, t)))
     res = [r for r in gradcheck.run_checks(_spec("d_ggx"), ends=False) if r.order == 1]
     assert not res[0].passed and res[0].worst_point["alpha"] < 0.009, res
 
@@ -84,18 +79,8 @@ def test_wrong_derivative_at_low_roughness_is_caught(monkeypatch):
 def test_nan_gradient_at_a_domain_end_is_caught(monkeypatch):
     """A NaN derivative at n·h = 1 (a highlight's peak), where no finite-difference stencil can
     go: the ends sweep fails, in both dtypes, and names the point."""
-    true_d = brdf.d_ggx
-
-    @jax.custom_jvp
-    def d_nan(n_dot_h, alpha):
-        return true_d(n_dot_h, alpha)
-
-    @d_nan.defjvp
-    def _(primals, tangents):
-        out, tan = jax.jvp(true_d, primals, tangents)
-        return out, tan * jnp.where(primals[0] >= 0.9999, jnp.nan, 1.0)
-
-    monkeypatch.setattr(brdf, "d_ggx", d_nan)
+    monkeypatch.setattr(brdf, "d_ggx", _d_ggx_with_tangent(
+        lambda p, t, jvp: jnp.where(p[0] >= 0.9999, jnp.nan, 1.0) * jvp(p, t)))
     res = gradcheck.run_checks(_spec("d_ggx"))
     assert all(r.passed for r in res if r.order > 0)
     ends = [r for r in res if r.order == 0]
