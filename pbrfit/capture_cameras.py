@@ -14,13 +14,19 @@ from .errors import CaptureError
 from .camera import Camera, camera_axes
 from .json_fields import FLOAT32_MAX, field_loc, number_field, positive_field
 
-__all__ = ["camera_to_world", "frame_camera", "fov_focal", "check_distortion", "INTRINSICS_RTOL", "PINHOLE_MODELS"]
+__all__ = ["camera_to_world", "frame_camera", "fov_focal", "check_distortion", "INTRINSICS_RTOL", "PINHOLE_MODELS",
+           "MAX_FOCAL_PIXELS"]
 
 #: When a capture gives both intrinsics forms, fl_x and the fl_x implied by camera_angle_x must
 #: agree to this relative tolerance (rounding in the writer), else the capture is refused.
 INTRINSICS_RTOL = 1e-2
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
+#: The longest focal length in pixels a camera may have: past 1 / float32's epsilon (8.4e6;
+#: a field of view under 1.2e-4 radians per thousand pixels) neighbouring pixels' rays are one
+#: ray in float32, and every pixel sees the same point (a 2,000 mm lens on a 36 mm, 4,000-pixel
+#: sensor has 2.2e5).
+MAX_FOCAL_PIXELS = float(1.0 / np.finfo(np.float32).eps)
 # The last row of a camera-to-world matrix must be (0, 0, 0, 1) to this tolerance.
 _AFFINE_ROW_TOL = 1e-6
 
@@ -95,6 +101,9 @@ def frame_camera(top: Mapping, frame: Mapping, c2w: np.ndarray, width: int, heig
         raise CaptureError(
             f"{where}: principal point (cx, cy) = ({cx:g}, {cy:g}) lies outside the {width}x{height} image {image}"
         )
+    if max(fx, fy) > MAX_FOCAL_PIXELS:
+        raise CaptureError(f"{where}: focal length {max(fx, fy):.3g} pixels: above {MAX_FOCAL_PIXELS:.3g}, every "
+                           "pixel's ray is the same in float32 (is the field of view, or fl_x, in the right units?)")
     try:
         return Camera(c2w, fx, fy, cx, cy, width, height)
     except CaptureError as err:

@@ -438,6 +438,7 @@ MALFORMED = {
     "JSON nested too deeply": (lambda d, r: _write_text(r, "capture.json", "[" * 100000 + "]" * 100000), "capture.json: invalid JSON: nested too deeply"),
     "binary capture.json": (lambda d, r: (r / "capture.json").write_bytes(b"glTF\x02\x00\x00\x00\xf0\x9f\xff"), "capture.json: not a capture.json: not UTF-8 text"),
     "is_fisheye a string": (lambda d, r: d.update(is_fisheye="false"), "capture.json: is_fisheye: expected true or false, got 'false'"),
+    "field of view of 1e-30": (lambda d, r: d.update(camera_angle_x=1e-30), "frames[0]: focal length 8e+30 pixels: above 8.39e+06, every pixel's ray is the same"),
     "key twice": (lambda d, r: _write_text(r, "capture.json", json.dumps(d)[:-1] + ', "mesh": "other.obj"}'), "capture.json: invalid JSON: key 'mesh' twice in one object"),
     "key twice in a frame": (lambda d, r: _write_text(r, "capture.json", json.dumps(d).replace('"file_path"', '"file_path": "x.png", "file_path"', 1)), "capture.json: invalid JSON: key 'file_path' twice in one object"),
     "integer of 5000 digits": (lambda d, r: _write_text(r, "capture.json", json.dumps(d)[:-1] + ', "camera_angle_y": ' + "9" * 5000 + "}"), "capture.json: invalid JSON: an integer of more than 4300 digits"),
