@@ -14,7 +14,7 @@ import warnings
 from pathlib import Path
 from typing import BinaryIO, Callable, Iterator, Optional
 
-from .errors import CaptureError
+from .errors import CaptureError, listed
 
 __all__ = ["atomic_path", "atomic_dir", "check_output_dir", "check_not_inside", "output_path", "write_cache_file",
            "CacheWarning", "OUTPUT_MARKER", "OUTPUT_KINDS", "REFUSED_ERRNOS"]
@@ -132,8 +132,7 @@ def check_output_dir(final_dir: str | os.PathLike, kind: str) -> Path:
             written = {line for line in lines[1:] if line}
             extra = sorted(p for p in _relative_files(final_dir) if p not in written and p != OUTPUT_MARKER)
             if extra:
-                shown = ", ".join(extra[:3]) + (f" and {len(extra) - 3} more" if len(extra) > 3 else "")
-                raise CaptureError(f"{final_dir}: holds files pbrfit did not write ({shown}); refusing to replace "
+                raise CaptureError(f"{final_dir}: holds files pbrfit did not write ({listed(extra)}); refusing to replace "
                                    "it, move them out or choose another output folder")
     return final_dir
 

@@ -76,7 +76,7 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
     from data_synth.writer import synthesize
 
     from .fit_command import run_fit
-    from .errors import CaptureError
+    from .errors import CaptureError, listed
     from .runner import compile_summary
     from .atomic import check_output_dir
     from .material_files import read_material
@@ -93,8 +93,7 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
     if out.is_dir():  # as fit and render refuse a folder they did not write: the demo's holds its two
         other = sorted(p.name for p in out.iterdir() if p.name not in DEMO_FOLDERS and not _LEFTOVER.fullmatch(p.name))
         if other:
-            shown = ", ".join(other[:3]) + (f" and {len(other) - 3} more" if len(other) > 3 else "")
-            raise CaptureError(f"{out}: holds what the demo did not write ({shown}); choose another --out")
+            raise CaptureError(f"{out}: holds what the demo did not write ({listed(other)}); choose another --out")
     check_output_dir(out / "capture", "capture")
     check_output_dir(out / "fit", "fit")
     start = time.perf_counter()

@@ -1,6 +1,6 @@
 """The one error type that reaches users: a bad input, named."""
 
-__all__ = ["CaptureError"]
+__all__ = ["CaptureError", "listed"]
 
 
 class CaptureError(ValueError):
@@ -9,3 +9,9 @@ class CaptureError(ValueError):
     The message is one line that names the file or key and says what is wrong; the CLI prints
     it as ``pbrfit: error: <message>`` and exits with status 2.
     """
+
+
+def listed(items, most: int = 3) -> str:
+    """The first ``most`` of ``items`` for a one-line message: ``a, b, c and 4 more``."""
+    items = [str(item) for item in items]
+    return ", ".join(items[:most]) + (f" and {len(items) - most} more" if len(items) > most else "")

@@ -54,7 +54,7 @@ from typing import Callable, Mapping, Optional, Sequence
 
 import numpy as np
 
-from .errors import CaptureError
+from .errors import CaptureError, listed
 from .fit_options import (IBL_MODES, LOSS_SCALE, check_kinds, check_model, check_names, check_normals, check_options,
                           fit_arguments, held_report)
 from .fit_pass import COARSE_STEPS, CONTINUATION, fit_pass
@@ -236,9 +236,8 @@ def _warn_unused_frames(capture, *observations: Optional[Observations]) -> None:
     if unused:
         import warnings
 
-        named = ", ".join(f"frames[{k}] ({capture.frames[k].file_path})" for k in unused[:3])
-        more = f" and {len(unused) - 3} more" if len(unused) > 3 else ""
-        warnings.warn(f"{capture.json_path}: {named}{more}: no usable pixel (each masked out, saturated or off the "
+        named = listed(f"frames[{k}] ({capture.frames[k].file_path})" for k in unused)
+        warnings.warn(f"{capture.json_path}: {named}: no usable pixel (each masked out, saturated or off the "
                       "mesh); left out of the fit", UserWarning, stacklevel=3)
 
 
