@@ -941,3 +941,14 @@ def test_models_on_a_capture_without_an_environment(tmp_path):
     assert len(render_capture(root, one)) == 2
     with pytest.raises(CaptureError, match="no texture coordinates"):
         render_capture(root, dataclasses.replace(one, roughness=jnp.full((2, 2, 1), 0.5)))
+
+
+def test_residual_variance_under_a_prior_is_the_pixels_alone():
+    """σ̂² counts the pixels' residuals, not the prior's energy: with --smooth the report's
+    residual σ (and every standard error with it) grew with the prior's weight."""
+    obs = _noisy_checker_obs(_checker(), sigma=0.02)
+    res = fit_observations(obs, resolution=8, max_steps=20, smooth=1.0)
+    d = np.concatenate([(im - tg)[m] for im, tg, m in zip(res.images, res.targets, res.masks)]).astype(np.float64)
+    n_par = res.report["observed_texels"] * len(res.report["fitted"])
+    pixels_only = math.sqrt(np.sum(d * d) / (d.size - n_par))
+    assert res.report["residual_sigma"] == pytest.approx(pixels_only, rel=1e-3)
