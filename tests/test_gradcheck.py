@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from pbrfit import brdf, gradcheck
+from pbrfit import brdf, gradcheck, gradcheck_terms
 from pbrfit.cli import main
 
 
@@ -24,8 +24,8 @@ def test_run_checks_passes(results):
     terms = {r.term for r in results}
     public = set(brdf.__all__) - {"MIN_ROUGHNESS", "MIN_ALPHA", "COS_MIN", "FLOORS", "evaluate_cosines"}
     assert public <= terms, public - terms
-    for model in gradcheck.MODEL_VARIANTS:
-        assert f"evaluate_cosines[{gradcheck.model_label(model)}]" in terms
+    for model in gradcheck_terms.MODEL_VARIANTS:
+        assert f"evaluate_cosines[{gradcheck_terms.model_label(model)}]" in terms
     for name in ("srgb_to_linear", "linear_to_srgb", "tonemap_aces_hill", "tonemap_khronos_neutral"):
         assert name in terms
     assert {r.order for r in results} == {0, 1, 2}
@@ -40,7 +40,7 @@ def test_run_checks_passes(results):
 
 
 def _spec(term):
-    return [s for s in gradcheck.all_specs() if s.term == term]
+    return [s for s in gradcheck_terms.all_specs() if s.term == term]
 
 
 def _d_ggx_with_tangent(tangent):
@@ -136,7 +136,7 @@ def test_ends_grid_holds_every_point_exactly_on_the_ends():
     off are drawn."""
     import itertools
 
-    spec = next(s for s in gradcheck.all_specs() if s.term == "evaluate_cosines[default]")
+    spec = next(s for s in gradcheck_terms.all_specs() if s.term == "evaluate_cosines[default]")
     grid = gradcheck.ends_grid(spec)
     ends = [sorted(k) or sorted({float(spec.grid[:, i].min()), float(spec.grid[:, i].max())})
             for i, k in enumerate(spec.kinks)]
