@@ -10,7 +10,7 @@ __all__ = ["add_fit", "fit_options", "fit_summary", "default_continuation"]
 
 
 def add_fit(sub) -> None:
-    from .fit_options import IBL_MODES, MATERIAL_MAPS
+    from .fit_options import IBL_MODES, LOSS_SCALE, MATERIAL_MAPS
     from .fit_pass import MAX_STEPS
     from .runner import DEFAULT_SOLVER, SOLVERS
     from .noise import NOISE_LEVELS
@@ -49,6 +49,9 @@ def add_fit(sub) -> None:
                    help="structured solver: relative tolerance of each step's conjugate gradients, in (0, 1) "
                         "(default 1e-3; 1e-2 solves about a quarter faster, see the README)")
     p.add_argument("--loss", choices=LOSSES, default="l2", help="robust loss (default l2: off)")
+    p.add_argument("--loss-scale", type=float, default=None, metavar="S",
+                   help="the robust loss's scale, in image units: residuals past it count less "
+                        f"(default {LOSS_SCALE:g}; huber and cauchy only)")
     p.add_argument("--smooth", type=float, default=0.0, help="weight of the smoothness prior (default 0: off)")
     p.add_argument("--coarse-to-fine", action="store_true", help="solve a uniform material and coarser maps first")
     p.add_argument("--ibl", choices=IBL_MODES, default=IBL_MODES[0],
@@ -144,13 +147,16 @@ def fit_options(args) -> dict:
         free, fixed = fit_arguments(args.fit, fixed, names)
         check_options(resolution=args.resolution, maps=args.maps, solver=args.solver, max_steps=args.max_steps,
                       coarse_steps=COARSE_STEPS, rtol=args.rtol, atol=args.atol,
-                      cg_rtol=CG_RTOL if args.cg_rtol is None else args.cg_rtol, loss_scale=LOSS_SCALE,
+                      cg_rtol=CG_RTOL if args.cg_rtol is None else args.cg_rtol,
+                      loss_scale=LOSS_SCALE if args.loss_scale is None else args.loss_scale,
                       smooth=args.smooth, coarse_to_fine=args.coarse_to_fine,
                       continuation=continuation if args.continuation is not None else None,
                       uncertainty_radius=WINDOW_RADIUS if args.uncertainty_radius is None else args.uncertainty_radius,
                       names=names)
     except ValueError as e:
         raise CaptureError(str(e)) from None
+    if args.loss_scale is not None and args.loss == "l2":
+        raise CaptureError("--loss-scale: only a robust loss uses it (--loss huber or cauchy)")
     for name in ("ibl_samples", "ibl_levels"):
         if getattr(args, name) is not None and args.ibl != "per_pixel":
             raise CaptureError(f"--{name.replace('_', '-')}: only --ibl per_pixel uses it")
@@ -183,6 +189,7 @@ def fit_options(args) -> dict:
         repair=not args.no_repair, noise_level=args.noise_level, devices=devices, ibl=args.ibl,
         pixel_ibl_settings=pixel_ibl_settings, continuation=continuation, pixel_samples=pixel_samples,
         **({} if args.cg_rtol is None else dict(cg_rtol=args.cg_rtol)),
+        **({} if args.loss_scale is None else dict(loss_scale=args.loss_scale)),
         **({} if args.uncertainty_radius is None else dict(uncertainty_radius=args.uncertainty_radius)),
     )
 

@@ -592,6 +592,23 @@ def test_cg_rtol_option_reaches_the_fit():
     assert "cg_rtol" not in options()  # the library's default, CG_RTOL
 
 
+def test_loss_scale_option_reaches_the_fit():
+    from pbrfit.cli import build_parser
+    from pbrfit.cli_fit import fit_options
+    from pbrfit.errors import CaptureError
+
+    def options(*extra):
+        return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
+
+    assert options("--loss", "cauchy", "--loss-scale", "0.2")["loss_scale"] == 0.2
+    assert "loss_scale" not in options("--loss", "huber")  # the library's default, LOSS_SCALE
+    for extra, message in ((("--loss-scale", "0.2"), "--loss-scale: only a robust loss uses it"),
+                           (("--loss", "huber", "--loss-scale", "0"), "--loss-scale: must be a finite number > 0"),
+                           (("--loss", "huber", "--loss-scale", "nan"), "--loss-scale: must be a finite number > 0")):
+        with pytest.raises(CaptureError, match=message):
+            options(*extra)
+
+
 def test_uncertainty_radius_option_reaches_the_fit():
     from pbrfit.cli import build_parser
     from pbrfit.cli_fit import fit_options
