@@ -113,6 +113,16 @@ def _compare(spec: Spec, x, pairs, skipped, outputs, h1: float, h2: float) -> li
 _COMPILER_OPTIONS = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 
 
+def _run_as_one(runs: Sequence, args: Sequence) -> list:
+    """[run(a) for run, a in zip(runs, args)], compiled as one XLA program with `_COMPILER_OPTIONS`."""
+    lowered = jax.jit(lambda args: [run(a) for run, a in zip(runs, args)]).lower(list(args))
+    try:
+        program = lowered.compile(_COMPILER_OPTIONS)
+    except Exception:  # an XLA build without these options: compile with the defaults
+        program = lowered.compile()
+    return program(list(args))
+
+
 # --- The ends of the domains ------------------------------------------------------------------
 #: Where the sweep evaluates around each kink (a clamp, a branch switch, a domain's end): on it,
 #: and about one float32 ulp of 1 either side.
@@ -168,12 +178,7 @@ def run_ends(specs: Optional[Sequence[Spec]] = None) -> list:
         with jax.enable_x64(dtype == np.float64):
             runs = [jax.vmap(jax.value_and_grad(spec.fn)) for spec in specs]
             args = [jnp.asarray(g.astype(dtype)) for g in grids]
-            lowered = jax.jit(lambda args: [run(a) for run, a in zip(runs, args)]).lower(args)
-            try:
-                program = lowered.compile(_COMPILER_OPTIONS)
-            except Exception:  # an XLA build without these options: compile with the defaults
-                program = lowered.compile()
-            outputs = program(args)
+            outputs = _run_as_one(runs, args)
         results.extend(_ends_results(spec, grid, out, dtype) for spec, grid, out in zip(specs, grids, outputs))
     return results
 
@@ -190,14 +195,7 @@ def run_checks(specs: Optional[Sequence[Spec]] = None, ends: bool = True) -> lis
     with jax.enable_x64(True):
         specs = all_specs() if specs is None else list(specs)
         prepared = [_prepare(spec, h1, h2) for spec in specs]
-        runs = [p[0] for p in prepared]
-        args = [p[1] for p in prepared]
-        lowered = jax.jit(lambda args: [run(*a) for run, a in zip(runs, args)]).lower(args)
-        try:
-            program = lowered.compile(_COMPILER_OPTIONS)
-        except Exception:  # an XLA build without these options: compile with the defaults
-            program = lowered.compile()
-        outputs = program(args)
+        outputs = _run_as_one([lambda a, run=p[0]: run(*a) for p in prepared], [p[1] for p in prepared])
         results = []
         for spec, prep, out in zip(specs, prepared, outputs):
             _, _, x, pairs, skipped = prep
