@@ -80,6 +80,17 @@ def _buffer_reader(tree: dict, folder: Path, binary=None):
     return buffer
 
 
+def _json_object(data: bytes, what: str) -> dict:
+    """The JSON object in ``data``; ValueError naming ``what`` where it is not valid JSON or not an object."""
+    try:
+        tree = json.loads(data)
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{what} is not valid JSON ({str(err).splitlines()[0]})") from None
+    if not isinstance(tree, dict):
+        raise ValueError(f"{what} is a {type(tree).__name__}, not an object")
+    return tree
+
+
 def glb_chunks(data: bytes):
     """(version, JSON tree, BIN chunk or None) of a GLB file; ValueError, in words, where the file
     is too short for its header, is not a GLB, or its JSON chunk is cut short or not JSON."""
@@ -93,12 +104,7 @@ def glb_chunks(data: bytes):
         raise ValueError("first GLB chunk is not JSON")
     if 20 + json_len > len(data):
         raise ValueError(f"truncated GLB file: its JSON chunk needs {json_len} bytes, {len(data) - 20} are left")
-    try:
-        tree = json.loads(data[20 : 20 + json_len])
-    except (UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"GLB file's JSON chunk is not valid JSON ({str(err).splitlines()[0]})") from None
-    if not isinstance(tree, dict):
-        raise ValueError(f"GLB file's JSON chunk is a {type(tree).__name__}, not an object")
+    tree = _json_object(data[20 : 20 + json_len], "GLB file's JSON chunk")
     at, binary = 20 + json_len, None
     while binary is None and at + 8 <= len(data):  # the first BIN chunk (other kinds are skipped)
         length, kind = struct.unpack_from("<II", data, at)
@@ -205,12 +211,7 @@ def load_gltf_scene(path: Path):
         binary = _store_rewritten_primitives(tree, path.parent, binary)
         data = glb_from_chunks(version, tree, binary)
         return trimesh.load_scene(_io.BytesIO(data), file_type="glb", resolver=resolver, process=False)
-    try:
-        tree = json.loads(data)
-    except (UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"not a glTF file: its JSON is not valid ({str(err).splitlines()[0]})") from None
-    if not isinstance(tree, dict):
-        raise ValueError(f"not a glTF file: its JSON is a {type(tree).__name__}, not an object")
+    tree = _json_object(data, "not a glTF file: its JSON")
     resolver = _file_resolver(tree, path.parent)
     prepare_tree(tree)
     _store_rewritten_primitives(tree, path.parent, None)
