@@ -15,7 +15,7 @@ from .footprint import samples_side
 from .material import Material
 from .observations import coverage_counts, layout_for
 from .parameters import CHANNELS, NORMAL_CHANNELS, lower, normal_from_slopes, upper
-from .runner import jitted_neighbour_blocks, jitted_normal_blocks
+from .runner import jitted_neighbour_blocks, jitted_normal_blocks, thread_time
 from .selection import profile_hessian, uniform_direction
 from .objective import linearize, objective, pixel_residuals
 from .textures import resample_map
@@ -62,8 +62,7 @@ def closed_times(times: dict, wall: float) -> dict:
     the entries sum to the wall time. "compile_background", compiles overlapped with the fit's
     own work in another thread, is apart from the sum."""
     times = {k: float(v) for k, v in times.items() if k != "other"}
-    spent = sum(v for k, v in times.items() if k != "compile_background")
-    return dict(times, other=max(float(wall) - spent, 0.0))
+    return dict(times, other=max(float(wall) - thread_time(times), 0.0))
 
 
 def finish(obs, problem, x, final, channels, seen, model, solver, history, loss, smooth, times, t_post, t_start,

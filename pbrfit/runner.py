@@ -24,8 +24,8 @@ from .normal_matrix import neighbour_blocks, normal_blocks
 from .solvers import CG_RTOL, structured_lm
 from .transfer import to_device
 
-__all__ = ["DEFAULT_SOLVER", "SOLVERS", "Compiler", "Runner", "timed", "timed_rest", "problem_key", "compile_summary",
-           "jitted_normal_blocks", "jitted_neighbour_blocks", "problem_energy"]
+__all__ = ["DEFAULT_SOLVER", "SOLVERS", "Compiler", "Runner", "timed", "timed_rest", "thread_time", "problem_key",
+           "compile_summary", "jitted_normal_blocks", "jitted_neighbour_blocks", "problem_energy"]
 
 DEFAULT_SOLVER = "structured"
 #: Every solver a fit can run: the structured one (the default), then the optimistix ones.
@@ -119,17 +119,22 @@ def problem_key(problem: Problem) -> tuple:
 _OFF_THREAD = ("compile_background",)
 
 
+def thread_time(clock: Mapping[str, float]) -> float:
+    """The time ``clock``'s entries spent on the fit's own thread (all but `Compiler`'s overlapped
+    compiles, which ran beside it)."""
+    return sum(v for k, v in clock.items() if k not in _OFF_THREAD)
+
+
 @contextlib.contextmanager
 def timed_rest(clock: dict, name: str):
     """Add to ``clock[name]`` the wall time of the block that no other entry of ``clock`` took
     meanwhile: a stage's own work (its host-side steps and jitted evaluations compiled on first
     use), with its solver steps, searches and waited-for compiles counted where they are."""
-    counted = lambda: sum(v for k, v in clock.items() if k not in _OFF_THREAD)  # noqa: E731
-    before, t0 = counted(), time.perf_counter()
+    before, t0 = thread_time(clock), time.perf_counter()
     try:
         yield
     finally:
-        rest = (time.perf_counter() - t0) - (counted() - before)
+        rest = (time.perf_counter() - t0) - (thread_time(clock) - before)
         clock[name] = clock.get(name, 0.0) + max(rest, 0.0)
 
 
