@@ -14,6 +14,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pbrfit import brdf
+from pbrfit.gradcheck_terms import MODEL_VARIANTS
 from pbrfit.model import Model
 
 # --- The acceptance grid of issue 2: closed domain, float32 ---------------------------------------
@@ -482,22 +483,6 @@ def test_lambda_beckmann_closed_form(x64):
 
 
 # --- Helmholtz reciprocity --------------------------------------------------------------------------
-RECIPROCITY_MODELS = (
-    Model(),
-    Model(distribution="beckmann"),
-    Model(distribution="beckmann", geometry="smith_beckmann_correlated"),
-    Model(geometry="smith_ggx_separable"),
-    Model(geometry="schlick_ggx_direct"),
-    Model(geometry="schlick_ggx_ibl"),
-    Model(fresnel="dielectric"),
-    Model(fresnel="dielectric", metallic=False),
-    Model(diffuse="burley"),
-    Model(diffuse="none"),
-    Model(specular=False),
-    Model(multiscatter=True),
-)
-
-
 def _random_pairs(rng, k):
     n = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (k, 3))
     v = rng.normal(size=(k, 3))
@@ -508,7 +493,7 @@ def _random_pairs(rng, k):
     return n, v, l
 
 
-@pytest.mark.parametrize("model", RECIPROCITY_MODELS, ids=_model_id)
+@pytest.mark.parametrize("model", MODEL_VARIANTS, ids=_model_id)  # one Model per variant value
 def test_helmholtz_reciprocity(model):
     """f(v, l) = f(l, v): `evaluate` returns f · n·l, so evaluate(v, l) n·v = evaluate(l, v) n·l. (With
     multiscatter the compensation is a function of n·v in practice; the same dfg is passed both ways.)"""
