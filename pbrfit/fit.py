@@ -379,7 +379,7 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     if model.ibl == "monte_carlo":
         raise ValueError("model: Model(ibl='monte_carlo') is the reference integrator, not a fit's shading; "
                          "use 'split_sum' or 'per_pixel'")
-    from .views import check_environment
+    from .views import capture_environment, check_environment, environment_is_dark
 
     check_environment(model, capture)
     if ibl is not None and model.ibl is not None:
@@ -394,10 +394,8 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     lit = bool(np.max(np.asarray(obs.light_radiance), initial=0.0) > 0.0)
     env = None
     if model.ibl is not None or not lit:  # (read once: the tables and the check below share it)
-        from .views import capture_environment
-
         env = capture_environment(capture)
-    if not lit and (env is None or not np.max(np.asarray(env.radiance), initial=0.0) > 0.0):
+    if not lit and environment_is_dark(capture, env):
         # (no environment at all was refused with the observations)
         raise CaptureError(f"{capture.json_path}: no light reaches the mesh: the environment "
                            f"{capture.environment.file} is black, and every light is off or points away")

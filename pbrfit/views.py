@@ -80,10 +80,11 @@ def capture_environment(capture):
     return load_environment(spec.file, capture.world_up, spec.intensity, spec.rotation_deg)
 
 
-def environment_is_dark(capture) -> bool:
+def environment_is_dark(capture, environment=None) -> bool:
     """Whether no light comes from the capture's environment: there is none, or its radiance
-    (times its intensity; negative values read as 0) is 0 everywhere. Reads the file."""
-    env = capture_environment(capture)
+    (times its intensity; negative values read as 0) is 0 everywhere. Reads the file unless
+    ``environment`` holds it already (`capture_environment`'s)."""
+    env = environment if environment is not None else capture_environment(capture)
     return env is None or not float(np.max(np.asarray(env.radiance), initial=0.0)) > 0.0
 
 
