@@ -2,8 +2,9 @@
 
 import numpy as np
 
-from pbrfit.misfit import identifiable_texels, misfit_texels, outlier_texels, texel_misfit, well_seen_texels
-from pbrfit.repair import fill_from_nearest, improved_clusters, repair_region
+from pbrfit.misfit import MISFIT_FLOOR, identifiable_texels, misfit_texels, outlier_texels, texel_misfit, well_seen_texels
+from pbrfit.repair import evidence_variance, fill_from_nearest, improved_clusters, repair_region
+from pbrfit.uncertainty import residual_variance
 
 
 def test_texel_misfit_means_each_texels_reading_rows():
@@ -197,6 +198,15 @@ def test_fill_from_nearest_copies_free_channels_of_the_nearest_source():
     assert y[4, 0] in (x[1, 0], x[3, 0], x[7, 0]) and y[5, 0] == x[2, 0]
     np.testing.assert_array_equal(y[:, 1], x[:, 1])
     np.testing.assert_array_equal(np.delete(y, [4, 5], 0), np.delete(x, [4, 5], 0))
+
+
+def test_evidence_variance_is_the_residual_variance_above_rounding():
+    # under noise: the residual variance 2E / (n - p)
+    assert evidence_variance(50.0, 10_000, 1_000, 0.2) == residual_variance(50.0, 10_000, 1_000) == 100.0 / 9_000
+    # an exact fit (the noiseless peer scene's energy 1.4e-11 over 295k residuals): its rounding
+    # is no evidence, so the variance is the misfit floor's
+    assert residual_variance(1.4e-11, 294_912, 20_480) < 1e-15
+    assert evidence_variance(1.4e-11, 294_912, 20_480, 0.2) == MISFIT_FLOOR * 0.2
 
 
 def test_repair_says_why_it_was_skipped():
