@@ -22,6 +22,7 @@ import jax.numpy as jnp
 from jax.scipy.special import erfc
 from jaxtyping import Array, ArrayLike, Float
 
+from .clamps import clamp_inward
 from .model import Model
 
 __all__ = [
@@ -93,23 +94,6 @@ FLOORS = {
 }
 
 _INV_PI = 1.0 / math.pi
-
-
-def clamp_inward(x: Float[ArrayLike, "*batch"], lo: float, hi: Optional[float] = None) -> Float[Array, "*batch"]:
-    """min(max(x, lo), hi) whose derivative at x = lo and x = hi is 1, the one-sided derivative
-    from inside. jnp.maximum and jnp.clip give 1/2 at a tie, so a roughness held on a bound of
-    the fit's box (`pbrfit.parameters`: MIN_ROUGHNESS, 1) had a half (at 1) or a quarter (at the
-    floor, through two floors) of its Jacobian column, and Gauss-Newton steps and standard
-    errors two to four times too large there. Every clamp of this module is this one: a cosine
-    at the end of its domain (n·h = 1 at a highlight's peak, n·v = 1 looking straight down, n·l
-    = 0 at the terminator) has its derivative from inside too."""
-    x = jnp.asarray(x)
-    if not jnp.issubdtype(x.dtype, jnp.floating):  # an integer roughness too: the floor is not an integer
-        x = x.astype(jnp.result_type(float))
-    # the bounds as Python numbers: weakly typed, so a Python-float x stays weak as under jnp.clip
-    # (with x64 on, a float32 array beside it keeps float32)
-    out = jnp.where(x < lo, float(lo), x)
-    return out if hi is None else jnp.where(x > hi, float(hi), out)
 
 
 def alpha_from_roughness(roughness: Float[ArrayLike, "*batch"]) -> Float[Array, "*batch"]:

@@ -1,7 +1,9 @@
 """Color: the sRGB transfer function, exposure, and tone mapping operators.
 
 All functions are elementwise, differentiable ``jnp`` functions of linear RGB (..., 3) arrays
-(the sRGB curve is per channel; tone maps that mix channels say so).
+(the sRGB curve is per channel; tone maps that mix channels say so). Their clamps are
+`pbrfit.clamps.clamp_inward`: a pixel whose radiance is exactly 0 (a metal's black channel) or
+exactly at a clip keeps the derivative from inside, not half of it.
 """
 
 from __future__ import annotations
@@ -10,6 +12,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
+
+from .clamps import clamp_inward
 
 __all__ = [
     "TONEMAPS",
@@ -88,7 +92,7 @@ def luminance(x: Float[ArrayLike, "... 3"]) -> Float[Array, "..."]:
 
 def tonemap_reinhard(x):
     """Reinhard et al. 2002, per channel: x / (1 + x)."""
-    x = jnp.maximum(jnp.asarray(x), 0.0)
+    x = clamp_inward(x, 0.0)
     return x / (1.0 + x)
 
 
@@ -103,8 +107,8 @@ def tonemap_aces_narkowicz(x):
     clamp(x (2.51 x + 0.03) / (x (2.43 x + 0.59) + 0.14), 0, 1). The input is used as is (no 0.6
     pre-scale), matching the glTF Sample Viewer's ``toneMapACES_Narkowicz``.
     """
-    x = jnp.clip(jnp.asarray(x), 0.0, ACES_INPUT_MAX)
-    return jnp.clip(x * (2.51 * x + 0.03) / (x * (2.43 * x + 0.59) + 0.14), 0.0, 1.0)
+    x = clamp_inward(x, 0.0, ACES_INPUT_MAX)
+    return clamp_inward(x * (2.51 * x + 0.03) / (x * (2.43 * x + 0.59) + 0.14), 0.0, 1.0)
 
 
 # S. Hill's ACES fit (BakingLab ACES.hlsl), as in the glTF Sample Viewer: sRGB -> ACES AP1
@@ -124,11 +128,11 @@ def tonemap_aces_hill(x):
     c = M_in rgb; c = (c (c + 0.0245786) - 0.000090537) / (c (0.983729 c + 0.4329510) + 0.238081);
     out = clamp(M_out c, 0, 1). Without the viewer's optional /0.6 exposure boost.
     """
-    x = jnp.clip(jnp.asarray(x), 0.0, ACES_INPUT_MAX)
+    x = clamp_inward(x, 0.0, ACES_INPUT_MAX)
     c = jnp.einsum("ij,...j->...i", _ACES_INPUT.astype(x.dtype), x, precision=jax.lax.Precision.HIGHEST)
     c = (c * (c + 0.0245786) - 0.000090537) / (c * (0.983729 * c + 0.4329510) + 0.238081)
     out = jnp.einsum("ij,...j->...i", _ACES_OUTPUT.astype(x.dtype), c, precision=jax.lax.Precision.HIGHEST)
-    return jnp.clip(out, 0.0, 1.0)
+    return clamp_inward(out, 0.0, 1.0)
 
 
 def tonemap_khronos_neutral(x):
@@ -140,7 +144,7 @@ def tonemap_khronos_neutral(x):
     """
     start = 0.8 - 0.04
     desaturation = 0.15
-    x = jnp.maximum(jnp.asarray(x), 0.0)
+    x = clamp_inward(x, 0.0)
     low = jnp.min(x, axis=-1, keepdims=True)
     offset = jnp.where(low < 0.08, low - 6.25 * low * low, 0.04)
     x = x - offset
@@ -256,5 +260,5 @@ def encode(
         raise ValueError(f"unknown tone map {tonemap!r}; expected one of {', '.join(TONEMAPS)}")
     x = _TONEMAPS[tonemap](apply_exposure(radiance, exposure_ev))
     if color_space == "srgb":
-        return linear_to_srgb(jnp.clip(x, 0.0, 1.0))
+        return linear_to_srgb(clamp_inward(x, 0.0, 1.0))
     return x

@@ -359,10 +359,10 @@ def sample_stack(stack: Float[Array, "K H W C"], shapes: tuple, uv: Float[Array,
     """Trilinear sample of a padded level stack at continuous ``level`` (clamped to [0, K-1]).
 
     Linear in the stack's values and piecewise linear in ``level``, so differentiable w.r.t. both;
-    at level 0 and K-1 (roughness 0 and 1) with the derivative from inside (`brdf.clamp_inward`:
+    at level 0 and K-1 (roughness 0 and 1) with the derivative from inside (`pbrfit.clamps.clamp_inward`:
     a clip's is half of it there).
     """
-    from .brdf import clamp_inward
+    from .clamps import clamp_inward
 
     k = stack.shape[0]
     level = clamp_inward(level, 0.0, k - 1.0)

@@ -211,6 +211,19 @@ def test_tonemap_gradients_finite_at_zero(name):
     assert np.all(np.isfinite(np.asarray(g))), name
 
 
+def test_derivatives_at_zero_and_at_the_clip_are_the_ones_from_inside():
+    """A pixel whose radiance is exactly 0 (a metal's black channel under a flash) or exactly 1
+    under sRGB keeps the derivative from inside: a clip's is half of it (a quarter through the
+    Narkowicz fit's two clips), which made that channel's Gauss-Newton step and standard error
+    too large. The slopes at 0: sRGB 12.92, Reinhard 1, Narkowicz 0.03 / 0.14 (Hill's fit is 0
+    near black, and so is its derivative)."""
+    d = lambda f, x: float(jax.grad(f)(jnp.float32(x)))  # noqa: E731
+    assert d(lambda x: color.encode(x, 0.0, "none", "srgb"), 0.0) == pytest.approx(12.92)
+    assert d(lambda x: color.encode(x, 0.0, "none", "srgb"), 1.0) == pytest.approx(1.055 / 2.4, rel=1e-5)
+    assert d(lambda x: color.tonemap(x, "reinhard"), 0.0) == pytest.approx(1.0)
+    assert d(lambda x: color.tonemap(x, "aces_narkowicz"), 0.0) == pytest.approx(0.03 / 0.14, rel=1e-5)
+
+
 def test_encode_order_and_errors():
     x = jnp.array([0.1, 0.4, 3.0])
     np.testing.assert_allclose(color.encode(x, 1.0), 2 * x, rtol=1e-6)
