@@ -39,10 +39,10 @@ from .color import encode
 from .model import Model
 from .observations import Observations
 from .material import apply_normal_map
-from .parameters import normal_from_slopes
+from .parameters import lower, normal_from_slopes, upper
 from .render import shade
 
-__all__ = ["Problem", "LOSSES", "robust_residual", "shading_normal", "sample_texels", "pixel_residuals", "residuals",
+__all__ = ["Problem", "LOSSES", "robust_residual", "shading_normal", "sample_texels", "sample_material", "pixel_residuals", "residuals",
            "objective", "linearize", "by_pixel", "to_rows", "scatter_texels", "laplacian", "prior_degree", "smooth_residuals"]
 
 #: Robust losses, as residual transforms r -> r sqrt(ρ(r²)/r²) (so the objective stays a sum of squares).
@@ -178,9 +178,26 @@ def sample_texels(x: Float[Array, "T K"], problem: Problem) -> Float[Array, "P K
     return jnp.einsum("pk,pkc->pc", problem.weight, x[problem.index], precision=lax.Precision.HIGHEST)
 
 
+def sample_material(x: Float[Array, "T K"], problem: Problem) -> Float[Array, "P K"]:
+    """The material values a pixel row shades with: `sample_texels` projected into the fit's box
+    (`pbrfit.parameters.lower`, `upper`) with derivative 1, Π(m) = m + stop_gradient(clip(m) - m).
+
+    The texels lie in the box, but their float32-weighted mix can leave it by a rounding: on a
+    map held at the roughness floor, a tenth of the pixels read 0.044999998 under a floor of
+    0.045, where the BRDF's floor is flat, and lost their roughness derivative (a texel kept 16%
+    of its normal-matrix diagonal, and its σ was 2.7 times too large); a metallic of 1.0000001
+    gave a black channel a negative radiance, which the sRGB clip flattens. The projection puts
+    the value on the bound, where the clamps downstream (`pbrfit.clamps.clamp_inward`) give the
+    derivative from inside, and passes the derivative through."""
+    m = sample_texels(x, problem)
+    k = m.shape[-1]
+    clipped = jnp.clip(m, jnp.asarray(lower(k), m.dtype), jnp.asarray(upper(k), m.dtype))
+    return m + lax.stop_gradient(clipped - m)
+
+
 def pixel_residuals(x: Float[Array, "T K"], problem: Problem) -> Float[Array, "P 3"]:
     """Every pixel's (transformed) residual at texel values x."""
-    m = sample_texels(x, problem)
+    m = sample_material(x, problem)
     if problem.samples == 1:
         f = jax.vmap(lambda mm, *a: _pixel_residual(mm, *a, problem=problem))
         return f(m, *_pixel_args(problem))
@@ -213,7 +230,7 @@ def objective(x: Float[Array, "T K"], problem: Problem) -> Float[Array, ""]:
 def linearize(x: Float[Array, "T K"], problem: Problem):
     """Residuals (P, 3), per-pixel Jacobians J_p = ∂r_p/∂m_p (P, 3, K) (per sample row,
     (R, 3, K), with several samples per pixel) and E(x)."""
-    m = sample_texels(x, problem)
+    m = sample_material(x, problem)
 
     if problem.samples == 1:
         one = lambda mm, *a: _value_and_jacfwd(lambda v: _pixel_residual(v, *a, problem=problem), mm)  # noqa: E731
