@@ -97,10 +97,8 @@ def frame_camera(top: Mapping, frame: Mapping, c2w: np.ndarray, width: int, heig
         raise CaptureError(f"{where}: no intrinsics: give camera_angle_x, or fl_x (top level or per frame)")
     cx = number_field(frame, "cx", where, None) if "cx" in frame else number_field(top, "cx", name, 0.5 * width)
     cy = number_field(frame, "cy", where, None) if "cy" in frame else number_field(top, "cy", name, 0.5 * height)
-    if not (0.0 <= cx <= width and 0.0 <= cy <= height):
-        raise CaptureError(
-            f"{where}: principal point (cx, cy) = ({cx:g}, {cy:g}) lies outside the {width}x{height} image {image}"
-        )
+    # any finite principal point: the spec gives cx, cy no range, and a crop or tile of a larger
+    # image has it outside its own frame
     if max(fx, fy) > MAX_FOCAL_PIXELS:
         raise CaptureError(f"{where}: focal length {max(fx, fy):.3g} pixels: above {MAX_FOCAL_PIXELS:.3g}, every "
                            "pixel's ray is the same in float32 (is the field of view, or fl_x, in the right units?)")
