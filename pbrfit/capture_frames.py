@@ -30,10 +30,6 @@ IMAGE_SUFFIXES = (".exr", ".hdr", ".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bm
 _TRY_SUFFIXES = (".png", ".exr")
 _LINEAR_FORMATS = ("openexr", "hdr")
 _SRGB_FORMATS = ("png", "jpeg")
-# Premultiplied integer colour (a TIFF's) is divided by alpha only from this coverage up: below
-# it the colour's few codes hold too little of the surface to recover. Float colour (OpenEXR)
-# is divided wherever alpha is nonzero, the spec's "nonzero = use the pixel".
-_MIN_UNPREMULTIPLY_ALPHA = 1.0 / 256.0
 #: The largest |exposure| in EV a frame may have: 2^64 ≈ 1.8e19 leaves float32 room for the radiance.
 MAX_EXPOSURE = 64.0
 
@@ -127,11 +123,12 @@ def load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposur
     camera = frame_camera(raw, frame_raw, c2w, width, height, where, name, file_path)
 
     rgb = _rgb(pixels, info, f"{where}.file_path")
-    least_alpha = _MIN_UNPREMULTIPLY_ALPHA if info.is_ldr else float(np.finfo(np.float32).tiny)
     overflow = np.zeros((height, width), bool)
-    if info.associated_alpha:  # premultiplied (EXR): partly covered pixels get the surface's color back
+    if info.associated_alpha:  # premultiplied (EXR, TIFF): partly covered pixels get the surface's color back
         alpha = pixels[..., info.alpha_channel : info.alpha_channel + 1]
-        partial = (alpha >= least_alpha) & (alpha < 1.0)
+        # wherever alpha is nonzero, the spec's "nonzero = use the pixel" (an integer file's colour
+        # under a small alpha comes back in few codes: its quantisation is the file's)
+        partial = (alpha > 0.0) & (alpha < 1.0)
         with np.errstate(over="ignore"):
             divided = np.where(partial, rgb / np.where(partial, alpha, 1.0), rgb).astype(np.float32)
         # a colour too bright for float32 once divided by a tiny alpha: not used (the file holds no NaN)
@@ -156,9 +153,7 @@ def load_frame(raw, frame_raw, i, root, name, color_space_override, base_exposur
             mask &= _nonzero(mask_pixels[..., mask_info.alpha_channel])
         mask_source = "file"
     elif info.alpha_channel is not None:
-        alpha = pixels[..., info.alpha_channel]
-        # premultiplied integer colour under an alpha too small to divide by (above) stays darkened: not used
-        mask = alpha >= least_alpha if info.associated_alpha else _nonzero(alpha)
+        mask = _nonzero(pixels[..., info.alpha_channel])
         mask_source = "alpha"
     else:
         mask_source = "none"

@@ -36,8 +36,8 @@ Rules pinned here (tests in ``tests/test_scene.py``):
 * Masks: ``mask_path`` (nonzero in its first channel, and in its alpha when it has one = use),
   else the image's alpha channel (nonzero = use), else every pixel (and a fit leaves out the
   mesh's silhouette pixels, which may hold background: `pbrfit.views.capture_views`). Color
-  stored premultiplied by alpha (`pbrfit.io.ImageInfo.associated_alpha`: EXR) is divided by it
-  where 1/256 <= alpha < 1, so a partly covered edge pixel holds the surface's color rather than
+  stored premultiplied by alpha (`pbrfit.io.ImageInfo.associated_alpha`: EXR, and TIFF unless
+  the file says unassociated) is divided by it where 0 < alpha < 1, so a partly covered edge pixel holds the surface's color rather than
   a darkened one. Pixels with a NaN or inf channel are set to 0 and, within the mask, marked
   (``Frame.nonfinite``): a fit that would read one (the mesh covers it) refuses the capture.
   ``saturated`` marks pixels of integer (LDR) files with any color channel at the maximum code.

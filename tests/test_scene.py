@@ -612,9 +612,33 @@ def test_mask_values_other_than_zero_use_the_pixel(tmp_path):
     assert not used[:, :2].any() and not used[0, 5] and used[1:, 2:].all()
 
 
+def test_premultiplied_tiff_colour_is_used_under_any_nonzero_alpha(tmp_path):
+    """A 16-bit TIFF (premultiplied unless it says otherwise) with alpha under 1/256 on its first
+    row: those pixels are used, as the spec's "nonzero = use the pixel" says, and their colour is
+    divided by alpha (98 codes of colour under alpha 0.003: 0.5 to within half a code's ratio)."""
+    import OpenImageIO as oiio
+
+    rgba = np.ones((H, W, 4), np.float32)
+    rgba[..., :3] = 0.5
+    rgba[0, :, 3] = 0.003
+    rgba[0, :, :3] = 0.003 * 0.5
+    rgba[1, :, 3] = 0.0
+    root = _single_frame(tmp_path, "img.exr", np.zeros((H, W, 3), np.float32), "float")
+    doc = json.loads((root / "capture.json").read_text())
+    doc["frames"][0]["file_path"] = "img.tif"
+    (root / "capture.json").write_text(json.dumps(doc))
+    out = oiio.ImageOutput.create(str(root / "img.tif"))
+    assert out.open(str(root / "img.tif"), oiio.ImageSpec(W, H, 4, "uint16")) and out.write_image(rgba)
+    out.close()
+    frame = load_capture(root).frames[0]
+    assert frame.color_space == "linear"
+    assert frame.mask[0].all() and not frame.mask[1].any() and frame.mask[2:].all()
+    np.testing.assert_allclose(frame.image[0], 0.5, rtol=0.01)
+    np.testing.assert_allclose(frame.image[2:], 0.5, atol=1e-4)
+
+
 def test_premultiplied_float_colour_is_used_under_any_nonzero_alpha(tmp_path):
-    """Float colour is divided by any nonzero alpha (the spec: nonzero = use the pixel); integer
-    colour (a premultiplied TIFF's) only from 1/256 up, below which its few codes hold no colour."""
+    """Float colour is divided by any nonzero alpha (the spec: nonzero = use the pixel)."""
     rgba = np.full((H, W, 4), 1.0, np.float32)
     rgba[0, :, 3] = 1e-3
     rgba[0, :, :3] = 1e-3 * 0.5
