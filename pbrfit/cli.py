@@ -98,8 +98,8 @@ def _cmd_render(args) -> int:
     from .material_files import read_material
     from .uv_layout import check_uv_layout
     from .scene import load_capture
-    from .views import (apply_overrides, environment_is_dark, load_lights_override, render_capture,
-                        write_rendered_capture)
+    from .render_output import write_rendered_capture
+    from .views import apply_overrides, environment_is_dark, load_lights_override, render_capture
 
     start = time.perf_counter()
     if not 1 <= args.supersample <= MAX_SUPERSAMPLE:

@@ -258,7 +258,7 @@ def test_file_system_refusals_are_one_line_with_nothing_left(tmp_path, monkeypat
     # exit status 2, one line naming the file, no traceback, no output folder
     import errno
 
-    import pbrfit.views
+    import pbrfit.render_output
 
     cap = tmp_path / "cap"
     assert main(["synth", "peer-plane", "--out", str(cap), "--size", "8", "--views", "1", "--texture-size", "4",
@@ -268,7 +268,7 @@ def test_file_system_refusals_are_one_line_with_nothing_left(tmp_path, monkeypat
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp / rel))
 
     with monkeypatch.context() as m:
-        m.setattr(pbrfit.views, "_copy_into", full)
+        m.setattr(pbrfit.render_output, "_copy_into", full)
         out = tmp_path / "rendered"
         assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--quiet"]) == 2
         err = capsys.readouterr().err
