@@ -199,6 +199,41 @@ def test_uncertainty_window_widens_the_per_texel_errors():
         fit_observations(obs, resolution=8, uncertainty_radius=4)
 
 
+def test_uncertainty_matches_the_dense_window_inverse():
+    """The size of the reported errors, end to end: σ̂ = sqrt(2 E / (n - p)) from the pixels'
+    residuals, and each texel's σ = σ̂ sqrt(diag((JᵀJ)_W⁻¹)) at its channels, with (JᵀJ)_W the
+    dense Gauss-Newton matrix (jax.jacfwd of the pixel residuals at the fitted maps) restricted to
+    the texel's 3 × 3 window, wrapped around the map (`pbrfit.uncertainty`: the window's other
+    texels free, those beyond held). Metallic is held at 0 and the uniform check is off, so no
+    channel is pinned or made one value: every fitted σ is a window's. (One sample per pixel: a
+    pixel reads a 2 × 2 block of texels, so the diagonal and neighbour blocks hold all of the
+    window's matrix, and the two agree to float32 round-off and the window's 1e-6 ridge.)"""
+    truth = _checker()
+    obs = _noisy_checker_obs(truth, seed=3)
+    res = fit_observations(obs, resolution=8, fixed={"metallic": 0}, uniform_check=False, max_steps=20)
+    assert res.report["fitted"] == ["base_r", "base_g", "base_b", "roughness"] and np.all(res.coverage > 0)
+    problem = dataclasses.replace(_texel_problem(truth), obs=obs)
+    x = np.asarray(_stack(res.material))
+    r = np.asarray(jax.jit(pbrfit.objective.pixel_residuals)(jnp.asarray(x), problem), np.float64)
+    jac = np.asarray(_dense_jacobian(jnp.asarray(x), problem), np.float64)
+    fitted = [0, 1, 2, 4]
+    jac = jac.reshape(-1, 64, 5)[:, :, fitted].reshape(len(r.ravel()), -1)  # the metallic columns held
+    k = len(fitted)
+    sigma2 = np.sum(r * r) / (r.size - 64 * k)
+    np.testing.assert_allclose(res.report["residual_sigma"], np.sqrt(sigma2), rtol=1e-3)
+    h = jac.T @ jac
+    got = np.asarray(res.uncertainty).reshape(64, 5)
+    assert np.all(got[:, 3] == 0)  # held
+    want = np.empty((64, k))
+    for s in range(64):
+        i, j = divmod(s, 8)
+        window = [((i + di) % 8) * 8 + (j + dj) % 8 for di in (-1, 0, 1) for dj in (-1, 0, 1)]
+        cols = np.concatenate([np.arange(u * k, (u + 1) * k) for u in window])
+        own = window.index(s)
+        want[s] = np.sqrt(sigma2 * np.diag(np.linalg.inv(h[np.ix_(cols, cols)]))[own * k:(own + 1) * k])
+    np.testing.assert_allclose(got[:, fitted], want, rtol=1e-3)
+
+
 def test_fixed_channels_stay_fixed():
     """A held map is taken out of the default `fit` (all maps), as ``--roughness`` does."""
     truth = _checker()
@@ -344,6 +379,13 @@ def _texel_problem(truth, smooth=0.0):
 
 def _stack(material):
     return jnp.concatenate([material.base_color, material.metallic, material.roughness], -1).reshape(-1, 5)
+
+
+@jax.jit
+def _dense_jacobian(x, problem):
+    """∂r/∂x, dense: the pixel residuals (flattened) against the (T, 5) maps (flattened),
+    forward mode (jitted: eager, a 64-texel map's 320 columns took 6 s)."""
+    return jax.jacfwd(lambda v: pbrfit.objective.pixel_residuals(v.reshape(-1, 5), problem).ravel())(x.ravel())
 
 
 def test_grid_start_solves_base_colour_jointly_at_colour_edges():
@@ -683,8 +725,7 @@ def _dense_profile_sigma(obs, res, uniform):
     problem = dataclasses.replace(_texel_problem(_checker()), obs=obs,
                                   pair_weight=jnp.zeros(len(neighbour_pairs((8, 8)))))
     x = np.asarray(_stack(res.material))
-    jac = np.asarray(jax.jacfwd(lambda v: pbrfit.objective.pixel_residuals(v.reshape(-1, 5), problem).ravel())(
-        jnp.asarray(x.ravel())), np.float64)
+    jac = np.asarray(_dense_jacobian(jnp.asarray(x), problem), np.float64)
     h = jac.T @ jac
     d = np.zeros((len(uniform), 64, 5))
     for i, c in enumerate(uniform):
