@@ -148,10 +148,33 @@ def test_default_resolution_has_no_more_texels_than_pixels():
     assert default_resolution(obs) == 2 ** int(math.log2(math.sqrt(obs.num_pixels))) <= 32
 
 
+def test_default_resolution_follows_the_pixel_footprint():
+    """Where the views have pixels to spare, the footprint decides: full-frame views whose pixels
+    step exactly 1/24 in u and in v (the median footprint) give texels at least one pixel wide up
+    to 16² (24 ≥ 16, < 32). Sixteen such views (9216 pixels) would give each texel of a 32² map 9
+    observations (OBSERVATIONS_PER_TEXEL is 8) and allow up to 64² texels (one per pixel): only
+    the footprint holds the map at 16."""
+    side = 24
+    i, j = np.divmod(np.arange(side * side), side)
+    uv = (np.stack([j, i], -1) + 0.5) / side
+    n = side * side
+    view = ViewInputs(pixel=jnp.arange(n, dtype=jnp.int32), uv=jnp.asarray(uv, jnp.float32),
+                      normal=jnp.tile(jnp.array([[0.0, 0.0, 1.0]]), (n, 1)),
+                      tangent=jnp.tile(jnp.array([[1.0, 0.0, 0.0, 1.0]]), (n, 1)),
+                      view=jnp.tile(jnp.array([[0.0, 0.0, 1.0]]), (n, 1)),
+                      light_l=jnp.tile(jnp.array([[[0.0, 0.0, 1.0]]]), (n, 1, 1)),
+                      light_radiance=jnp.zeros((n, 1, 3)), shape=(side, side))
+    obs = observations_from_views([view] * 16, [np.zeros((side, side, 3), np.float32)] * 16)
+    assert obs.num_pixels == 9216 >= 8 * 32 * 32
+    assert default_resolution(obs) == 16
+
+
 def test_maps_recovered_on_small_scene():
     truth = _checker()
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
-    assert default_resolution(obs) >= 8
+    # the pixels' median footprint (0.050 uv wide) would allow 16, but the 4 views' 1444 pixels
+    # over the 256 texels of a 16² map are 5.6 each, below OBSERVATIONS_PER_TEXEL (8): 8
+    assert default_resolution(obs) == 8
     res = fit_observations(obs, resolution=8, max_steps=40)
     err = map_rmse(truth, res)
     assert err["base_color"] < 0.01 and err["roughness"] < 0.03 and err["metallic"] < 0.02, err
