@@ -181,6 +181,21 @@ def test_maps_recovered_on_small_scene():
     assert np.all(res.coverage > 0)
 
 
+def test_coarse_to_fine_runs_its_levels_and_recovers_the_maps():
+    """coarse_to_fine=True runs `schedule`'s levels, a uniform material and then the 8 × 8 maps
+    (8 has no level between: 8 / LEVEL_FACTOR is below 4), each with steps of its own in the
+    report, and ends where the direct fit does (`test_maps_recovered_on_small_scene`)."""
+    truth = _checker()
+    obs = observations_from_views(VIEWS, _images(VIEWS, truth))
+    res = fit_observations(obs, resolution=8, max_steps=40, coarse_to_fine=True)
+    levels = res.report["levels"]
+    assert [h["resolution"] for h in levels] == [[1, 1], [8, 8]] == [list(s) for s in schedule((8, 8))], levels
+    assert all(h["steps"] > 0 for h in levels), levels
+    assert res.material.resolution == (8, 8)
+    err = map_rmse(truth, res)
+    assert err["base_color"] < 0.01 and err["roughness"] < 0.03 and err["metallic"] < 0.02, err
+
+
 def test_unseen_texels_flagged_and_left_at_prior():
     truth = _checker()
     half = [_views(2, extent=2.0)[k] for k in range(2)]  # the plane covers only the centre of uv
