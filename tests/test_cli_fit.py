@@ -621,6 +621,27 @@ def test_uncertainty_radius_option_reaches_the_fit():
     assert "uncertainty_radius" not in options()  # the library's default, WINDOW_RADIUS
 
 
+def test_solve_options_reach_the_fit():
+    """--smooth, --rtol, --atol, --coarse-to-fine, --no-search and --no-repair each reach the
+    fit's keyword, given or not; not given, they are the library's own defaults."""
+    import inspect
+
+    from pbrfit.cli import build_parser
+    from pbrfit.cli_fit import fit_options
+    from pbrfit.fit import fit_observations
+
+    def options(*extra):
+        return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
+
+    keys = ("smooth", "rtol", "atol", "coarse_to_fine", "search", "repair")
+    library = inspect.signature(fit_observations).parameters
+    assert {k: options()[k] for k in keys} == {k: library[k].default for k in keys}
+    given = options("--smooth", "0.25", "--rtol", "1e-3", "--atol", "2e-4", "--coarse-to-fine", "--no-search",
+                    "--no-repair")
+    assert {k: given[k] for k in keys} == dict(smooth=0.25, rtol=1e-3, atol=2e-4, coarse_to_fine=True, search=False,
+                                               repair=False)
+
+
 @pytest.mark.parametrize("error", [MemoryError("Unable to allocate 74.5 GiB for an array"),
                                    RuntimeError("RESOURCE_EXHAUSTED: Out of memory allocating 1 bytes.\nmore")])
 def test_out_of_memory_is_one_line_and_exit_2(capture, tmp_path, capsys, monkeypatch, error):

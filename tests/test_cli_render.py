@@ -65,6 +65,39 @@ def test_render_relights_with_lights_override(tmp_path, monkeypatch):
     np.testing.assert_allclose(read_image(again / raw["frames"][0]["file_path"])[0], after, rtol=0, atol=1e-6)
 
 
+def test_render_relights_with_an_environment_at_the_captures_intensity_and_rotation(tmp_path, monkeypatch):
+    """--environment FILE replaces the capture's environment file only: the capture's intensity
+    and rotation_deg apply to it. The render equals that of the capture whose capture.json names
+    FILE with them, and differs from the render at intensity 1 and no rotation."""
+    from pbrfit.io import write_image
+
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    cap = tmp_path / "cap"
+    assert main(["synth", "sphere-env", "--out", str(cap), "--size", "16", "--views", "2", "--format", "exr",
+                 "--quiet"]) == 0
+    # a sky that changes with azimuth (so that a rotation shows) and with height; the size of the
+    # preset's env.exr (128 x 256), so that its tables' programs are those compiled already
+    v, u = np.meshgrid(np.linspace(0, 1, 128), np.linspace(0, 2 * np.pi, 256, endpoint=False), indexing="ij")
+    sky = np.stack([1.0 + np.cos(u), 1.0 + 0.5 * np.sin(2 * u), 0.5 + v], -1).astype(np.float32)
+    write_image(cap / "sky.exr", sky, "float")
+    data = json.loads((cap / "capture.json").read_text())
+    frame = data["frames"][0]["file_path"]
+
+    def render(environment, *extra):
+        data["environment"] = environment
+        (cap / "capture.json").write_text(json.dumps(data))
+        out = tmp_path / f"out{len(list(tmp_path.glob('out*')))}"
+        assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--quiet",
+                     *extra]) == 0
+        return read_image(out / frame)[0][..., :3]
+
+    relit = render(dict(file="env.exr", intensity=2.0, rotation_deg=40.0), "--environment", str(cap / "sky.exr"))
+    named = render(dict(file="sky.exr", intensity=2.0, rotation_deg=40.0))
+    np.testing.assert_allclose(relit, named, rtol=1e-5, atol=1e-6)
+    plain = render(dict(file="sky.exr", intensity=1.0, rotation_deg=0.0))
+    assert np.abs(relit - plain).max() > 0.1
+
+
 def test_render_and_synth_refuse_an_out_folder_they_did_not_write(tmp_path, capsys):
     out = tmp_path / "photos"
     out.mkdir()

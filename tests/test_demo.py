@@ -39,7 +39,16 @@ def test_recovery_table_counts_and_calibration():
     np.testing.assert_allclose(b["rmse"], np.sqrt(0.01 / 3), rtol=1e-5)  # 1 of 3 observed texels off by 0.1
     assert b["confident"] == 2 and b["rmse_confident"] == 0.0 and 0.2 > CONFIDENT_SIGMA
     assert b["within_2sigma"] == 1.0
+    # the median over the 9 observed base colour channels: six at 0.01, three at 0.2
+    np.testing.assert_allclose(b["median_sigma"], 0.01, rtol=1e-6)
     assert rows["roughness"]["rmse"] == 0.0 and rows["roughness"]["confident"] == 3
+    # the calibration column counts |err| <= 2σ, not 1σ or 3σ: at σ 0.2, one texel off by 0.3
+    # (outside 1σ, inside 2σ) and one off by 0.5 (outside 2σ, inside 3σ), the third exact
+    off = Material(base.at[0, 0].set(0.8).at[0, 1].set(1.0), jnp.zeros((2, 2, 1)), jnp.full((2, 2, 1), 0.5))
+    sigma[0, 1, :3] = 0.2
+    b = {r["map"]: r for r in recovery_table(off, truth, sigma, coverage)}["base_color"]
+    assert b["within_2sigma"] == 6 / 9  # the exact texel's 3 channels and the 0.3 texel's 3, of 9
+    np.testing.assert_allclose(b["median_sigma"], 0.2, rtol=1e-6)  # six channels at 0.2, three at 0.01
 
 
 def test_demo_refuses_to_replace_folders_it_did_not_write(tmp_path, capsys):

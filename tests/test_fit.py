@@ -148,14 +148,52 @@ def test_default_resolution_has_no_more_texels_than_pixels():
     assert default_resolution(obs) == 2 ** int(math.log2(math.sqrt(obs.num_pixels))) <= 32
 
 
+def test_default_resolution_follows_the_pixel_footprint():
+    """Where the views have pixels to spare, the footprint decides: full-frame views whose pixels
+    step exactly 1/24 in u and in v (the median footprint) give texels at least one pixel wide up
+    to 16² (24 ≥ 16, < 32). Sixteen such views (9216 pixels) would give each texel of a 32² map 9
+    observations (OBSERVATIONS_PER_TEXEL is 8) and allow up to 64² texels (one per pixel): only
+    the footprint holds the map at 16."""
+    side = 24
+    i, j = np.divmod(np.arange(side * side), side)
+    uv = (np.stack([j, i], -1) + 0.5) / side
+    n = side * side
+    view = ViewInputs(pixel=jnp.arange(n, dtype=jnp.int32), uv=jnp.asarray(uv, jnp.float32),
+                      normal=jnp.tile(jnp.array([[0.0, 0.0, 1.0]]), (n, 1)),
+                      tangent=jnp.tile(jnp.array([[1.0, 0.0, 0.0, 1.0]]), (n, 1)),
+                      view=jnp.tile(jnp.array([[0.0, 0.0, 1.0]]), (n, 1)),
+                      light_l=jnp.tile(jnp.array([[[0.0, 0.0, 1.0]]]), (n, 1, 1)),
+                      light_radiance=jnp.zeros((n, 1, 3)), shape=(side, side))
+    obs = observations_from_views([view] * 16, [np.zeros((side, side, 3), np.float32)] * 16)
+    assert obs.num_pixels == 9216 >= 8 * 32 * 32
+    assert default_resolution(obs) == 16
+
+
 def test_maps_recovered_on_small_scene():
     truth = _checker()
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
-    assert default_resolution(obs) >= 8
+    # the pixels' median footprint (0.050 uv wide) would allow 16, but the 4 views' 1444 pixels
+    # over the 256 texels of a 16² map are 5.6 each, below OBSERVATIONS_PER_TEXEL (8): 8
+    assert default_resolution(obs) == 8
     res = fit_observations(obs, resolution=8, max_steps=40)
     err = map_rmse(truth, res)
     assert err["base_color"] < 0.01 and err["roughness"] < 0.03 and err["metallic"] < 0.02, err
     assert np.all(res.coverage > 0)
+
+
+def test_coarse_to_fine_runs_its_levels_and_recovers_the_maps():
+    """coarse_to_fine=True runs `schedule`'s levels, a uniform material and then the 8 × 8 maps
+    (8 has no level between: 8 / LEVEL_FACTOR is below 4), each with steps of its own in the
+    report, and ends where the direct fit does (`test_maps_recovered_on_small_scene`)."""
+    truth = _checker()
+    obs = observations_from_views(VIEWS, _images(VIEWS, truth))
+    res = fit_observations(obs, resolution=8, max_steps=40, coarse_to_fine=True)
+    levels = res.report["levels"]
+    assert [h["resolution"] for h in levels] == [[1, 1], [8, 8]] == [list(s) for s in schedule((8, 8))], levels
+    assert all(h["steps"] > 0 for h in levels), levels
+    assert res.material.resolution == (8, 8)
+    err = map_rmse(truth, res)
+    assert err["base_color"] < 0.01 and err["roughness"] < 0.03 and err["metallic"] < 0.02, err
 
 
 def test_unseen_texels_flagged_and_left_at_prior():
@@ -197,6 +235,41 @@ def test_uncertainty_window_widens_the_per_texel_errors():
     assert np.all(window >= own) and np.median(window / own) > 1.05
     with pytest.raises(ValueError, match="uncertainty_radius"):
         fit_observations(obs, resolution=8, uncertainty_radius=4)
+
+
+def test_uncertainty_matches_the_dense_window_inverse():
+    """The size of the reported errors, end to end: σ̂ = sqrt(2 E / (n - p)) from the pixels'
+    residuals, and each texel's σ = σ̂ sqrt(diag((JᵀJ)_W⁻¹)) at its channels, with (JᵀJ)_W the
+    dense Gauss-Newton matrix (jax.jacfwd of the pixel residuals at the fitted maps) restricted to
+    the texel's 3 × 3 window, wrapped around the map (`pbrfit.uncertainty`: the window's other
+    texels free, those beyond held). Metallic is held at 0 and the uniform check is off, so no
+    channel is pinned or made one value: every fitted σ is a window's. (One sample per pixel: a
+    pixel reads a 2 × 2 block of texels, so the diagonal and neighbour blocks hold all of the
+    window's matrix, and the two agree to float32 round-off and the window's 1e-6 ridge.)"""
+    truth = _checker()
+    obs = _noisy_checker_obs(truth, seed=3)
+    res = fit_observations(obs, resolution=8, fixed={"metallic": 0}, uniform_check=False, max_steps=20)
+    assert res.report["fitted"] == ["base_r", "base_g", "base_b", "roughness"] and np.all(res.coverage > 0)
+    problem = dataclasses.replace(_texel_problem(truth), obs=obs)
+    x = np.asarray(_stack(res.material))
+    r = np.asarray(jax.jit(pbrfit.objective.pixel_residuals)(jnp.asarray(x), problem), np.float64)
+    jac = np.asarray(_dense_jacobian(jnp.asarray(x), problem), np.float64)
+    fitted = [0, 1, 2, 4]
+    jac = jac.reshape(-1, 64, 5)[:, :, fitted].reshape(len(r.ravel()), -1)  # the metallic columns held
+    k = len(fitted)
+    sigma2 = np.sum(r * r) / (r.size - 64 * k)
+    np.testing.assert_allclose(res.report["residual_sigma"], np.sqrt(sigma2), rtol=1e-3)
+    h = jac.T @ jac
+    got = np.asarray(res.uncertainty).reshape(64, 5)
+    assert np.all(got[:, 3] == 0)  # held
+    want = np.empty((64, k))
+    for s in range(64):
+        i, j = divmod(s, 8)
+        window = [((i + di) % 8) * 8 + (j + dj) % 8 for di in (-1, 0, 1) for dj in (-1, 0, 1)]
+        cols = np.concatenate([np.arange(u * k, (u + 1) * k) for u in window])
+        own = window.index(s)
+        want[s] = np.sqrt(sigma2 * np.diag(np.linalg.inv(h[np.ix_(cols, cols)]))[own * k:(own + 1) * k])
+    np.testing.assert_allclose(got[:, fitted], want, rtol=1e-3)
 
 
 def test_fixed_channels_stay_fixed():
@@ -344,6 +417,13 @@ def _texel_problem(truth, smooth=0.0):
 
 def _stack(material):
     return jnp.concatenate([material.base_color, material.metallic, material.roughness], -1).reshape(-1, 5)
+
+
+@jax.jit
+def _dense_jacobian(x, problem):
+    """∂r/∂x, dense: the pixel residuals (flattened) against the (T, 5) maps (flattened),
+    forward mode (jitted: eager, a 64-texel map's 320 columns took 6 s)."""
+    return jax.jacfwd(lambda v: pbrfit.objective.pixel_residuals(v.reshape(-1, 5), problem).ravel())(x.ravel())
 
 
 def test_grid_start_solves_base_colour_jointly_at_colour_edges():
@@ -683,8 +763,7 @@ def _dense_profile_sigma(obs, res, uniform):
     problem = dataclasses.replace(_texel_problem(_checker()), obs=obs,
                                   pair_weight=jnp.zeros(len(neighbour_pairs((8, 8)))))
     x = np.asarray(_stack(res.material))
-    jac = np.asarray(jax.jacfwd(lambda v: pbrfit.objective.pixel_residuals(v.reshape(-1, 5), problem).ravel())(
-        jnp.asarray(x.ravel())), np.float64)
+    jac = np.asarray(_dense_jacobian(jnp.asarray(x), problem), np.float64)
     h = jac.T @ jac
     d = np.zeros((len(uniform), 64, 5))
     for i, c in enumerate(uniform):

@@ -1,10 +1,12 @@
 import os
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from _capture_fixtures import QUAD_UV_GLTF, glb_accessor, glb_image, read_glb, write_quad_glb
+import pbrfit.atomic
 from pbrfit.color import linear_to_srgb, srgb_to_linear
 from pbrfit.errors import CaptureError
 from pbrfit.atomic import (OUTPUT_MARKER, CacheWarning, atomic_dir, atomic_path, check_not_inside, check_output_dir,
@@ -62,7 +64,7 @@ def test_atomic_path_failure_keeps_old_and_leaves_no_temp(tmp_path):
     assert _listing(tmp_path) == ["a.exr"]
 
 
-def test_atomic_dir_success_failure_and_overwrite(tmp_path):
+def test_atomic_dir_success_failure_and_overwrite(tmp_path, monkeypatch):
     out = tmp_path / "out"
     with pytest.raises(RuntimeError):
         with atomic_dir(out) as d:
@@ -120,9 +122,16 @@ def test_atomic_dir_success_failure_and_overwrite(tmp_path):
             pass
     locked = tmp_path / "locked"
     locked.mkdir(mode=0o500)
-    if not os.access(locked, os.W_OK):  # (root may write anywhere)
-        with pytest.raises(CaptureError, match="permission denied"):
+    # root may write anywhere, whatever the mode: pbrfit.atomic's os.access answers for this
+    # folder as it does for any other user, so that the refusal runs under root too
+    real_access = os.access
+    with monkeypatch.context() as m:
+        m.setattr(pbrfit.atomic.os, "access",
+                  lambda path, mode, **kw: False if Path(path) == locked else real_access(path, mode, **kw))
+        with pytest.raises(CaptureError, match=re.escape(f"cannot write in {locked} (permission denied)")):
             check_output_dir(locked / "out", "fit")
+        with pytest.raises(CaptureError, match="permission denied"):  # and a folder further down
+            check_output_dir(locked / "a" / "b", "fit")
     with pytest.raises(CaptureError, match="cannot create the output folder"):
         with atomic_dir(tmp_path / "plain" / "x"):  # no kind: no check first, the mkdir's error
             pass

@@ -116,12 +116,24 @@ def test_residual_weights_scale_the_residuals_and_their_jacobians():
     huber = dataclasses.replace(weighted, loss="huber")
     np.testing.assert_allclose(np.asarray(jax.jit(pixel_residuals)(x, huber)),
                                np.asarray(pbrfit_robust(np.asarray(rw), 0.05)), rtol=1e-5, atol=1e-7)
+    # and so does the Cauchy loss; residuals on both sides of the scale c, where the loss bends
+    a = np.abs(np.asarray(rw))
+    assert np.mean(a > 0.05) > 0.1 and np.mean((a > 0.005) & (a < 0.05)) > 0.1
+    cauchy = dataclasses.replace(weighted, loss="cauchy")
+    np.testing.assert_allclose(np.asarray(jax.jit(pixel_residuals)(x, cauchy)),
+                               cauchy_residual(np.asarray(rw, np.float64), 0.05), rtol=1e-5, atol=1e-7)
 
 
 def pbrfit_robust(r, c):
     """Huber's residual transform, written out: r for |r| <= c, else sign(r) sqrt(2 c |r| - c²)."""
     a = np.abs(r)
     return np.where(a <= c, r, np.sign(r) * np.sqrt(np.maximum(2 * c * a - c * c, 0.0)))
+
+
+def cauchy_residual(r, c):
+    """The Cauchy loss's residual transform, written out: ρ(s) = c² log(1 + s / c²) for s = r²,
+    and the residual whose square is ρ(r²), sign(r) c sqrt(log(1 + r² / c²))."""
+    return np.sign(r) * c * np.sqrt(np.log1p(r * r / (c * c)))
 
 
 @pytest.fixture(scope="module")

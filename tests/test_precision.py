@@ -28,7 +28,9 @@ from pbrfit.optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
 from pbrfit.lobe_integrals import integrate_lobes
 from pbrfit.pixel_ibl import PixelIBLSettings, lobes_for, pixel_ibl
 from pbrfit.render import ViewInputs, light_arrays, radiance_view
-from pbrfit.objective import Problem
+from pbrfit.normal_matrix import neighbour_blocks, normal_blocks
+from pbrfit.objective import Problem, linearize
+from pbrfit.selection import profile_hessian, uniform_direction
 from pbrfit.solvers import structured_lm
 
 _DOT = re.compile(r"dot_general.*?precision = \[(\w+), (\w+)\]")
@@ -132,4 +134,11 @@ def test_fitting(per_pixel):
     for name in OPTX_SOLVERS:
         solver, least_squares = make_solver(name, 1e-6, 1e-6, 80)
         _check(optx_solve, x0, problem, solver, least_squares, 3)
+    # after the solve: the normal matrix's blocks of the uncertainty windows and the uniform
+    # check's profile curvature (lowering reads only the shapes of the residuals and Jacobians)
+    r, jac = (jnp.zeros(a.shape, a.dtype) for a in jax.eval_shape(linearize, x0, problem)[:2])
+    _check(normal_blocks, jac, problem)
+    _check(lambda j, p: neighbour_blocks(j, p, (4, 4)), jac, problem)
+    directions = jnp.stack([jnp.asarray(uniform_direction(np.ones(16, bool), c, 5)) for c in (3, 4)])
+    _check(profile_hessian, r, jac, x0, problem, directions)
 

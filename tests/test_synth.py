@@ -434,6 +434,18 @@ def test_cli_synth_writes_and_refuses_bad_input(tmp_path, capsys):
     args = ["synth", "peer-plane", "--out", str(out), "--size", "16", "--views", "2", "--texture-size", "8"]
     assert main(args + ["--quiet"]) == 0
     assert (out / "capture.json").is_file() and capsys.readouterr().out == ""
+    # --seed reaches the preset: the truth maps are those of make_scene with that seed, not seed 0's
+    from data_synth import presets
+    from pbrfit.material_files import read_material
+
+    seeded = tmp_path / "seed3"
+    assert main(["synth", "peer-plane", "--out", str(seeded), "--size", "16", "--views", "2", "--texture-size", "8",
+                 "--seed", "3", "--quiet"]) == 0
+    assert json.loads((seeded / "truth" / "synth.json").read_text())["seed"] == 3
+    want = presets.make_scene("peer-plane", seed=3, size=16, views=2, texture_size=8).truth.base_color
+    got = np.asarray(read_material(seeded / "truth").base_color)
+    np.testing.assert_array_equal(got, want)
+    assert not np.array_equal(got, np.asarray(read_material(out / "truth").base_color))
     assert main(args + ["--noise", "-1"]) == 2
     assert "--noise" in capsys.readouterr().err
     for extra, message in ((["--seed", "-1"], "--seed: must be at least 0"),
