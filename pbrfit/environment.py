@@ -93,14 +93,15 @@ class Environment(eqx.Module):
 
 
 def load_environment(path, world_up: str = "+y", intensity: float = 1.0,
-                     rotation_deg: float = 0.0) -> Environment:
+                     rotation_deg: float = 0.0, where: str = "environment") -> Environment:
     """Read an equirectangular HDR (EXR, HDR, ...) through OpenImageIO.
 
     One channel is replicated to RGB; channels past the third (alpha) are dropped. The image is
     the display window: an OpenEXR whose data window is smaller holds 0 outside it (OpenEXR's
     meaning), and overscan past the display window is cut. Negative
     values are clamped to 0 (radiance is not negative). Raises `CaptureError` naming the file when
-    it cannot be read, is not an image, or holds NaN or inf pixels; warns (`EnvironmentWarning`,
+    it cannot be read, is not an image, or holds NaN or inf pixels (an unreadable file's error is
+    prefixed with ``where``: the capture's key or the option that gave it); warns (`EnvironmentWarning`,
     once per file) when it is not 2:1.
     """
     from .io import color_channels, read_image
@@ -115,7 +116,7 @@ def load_environment(path, world_up: str = "+y", intensity: float = 1.0,
         raise CaptureError(f"{path}: environment rotation_deg must be a finite number, got {rotation_deg!r}")
     if not path.is_file():
         raise CaptureError(f"{path}: environment file not found")
-    pixels, info = read_image(path, "environment")  # a cropped OpenEXR is placed in its display window
+    pixels, info = read_image(path, where)  # a cropped OpenEXR is placed in its display window
     height, width = pixels.shape[:2]
     if abs(width - 2 * height) > 1 and str(path) not in _WARNED:  # odd sizes round either way
         import warnings

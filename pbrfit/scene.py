@@ -99,11 +99,13 @@ _ENVIRONMENT_KEYS = ("file", "intensity", "rotation_deg", "extras")
 
 @dataclass(frozen=True)
 class EnvironmentSpec:
-    """The ``environment`` object: an equirect file (resolved), its scale and rotation about up."""
+    """The ``environment`` object: an equirect file (resolved), its scale and rotation about up;
+    ``where`` names where the file was given, for errors found when its pixels are read."""
 
     file: Path
     intensity: float = 1.0
     rotation_deg: float = 0.0
+    where: str = "environment"
 
 
 @dataclass
@@ -186,7 +188,7 @@ def _parse_environment(raw: Mapping, name: str, root: Path) -> Optional[Environm
     intensity = number_field(env, "intensity", where, 1.0)
     if intensity < 0:
         raise CaptureError(f"{where}.intensity: negative intensity {intensity!r}")
-    return EnvironmentSpec(env_file, intensity, number_field(env, "rotation_deg", where, 0.0))
+    return EnvironmentSpec(env_file, intensity, number_field(env, "rotation_deg", where, 0.0), f"{where}.file")
 
 
 # --- the loader ----------------------------------------------------------------------------------

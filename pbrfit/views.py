@@ -70,7 +70,7 @@ def capture_environment(capture):
     from .environment import load_environment
 
     spec = capture.environment
-    return load_environment(spec.file, capture.world_up, spec.intensity, spec.rotation_deg)
+    return load_environment(spec.file, capture.world_up, spec.intensity, spec.rotation_deg, spec.where)
 
 
 def environment_is_dark(capture, environment=None) -> bool:
@@ -279,7 +279,7 @@ def apply_overrides(capture, environment_file: Optional[os.PathLike] = None, lig
             raise CaptureError(f"{path}: no such environment file")
         old = capture.environment
         changes["environment"] = EnvironmentSpec(
-            path, old.intensity if old else 1.0, old.rotation_deg if old else 0.0
+            path, old.intensity if old else 1.0, old.rotation_deg if old else 0.0, "--environment"
         )
     if lights_json is not None:
         new_global = tuple(light_from_json(d, f"--lights[{i}]") for i, d in enumerate(lights_json))

@@ -1,5 +1,6 @@
 import json
 import math
+import re
 import shutil
 import struct
 
@@ -101,6 +102,22 @@ def test_environment_mesh_and_bookkeeping(capture, capture_dir):
     # the same capture through its capture.json path
     again = load_capture(capture_dir / "capture.json")
     assert again.frames[1].camera == capture.frames[1].camera
+
+
+def test_a_cut_environment_file_is_named_by_its_key(capture_dir, tmp_path):
+    """The header reads (the capture loads), the pixels do not: the error names the key that
+    gave the file, capture.json's or render's --environment."""
+    from pbrfit.views import apply_overrides, capture_environment
+
+    root = tmp_path / "c"
+    shutil.copytree(capture_dir, root)
+    env = root / "env.exr"
+    env.write_bytes(env.read_bytes()[:-8])  # the last scanline chunk cut short
+    cap = load_capture(root)
+    with pytest.raises(CaptureError, match=rf"^{re.escape(str(root / 'capture.json'))}: environment\.file: .*{env.name}"):
+        capture_environment(cap)
+    with pytest.raises(CaptureError, match=rf"^--environment: .*{env.name}"):
+        capture_environment(apply_overrides(cap, env))
 
 
 def test_truth_dir_and_glb_mesh(tmp_path):
