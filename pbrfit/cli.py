@@ -99,7 +99,7 @@ def _cmd_render(args) -> int:
     from .uv_layout import check_uv_layout
     from .scene import load_capture
     from .render_output import write_rendered_capture
-    from .views import apply_overrides, environment_is_dark, load_lights_override, render_capture
+    from .views import apply_overrides, capture_environment, environment_is_dark, load_lights_override, render_capture
 
     start = time.perf_counter()
     if not 1 <= args.supersample <= MAX_SUPERSAMPLE:
@@ -114,13 +114,16 @@ def _cmd_render(args) -> int:
     lights_json = load_lights_override(args.lights) if args.lights is not None else None
     capture = apply_overrides(capture, args.environment, lights_json)
     emits = material.emissive is not None and np.any(np.asarray(material.emissive) > 0)
-    if not emits and not any(float(light.intensity) * float(np.max(np.asarray(light.color))) > 0.0
-                             for frame in capture.frames for light in frame.lights) and environment_is_dark(capture):
+    lit = emits or any(float(light.intensity) * float(np.max(np.asarray(light.color))) > 0.0
+                       for frame in capture.frames for light in frame.lights)
+    environment = None if lit else capture_environment(capture)  # read once: checked here, rendered below
+    if not lit and environment_is_dark(capture, environment):
         where = "--lights" if lights_json is not None else str(capture.json_path)
         sky = "no environment" if capture.environment is None else f"the environment {capture.environment.file} is black"
         raise CaptureError(f"{where}: no light: {sky}, every light is off and the material emits none, "
                            "so every render would be black (give --lights or --environment)")
-    renders = render_capture(capture, material, cache_dir=_cache_dir(args), supersample=args.supersample)
+    renders = render_capture(capture, material, cache_dir=_cache_dir(args), supersample=args.supersample,
+                             environment=environment)
     write_rendered_capture(capture, renders, args.out, args.environment, lights_json)
     if not args.quiet:
         print(f"rendered {len(renders)} views to {args.out} in {time.perf_counter() - start:.1f} s")

@@ -124,6 +124,7 @@ def render_capture(
     gbuffers: Optional[Sequence[GBuffer]] = None,
     cache_dir: Optional[os.PathLike] = None,
     supersample: int = 1,
+    environment=None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Render every frame as its file would hold it: [(image (H, W, 3), alpha (H, W))].
 
@@ -137,7 +138,8 @@ def render_capture(
     as data_synth's masks leave it out), and `gbuffers` are not taken. `capture`: a
     `pbrfit.scene.Capture` or its folder.
     Without `model`, the capture's (`model_for_capture`); without `ibl`, built from the
-    capture's environment when the model needs it. A material holding NaN or inf, or a model
+    capture's environment when the model needs it; `environment`: the capture's environment as
+    `capture_environment` read it, else it is read here. A material holding NaN or inf, or a model
     that shades an environment the capture lacks, is refused (`ValueError`); material values
     outside [0, 1] are clipped (`pbrfit.render.shading_inputs`).
     """
@@ -156,7 +158,7 @@ def render_capture(
     model = model if model is not None else model_for_capture(capture, material)
     if ibl is None:
         check_environment(model, capture)
-    environment = capture_environment(capture)
+    environment = environment if environment is not None else capture_environment(capture)
     if ibl is None and (model.ibl == "split_sum" or model.multiscatter):
         ibl = capture_ibl(capture, environment=environment, model=model)
     k = int(supersample)
