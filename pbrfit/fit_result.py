@@ -22,7 +22,7 @@ from .textures import resample_map
 from .transfer import to_device
 from .uncertainty import WINDOW_RADIUS, residual_variance, window_radii, window_standard_errors
 
-__all__ = ["FitResult", "closed_times", "finish", "map_rmse"]
+__all__ = ["FitResult", "closed_times", "finish", "map_rmse", "texel_standard_errors"]
 
 
 @dataclasses.dataclass
@@ -65,6 +65,28 @@ def closed_times(times: dict, wall: float) -> dict:
     return dict(times, other=max(float(wall) - thread_time(times), 0.0))
 
 
+def texel_standard_errors(problem, x, jac, data_energy: float, final, texel_channels, seen, num_pixels: int,
+                          num_uniform: int = 0, uncertainty_radius: int = WINDOW_RADIUS):
+    """(T, K) standard errors of the texels' channels at x, as uncertainty.exr gives them, and σ̂².
+
+    σ̂² is the residual variance of the pixels' ``data_energy`` (½ Σ r²) over 3 × `num_pixels`
+    residuals and the seen texels' `texel_channels` (plus `num_uniform` common values); each
+    texel's σ comes from its window of ``uncertainty_radius``
+    (`pbrfit.uncertainty.window_standard_errors`), with the channels that sit on a bound held for
+    the others' errors; 0 for channels not fitted, +inf for texels no view sees."""
+    k = len(texel_channels)
+    blocks = np.asarray(jitted_normal_blocks(jac, problem))
+    n_par = int(np.sum(seen)) * int(np.sum(texel_channels)) + int(num_uniform)
+    sigma2 = residual_variance(float(data_energy), 3 * int(num_pixels), n_par)
+    radius = max(window_radii(tuple(final), uncertainty_radius))
+    couplings = np.asarray(jitted_neighbour_blocks(jac, problem, tuple(final))) if radius > 0 else None
+    xt = np.asarray(x, np.float32).reshape(-1, k)
+    pinned = (xt <= lower(k)) | (xt >= upper(k))  # on a bound: the projected solver holds them
+    sigma = window_standard_errors(blocks, couplings, tuple(final), np.asarray(texel_channels) > 0, seen, sigma2,
+                                   radius, pinned)
+    return sigma, sigma2
+
+
 def finish(obs, problem, x, final, channels, seen, model, solver, history, loss, smooth, times, t_post, t_start,
             linearization=None, wrap: str = "repeat", uniform: Optional[Mapping] = None,
             uncertainty_radius: int = WINDOW_RADIUS):
@@ -87,19 +109,12 @@ def finish(obs, problem, x, final, channels, seen, model, solver, history, loss,
         with np.errstate(over="ignore"):  # (float32, as the solve sums it: an overflow is refused by `fit`)
             energy = (jax.jit(objective)(xj, problem) if float(problem.smooth) > 0
                       else 0.5 * np.sum(np.square(np.asarray(r))))
-    blocks = np.asarray(jitted_normal_blocks(jac, problem))
-    n_res = 3 * obs.num_pixels
-    n_par = int(np.sum(seen)) * int(np.sum(texel_channels)) + len(uniform)
     # σ̂² from the pixels' residuals: the prior's energy is no noise (with it, σ̂ grew with --smooth;
     # 0.060 at weight 1 under noise 0.05). The blocks, too, are the pixels' alone: σ says what the
     # images constrain, the prior not counted.
     data_energy = energy if float(problem.smooth) == 0 else 0.5 * np.sum(np.square(np.asarray(r, np.float64)))
-    sigma2 = residual_variance(float(data_energy), n_res, n_par)
-    radius = max(window_radii(tuple(final), uncertainty_radius))
-    couplings = np.asarray(jitted_neighbour_blocks(jac, problem, tuple(final))) if radius > 0 else None
-    xt = np.asarray(x, np.float32).reshape(-1, k)
-    pinned = (xt <= lower(k)) | (xt >= upper(k))  # on a bound: the projected solver holds them
-    sigma = window_standard_errors(blocks, couplings, tuple(final), texel_channels > 0, seen, sigma2, radius, pinned)
+    sigma, sigma2 = texel_standard_errors(problem, x, jac, float(data_energy), final, texel_channels, seen,
+                                          obs.num_pixels, len(uniform), uncertainty_radius)
     if uniform:
         cs = sorted(uniform)
         directions = np.stack([uniform_direction(seen, c, k) for c in cs])
