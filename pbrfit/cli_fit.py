@@ -74,6 +74,11 @@ def add_fit(sub) -> None:
                         "their nearest well-fitted neighbour, re-searched and re-solved with their neighbours, each "
                         "cluster kept where its pixels fit better and the loss falls; report.json's repair says what "
                         "each pass did)")
+    p.add_argument("--unconstrained-sigma", type=float, default=None, metavar="S",
+                   help="hold at 0.5 (the middle of its range) the roughness of each texel whose standard error "
+                        "exceeds S, and re-fit its other channels: where no highlight reaches a texel the images "
+                        "do not constrain its roughness, and a fitted value is the noise's (default 0.1; inf: hold "
+                        "none; report.json's unconstrained says how many were held)")
     p.add_argument("--uncertainty-radius", type=int, default=None, metavar="R",
                    help="uncertainty.exr: each texel's standard error with the (2R+1) x (2R+1) texels around it "
                         "free as well (0, 1 or 2; default 1; 0: its own block of the normal matrix, the neighbours "
@@ -109,6 +114,7 @@ def fit_options(args) -> dict:
     from .observations import MAX_PIXEL_SAMPLES
     from .pixel_ibl import MAX_LEVELS, MAX_SAMPLES, MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
     from .solvers import CG_RTOL
+    from .unconstrained import UNCONSTRAINED_SIGMA
     from .uncertainty import WINDOW_RADIUS
 
     fixed, held_by = {}, {}
@@ -152,6 +158,8 @@ def fit_options(args) -> dict:
                       smooth=args.smooth, coarse_to_fine=args.coarse_to_fine,
                       continuation=continuation if args.continuation is not None else None,
                       uncertainty_radius=WINDOW_RADIUS if args.uncertainty_radius is None else args.uncertainty_radius,
+                      unconstrained_sigma=(UNCONSTRAINED_SIGMA if args.unconstrained_sigma is None
+                                           else args.unconstrained_sigma),
                       names=names)
     except ValueError as e:
         raise CaptureError(str(e)) from None
@@ -191,6 +199,7 @@ def fit_options(args) -> dict:
         **({} if args.cg_rtol is None else dict(cg_rtol=args.cg_rtol)),
         **({} if args.loss_scale is None else dict(loss_scale=args.loss_scale)),
         **({} if args.uncertainty_radius is None else dict(uncertainty_radius=args.uncertainty_radius)),
+        **({} if args.unconstrained_sigma is None else dict(unconstrained_sigma=args.unconstrained_sigma)),
     )
 
 
@@ -242,6 +251,10 @@ def fit_summary(result, errors) -> str:
     uniform = [f"{name} {r['uniform_check'][name]['value']:.4g}" for name in uniform_channels(r)]
     if uniform:  # the uniform check found no support for these maps in the images
         parts[0] += ", one value for " + " and ".join(uniform) + " (uniform check)"
+    held = (r.get("unconstrained") or {}).get("texels", 0)
+    if held:  # roughness the images do not constrain: at the prior, not the noise's value
+        parts[0] += (f", roughness held at 0.5 on {held} texel{'' if held == 1 else 's'} the images do not "
+                     f"constrain (σ > {r['unconstrained']['threshold']:g})")
     level = r.get("noise_level") or {}
     kept = [p for p in (r.get("repair") or {}).get("passes", []) if p.get("kept")]
     if kept:  # texels a solve had left in a wrong basin, started again (estimated: in the first fit)

@@ -18,7 +18,9 @@ After the structured solve, a repair (``repair=True``) starts texels whose pixel
 the noise explains, then texels out of line with their neighbours, again from their neighbours
 (`pbrfit.repair`), and the uniform check
 (``uniform_check=True``) makes metallic, then roughness, one common value where Akaike's
-criterion finds no support for a map in the images (`pbrfit.selection`).
+criterion finds no support for a map in the images (`pbrfit.selection`). Last, a texel whose
+roughness the images do not constrain (its standard error above ``unconstrained_sigma``) is
+held at the prior's 0.5, its other channels re-fitted (`pbrfit.unconstrained`).
 
 A pixel's footprint: a display-referred capture (sRGB, tone mapped) is fitted both at pixel
 centres and with 2 × 2 samples per pixel, and the fit whose images match better is kept
@@ -69,6 +71,7 @@ from .runner import DEFAULT_SOLVER, SOLVERS
 from .selection import uniform_channels
 from .solvers import CG_RTOL
 from .transfer import to_device
+from .unconstrained import UNCONSTRAINED_SIGMA
 from .uncertainty import WINDOW_RADIUS
 
 __all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "model_for_capture", "SOLVERS",
@@ -127,6 +130,7 @@ def fit_observations(
     uniform_check: bool = True,
     repair: bool = True,
     uncertainty_radius: int = WINDOW_RADIUS,
+    unconstrained_sigma: float = UNCONSTRAINED_SIGMA,
     noise_level: str = "uniform",
 ) -> FitResult:
     """Fit maps to prepared `Observations` (see `fit` for the arguments).
@@ -153,7 +157,8 @@ def fit_observations(
     check_model(model, fit)
     check_options(resolution=resolution, maps=maps, solver=solver, max_steps=max_steps, coarse_steps=coarse_steps,
                   rtol=rtol, atol=atol, cg_rtol=cg_rtol, loss_scale=loss_scale, smooth=smooth,
-                  coarse_to_fine=coarse_to_fine, continuation=continuation, uncertainty_radius=uncertainty_radius)
+                  coarse_to_fine=coarse_to_fine, continuation=continuation, uncertainty_radius=uncertainty_radius,
+                  unconstrained_sigma=unconstrained_sigma)
     check_normals(model, fit)
     kwargs = {name: value for name, value in locals().items() if name not in ("obs", "noise_level")}  # the arguments
     if noise_level == "uniform":
@@ -326,6 +331,14 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             "repair" entry gives each pass's kind ("misfit" or "outliers"), flagged and moved
             texels, clusters and texels kept, objective before and after, and whether it was
             kept.
+        unconstrained_sigma: after the uniform check, a texel whose roughness standard error
+            exceeds this is held at the prior's 0.5, and the other channels re-fitted with it
+            held (`pbrfit.unconstrained`: where no highlight reaches a texel, the fitted value is
+            the noise's, often on a bound). Default `pbrfit.unconstrained.UNCONSTRAINED_SIGMA`;
+            ``math.inf``: none is held. Structured solver and no ``smooth`` only; the report's
+            "unconstrained" entry gives the threshold, the texels held and the re-fit's steps
+            (counted in "steps"). A held texel's σ in ``uncertainty`` is what the images give
+            at 0.5 (above the threshold).
         uncertainty_radius: the standard errors of ``uncertainty`` are each texel's with the
             (2 r + 1)² texels around it free as well, from the normal matrix's blocks
             (`pbrfit.uncertainty.window_standard_errors`): 0 takes the texel's own block alone

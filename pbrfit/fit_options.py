@@ -18,6 +18,7 @@ from .parameters import FIT_GROUPS, prior
 from .runner import DEFAULT_SOLVER, SOLVERS
 from .objective import LOSSES
 from .solvers import CG_RTOL
+from .unconstrained import UNCONSTRAINED_SIGMA
 from .uncertainty import MAX_UNCERTAINTY_RADIUS
 
 __all__ = ["OptionNames", "fit_arguments", "held_report", "check_options", "check_kinds", "check_names",
@@ -133,7 +134,8 @@ def fit_arguments(fit=None, fixed: Optional[Mapping] = None,
 
 
 def check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, atol, cg_rtol, loss_scale, smooth,
-                  coarse_to_fine, continuation, uncertainty_radius, names: OptionNames = OptionNames()) -> None:
+                  coarse_to_fine, continuation, uncertainty_radius, unconstrained_sigma=UNCONSTRAINED_SIGMA,
+                  names: OptionNames = OptionNames()) -> None:
     """`ValueError` (worded with ``names``) for option values out of range, or given to a mode
     that does not read them: `fit`, `pbrfit.fit.fit_observations` and the command line refuse alike."""
     say = names.option
@@ -164,6 +166,9 @@ def check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, at
         raise ValueError(f"{say('continuation')}: expected weights >= 0 within float32, got {continuation!r}")
     if not (_real(loss_scale) and math.isfinite(loss_scale) and loss_scale > 0):
         raise ValueError(f"{say('loss_scale')}: must be a finite number > 0, got {loss_scale!r}")
+    if not (_real(unconstrained_sigma) and unconstrained_sigma > 0):  # (inf: hold none)
+        raise ValueError(f"{say('unconstrained_sigma')}: must be a number > 0 (inf: hold no texel), "
+                         f"got {unconstrained_sigma!r}")
     if not (_real(cg_rtol) and 0.0 < cg_rtol < 1.0):
         raise ValueError(f"{say('cg_rtol')}: must be a number in (0, 1), got {cg_rtol!r}")
     given_continuation = continuation is not None and len(np.ravel(continuation)) > 0 \

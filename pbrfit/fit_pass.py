@@ -1,4 +1,5 @@
-"""One pass of a fit: the solve at each level, then the repair and the uniform check.
+"""One pass of a fit: the solve at each level, then the repair, the uniform check and the hold of
+roughness the images do not constrain (`pbrfit.unconstrained`).
 
 `fit_pass` runs the levels of a fit (`pbrfit.resolution.schedule`: the final map size, or coarse
 to fine), each from the last one's maps: the grid start, the continuation (a smoothness prior
@@ -29,6 +30,7 @@ from .repair import repair_skipped, run_repair
 from .resolution import default_resolution, schedule
 from .runner import DEFAULT_SOLVER, Compiler, Runner, jitted_normal_blocks, problem_key, timed, timed_rest
 from .selection import SELECTABLE, run_uniform_check, uniform_check_skipped
+from .unconstrained import UNCONSTRAINED_SIGMA, hold_skipped, run_hold
 from .sharding import pixel_mesh, shard_problem
 from .objective import Problem
 from .textures import resample_map, sample_bilinear
@@ -100,7 +102,8 @@ TURNED_OFF = "turned off"
 def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, solver, max_steps, coarse_steps, rtol,
               atol, cg_rtol, loss, loss_scale, smooth, coarse_to_fine, init, search, continuation, devices,
               level_factor, wrap, progress, setup_time, centres, centre_ibl, select_footprint, background_compile,
-              uniform_check, repair, uncertainty_radius, start=None, shared=None) -> tuple[FitResult, np.ndarray]:
+              uniform_check, repair, uncertainty_radius, unconstrained_sigma=UNCONSTRAINED_SIGMA, start=None,
+              shared=None) -> tuple[FitResult, np.ndarray]:
     """One fit (`pbrfit.fit.fit_observations`): the result and the final (T, K) texel values. ``start``:
     (T, K) values to start from at the final level (no grid start, no coarser levels);
     ``shared``: a dict that keeps the solver runner, its compiler (whose clock collects every
@@ -285,6 +288,17 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
                     xs, linearization, problem, checks, uniform = run_uniform_check(
                         runner, problem, xs, linearization, channels, seen, obs.num_pixels, where)
                 x = xs[:t_final].reshape(final + (k,))
+        held = dict(skipped=TURNED_OFF)
+        if math.isfinite(unconstrained_sigma):
+            skipped = hold_skipped(solver, smooth, final, channels, uniform)
+            if skipped is not None:
+                held = dict(skipped=skipped)
+            else:
+                with timed_rest(clock, "unconstrained"):
+                    xs, linearization, problem, held = run_hold(runner, problem, xs, linearization, channels, seen,
+                                                                final, obs.num_pixels, unconstrained_sigma,
+                                                                int(uncertainty_radius), uniform)
+                x = xs[:t_final].reshape(final + (k,))
     finally:
         compiler.close()
 
@@ -300,6 +314,8 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
         result.report["steps"] += sum(c.get("steps", 0) for c in checks.values() if isinstance(c, dict))
     else:
         result.report["uniform_check"] = dict(skipped=TURNED_OFF)
+    result.report["unconstrained"] = held
+    result.report["steps"] += held.get("steps", 0)
     if repair:
         result.report["repair"] = repaired
         result.report["steps"] += sum(p.get("steps", 0) for p in repaired.get("passes", ()))

@@ -206,6 +206,8 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--cg-rtol", "1.5"], "--cg-rtol: must be a number in (0, 1), got 1.5"),
         (["--cg-rtol", "nan"], "--cg-rtol: must be a number in (0, 1), got nan"),
         (["--cg-rtol", "0.01", "--solver", "lm"], "--cg-rtol: only the structured solver uses it, not --solver lm"),
+        (["--unconstrained-sigma", "0"], "--unconstrained-sigma: must be a number > 0 (inf: hold no texel), got 0.0"),
+        (["--unconstrained-sigma", "nan"], "--unconstrained-sigma: must be a number > 0 (inf: hold no texel), got nan"),
         (["--uncertainty-radius", "-1"], "--uncertainty-radius: must be an integer from 0 to 2, got -1"),
         (["--uncertainty-radius", "3"], "--uncertainty-radius: must be an integer from 0 to 2, got 3"),
         (["--uncertainty-radius", "one"], "argument --uncertainty-radius: invalid int value: 'one'"),
@@ -619,6 +621,18 @@ def test_uncertainty_radius_option_reaches_the_fit():
     assert options("--uncertainty-radius", "0")["uncertainty_radius"] == 0
     assert options("--uncertainty-radius", "2")["uncertainty_radius"] == 2
     assert "uncertainty_radius" not in options()  # the library's default, WINDOW_RADIUS
+
+
+def test_unconstrained_sigma_option_reaches_the_fit():
+    from pbrfit.cli import build_parser
+    from pbrfit.cli_fit import fit_options
+
+    def options(*extra):
+        return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
+
+    assert options("--unconstrained-sigma", "0.2")["unconstrained_sigma"] == 0.2
+    assert options("--unconstrained-sigma", "inf")["unconstrained_sigma"] == float("inf")
+    assert "unconstrained_sigma" not in options()  # the library's default, UNCONSTRAINED_SIGMA
 
 
 def test_solve_options_reach_the_fit():

@@ -208,6 +208,42 @@ def test_unseen_texels_flagged_and_left_at_prior():
     assert np.all(np.isfinite(res.uncertainty[~unseen]))
 
 
+def test_roughness_the_images_do_not_constrain_is_held_at_the_prior():
+    """`pbrfit.unconstrained`: the texels whose roughness σ exceeds the threshold get 0.5 and a
+    re-fit of their other channels; every other texel keeps the value the solve gave it."""
+    from pbrfit.unconstrained import ROUGHNESS, hold_skipped
+
+    truth = _checker()
+    rng = np.random.default_rng(5)
+    imgs = [i + rng.normal(0, 0.02, i.shape).astype(np.float32) for i in _images(VIEWS, truth)]
+    obs = observations_from_views(VIEWS, imgs)
+    free = fit_observations(obs, resolution=8, max_steps=20, unconstrained_sigma=math.inf)
+    assert free.report["unconstrained"] == dict(skipped=TURNED_OFF)
+    s = free.uncertainty[..., ROUGHNESS]
+    threshold = float(np.median(s[np.isfinite(s)]))  # half the texels count as unconstrained here
+    res = fit_observations(obs, resolution=8, max_steps=20, unconstrained_sigma=threshold)
+    report = res.report["unconstrained"]
+    flagged = np.isfinite(s) & (s > threshold)  # σ at the solve's values, as the hold computes it
+    x = lambda r: np.concatenate([np.asarray(r.material.base_color), np.asarray(r.material.metallic),  # noqa: E731
+                                  np.asarray(r.material.roughness)], -1)
+    held = flagged & (x(res)[..., ROUGHNESS] == 0.5)  # the rest the images constrain at 0.5: left as fitted
+    assert report["texels"] == int(held.sum()) > 0 and report["threshold"] == threshold
+    assert report["texels"] + report["constrained_at_prior"] == int(flagged.sum())
+    assert report["steps"] > 0 and res.report["steps"] == free.report["steps"] + report["steps"]
+    np.testing.assert_array_equal(x(res)[~held], x(free)[~held])  # the others keep their values
+    assert not np.array_equal(x(res)[held][:, :3], x(free)[held][:, :3])  # the held texels' colour re-fitted
+    # their σ: what the images give at 0.5, not the 0 of a channel the caller holds
+    assert np.all(np.isfinite(res.uncertainty[..., ROUGHNESS][held]) & (res.uncertainty[..., ROUGHNESS][held] > 0))
+    assert report["energy_after"] >= report["energy_before"] * (1 - 1e-6)  # held off the optimum
+    channels = np.ones(5, np.float32)
+    assert hold_skipped("lm", 0.0, (8, 8), channels, {}) == "needs the structured solver"
+    assert hold_skipped("structured", 0.1, (8, 8), channels, {}) == "the smoothness prior already ties the texels together"
+    assert hold_skipped("structured", 0.0, (1, 1), channels, {}) == "a uniform material"
+    assert hold_skipped("structured", 0.0, (8, 8), channels, {ROUGHNESS: 0.3}) == "roughness is one value (uniform check)"
+    assert hold_skipped("structured", 0.0, (8, 8), np.array([1, 1, 1, 1, 0], np.float32), {}) == "roughness is not fitted"
+    assert hold_skipped("structured", 0.0, (8, 8), channels, {3: 0.0}) is None
+
+
 def test_uncertainty_grows_when_views_are_removed():
     truth = _checker()
     rng = np.random.default_rng(0)
