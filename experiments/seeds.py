@@ -120,16 +120,13 @@ def main():
     if args.tables:
         print(table(json.loads(path.read_text())["rows"]))
         return
-    from solvers import machine  # experiments/solvers.py: the host and package versions
+    from solvers import write_rows  # experiments/solvers.py: the rows with the host and package versions
 
     rows = run(args.scenes, args.seeds)
     if args.merge and path.exists():
         rows = [r for r in json.loads(path.read_text())["rows"] if r["scene"] not in args.scenes] + rows
         rows.sort(key=lambda r: list(SCENES).index(r["scene"]))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(dict(machine=machine(), rows=rows), indent=1))
-    tmp.replace(path)
+    write_rows(path, rows)
     print(table(rows))
 
 

@@ -434,6 +434,16 @@ def machine() -> dict:
                 note="all rows of a run in one process")
 
 
+def write_rows(path, rows: list) -> None:
+    """Write ``{"machine": machine(), "rows": rows}`` to the JSON file `path`, whole or not at all
+    (a temporary file renamed into place)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(dict(machine=machine(), rows=rows), indent=1))
+    tmp.replace(path)
+
+
 def _fmt(v: float) -> str:
     """3 significant digits; below 1e-4 one (``6e-7``); 0 as ``0``."""
     if v == 0:

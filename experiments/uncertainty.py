@@ -172,15 +172,12 @@ def main():
     if args.table:
         print(table(json.loads(path.read_text())["rows"]))
         return
-    from solvers import machine  # experiments/solvers.py: the host and package versions
+    from solvers import write_rows  # experiments/solvers.py: the rows with the host and package versions
 
     rows = run(args.draws, args.radii, args.noise_models, args.noise_levels)
     if path.is_file():
         rows = merge(json.loads(path.read_text())["rows"], rows)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(dict(machine=machine(), rows=rows), indent=1))
-    tmp.replace(path)
+    write_rows(path, rows)
     print(table(rows))
 
 
