@@ -76,7 +76,7 @@ def add_fit(sub) -> None:
                         "each pass did)")
     p.add_argument("--unconstrained-sigma", type=float, default=None, metavar="S",
                    help="hold at 0.5 (the middle of its range) the roughness of each texel whose standard error "
-                        "exceeds S, and re-fit its other channels: where no highlight reaches a texel the images "
+                        "exceeds S, and re-fit its base colour: where no highlight reaches a texel the images "
                         "do not constrain its roughness, and a fitted value is the noise's (default 0.1; inf: hold "
                         "none; report.json's unconstrained says how many were held)")
     p.add_argument("--uncertainty-radius", type=int, default=None, metavar="R",

@@ -20,7 +20,7 @@ the noise explains, then texels out of line with their neighbours, again from th
 (``uniform_check=True``) makes metallic, then roughness, one common value where Akaike's
 criterion finds no support for a map in the images (`pbrfit.selection`). Last, a texel whose
 roughness the images do not constrain (its standard error above ``unconstrained_sigma``) is
-held at the prior's 0.5, its other channels re-fitted (`pbrfit.unconstrained`).
+held at the prior's 0.5, its base colour re-fitted (`pbrfit.unconstrained`).
 
 A pixel's footprint: a display-referred capture (sRGB, tone mapped) is fitted both at pixel
 centres and with 2 × 2 samples per pixel, and the fit whose images match better is kept
@@ -332,7 +332,7 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             texels, clusters and texels kept, objective before and after, and whether it was
             kept.
         unconstrained_sigma: after the uniform check, a texel whose roughness standard error
-            exceeds this is held at the prior's 0.5, and the other channels re-fitted with it
+            exceeds this is held at the prior's 0.5, and its base colour re-fitted with it
             held (`pbrfit.unconstrained`: where no highlight reaches a texel, the fitted value is
             the noise's, often on a bound). Default `pbrfit.unconstrained.UNCONSTRAINED_SIGMA`;
             ``math.inf``: none is held. Structured solver and no ``smooth`` only; the report's

@@ -13,18 +13,22 @@ solve (and the repair and the uniform check), a texel whose roughness standard e
 uncertainty.exr reports it, exceeds ``unconstrained_sigma`` (`UNCONSTRAINED_SIGMA`, a tenth of
 the range: the images place it no better than ±0.2 at 2σ) has its roughness held at `PRIOR`'s
 0.5, the middle of the range (no truth lies further than 0.5 from it, where a fitted value on a
-bound can be a whole range off), and `HOLD_STEPS` solver steps re-fit those texels' other
-channels, every other texel keeping its value (re-fitting the neighbours too let them make up
-for the held value: peer scene 0.049 against 0.045). Its σ in uncertainty.exr is what the images give at that value, not the 0 of a channel the
-caller held. Base colour and metallic stay fitted where
-their σ is as large: their pixels' diffuse light constrains them still, and metallic's prior of
-0 is no midpoint (holding them at the prior made the flash scene's base colour and metallic
-worse, 0.005 to 0.020 and 0.015 to 0.037).
+bound can be a whole range off), and `HOLD_STEPS` solver steps re-fit those texels' base colour,
+every other value kept. Where the images do pin the roughness down at 0.5 (its σ there is
+within the threshold: the solve moved it off on evidence, a highlight's flank) the texel keeps
+its fitted values (`HOLD_ROUNDS`). A held texel's σ in uncertainty.exr is what the images give
+at 0.5, not the 0 of a channel the caller held.
 
-Measured on the acceptance scenes with noise of 1% of each pixel's value, against the fitted
-values left as they were (`experiments/noise_floor.md`): peer layout 0.019 to 0.019, flash
-scene 0.039 to 0.022, the 35° / 55° layout 0.036 to 0.018; with noise of std 0.01 the peer
-scene goes from 0.055 to 0.045 and the demo's all-texel roughness from 0.11 to 0.04.
+Base colour and metallic are not held, and metallic is not re-fitted: the pixels' diffuse light
+constrains base colour still, metallic's prior of 0 is no midpoint (holding both at the prior
+made the flash scene's worse: the red channel 0.005 to 0.020, metallic 0.015 to 0.037), and re-fitting metallic under
+the held roughness let it make up for it (the demo's all-texel metallic 0.137 to 0.174); so did
+re-fitting the neighbours (peer scene roughness 0.049 against 0.045).
+
+Measured (`experiments/noise_floor.md`, roughness RMSE with every value kept and with the hold):
+noise of 1% of each pixel's value, peer scene 0.019 and 0.019, flash scene 0.039 and 0.022, the
+35° / 55° layout 0.036 and 0.019; noise of std 0.01, peer scene 0.055 and 0.045, flash scene
+0.059 and 0.037 (with metallic re-fitted too); the demo 0.115 and 0.059 (its base colour 0.050 and 0.054).
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ import jax
 import numpy as np
 
 from .fit_result import texel_standard_errors
-from .objective import Problem
+from .objective import Problem, linearize
 from .parameters import PRIOR
 from .runner import DEFAULT_SOLVER, problem_energy
 from .transfer import to_device
@@ -46,7 +50,7 @@ __all__ = ["UNCONSTRAINED_SIGMA", "HOLD_STEPS", "HOLD_ROUNDS", "ROUGHNESS", "hol
 #: A texel's roughness is held at the prior where its standard error exceeds this (perceptual
 #: roughness units; the range is [MIN_ROUGHNESS, 1]). `math.inf` holds none.
 UNCONSTRAINED_SIGMA = 0.1
-#: Solver steps re-fitting the other channels once the roughness is held (the uniform check's
+#: Solver steps re-fitting the held texels' base colour once the roughness is held (the uniform check's
 #: re-fit, `pbrfit.selection.REFIT_STEPS`, takes as many).
 HOLD_STEPS = 10
 #: Rounds of the hold: the texels whose σ exceeds the threshold at their fitted values, then,
@@ -80,11 +84,12 @@ def unconstrained_texels(sigma, seen, threshold: float):
 
 def run_hold(runner, problem: Problem, xs, linearization, channels, seen, final, num_pixels: int, threshold: float,
              uncertainty_radius: int, uniform=()):
-    """Hold at `PRIOR` the roughness of the texels the images do not constrain, and re-fit the rest.
+    """Hold at `PRIOR` the roughness of the texels the images do not constrain, and re-fit their
+    base colour.
     ``uniform``: the channels the uniform check made one common value (not per texel).
 
     Returns (x, linearisation, problem, report): the problem with those texels' roughness no
-    longer free (the re-fit frees their other channels alone), and the report's "unconstrained"
+    longer free (the re-fit frees their base colour alone), and the report's "unconstrained"
     entry (the threshold, the texels held, those the images constrain at the prior and so left
     as fitted, the steps, the objective before and after).
     """
@@ -112,15 +117,18 @@ def run_hold(runner, problem: Problem, xs, linearization, channels, seen, final,
         free = np.array(problem.free, np.float32)
         free[held, ROUGHNESS] = 0.0
         kept = dataclasses.replace(problem, free=jax.device_put(free, problem.free.sharding))  # what finish reads
-        refit = free.copy()
-        refit[~held] = 0.0  # every other texel keeps its value (re-fitted against the held ones, they moved off)
+        refit = np.zeros_like(free)  # the held texels' base colour alone (see the module docstring)
+        refit[held, :3] = free[held, :3]
         x_held = xs.copy()
         x_held[held, ROUGHNESS] = PRIOR[ROUGHNESS]
-        x_held, info = runner(to_device(x_held, np.float32),
-                              dataclasses.replace(problem, free=jax.device_put(refit, problem.free.sharding)),
-                              HOLD_STEPS, int(np.sum(refit)))
-        x_held, steps = np.asarray(x_held, np.float32), steps + int(info["steps"])
-        r_held, jac_held = runner.linearization
+        if refit.any():
+            x_held, info = runner(to_device(x_held, np.float32),
+                                  dataclasses.replace(problem, free=jax.device_put(refit, problem.free.sharding)),
+                                  HOLD_STEPS, int(np.sum(refit)))
+            x_held, steps = np.asarray(x_held, np.float32), steps + int(info["steps"])
+            r_held, jac_held = runner.linearization
+        else:  # base colour held by the caller: nothing to re-fit
+            r_held, jac_held, _ = jax.jit(linearize)(to_device(x_held, np.float32), kept)
         e_held = problem_energy(r_held, x_held, kept)
         # with roughness free again at 0.5: where the images pin it down there, the solve moved it
         # away on evidence (a highlight's flank), and its value stays

@@ -210,7 +210,7 @@ def test_unseen_texels_flagged_and_left_at_prior():
 
 def test_roughness_the_images_do_not_constrain_is_held_at_the_prior():
     """`pbrfit.unconstrained`: the texels whose roughness σ exceeds the threshold get 0.5 and a
-    re-fit of their other channels; every other texel keeps the value the solve gave it."""
+    re-fit of their base colour; every other texel keeps the value the solve gave it."""
     from pbrfit.unconstrained import ROUGHNESS, hold_skipped
 
     truth = _checker()
@@ -235,6 +235,15 @@ def test_roughness_the_images_do_not_constrain_is_held_at_the_prior():
     # their σ: what the images give at 0.5, not the 0 of a channel the caller holds
     assert np.all(np.isfinite(res.uncertainty[..., ROUGHNESS][held]) & (res.uncertainty[..., ROUGHNESS][held] > 0))
     assert report["energy_after"] >= report["energy_before"] * (1 - 1e-6)  # held off the optimum
+    # with base colour held by the caller there is nothing to re-fit: the roughness alone is held
+    only = dict(resolution=8, max_steps=20, fit=("roughness",),
+                fixed={"base_color": truth.base_color, "metallic": truth.metallic})
+    s_only = fit_observations(obs, **only, unconstrained_sigma=math.inf).uncertainty[..., ROUGHNESS]
+    threshold = float(np.median(s_only[np.isfinite(s_only)]))
+    held_only = fit_observations(obs, **only, unconstrained_sigma=threshold)
+    report = held_only.report["unconstrained"]
+    assert report["texels"] > 0 and report["steps"] == 0, report
+    assert int(np.sum(np.asarray(held_only.material.roughness) == 0.5)) == report["texels"]
     channels = np.ones(5, np.float32)
     assert hold_skipped("lm", 0.0, (8, 8), channels, {}) == "needs the structured solver"
     assert hold_skipped("structured", 0.1, (8, 8), channels, {}) == "the smoothness prior already ties the texels together"
