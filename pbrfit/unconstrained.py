@@ -41,7 +41,7 @@ import numpy as np
 
 from .fit_result import texel_standard_errors
 from .objective import Problem, linearize
-from .parameters import PRIOR
+from .parameters import FIT_GROUPS, PRIOR
 from .runner import DEFAULT_SOLVER, problem_energy
 from .transfer import to_device
 
@@ -57,8 +57,9 @@ HOLD_STEPS = 10
 #: once held, those of them whose σ exceeds it at the prior too (the others go back to their
 #: fitted values, and the rest are re-fitted again).
 HOLD_ROUNDS = 2
-#: The roughness channel of the texel values.
-ROUGHNESS = 4
+#: The roughness channel of the texel values, and the base colour's.
+(ROUGHNESS,) = FIT_GROUPS["roughness"]
+BASE_COLOR = list(FIT_GROUPS["base_color"])
 
 
 def hold_skipped(solver, smooth, final, channels, uniform) -> Optional[str]:
@@ -118,7 +119,7 @@ def run_hold(runner, problem: Problem, xs, linearization, channels, seen, final,
         free[held, ROUGHNESS] = 0.0
         kept = dataclasses.replace(problem, free=jax.device_put(free, problem.free.sharding))  # what finish reads
         refit = np.zeros_like(free)  # the held texels' base colour alone (see the module docstring)
-        refit[held, :3] = free[held, :3]
+        refit[np.ix_(held, BASE_COLOR)] = free[np.ix_(held, BASE_COLOR)]
         x_held = xs.copy()
         x_held[held, ROUGHNESS] = PRIOR[ROUGHNESS]
         if refit.any():
