@@ -186,7 +186,7 @@ def constant(width: int = 32, height: int = 16, radiance: Sequence[float] = (1.0
 
 
 def write_environment(path, radiance: np.ndarray) -> None:
-    """Write an environment as a float32 RGB EXR (atomically, through `pbrfit.io`)."""
-    from pbrfit.io import write_image
+    """Write an environment as a float32 RGB EXR (atomically, through `pbrfit.io.images`)."""
+    from pbrfit.io.images import write_image
 
     write_image(path, np.asarray(radiance, np.float32), "float")

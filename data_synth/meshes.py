@@ -4,7 +4,7 @@ A `MeshData` holds float32 vertices, int32 triangles (counter-clockwise seen fro
 analytic unit vertex normals, and uv in **glTF orientation** (v = 0 at the top row of the
 texture image). trimesh keeps uv the OpenGL way (v = 0 at the bottom) and flips v when it
 reads or writes glTF; `MeshData.to_trimesh` does that flip, so a GLB written from a `MeshData`
-carries exactly its uv as ``TEXCOORD_0``. `load_mesh` reads through `pbrfit.mesh.load_mesh`,
+carries exactly its uv as ``TEXCOORD_0``. `load_mesh` reads through `pbrfit.scene.mesh.load_mesh`,
 which hands back glTF-oriented uv.
 
 Every generator builds in the y-up frame and takes `world_up`: for ``"+z"`` the mesh is
@@ -274,7 +274,7 @@ def combine(meshes: Sequence[MeshData], tiles: Sequence[tuple[float, float, floa
 
 
 def load_mesh(path, normalize: bool = False) -> MeshData:
-    """A user's mesh (anything `pbrfit.mesh.load_mesh` reads: glTF/GLB, OBJ, PLY) with its uv.
+    """A user's mesh (anything `pbrfit.scene.mesh.load_mesh` reads: glTF/GLB, OBJ, PLY) with its uv.
 
     Read exactly as a capture's mesh is read (scenes flattened, uv turned to glTF orientation,
     the file's normals kept), so a synthetic capture of it shows what a fit will see. With
@@ -283,7 +283,7 @@ def load_mesh(path, normalize: bool = False) -> MeshData:
     area (every triangle degenerate: nothing would show in the images).
     """
     from pbrfit.errors import CaptureError
-    from pbrfit.mesh import load_mesh as load_capture_mesh
+    from pbrfit.scene.mesh import load_mesh as load_capture_mesh
 
     mesh = load_capture_mesh(Path(path), where="--mesh")
     if not float(np.sum(mesh.area_faces)) > 0.0:
@@ -302,7 +302,7 @@ def load_mesh(path, normalize: bool = False) -> MeshData:
 
 def write_glb(path, mesh: MeshData) -> None:
     """Write the mesh as a binary glTF (positions, normals, TEXCOORD_0), atomically."""
-    from pbrfit.atomic import atomic_path
+    from pbrfit.io.atomic import atomic_path
 
     tm = mesh.to_trimesh()
     data = tm.export(file_type="glb", include_normals=True)

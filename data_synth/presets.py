@@ -66,7 +66,7 @@ class Scene:
         cameras: (N, 4, 4) camera-to-world matrices (OpenGL).
         camera_angle_x: horizontal field of view, radians.
         width, height: image size in pixels (after supersampling).
-        lights: global punctual lights (`pbrfit.lights.Light`).
+        lights: global punctual lights (`pbrfit.physics.lights.Light`).
         flash: a light on every camera, or None.
         environment: (He, We, 3) linear equirect radiance in the capture spec's orientation, or None.
         environment_intensity: capture.json ``environment.intensity``.
@@ -77,9 +77,9 @@ class Scene:
         supersample: k: rendered at k x the size, box-filtered down.
         noise: noise strength (std at a display value of 1); 0 = none.
         noise_model: ``"gaussian"``, ``"relative"`` or ``"poisson_gaussian"`` (`data_synth.noise`).
-        model: the `pbrfit.model.Model` that renders the images. With ``ibl="monte_carlo"`` the
+        model: the `pbrfit.physics.model.Model` that renders the images. With ``ibl="monte_carlo"`` the
             environment light is rendered by the reference integrator
-            (`pbrfit.montecarlo.monte_carlo_radiance`, ``mc_samples`` steps per pixel sample)
+            (`pbrfit.lighting.montecarlo.monte_carlo_radiance`, ``mc_samples`` steps per pixel sample)
             rather than the split sum: ground truth, as a path tracer would render it.
         mc_samples: see ``model``.
         params: the preset's parameters, for ``truth/synth.json``.
@@ -109,7 +109,7 @@ class Scene:
     params: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
-        from pbrfit.model import Model
+        from pbrfit.physics.model import Model
 
         if self.image_format not in IMAGE_FORMATS:
             raise ValueError(f"image_format must be one of {sorted(IMAGE_FORMATS)}, got {self.image_format!r}")
@@ -153,7 +153,7 @@ def _common(kw: dict, defaults: dict) -> dict:
 
 def _light_ring(n: int, radius: float, elevation_deg: float, intensity: float, world_up: str, azimuth0: float = 45.0):
     """`n` white point lights evenly in azimuth at `radius` from the origin and one elevation."""
-    from pbrfit.lights import point_light
+    from pbrfit.physics.lights import point_light
 
     dirs = [environments.env_to_world(_yup_dir(elevation_deg, azimuth0 + 360.0 * k / n), world_up) for k in range(n)]
     return tuple(point_light(radius * d, (1.0, 1.0, 1.0), intensity) for d in dirs)
@@ -187,7 +187,7 @@ def _plane_flash(seed: int, **kw) -> Scene:
     p = _common(kw, dict(size=128, views=12, noise=0.01, noise_model="gaussian", supersample=2, texture_size=64,
                          image_format="png16", fov_deg=50.0, flash_intensity=3.5, lamp_intensity=5.0,
                          metal_color=textures.GOLD))
-    from pbrfit.lights import point_light
+    from pbrfit.physics.lights import point_light
 
     rng = np.random.default_rng(seed)
     up = "+y"
@@ -239,7 +239,7 @@ def _spheres_grid(seed: int, **kw) -> Scene:
                          roughness=(0.1, 0.3, 0.5, 0.7, 0.9), base_color=(0.8, 0.45, 0.2), spacing=1.0,
                          radius=0.4, distance=7.0, fov_deg=45.0, env_width=256, light_intensity=60.0,
                          texture_size=None))
-    from pbrfit.lights import point_light
+    from pbrfit.physics.lights import point_light
 
     met, rough = tuple(p["metallic"]), tuple(p["roughness"])
     rows, cols = len(met), len(rough)
@@ -296,7 +296,7 @@ def _demo(seed: int, **kw) -> Scene:
     p = _common(kw, dict(size=96, views=8, noise=0.005, noise_model="gaussian", supersample=1, texture_size=64,
                          image_format="exr", distance=4.0, fov_deg=45.0, env_width=128, light_intensity=12.0,
                          floor_size=3.0, sphere_radius=0.6))
-    from pbrfit.lights import point_light
+    from pbrfit.physics.lights import point_light
 
     rng = np.random.default_rng(seed)
     n = p["texture_size"]

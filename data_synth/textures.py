@@ -2,7 +2,7 @@
 
 Every map is a numpy float32 array in glTF texture orientation: row 0 is v = 0 and texel
 (i, j) has its centre at uv = ((j + 0.5)/W, (i + 0.5)/H). Scalar maps are (H, W); `TruthMaps`
-holds them as (H, W, 1) like `pbrfit.material.Material`. Every generator takes a
+holds them as (H, W, 1) like `pbrfit.physics.material.Material`. Every generator takes a
 `numpy.random.Generator`, so a scene is reproducible from its seed. Noise is periodic (it tiles
 under ``wrap="repeat"``).
 
@@ -82,10 +82,10 @@ class TruthMaps:
         return tuple(self.base_color.shape[:2])
 
     def to_material(self):
-        """The same maps as a `pbrfit.material.Material` (jax arrays)."""
+        """The same maps as a `pbrfit.physics.material.Material` (jax arrays)."""
         import jax.numpy as jnp
 
-        from pbrfit.material import Material
+        from pbrfit.physics.material import Material
 
         return Material(
             base_color=jnp.asarray(self.base_color),

@@ -13,15 +13,15 @@ The folder (built under a temporary name and renamed into place, so a failure le
     contact_sheet.png   every view side by side (sRGB 8-bit)
 
 Rendering uses the project's own path, so a fit sees exactly the geometry that made the images:
-the mesh is read back from ``mesh.glb`` with `pbrfit.mesh.load_mesh`, the environment from
-``env.exr`` with `pbrfit.environment.load_environment`, the split-sum tables come from
-`pbrfit.ibl.build_ibl` with default `IBLSettings`, G-buffers from `pbrfit.gbuffer.compute_gbuffer`
+the mesh is read back from ``mesh.glb`` with `pbrfit.scene.mesh.load_mesh`, the environment from
+``env.exr`` with `pbrfit.lighting.environment.load_environment`, the split-sum tables come from
+`pbrfit.lighting.ibl.build_ibl` with default `IBLSettings`, G-buffers from `pbrfit.scene.gbuffer.compute_gbuffer`
 (with each frame's lights in capture order: global lights, then the flash), and shading from
-`pbrfit.render.radiance_view` (with ``scene.model.ibl == "monte_carlo"``, the environment's share
-comes from `pbrfit.montecarlo.monte_carlo_radiance` instead: ground truth, as a path tracer would
+`pbrfit.render.shade.radiance_view` (with ``scene.model.ibl == "monte_carlo"``, the environment's share
+comes from `pbrfit.lighting.montecarlo.monte_carlo_radiance` instead: ground truth, as a path tracer would
 render it). Each view is rendered at ``supersample`` times the size; where the
 mesh is not hit the environment (or black) shows. The radiance is box-filtered down, exposed,
-tone mapped and encoded (`pbrfit.color.encode`); noise is added to those display values and
+tone mapped and encoded (`pbrfit.physics.color.encode`); noise is added to those display values and
 only then are they quantised to the file's bit depth.
 """
 
@@ -71,16 +71,16 @@ class SynthResult:
 
 
 def frame_camera(scene: Scene, c2w: np.ndarray, supersample: int = 1):
-    """The `pbrfit.camera.Camera` of a frame (as `pbrfit.scene.load_capture` builds it from
+    """The `pbrfit.scene.camera.Camera` of a frame (as `pbrfit.scene.capture.load_capture` builds it from
     ``camera_angle_x``), at `supersample` times the image size."""
-    from pbrfit.camera import Camera
+    from pbrfit.scene.camera import Camera
 
     k = int(supersample)
     return Camera.from_fov(c2w, scene.camera_angle_x, scene.width * k, scene.height * k)
 
 
 def _frame_lights(scene: Scene, c2w: np.ndarray) -> tuple:
-    from pbrfit.lights import flash_light
+    from pbrfit.physics.lights import flash_light
 
     lights = tuple(scene.lights)
     if scene.flash is not None:
@@ -92,18 +92,18 @@ def _frame_lights(scene: Scene, c2w: np.ndarray) -> tuple:
 def render_scene(scene: Scene, mesh, environment=None, ibl=None, progress: Optional[Callable[[str], None]] = None):
     """Clean display values and masks of every view: ([(H, W, 3) float32], [(H, W) bool]).
 
-    `mesh`: a `trimesh.Trimesh` with glTF-oriented uv (as `pbrfit.mesh.load_mesh` returns);
-    `environment`: a `pbrfit.environment.Environment` or None; `ibl`: its split-sum tables when
+    `mesh`: a `trimesh.Trimesh` with glTF-oriented uv (as `pbrfit.scene.mesh.load_mesh` returns);
+    `environment`: a `pbrfit.lighting.environment.Environment` or None; `ibl`: its split-sum tables when
     ``scene.model.ibl == "split_sum"`` (or ``model.multiscatter``); with ``"monte_carlo"`` the
     environment light is integrated per pixel sample by the reference (`Scene.mc_samples`).
     """
     import jax
     import jax.numpy as jnp
 
-    from pbrfit.color import encode
-    from pbrfit.environment import environment_lookup
-    from pbrfit.gbuffer import compute_gbuffer
-    from pbrfit.render import ViewInputs, prepare_view, radiance_view
+    from pbrfit.physics.color import encode
+    from pbrfit.lighting.environment import environment_lookup
+    from pbrfit.scene.gbuffer import compute_gbuffer
+    from pbrfit.render.shade import ViewInputs, prepare_view, radiance_view
 
     k = int(scene.supersample)
     hk, wk = scene.height * k, scene.width * k
@@ -163,8 +163,8 @@ def _monte_carlo_environment(batch, material, model, environment, samples: int, 
     import jax
     import jax.numpy as jnp
 
-    from pbrfit.montecarlo import monte_carlo_radiance
-    from pbrfit.render import shading_inputs
+    from pbrfit.lighting.montecarlo import monte_carlo_radiance
+    from pbrfit.render.shade import shading_inputs
 
     out = []
     total = batch.num_pixels
@@ -176,7 +176,7 @@ def _monte_carlo_environment(batch, material, model, environment, samples: int, 
         normal, base_color, metallic, roughness, occlusion, _ = shading_inputs(view, material)  # as radiance_view
         rad = monte_carlo_radiance(environment, normal, view.view, base_color, metallic, roughness, model,
                                    samples=samples, key=jax.random.PRNGKey(start))
-        if occlusion is not None:  # occlusion scales environment light (`pbrfit.render.shade`)
+        if occlusion is not None:  # occlusion scales environment light (`pbrfit.render.shade.shade`)
             rad = rad * occlusion
         out.append(np.asarray(rad, np.float32)[:n])
         if progress:
@@ -186,7 +186,7 @@ def _monte_carlo_environment(batch, material, model, environment, samples: int, 
 
 def capture_json(scene: Scene, image_paths, mask_paths, has_env: bool) -> dict:
     """The capture.json object of a scene (capture spec ``pbrfit-capture/1``)."""
-    from pbrfit.lights import light_to_json
+    from pbrfit.io.lights import light_to_json
 
     raw = {
         "format": "pbrfit-capture/1",
@@ -224,7 +224,7 @@ def _dumps(obj) -> str:
 
 def contact_sheet(images, color_space: str, columns: Optional[int] = None, gap: int = 2) -> np.ndarray:
     """(H', W', 3) sRGB-encoded [0, 1] mosaic of the views, row-major, `gap` black pixels apart."""
-    from pbrfit.color import linear_to_srgb_host
+    from pbrfit.physics.color import linear_to_srgb_host
 
     n = len(images)
     columns = columns or int(math.ceil(math.sqrt(n)))
@@ -253,8 +253,8 @@ def _synth_json(scene: Scene, seconds: float) -> dict:
         "seed": scene.seed,
         "params": {k: plain(v) for k, v in scene.params.items()},
         "model": scene.model.describe(),
-        "ibl_settings": {"split_sum": "pbrfit.ibl.IBLSettings() defaults",
-                         "monte_carlo": f"pbrfit.montecarlo.monte_carlo_radiance, {int(scene.mc_samples)} samples"
+        "ibl_settings": {"split_sum": "pbrfit.lighting.ibl.IBLSettings() defaults",
+                         "monte_carlo": f"pbrfit.lighting.montecarlo.monte_carlo_radiance, {int(scene.mc_samples)} samples"
                          }.get(scene.model.ibl),
         "image_format": scene.image_format,
         "color_space": scene.color_space,
@@ -278,12 +278,12 @@ def synthesize(
     progress: Optional[Callable[[str], None]] = None,
 ) -> SynthResult:
     """Render `scene` and write its capture folder at `out` (see the module docstring)."""
-    from pbrfit.environment import load_environment
-    from pbrfit.atomic import atomic_dir
-    from pbrfit.gltf_export import write_gltf
-    from pbrfit.io import write_image
-    from pbrfit.material_files import write_material
-    from pbrfit.mesh import load_mesh
+    from pbrfit.lighting.environment import load_environment
+    from pbrfit.io.atomic import atomic_dir
+    from pbrfit.io.gltf_export import write_gltf
+    from pbrfit.io.images import write_image
+    from pbrfit.io.material_files import write_material
+    from pbrfit.scene.mesh import load_mesh
 
     t0 = time.perf_counter()
     suffix, dtype, color_space, bits = IMAGE_FORMATS[scene.image_format]
@@ -297,11 +297,11 @@ def synthesize(
             write_environment(tmp / "env.exr", scene.environment)
             environment = load_environment(tmp / "env.exr", scene.world_up, scene.environment_intensity, 0.0)
             if scene.model.ibl == "split_sum" or scene.model.multiscatter:
-                from pbrfit.ibl import IBLSettings, build_ibl
+                from pbrfit.lighting.ibl import IBLSettings, build_ibl
 
                 ibl = build_ibl(environment, IBLSettings(), scene.model)
         elif scene.model.multiscatter:  # punctual lights alone: the energy compensation's tables
-            from pbrfit.ibl import brdf_tables
+            from pbrfit.lighting.ibl import brdf_tables
 
             ibl = brdf_tables(model=scene.model)
         clean, masks = render_scene(scene, mesh, environment, ibl, progress)

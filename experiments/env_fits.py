@@ -1,10 +1,10 @@
 """Fits under environment light rendered as a path tracer would: split sum against per-pixel integrals.
 
 A capture made by another renderer integrates the environment exactly; pbrfit's default fit
-models it with the split sum (`pbrfit.ibl`), whose error under a sun is tens of percent
+models it with the split sum (`pbrfit.lighting.ibl`), whose error under a sun is tens of percent
 (`experiments/ibl_accuracy.py`). Here data_synth scenes are rendered with their environment
 light by the Monte Carlo reference (``Model(ibl="monte_carlo")``, `Scene.mc_samples` steps per
-pixel), and each is fitted with ``ibl="split_sum"`` and ``ibl="per_pixel"`` (`pbrfit.pixel_ibl`),
+pixel), and each is fitted with ``ibl="split_sum"`` and ``ibl="per_pixel"`` (`pbrfit.lighting.pixel_ibl`),
 both from pbrfit's default start and, as a reference, from the true maps ("oracle": structured LM
 started at the truth, the minimum nearest the truth that each model's objective has). The gap
 between the two oracles is the bias the split sum puts into fits; the default rows are what a
@@ -42,9 +42,9 @@ SCENES = ("demo", "sphere-env")
 
 def _objective_at(obs, model, tables, truth) -> float:
     """1/2 Σ (image value of the true maps, bilinear at each pixel's uv - the image value)²."""
-    from pbrfit.color import encode
-    from pbrfit.material import material_at
-    from pbrfit.render import shade
+    from pbrfit.physics.color import encode
+    from pbrfit.physics.material import material_at
+    from pbrfit.render.shade import shade
 
     s = material_at(truth, obs.uv, "repeat")
     rad = shade(obs.normal, obs.view, obs.light_l, obs.light_radiance, s.base_color, s.metallic, s.roughness, model,
@@ -58,12 +58,12 @@ def run(scenes, mc_samples: int, pixel_samples, out: Path):
 
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
-    from pbrfit.fit import fit
-    from pbrfit.material_files import read_material
-    from pbrfit.observations import observations_from_capture
-    from pbrfit.pixel_ibl import PixelIBLSettings, pixel_ibl
-    from pbrfit.scene import load_capture
-    from pbrfit.views import capture_environment, capture_ibl, model_for_capture
+    from pbrfit.fitting.api import fit
+    from pbrfit.io.material_files import read_material
+    from pbrfit.fitting.observations import observations_from_capture
+    from pbrfit.lighting.pixel_ibl import PixelIBLSettings, pixel_ibl
+    from pbrfit.scene.capture import load_capture
+    from pbrfit.render.views import capture_environment, capture_ibl, model_for_capture
 
     rows = []
     for name in scenes:

@@ -7,7 +7,7 @@ count, the reference. Reported per setting: build time (once per environment), s
 relative RMS error over all pixels, and relative mean absolute error per n·v band (grazing is
 where the split sum's N = V = R assumption fails). Monte Carlo itself at lower sample counts is
 on the same chart, for the trade the split sum makes, and so are the per-pixel lobe integrals
-of `pbrfit.pixel_ibl` (what ``pbrfit fit --ibl per_pixel`` uses) at several `PixelIBLSettings`:
+of `pbrfit.lighting.pixel_ibl` (what ``pbrfit fit --ibl per_pixel`` uses) at several `PixelIBLSettings`:
 their "build" is the precomputation for every point, their shading the lookup.
 
     python experiments/ibl_accuracy.py [--env sky.exr] [--quick]
@@ -36,11 +36,11 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from pbrfit.environment import load_environment, procedural_sky  # noqa: E402
-from pbrfit.ibl import IBLSettings, build_ibl, shade_ibl  # noqa: E402
-from pbrfit.model import Model  # noqa: E402
-from pbrfit.montecarlo import monte_carlo_radiance  # noqa: E402
-from pbrfit.pixel_ibl import PixelIBLSettings, pixel_ibl, shade_pixel_ibl  # noqa: E402
+from pbrfit.lighting.environment import load_environment, procedural_sky  # noqa: E402
+from pbrfit.lighting.ibl import IBLSettings, build_ibl, shade_ibl  # noqa: E402
+from pbrfit.physics.model import Model  # noqa: E402
+from pbrfit.lighting.montecarlo import monte_carlo_radiance  # noqa: E402
+from pbrfit.lighting.pixel_ibl import PixelIBLSettings, pixel_ibl, shade_pixel_ibl  # noqa: E402
 
 ROUGHNESS = (0.05, 0.15, 0.3, 0.5, 0.75, 1.0)
 METALLIC = (0.0, 1.0)

@@ -21,7 +21,7 @@ noise of either kind; a star marks a miss of its own targets, 0.04 / 0.05 / 0.04
 and `demo`, each at its default resolution.
 
 Each case is fitted twice: with every fitted value kept (``unconstrained_sigma=inf``) and with
-the default hold of roughness the images do not constrain (`pbrfit.unconstrained`). Each row
+the default hold of roughness the images do not constrain (`pbrfit.fitting.stages.unconstrained`). Each row
 records the per-map RMSE over observed texels, the RMS of the reported roughness σ
 (what the Gauss-Newton normal matrix says the images determine: the floor of a fit without a
 prior), the share of roughness texels within 2σ, and the mean linear pixel value on the mesh
@@ -98,11 +98,11 @@ def scene_for(noise: float, noise_model: str, roughness_range, layout):
 def run(cases) -> list[dict]:
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
-    from pbrfit.demo import recovery_table
-    from pbrfit.fit import fit
-    from pbrfit.material_files import read_material
-    from pbrfit.scene import load_capture
-    from pbrfit.unconstrained import UNCONSTRAINED_SIGMA
+    from pbrfit.cli.demo import recovery_table
+    from pbrfit.fitting.api import fit
+    from pbrfit.io.material_files import read_material
+    from pbrfit.scene.capture import load_capture
+    from pbrfit.fitting.stages.unconstrained import UNCONSTRAINED_SIGMA
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

@@ -5,7 +5,7 @@ so this script renders the peer scene (`peer-plane`: noiseless, with 1% noise, a
 1% of each pixel's value) at seeds 0 to N-1 and the flash scene (`plane-flash`, 1% noise of
 either kind) at seeds 0 to 2, and fits each as ``pbrfit fit CAPTURE`` does (`pbrfit.fit`, the
 default configuration; ``--resolution 64`` on the peer scene), once with the repair
-(`pbrfit.repair`, the default) and once without. Each row
+(`pbrfit.fitting.stages.repair`, the default) and once without. Each row
 records the per-map RMSE against the truth over observed texels, the share of texel channels
 within the reported 2σ, the steps, the wall time of the whole `fit` call (G-buffers cached from
 the first of the two, compiles shared within the process) and the repair's passes.
@@ -44,10 +44,10 @@ MAPS = ("base_color", "metallic", "roughness")
 def run(scenes, seeds: int) -> list[dict]:
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
-    from pbrfit.demo import recovery_table
-    from pbrfit.fit import fit
-    from pbrfit.material_files import read_material
-    from pbrfit.scene import load_capture
+    from pbrfit.cli.demo import recovery_table
+    from pbrfit.fitting.api import fit
+    from pbrfit.io.material_files import read_material
+    from pbrfit.scene.capture import load_capture
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

@@ -47,9 +47,9 @@ CONFIGS = {
     # name: fit_observations keyword arguments
     DEFAULT: dict(solver="structured"),
     "structured (default, 100 steps)": dict(solver="structured", max_steps=100),
-    # the default without the uniform check (pbrfit.selection): what the check changes, on one host
+    # the default without the uniform check (pbrfit.fitting.stages.selection): what the check changes, on one host
     NO_CHECK: dict(solver="structured", uniform_check=False),
-    # the default without the repair of texels left in a wrong basin (pbrfit.repair)
+    # the default without the repair of texels left in a wrong basin (pbrfit.fitting.stages.repair)
     NO_REPAIR: dict(solver="structured", repair=False),
     NO_CONTINUATION: dict(solver="structured", continuation=()),
     "structured (grid + continuation, no search)": dict(solver="structured", search=False),
@@ -121,7 +121,7 @@ WELL_OBSERVED = 16
 
 
 def _metrics(truth, material, coverage, sigma=None) -> dict:
-    from pbrfit.fit import map_rmse
+    from pbrfit.fitting.api import map_rmse
 
     coverage = np.asarray(coverage)
     out = dict(rmse=map_rmse(truth, material, coverage),
@@ -156,11 +156,11 @@ def _oracle(obs, model, ibl, truth, resolution, max_steps=40):
     import jax
     import jax.numpy as jnp
 
-    from pbrfit.material import Material
-    from pbrfit.observations import coverage_counts, neighbour_pairs, texel_layout
-    from pbrfit.parameters import channel_mask
-    from pbrfit.objective import Problem, objective
-    from pbrfit.solvers import structured_lm
+    from pbrfit.physics.material import Material
+    from pbrfit.fitting.observations import coverage_counts, neighbour_pairs, texel_layout
+    from pbrfit.fitting.parameters import channel_mask
+    from pbrfit.fitting.objective import Problem, objective
+    from pbrfit.fitting.solvers.structured import structured_lm
 
     layout = texel_layout(obs, resolution, "repeat")
     seen = coverage_counts(layout).reshape(-1) > 0
@@ -191,10 +191,10 @@ def _oracle(obs, model, ibl, truth, resolution, max_steps=40):
 def run(scenes, configs):
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
-    from pbrfit.fit import _ibl_for_capture, fit_observations, model_for_capture
-    from pbrfit.material_files import read_material
-    from pbrfit.observations import observations_from_capture
-    from pbrfit.scene import load_capture
+    from pbrfit.fitting.api import _ibl_for_capture, fit_observations, model_for_capture
+    from pbrfit.io.material_files import read_material
+    from pbrfit.fitting.observations import observations_from_capture
+    from pbrfit.scene.capture import load_capture
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -242,7 +242,7 @@ def run(scenes, configs):
                         # every compile where it is first needed: no compile thread shares the cores with the run
                         call = dict(kwargs, background_compile=False)
                         n = call.pop("pixel_samples", 1)
-                        if n > 1:  # as `pbrfit.fit.fit` does: start, continuation and search on pixel centres
+                        if n > 1:  # as `pbrfit.fitting.api.fit` does: start, continuation and search on pixel centres
                             call["centres"] = obs
                         res = fit_observations(observations(n), model=model, ibl=ibl, resolution=resolution, **call)
                     except Exception as exc:  # a solver that fails is a result too

@@ -1,7 +1,7 @@
 """Calibration of the reported uncertainty: repeated fits of one scene under fresh noise.
 
 `pbrfit.fit` reports each texel's standard error from the Gauss-Newton normal matrix
-(`pbrfit.uncertainty`): with ``uncertainty_radius`` 0 from the texel's own block (its neighbours
+(`pbrfit.fitting.uncertainty`): with ``uncertainty_radius`` 0 from the texel's own block (its neighbours
 held), with r > 0 from the (2 r + 1)² texels around it (a Schur complement of that window's
 matrix). This script measures which is honest. It renders the peer scene (`peer-plane`, seed 0,
 noiseless, linear EXR) once, then adds N fresh draws of 1% noise to its images, in memory
@@ -18,7 +18,7 @@ texels of all draws, for base colour (R, G, B together) and roughness:
 Metallic is left out: its truth is 0, on the bound, where errors are one-sided.
 
 Each draw is fitted once per ``--noise-levels`` entry as well: ``uniform`` (plain least squares,
-the default of `pbrfit.fit`) and ``estimated`` (`pbrfit.noise`: a second fit weighted by the
+the default of `pbrfit.fit`) and ``estimated`` (`pbrfit.fitting.noise`: a second fit weighted by the
 noise level function of the first's residuals). ``--noise-models`` adds ``poisson_gaussian``
 (shot noise of std 0.01 at a value of 1 plus read noise of 0.0025, `data_synth.noise`).
 
@@ -59,9 +59,9 @@ def run(draws: int, radii, noise_models=NOISE_MODELS, noise_levels=NOISE_LEVELS)
     from data_synth.noise import add_noise
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
-    from pbrfit.fit import fit
-    from pbrfit.material_files import read_material
-    from pbrfit.scene import load_capture
+    from pbrfit.fitting.api import fit
+    from pbrfit.io.material_files import read_material
+    from pbrfit.scene.capture import load_capture
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

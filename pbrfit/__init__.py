@@ -1,7 +1,10 @@
 """pbrfit: differentiable glTF PBR material fitting in JAX.
 
-The physics modules (`brdf`, `color`, `lights`, `textures`, `material`, `render`) import only
-JAX; capture loading, ray casting and fitting are imported on first use.
+The rooms are subpackages, each importing only the ones below it: `physics` (the BRDF, colour,
+lights, textures, the material), `io` (files), `lighting` (environment light), `scene` (the
+capture and its fixed geometry), `render`, `fitting` (the options, solvers and stages), `checks`
+(gradient checks) and `cli` (the command). This module only re-exports the public API; all but
+the physics is imported on first use, so `import pbrfit` stays light.
 """
 
 import importlib
@@ -28,28 +31,29 @@ def _xla_workarounds() -> None:
 
 _xla_workarounds()
 
-from . import brdf, color  # noqa: E402
 from .errors import CaptureError  # noqa: E402
-from .material import Material  # noqa: E402
-from .model import Model  # noqa: E402
+from .physics import brdf, color  # noqa: E402
+from .physics.material import Material  # noqa: E402
+from .physics.model import Model  # noqa: E402
 
 __version__ = "0.1.0"
 
 # name -> (module, attribute); resolved on first access so `import pbrfit` stays light.
 _LAZY = {
-    "load_capture": ("scene", "load_capture"),
-    "Capture": ("scene", "Capture"),
-    "Camera": ("camera", "Camera"),
-    "GBuffer": ("gbuffer", "GBuffer"),
-    "compute_gbuffer": ("gbuffer", "compute_gbuffer"),
-    "render_capture": ("views", "render_capture"),
-    "FitResult": ("fit", "FitResult"),
-    "PixelIBLSettings": ("pixel_ibl", "PixelIBLSettings"),
-    "read_material": ("material_files", "read_material"),
-    "write_material": ("material_files", "write_material"),
+    "load_capture": ("scene.capture", "load_capture"),
+    "Capture": ("scene.capture", "Capture"),
+    "Camera": ("scene.camera", "Camera"),
+    "GBuffer": ("scene.gbuffer", "GBuffer"),
+    "compute_gbuffer": ("scene.gbuffer", "compute_gbuffer"),
+    "render_capture": ("render.views", "render_capture"),
+    "fit": ("fitting.api", "fit"),
+    "FitResult": ("fitting.result", "FitResult"),
+    "PixelIBLSettings": ("lighting.pixel_ibl", "PixelIBLSettings"),
+    "read_material": ("io.material_files", "read_material"),
+    "write_material": ("io.material_files", "write_material"),
 }
 
-__all__ = ["brdf", "color", "CaptureError", "Material", "Model", "fit", *_LAZY]
+__all__ = ["brdf", "color", "CaptureError", "Material", "Model", *_LAZY]
 _SUBMODULES = frozenset(m.name for m in pkgutil.iter_modules(__path__))
 
 
@@ -57,7 +61,7 @@ def __getattr__(name):
     if name in _LAZY:
         module, attr = _LAZY[name]
         return getattr(importlib.import_module(f".{module}", __name__), attr)
-    # submodules, on first access; `pbrfit.fit` is the fit module, and calling it calls `pbrfit.fit.fit`
+    # the rooms (subpackages), on first access
     if name in _SUBMODULES:
         return importlib.import_module(f".{name}", __name__)
     raise AttributeError(f"module 'pbrfit' has no attribute {name!r}")

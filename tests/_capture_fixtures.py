@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pbrfit.io import write_image
+from pbrfit.io.images import write_image
 
 QUAD_POSITIONS = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32)
 QUAD_UV_GLTF = np.array([[0.0, 1.0], [1.0, 1.0], [1.0, 0.25], [0.0, 0.25]], np.float32)

@@ -5,7 +5,7 @@
   and XLA caches never read or write the user's ``~/.cache/pbrfit``, so no test depends on what
   earlier runs left there (a fresh CI machine has nothing there).
 - JAX's persistent compilation cache in that folder, on from the start, as ``pbrfit`` turns it on
-  for its commands (`pbrfit.cli`): a test that builds a new ``jax.jit`` of a function another
+  for its commands (`pbrfit.cli.main`): a test that builds a new ``jax.jit`` of a function another
   test compiled at the same shapes loads the executable instead of compiling it again (JAX keeps
   no program with a host callback, such as a solve that reports progress). JAX opens the cache
   folder at the first compile and keeps it: a CLI command run in a test later sets the option
@@ -35,4 +35,4 @@ _CACHE = tempfile.mkdtemp(prefix="pbrfit-test-cache-")  # one per process (each 
 atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
 os.environ["PBRFIT_CACHE"] = _CACHE
 jax.config.update("jax_compilation_cache_dir", os.path.join(_CACHE, "xla"))
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)  # as `pbrfit.cli` sets it
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)  # as `pbrfit.cli.main` sets it

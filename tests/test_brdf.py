@@ -1,4 +1,4 @@
-"""Physics and numerical-stability checks of `pbrfit.brdf` (issue 2)."""
+"""Physics and numerical-stability checks of `pbrfit.physics.brdf` (issue 2)."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pbrfit import brdf
-from pbrfit.gradcheck_terms import MODEL_VARIANTS
-from pbrfit.model import Model
+from pbrfit.checks.terms import MODEL_VARIANTS
+from pbrfit.physics.model import Model
 
 # --- The acceptance grid of issue 2: closed domain, float32 ---------------------------------------
 ROUGHNESS = (0.0, 1e-6, 1e-3, 0.05, 0.5, 1.0)
@@ -732,11 +732,11 @@ def test_check_grads_covers_every_public_term():
 def test_check_grads_float64(name, x64):
     """First and second order (reverse over forward; reverse mode checks the forward rule too, by
     transposition) against check_grads' own central differences, step 1e-4: its O(eps^2) truncation
-    error is why the tolerance is 1e-4. `pbrfit.gradcheck` checks every Hessian entry more tightly."""
+    error is why the tolerance is 1e-4. `pbrfit.checks.gradcheck` checks every Hessian entry more tightly."""
     fn, args = CHECK_GRADS_TERMS[name]
     args = tuple(jnp.asarray(a, jnp.float64) for a in args)
     # The compositions run eagerly through hundreds of primitives: 1st order here (their Hessians
-    # are checked entry by entry, per Model variant, by `pbrfit.gradcheck`).
+    # are checked entry by entry, per Model variant, by `pbrfit.checks.gradcheck`).
     order = 1 if name in ("evaluate", "evaluate_cosines") else 2
     jax.test_util.check_grads(fn, args, order=order, modes=("rev",), eps=1e-4, atol=1e-4, rtol=1e-4)
 

@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from pbrfit.cli import main
-from pbrfit.io import read_image
+from pbrfit.cli.main import main
+from pbrfit.io.images import read_image
 
 SPEC_FILES = (
     "base_color.exr", "base_color.png", "metallic.exr", "roughness.exr", "metallic_roughness.png",
@@ -74,8 +74,8 @@ def test_fit_with_an_estimated_noise_level(capture, tmp_path, monkeypatch, capsy
 
 
 def test_noise_level_option_reaches_the_fit():
-    from pbrfit.cli import build_parser
-    from pbrfit.cli_fit import fit_options
+    from pbrfit.cli.main import build_parser
+    from pbrfit.cli.fit import fit_options
 
     def options(*extra):
         return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
@@ -238,7 +238,7 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
     ],
 )
 def test_bad_fit_options_exit_2_and_write_nothing(capture, tmp_path, capsys, extra, message):
-    from pbrfit.io import write_image
+    from pbrfit.io.images import write_image
 
     out = tmp_path / "out"
     (tmp_path / "a_file").write_text("")
@@ -258,8 +258,8 @@ def test_bad_fit_options_exit_2_and_write_nothing(capture, tmp_path, capsys, ext
 
 def test_options_that_mean_nothing_else_parse():
     """'none' or the default spelled out is no conflict: only what another mode would ignore is."""
-    from pbrfit.cli import build_parser
-    from pbrfit.cli_fit import fit_options
+    from pbrfit.cli.main import build_parser
+    from pbrfit.cli.fit import fit_options
 
     parse = lambda *extra: fit_options(build_parser().parse_args(["fit", "cap", "--out", "o", *extra]))
     assert parse("--solver", "lm", "--continuation", "none")["continuation"] == ()
@@ -314,7 +314,7 @@ def test_a_truncated_png_is_one_line_of_error(tmp_path):
     frame.write_bytes(data[: len(data) // 2])
     out = tmp_path / "out"
     env = dict(os.environ, PBRFIT_CACHE=str(tmp_path / "cache"))
-    proc = subprocess.run([sys.executable, "-c", "import sys; from pbrfit.cli import main; sys.exit(main())",
+    proc = subprocess.run([sys.executable, "-c", "import sys; from pbrfit.cli.main import main; sys.exit(main())",
                            "fit", str(cap), "--out", str(out), "--quiet"],
                           capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 2, proc.stderr
@@ -326,8 +326,8 @@ def test_a_truncated_png_is_one_line_of_error(tmp_path):
 def test_fit_a_capture_mixing_exr_and_png_frames(tmp_path, monkeypatch):
     # color space by file type, frame by frame (the spec's default): two of four frames re-saved
     # as 16-bit sRGB PNGs; the maps are still recovered exactly
-    from pbrfit.color import linear_to_srgb
-    from pbrfit.io import write_image
+    from pbrfit.physics.color import linear_to_srgb
+    from pbrfit.io.images import write_image
 
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
     cap = tmp_path / "cap"
@@ -361,7 +361,7 @@ def _broken_copy(capture, tmp_path, edit):
 
 
 def _all_masks_zero(data, cap):
-    from pbrfit.io import write_image
+    from pbrfit.io.images import write_image
 
     for frame in data["frames"]:
         if "mask_path" in frame:
@@ -374,7 +374,7 @@ def _lights_off(data, cap):
 
 
 def _lights_off_under_a_black_sky(data, cap):
-    from pbrfit.io import write_image
+    from pbrfit.io.images import write_image
 
     _lights_off(data, cap)
     write_image(cap / "black.exr", np.zeros((8, 16, 3), np.float32), "float")
@@ -417,7 +417,7 @@ def test_uniform_fit_of_a_mesh_without_uvs_and_a_map_held_from_a_folder(capture,
 
     import trimesh
 
-    from pbrfit.io import read_image, write_image
+    from pbrfit.io.images import read_image, write_image
 
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
 
@@ -486,7 +486,7 @@ def test_per_pixel_ibl_without_an_environment_warns_and_fits(capture, tmp_path, 
 def test_summary_line_names_the_footprint():
     from types import SimpleNamespace
 
-    from pbrfit.cli_fit import fit_summary
+    from pbrfit.cli.fit import fit_summary
 
     report = dict(resolution=[8, 8], solver="structured", steps=30, final_loss=2.0, wall_time=5.0,
                   times=dict(compile=1.0), pixel_samples=2,
@@ -530,7 +530,7 @@ def test_summary_line_names_the_footprint():
 
 
 def test_loss_history_keeps_the_kept_footprint_only():
-    from pbrfit.fit_command import loss_history
+    from pbrfit.cli.fit_command import loss_history
 
     steps = [dict(loss=9.0), dict(loss=5.0), dict(loss=4.0, footprint=1), dict(loss=3.0, footprint=1),
              dict(loss=2.0, footprint=2)]
@@ -541,7 +541,7 @@ def test_loss_history_keeps_the_kept_footprint_only():
 
 
 def test_loss_history_keeps_the_weighted_fit_only():
-    from pbrfit.fit_command import loss_history
+    from pbrfit.cli.fit_command import loss_history
 
     steps = [dict(loss=9.0), dict(loss=5.0, footprint=1), dict(loss=4.0, footprint=2), dict(loss=3.0, repair=1),
              dict(loss=2.5, weighted=True), dict(loss=2.0, weighted=True, repair=1)]
@@ -552,7 +552,7 @@ def test_loss_history_keeps_the_weighted_fit_only():
 
 
 def test_loss_history_keeps_kept_repair_passes_only():
-    from pbrfit.fit_command import loss_history
+    from pbrfit.cli.fit_command import loss_history
 
     steps = [dict(loss=9.0), dict(loss=5.0), dict(loss=3.0, repair=1), dict(loss=4.0, repair=2)]
     passes = [dict(flagged=3, kept=True), dict(flagged=2, kept=False)]
@@ -561,7 +561,7 @@ def test_loss_history_keeps_kept_repair_passes_only():
 
 
 def test_loss_history_keeps_uniform_check_refits_only_where_kept():
-    from pbrfit.fit_command import loss_history
+    from pbrfit.cli.fit_command import loss_history
 
     steps = [dict(loss=9.0), dict(loss=5.0), dict(loss=6.0, check="metallic"), dict(loss=5.5, check="metallic"),
              dict(loss=7.0, check="roughness")]
@@ -574,8 +574,8 @@ def test_loss_history_keeps_uniform_check_refits_only_where_kept():
 
 
 def test_no_uniform_check_option_reaches_the_fit():
-    from pbrfit.cli import build_parser
-    from pbrfit.cli_fit import fit_options
+    from pbrfit.cli.main import build_parser
+    from pbrfit.cli.fit import fit_options
 
     def options(*extra):
         return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
@@ -584,8 +584,8 @@ def test_no_uniform_check_option_reaches_the_fit():
 
 
 def test_cg_rtol_option_reaches_the_fit():
-    from pbrfit.cli import build_parser
-    from pbrfit.cli_fit import fit_options
+    from pbrfit.cli.main import build_parser
+    from pbrfit.cli.fit import fit_options
 
     def options(*extra):
         return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
@@ -595,8 +595,8 @@ def test_cg_rtol_option_reaches_the_fit():
 
 
 def test_loss_scale_option_reaches_the_fit():
-    from pbrfit.cli import build_parser
-    from pbrfit.cli_fit import fit_options
+    from pbrfit.cli.main import build_parser
+    from pbrfit.cli.fit import fit_options
     from pbrfit.errors import CaptureError
 
     def options(*extra):
@@ -612,8 +612,8 @@ def test_loss_scale_option_reaches_the_fit():
 
 
 def test_uncertainty_radius_option_reaches_the_fit():
-    from pbrfit.cli import build_parser
-    from pbrfit.cli_fit import fit_options
+    from pbrfit.cli.main import build_parser
+    from pbrfit.cli.fit import fit_options
 
     def options(*extra):
         return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
@@ -624,8 +624,8 @@ def test_uncertainty_radius_option_reaches_the_fit():
 
 
 def test_unconstrained_sigma_option_reaches_the_fit():
-    from pbrfit.cli import build_parser
-    from pbrfit.cli_fit import fit_options
+    from pbrfit.cli.main import build_parser
+    from pbrfit.cli.fit import fit_options
 
     def options(*extra):
         return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
@@ -640,9 +640,9 @@ def test_solve_options_reach_the_fit():
     fit's keyword, given or not; not given, they are the library's own defaults."""
     import inspect
 
-    from pbrfit.cli import build_parser
-    from pbrfit.cli_fit import fit_options
-    from pbrfit.fit import fit_observations
+    from pbrfit.cli.main import build_parser
+    from pbrfit.cli.fit import fit_options
+    from pbrfit.fitting.api import fit_observations
 
     def options(*extra):
         return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
@@ -659,16 +659,16 @@ def test_solve_options_reach_the_fit():
 @pytest.mark.parametrize("error", [MemoryError("Unable to allocate 74.5 GiB for an array"),
                                    RuntimeError("RESOURCE_EXHAUSTED: Out of memory allocating 1 bytes.\nmore")])
 def test_out_of_memory_is_one_line_and_exit_2(capture, tmp_path, capsys, monkeypatch, error):
-    import pbrfit.cli
+    import pbrfit.cli.main
 
     def fail(args):
         raise error
 
-    monkeypatch.setitem(pbrfit.cli._COMMANDS, "fit", fail)
+    monkeypatch.setitem(pbrfit.cli.main._COMMANDS, "fit", fail)
     assert main(["fit", str(capture), "--out", str(tmp_path / "out"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("pbrfit: error: out of memory: ") and "--resolution" in err[0]
-    monkeypatch.setitem(pbrfit.cli._COMMANDS, "fit", lambda args: 1 / 0)  # anything else is a bug: it propagates
+    monkeypatch.setitem(pbrfit.cli.main._COMMANDS, "fit", lambda args: 1 / 0)  # anything else is a bug: it propagates
     with pytest.raises(ZeroDivisionError):
         main(["fit", str(capture), "--out", str(tmp_path / "out"), "--quiet"])
 
@@ -678,7 +678,7 @@ def test_a_capture_too_bright_for_float32_is_refused_not_written(capture, tmp_pa
     # fit would write NaN standard errors under a loss that looks perfect
     import shutil
 
-    from pbrfit.io import read_image, write_image
+    from pbrfit.io.images import read_image, write_image
 
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
     hot = tmp_path / "hot"
@@ -693,10 +693,10 @@ def test_a_capture_too_bright_for_float32_is_refused_not_written(capture, tmp_pa
     assert err.count("\n") == 1 and not out.exists()
     # past that check, the solve's loss overflows: it says so (its residuals at the start are
     # returned, not zeros that would read as a perfect fit), and the fit is refused after it
-    import pbrfit.fit
+    import pbrfit.fitting.api
 
     with monkeypatch.context() as m:
-        m.setattr(pbrfit.fit, "_check_brightness", lambda capture: None)
+        m.setattr(pbrfit.fitting.api, "_check_brightness", lambda capture: None)
         assert main(["fit", str(hot), "--out", str(out), "--resolution", "8", "--max-steps", "8", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "the fit's loss came out NaN or beyond float32" in err and err.count("\n") == 1 and not out.exists(), err

@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pbrfit.cli import main
-from pbrfit.io import read_image
+from pbrfit.cli.main import main
+from pbrfit.io.images import read_image
 
 
 def _frames(folder):
@@ -31,10 +31,10 @@ def test_render_with_truth_reproduces_synth(tmp_path, monkeypatch, preset, extra
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
     cap, out = tmp_path / "cap", tmp_path / "out"
     assert main(["synth", preset, "--out", str(cap), "--size", "24", "--views", "2", "--quiet", *extra]) == 0
-    import pbrfit.environment
+    import pbrfit.lighting.environment
 
-    reads, load = [], pbrfit.environment.load_environment
-    monkeypatch.setattr(pbrfit.environment, "load_environment", lambda *a, **kw: reads.append(a[0]) or load(*a, **kw))
+    reads, load = [], pbrfit.lighting.environment.load_environment
+    monkeypatch.setattr(pbrfit.lighting.environment, "load_environment", lambda *a, **kw: reads.append(a[0]) or load(*a, **kw))
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--quiet",
                  "--supersample", str(supersample)]) == 0
     # the environment file is read once, also where it is the only light and so is checked first
@@ -75,7 +75,7 @@ def test_render_relights_with_an_environment_at_the_captures_intensity_and_rotat
     """--environment FILE replaces the capture's environment file only: the capture's intensity
     and rotation_deg apply to it. The render equals that of the capture whose capture.json names
     FILE with them, and differs from the render at intensity 1 and no rotation."""
-    from pbrfit.io import write_image
+    from pbrfit.io.images import write_image
 
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
     cap = tmp_path / "cap"
@@ -123,8 +123,8 @@ def test_render_and_synth_refuse_an_out_folder_they_did_not_write(tmp_path, caps
 
 @pytest.mark.parametrize("suffix,fmt,dtype", [(".hdr", "exr", "float"), (".jpg", "png8", "uint8")])
 def test_render_to_a_file_type_without_alpha_writes_a_mask(tmp_path, monkeypatch, suffix, fmt, dtype):
-    from pbrfit.io import write_image
-    from pbrfit.scene import load_capture
+    from pbrfit.io.images import write_image
+    from pbrfit.scene.capture import load_capture
 
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
     cap, out = tmp_path / "cap", tmp_path / "out"
@@ -187,7 +187,7 @@ def test_render_refuses_to_write_over_its_own_capture_and_takes_inline_lights(tm
                  ""]) == 2  # not the capture's own lights, silently
     assert "--lights: empty" in capsys.readouterr().err
     # no light and a black environment: the same
-    from pbrfit.io import write_image
+    from pbrfit.io.images import write_image
 
     write_image(tmp_path / "black.exr", np.zeros((8, 16, 3), np.float32), "float")
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(tmp_path / "o3"), "--lights",
@@ -213,7 +213,7 @@ def test_render_writes_paths_that_leave_the_capture_inside_its_output(tmp_path, 
     NeRF-style transforms.json without `format` renders to a capture that loads again."""
     import shutil
 
-    from pbrfit.scene import load_capture
+    from pbrfit.scene.capture import load_capture
 
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
     cap = tmp_path / "cap"
@@ -251,7 +251,7 @@ def test_render_copies_the_files_a_gltf_mesh_names(tmp_path, monkeypatch):
     rendered folder loads, and fits, again."""
     import trimesh
 
-    from pbrfit.scene import load_capture
+    from pbrfit.scene.capture import load_capture
 
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
     cap = tmp_path / "cap"
@@ -297,7 +297,7 @@ def test_file_system_refusals_are_one_line_with_nothing_left(tmp_path, monkeypat
     # exit status 2, one line naming the file, no traceback, no output folder
     import errno
 
-    import pbrfit.render_output
+    import pbrfit.render.output
 
     cap = tmp_path / "cap"
     assert main(["synth", "peer-plane", "--out", str(cap), "--size", "8", "--views", "1", "--texture-size", "4",
@@ -307,7 +307,7 @@ def test_file_system_refusals_are_one_line_with_nothing_left(tmp_path, monkeypat
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp / rel))
 
     with monkeypatch.context() as m:
-        m.setattr(pbrfit.render_output, "_copy_into", full)
+        m.setattr(pbrfit.render.output, "_copy_into", full)
         out = tmp_path / "rendered"
         assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--quiet"]) == 2
         err = capsys.readouterr().err
@@ -325,7 +325,7 @@ def test_no_command_a_closed_pipe_and_warnings_are_one_line(capsys, monkeypatch)
     import sys
     import warnings
 
-    import pbrfit.cli as cli
+    import pbrfit.cli.main as cli
 
     assert main([]) == 2
     assert capsys.readouterr().err.splitlines() == [
@@ -362,7 +362,7 @@ def test_control_characters_in_a_message_are_escaped(capsys, monkeypatch):
     escaped: the error stays one line and cannot write to the terminal."""
     import warnings
 
-    import pbrfit.cli as cli
+    import pbrfit.cli.main as cli
     from pbrfit.errors import CaptureError
 
     def command(args):

@@ -1,4 +1,4 @@
-"""`pbrfit.color`: the sRGB curve (IEC 61966-2-1), exposure, and tone maps against numpy
+"""`pbrfit.physics.color`: the sRGB curve (IEC 61966-2-1), exposure, and tone maps against numpy
 re-implementations of their published formulas."""
 
 from __future__ import annotations

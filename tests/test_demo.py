@@ -5,8 +5,8 @@ import json
 import jax.numpy as jnp
 import numpy as np
 
-from pbrfit.demo import CONFIDENT_SIGMA, recovery_table, run_demo
-from pbrfit.material import Material
+from pbrfit.cli.demo import CONFIDENT_SIGMA, recovery_table, run_demo
+from pbrfit.physics.material import Material
 
 
 def test_demo_runs_end_to_end(tmp_path, monkeypatch, capsys):
@@ -52,7 +52,7 @@ def test_recovery_table_counts_and_calibration():
 
 
 def test_demo_refuses_to_replace_folders_it_did_not_write(tmp_path, capsys):
-    from pbrfit.cli import main
+    from pbrfit.cli.main import main
 
     (tmp_path / "fit").mkdir()
     (tmp_path / "fit" / "thesis.tex").write_text("keep")

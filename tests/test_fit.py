@@ -13,29 +13,29 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from pbrfit.color import encode
-import pbrfit.fit
-import pbrfit.fit_pass
-import pbrfit.initialisation
-import pbrfit.objective
-import pbrfit.repair
-import pbrfit.runner
-import pbrfit.selection
-import pbrfit.solvers
-from pbrfit.fit import SOLVERS, default_resolution, fit_observations, map_rmse, schedule
-from pbrfit.fit_options import fit_arguments
-from pbrfit.fit_options import LOSS_SCALE
-from pbrfit.fit_pass import COARSE_STEPS, RELEASED_STEPS, SEARCH_AFTER, SETTLE_STEPS, TURNED_OFF
-from pbrfit.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, grid_initialise, parity_classes
-from pbrfit.lights import point_light
-from pbrfit.material import Material
-from pbrfit.model import Model
-from pbrfit.observations import coverage_counts, neighbour_pairs, observations_from_views, texel_layout
-from pbrfit.parameters import LOWER, UPPER, from_sine, to_sine
-from pbrfit.repair import REPAIR_PROGRESS
-from pbrfit.render import ViewInputs, light_arrays, radiance_view
-from pbrfit.objective import Problem, objective
-from pbrfit.solvers import structured_lm
+from pbrfit.physics.color import encode
+import pbrfit.fitting.api
+import pbrfit.fitting.passes
+import pbrfit.fitting.initialisation
+import pbrfit.fitting.objective
+import pbrfit.fitting.stages.repair
+import pbrfit.fitting.runner
+import pbrfit.fitting.stages.selection
+import pbrfit.fitting.solvers.structured
+from pbrfit.fitting.api import SOLVERS, default_resolution, fit_observations, map_rmse, schedule
+from pbrfit.fitting.options import fit_arguments
+from pbrfit.fitting.options import LOSS_SCALE
+from pbrfit.fitting.passes import COARSE_STEPS, RELEASED_STEPS, SEARCH_AFTER, SETTLE_STEPS, TURNED_OFF
+from pbrfit.fitting.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, grid_initialise, parity_classes
+from pbrfit.physics.lights import point_light
+from pbrfit.physics.material import Material
+from pbrfit.physics.model import Model
+from pbrfit.fitting.observations import coverage_counts, neighbour_pairs, observations_from_views, texel_layout
+from pbrfit.fitting.parameters import LOWER, UPPER, from_sine, to_sine
+from pbrfit.fitting.stages.repair import REPAIR_PROGRESS
+from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view
+from pbrfit.fitting.objective import Problem, objective
+from pbrfit.fitting.solvers.structured import structured_lm
 
 RES = 24  # pixels per view side
 
@@ -110,7 +110,7 @@ def test_sine_storage_reaches_bounds_and_inverts():
 
 
 def test_normal_slopes_round_trip_and_bounds():
-    from pbrfit.parameters import NORMAL_SLOPE_MAX, channel_mask, lower, normal_from_slopes, slopes_from_normal, upper
+    from pbrfit.fitting.parameters import NORMAL_SLOPE_MAX, channel_mask, lower, normal_from_slopes, slopes_from_normal, upper
 
     s = np.array([[0.0, 0.0], [0.3, -0.2], [-2.0, 1.5], [NORMAL_SLOPE_MAX, -NORMAL_SLOPE_MAX]], np.float32)
     n = np.asarray(normal_from_slopes(s))
@@ -209,9 +209,9 @@ def test_unseen_texels_flagged_and_left_at_prior():
 
 
 def test_roughness_the_images_do_not_constrain_is_held_at_the_prior():
-    """`pbrfit.unconstrained`: the texels whose roughness σ exceeds the threshold get 0.5 and a
+    """`pbrfit.fitting.stages.unconstrained`: the texels whose roughness σ exceeds the threshold get 0.5 and a
     re-fit of their base colour; every other texel keeps the value the solve gave it."""
-    from pbrfit.unconstrained import ROUGHNESS, hold_skipped
+    from pbrfit.fitting.stages.unconstrained import ROUGHNESS, hold_skipped
 
     truth = _checker()
     rng = np.random.default_rng(5)
@@ -265,7 +265,7 @@ def test_uncertainty_grows_when_views_are_removed():
 
 
 def test_uncertainty_window_widens_the_per_texel_errors():
-    """The default uncertainty frees each texel's 3 × 3 window (`pbrfit.uncertainty`): the same
+    """The default uncertainty frees each texel's 3 × 3 window (`pbrfit.fitting.uncertainty`): the same
     maps, errors at least the per-texel blocks' and clearly wider where neighbours share pixels."""
     truth = _checker()
     rng = np.random.default_rng(3)
@@ -286,7 +286,7 @@ def test_uncertainty_matches_the_dense_window_inverse():
     """The size of the reported errors, end to end: σ̂ = sqrt(2 E / (n - p)) from the pixels'
     residuals, and each texel's σ = σ̂ sqrt(diag((JᵀJ)_W⁻¹)) at its channels, with (JᵀJ)_W the
     dense Gauss-Newton matrix (jax.jacfwd of the pixel residuals at the fitted maps) restricted to
-    the texel's 3 × 3 window, wrapped around the map (`pbrfit.uncertainty`: the window's other
+    the texel's 3 × 3 window, wrapped around the map (`pbrfit.fitting.uncertainty`: the window's other
     texels free, those beyond held). Metallic is held at 0 and the uniform check is off, so no
     channel is pinned or made one value: every fitted σ is a window's. (One sample per pixel: a
     pixel reads a 2 × 2 block of texels, so the diagonal and neighbour blocks hold all of the
@@ -297,7 +297,7 @@ def test_uncertainty_matches_the_dense_window_inverse():
     assert res.report["fitted"] == ["base_r", "base_g", "base_b", "roughness"] and np.all(res.coverage > 0)
     problem = dataclasses.replace(_texel_problem(truth), obs=obs)
     x = np.asarray(_stack(res.material))
-    r = np.asarray(jax.jit(pbrfit.objective.pixel_residuals)(jnp.asarray(x), problem), np.float64)
+    r = np.asarray(jax.jit(pbrfit.fitting.objective.pixel_residuals)(jnp.asarray(x), problem), np.float64)
     jac = np.asarray(_dense_jacobian(jnp.asarray(x), problem), np.float64)
     fitted = [0, 1, 2, 4]
     jac = jac.reshape(-1, 64, 5)[:, :, fitted].reshape(len(r.ravel()), -1)  # the metallic columns held
@@ -468,7 +468,7 @@ def _stack(material):
 def _dense_jacobian(x, problem):
     """∂r/∂x, dense: the pixel residuals (flattened) against the (T, 5) maps (flattened),
     forward mode (jitted: eager, a 64-texel map's 320 columns took 6 s)."""
-    return jax.jacfwd(lambda v: pbrfit.objective.pixel_residuals(v.reshape(-1, 5), problem).ravel())(x.ravel())
+    return jax.jacfwd(lambda v: pbrfit.fitting.objective.pixel_residuals(v.reshape(-1, 5), problem).ravel())(x.ravel())
 
 
 def test_grid_start_solves_base_colour_jointly_at_colour_edges():
@@ -486,7 +486,7 @@ def test_joint_base_colour_solve_matches_a_dense_solve(monkeypatch):
     """`_solve_base_joint` is least squares over all texels at once: it converges to the base
     colours that made the pixels (a dense solve's answer), 3 steps already close; rows with zero
     slope and all-zero channels stay finite."""
-    from pbrfit.initialisation import _solve_base, _solve_base_joint
+    from pbrfit.fitting.initialisation import _solve_base, _solve_base_joint
 
     truth = _checker()
     problem = _texel_problem(truth)
@@ -497,7 +497,7 @@ def test_joint_base_colour_solve_matches_a_dense_solve(monkeypatch):
     a[::7] = 0.0  # pixels whose radiance does not depend on the base colour
     a[:, 2] = 0.0  # a channel no pixel constrains
     a, l0 = jnp.asarray(a), jnp.asarray(rng.uniform(0.0, 0.1, (p, 3)), jnp.float32)
-    y = l0 + a * pbrfit.objective.sample_texels(b_true, problem)
+    y = l0 + a * pbrfit.fitting.objective.sample_texels(b_true, problem)
     err = {n: np.abs(np.asarray(_solve_base_joint(l0, a, y, problem, n)) - np.asarray(b_true))[:, :2].max()
            for n in (0, 3, 40)}
     per_texel = np.abs(np.asarray(_solve_base(l0, a, y, problem.weight, problem)) - np.asarray(b_true))[:, :2].max()
@@ -507,7 +507,7 @@ def test_joint_base_colour_solve_matches_a_dense_solve(monkeypatch):
     # the knob: the module's GRID_BASE_CG_STEPS is the default step count (equal to float32
     # rounding, not to the bit: a GPU's scatter-adds sum in no fixed order, so two runs of one
     # program can differ in the last digits; 3 steps against 40 differ by far more)
-    monkeypatch.setattr(pbrfit.initialisation, "GRID_BASE_CG_STEPS", 40)
+    monkeypatch.setattr(pbrfit.fitting.initialisation, "GRID_BASE_CG_STEPS", 40)
     by_default = np.asarray(_solve_base_joint(l0, a, y, problem))
     np.testing.assert_allclose(by_default, np.asarray(_solve_base_joint(l0, a, y, problem, 40)), rtol=0, atol=1e-5)
     assert np.abs(by_default - out).max() > 1e-3
@@ -639,7 +639,7 @@ def test_cg_rtol_trades_cg_iterations():
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
     tight = fit_observations(obs, resolution=8, max_steps=40)
     loose = fit_observations(obs, resolution=8, max_steps=40, cg_rtol=0.1)
-    assert tight.report["cg_rtol"] == pbrfit.solvers.CG_RTOL and loose.report["cg_rtol"] == 0.1
+    assert tight.report["cg_rtol"] == pbrfit.fitting.solvers.structured.CG_RTOL and loose.report["cg_rtol"] == 0.1
     per_step = [r.report["levels"][-1]["cg_iterations"] / r.report["levels"][-1]["steps"] for r in (tight, loose)]
     assert per_step[1] < 0.8 * per_step[0], per_step
     err = map_rmse(truth, loose)
@@ -662,7 +662,7 @@ def test_coverage_counts_the_fits_own_wrap():
 
 def test_compiler_prefetches_waits_and_reraises():
     clock = {}
-    compiler = pbrfit.runner.Compiler(clock)
+    compiler = pbrfit.fitting.runner.Compiler(clock)
     square = jax.jit(lambda v: v * v)
     x = jnp.arange(3.0)
     compiler.prefetch("square", square, x)
@@ -683,13 +683,13 @@ def test_compiler_prefetches_waits_and_reraises():
     compiler.close()
     assert not compiler.pending and compiler.executor is None
     with jax.enable_x64(True):  # the caller's thread-local setting holds in the compile thread
-        wide = pbrfit.runner.Compiler({})
+        wide = pbrfit.fitting.runner.Compiler({})
         x64 = jnp.arange(3.0)
         ones = jax.jit(lambda v: jnp.ones(v.shape))  # float64 only where the trace sees x64 on
         wide.prefetch("ones", ones, x64)
         assert wide.get("ones", ones, x64)(x64).dtype == jnp.float64
         wide.close()
-    off = pbrfit.runner.Compiler({}, background=False)
+    off = pbrfit.fitting.runner.Compiler({}, background=False)
     off.prefetch("square", square, x)
     assert not off.pending and off.executor is None
 
@@ -721,7 +721,7 @@ def test_continuation_is_reported_scales_with_the_data_and_is_released(monkeypat
     short = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + RELEASED_STEPS - 1, continuation=(0.01,))
     assert short.report["continuation"] is None
     off = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + 1, search=False, continuation=())
-    monkeypatch.setattr(pbrfit.fit_pass, "RELEASED_STEPS", 1)
+    monkeypatch.setattr(pbrfit.fitting.passes, "RELEASED_STEPS", 1)
     # (no uniform check or repair: their re-fits would take more steps)
     held = fit_observations(obs, resolution=8, max_steps=SEARCH_AFTER + 1, search=False, continuation=(10.0,),
                             uniform_check=False, repair=False)
@@ -741,7 +741,7 @@ def test_schedule_levels():
 
 def _bumpy(n=8):
     """The checker material with a smooth tangent-space normal map (tilts up to 17°)."""
-    from pbrfit.parameters import normal_from_slopes
+    from pbrfit.fitting.parameters import normal_from_slopes
 
     m = _checker(n)
     i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
@@ -768,25 +768,21 @@ def test_normal_map_recovered_on_small_scene():
     assert flat.report["final_loss"] > 5 * res.report["final_loss"], (flat.report["final_loss"], res.report["final_loss"])
 
 
-def test_pbrfit_fit_is_the_function_and_the_module():
-    """``pbrfit.fit(capture)`` (the issue's Python API) calls the fit whatever was imported
-    before it, and ``pbrfit.fit.<name>`` reaches the module, in a fresh interpreter where
-    ``import pbrfit.fit`` would otherwise replace a function alias on the package."""
+def test_pbrfit_fit_is_the_function():
+    """``pbrfit.fit(capture)`` (the Python API) is the fit function whatever was imported before
+    it, in a fresh interpreter: the room is `pbrfit.fitting`, so no submodule import can replace
+    the package's attribute."""
     import subprocess
     import sys
 
     code = """
 import pbrfit
 first = pbrfit.fit
-import pbrfit.fit
-from pbrfit.fit import FitResult, fit_observations
-assert pbrfit.fit is first and callable(pbrfit.fit), pbrfit.fit
-assert pbrfit.fit.fit_observations is fit_observations and pbrfit.FitResult is FitResult
-calls = []
-pbrfit.fit.fit = lambda *a, **k: calls.append((a, k)) or "result"
-assert pbrfit.fit("cap", max_steps=3) == "result" and pbrfit.fit("cap") == "result"
-assert calls == [(("cap",), {"max_steps": 3}), (("cap",), {})], calls
-assert pbrfit.solvers.CG_RTOL > 0 and pbrfit.sharding.pixel_mesh
+import pbrfit.fitting.api
+from pbrfit.fitting.api import FitResult, fit, fit_observations
+assert pbrfit.fit is first is fit and callable(pbrfit.fit), pbrfit.fit
+assert pbrfit.fitting.api.fit_observations is fit_observations and pbrfit.FitResult is FitResult
+assert pbrfit.fitting.solvers.structured.CG_RTOL > 0 and pbrfit.fitting.sharding.pixel_mesh
 import inspect, pickle
 assert list(inspect.signature(pbrfit.fit).parameters)[0] == "capture"
 assert pickle.loads(pickle.dumps(pbrfit.fit)) is pbrfit.fit
@@ -885,7 +881,7 @@ def test_uniform_check_finds_one_roughness_and_keeps_a_binary_metallic_map(monke
     np.testing.assert_array_equal(np.asarray(res.uncertainty), np.asarray(off.uncertainty))
     assert map_rmse(truth, res)["metallic"] < 0.03  # measured 0.013
     # re-fitted anyway, the common value loses by far and the map fit is returned as it was
-    monkeypatch.setattr(pbrfit.selection, "WALD_MARGIN", np.inf)
+    monkeypatch.setattr(pbrfit.fitting.stages.selection, "WALD_MARGIN", np.inf)
     forced = fit_observations(obs, resolution=8, max_steps=40)
     metal = forced.report["uniform_check"]["metallic"]
     assert not metal["uniform"] and metal["statistic"] > 10 * metal["threshold"] and metal["steps"] > 0, metal
@@ -898,7 +894,7 @@ def test_uniform_check_finds_one_roughness_and_keeps_a_binary_metallic_map(monke
 
 
 def test_uniform_check_says_why_it_was_skipped():
-    skipped = pbrfit.selection.uniform_check_skipped
+    skipped = pbrfit.fitting.stages.selection.uniform_check_skipped
     on = np.array([1, 1, 1, 1, 1], np.float32)
     assert skipped("structured", "l2", 0.0, (8, 8), on) is None
     assert skipped("structured", "l2", 0.0, (1, 1), on) == "a uniform material"
@@ -980,7 +976,7 @@ def test_repair_outlier_pass_finds_a_cluster_the_misfit_misses(monkeypatch):
     it), restarts it and the fit becomes exact."""
     truth = _patches(10)
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
-    monkeypatch.setattr(pbrfit.repair, "misfit_texels", lambda mean, count, seen, scale: np.zeros(len(seen), bool))
+    monkeypatch.setattr(pbrfit.fitting.stages.repair, "misfit_texels", lambda mean, count, seen, scale: np.zeros(len(seen), bool))
     res = fit_observations(obs, resolution=8, max_steps=40)
     err = map_rmse(truth, res)
     assert err["roughness"] < 1e-3 and err["base_color"] < 1e-3, err
@@ -1007,9 +1003,9 @@ def test_repair_puts_back_the_clusters_judged_no_better(monkeypatch):
         judged.update(moving=moving, better=better)
         return better, 2, 1
 
-    monkeypatch.setattr(pbrfit.repair, "improved_clusters", half)
-    monkeypatch.setattr(pbrfit.repair, "REPAIR_PASSES", 1)
-    monkeypatch.setattr(pbrfit.repair, "outlier_texels", lambda x, channels, trusted, shape: np.zeros(64, bool))
+    monkeypatch.setattr(pbrfit.fitting.stages.repair, "improved_clusters", half)
+    monkeypatch.setattr(pbrfit.fitting.stages.repair, "REPAIR_PASSES", 1)
+    monkeypatch.setattr(pbrfit.fitting.stages.repair, "outlier_texels", lambda x, channels, trusted, shape: np.zeros(64, bool))
     res = fit_observations(obs, resolution=8, max_steps=40, uniform_check=False)
     p, last = res.report["repair"]["passes"]
     assert last == dict(kind="outliers", flagged=0)
@@ -1025,12 +1021,12 @@ def test_repair_puts_back_the_clusters_judged_no_better(monkeypatch):
 
 def test_models_on_a_capture_without_an_environment(tmp_path):
     """Under punctual lights alone: multiscatter reads the BRDF tables built without an
-    environment (`pbrfit.ibl.brdf_tables`), in `render_capture` and `fit`; a model that shades an
+    environment (`pbrfit.lighting.ibl.brdf_tables`), in `render_capture` and `fit`; a model that shades an
     environment is refused at once, as are a capture that is not one and a NaN material."""
     from _capture_fixtures import base_capture_dict, write_capture
 
-    from pbrfit.scene import load_capture
-    from pbrfit.views import render_capture
+    from pbrfit.scene.capture import load_capture
+    from pbrfit.render.views import render_capture
 
     data = base_capture_dict()
     del data["environment"]
@@ -1048,8 +1044,8 @@ def test_models_on_a_capture_without_an_environment(tmp_path):
                         (lambda: pbrfit.fit(capture, model=Model(ibl="split_sum")), "shades an environment light"),
                         (lambda: pbrfit.fit(capture, model=Model(ibl="monte_carlo")), "reference integrator"),
                         (lambda: pbrfit.fit(capture, model="ggx"), "expected a pbrfit.Model"),
-                        (lambda: pbrfit.fit(42), "expected a pbrfit.scene.Capture or a capture folder, got int"),
-                        (lambda: pbrfit.fit(capture, views=[1, 2]), r"views: expected one pbrfit.render.ViewInputs per frame \(2\)"),
+                        (lambda: pbrfit.fit(42), "expected a pbrfit.scene.capture.Capture or a capture folder, got int"),
+                        (lambda: pbrfit.fit(capture, views=[1, 2]), r"views: expected one pbrfit.render.shade.ViewInputs per frame \(2\)"),
                         (lambda: pbrfit.fit(tmp_path / "none", pixel_samples=9), "pixel_samples must be 'auto' or"),
                         (lambda: render_capture(capture, Material.uniform((0.5,) * 3, float("nan"), 0.5)),
                          "metallic map holds NaN")):

@@ -1,4 +1,4 @@
-"""Pixel footprints: n × n samples per pixel (`pbrfit.observations`, `pbrfit.objective`).
+"""Pixel footprints: n × n samples per pixel (`pbrfit.fitting.observations`, `pbrfit.fitting.objective`).
 
 A small supersampled flash capture (data_synth's plane-flash: 2 × 2 supersampled 16-bit sRGB
 PNGs, noiseless here) is synthesised once for the module.
@@ -13,17 +13,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pbrfit.fit import fit, map_rmse, model_for_capture
-from pbrfit.fit_pass import PROBE_STEPS, SEARCH_AFTER
-from pbrfit.camera import Camera
-from pbrfit.gbuffer import compute_gbuffer
-from pbrfit.material_files import read_material
-from pbrfit.observations import (PIXEL_FIELDS, coverage_counts, observations_from_capture, pixel_offsets, sample_camera,
-                                 texel_layout)
-from pbrfit.scene import load_capture
-from pbrfit.sharding import pad_observations, pad_pixel_rows
-from pbrfit.objective import Problem, linearize, pixel_residuals
-from pbrfit.normal_matrix import (NEIGHBOUR_OFFSETS, gauss_newton_factors, gn_product, gradient, neighbour_blocks,
+from pbrfit.fitting.api import fit, map_rmse, model_for_capture
+from pbrfit.fitting.passes import PROBE_STEPS, SEARCH_AFTER
+from pbrfit.scene.camera import Camera
+from pbrfit.scene.gbuffer import compute_gbuffer
+from pbrfit.io.material_files import read_material
+from pbrfit.fitting.observations import PIXEL_FIELDS, coverage_counts, observations_from_capture, texel_layout
+from pbrfit.scene.camera import pixel_offsets, sample_camera
+from pbrfit.scene.capture import load_capture
+from pbrfit.fitting.sharding import pad_observations, pad_pixel_rows
+from pbrfit.fitting.objective import Problem, linearize, pixel_residuals
+from pbrfit.fitting.normal_matrix import (NEIGHBOUR_OFFSETS, gauss_newton_factors, gn_product, gradient, neighbour_blocks,
                                   normal_blocks)
 
 MAP = (8, 8)
@@ -219,11 +219,11 @@ def test_estimated_noise_level_on_the_automatic_footprint(capture, capture_dir):
 def test_pixel_samples_with_per_pixel_ibl(tmp_path, monkeypatch):
     """Per-pixel IBL integrals are computed for the samples and for the pixel centres the
     start runs on, in one pass, and each problem gets its own rows."""
-    import pbrfit.fit as fit_module
+    import pbrfit.fitting.api as fit_module
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
-    from pbrfit.pixel_ibl import PixelIBLSettings, pixel_ibl
-    from pbrfit.views import capture_environment
+    from pbrfit.lighting.pixel_ibl import PixelIBLSettings, pixel_ibl
+    from pbrfit.render.views import capture_environment
 
     synthesize(make_scene("sphere-env", seed=1, size=24, views=2, texture_size=MAP[0], env_width=32), tmp_path / "cap")
     capture = load_capture(tmp_path / "cap")
@@ -313,8 +313,8 @@ def test_texels_only_centres_read_are_fitted_when_centres_are_kept(tmp_path):
 
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
-    from pbrfit.fit import fit_observations
-    from pbrfit.observations import PIXEL_FIELDS
+    from pbrfit.fitting.api import fit_observations
+    from pbrfit.fitting.observations import PIXEL_FIELDS
 
     synthesize(make_scene("peer-plane", seed=4, size=32, views=4, texture_size=MAP[0], image_format="png16"),
                tmp_path / "cap")
@@ -348,7 +348,7 @@ def test_auto_footprint_with_an_optimistix_solver_and_a_uniform_material(capture
 
 
 def test_select_footprint_needs_samples_and_centres(capture):
-    from pbrfit.fit import fit_observations
+    from pbrfit.fitting.api import fit_observations
 
     obs = observations_from_capture(capture)
     with pytest.raises(ValueError, match="select_footprint"):
@@ -358,7 +358,7 @@ def test_select_footprint_needs_samples_and_centres(capture):
 def test_footprint_choice_by_image_kind(capture):
     """``"auto"`` tries 2 × 2 samples for display-referred images only; an integer is taken as
     given; precomputed views hold centres."""
-    from pbrfit.footprint import AUTO_PIXEL_SAMPLES, footprint_choice
+    from pbrfit.fitting.stages.footprint import AUTO_PIXEL_SAMPLES, footprint_choice
 
     linear = dataclasses.replace(capture, frames=[dataclasses.replace(f, color_space="linear") for f in capture.frames],
                                  color_space="linear")
@@ -375,7 +375,7 @@ def test_auto_footprint_skips_the_samples_on_a_large_capture(capture, capture_di
     """Beyond `AUTO_MAX_PIXELS` image pixels the automatic choice keeps to pixel centres (four
     times the rows would not pay), and the report says so. (The fit is given the capture's
     folder: `pbrfit.fit` reads it.)"""
-    import pbrfit.footprint as fit_module
+    import pbrfit.fitting.stages.footprint as fit_module
 
     pixels = sum(f.image.shape[0] * f.image.shape[1] for f in capture.frames)
     monkeypatch.setattr(fit_module, "AUTO_MAX_PIXELS", pixels - 1)

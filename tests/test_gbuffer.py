@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 import trimesh
 
-from pbrfit import gbuffer as gb
+from pbrfit.scene import gbuffer as gb
 from pbrfit.errors import CaptureError
-from pbrfit.camera import Camera
-from pbrfit.gbuffer import compute_gbuffer
+from pbrfit.scene.camera import Camera
+from pbrfit.scene.gbuffer import compute_gbuffer
 
 
 @dataclasses.dataclass(frozen=True)
 class _Light:
-    """Stand-in with the attributes compute_gbuffer reads from pbrfit.lights.Light."""
+    """Stand-in with the attributes compute_gbuffer reads from pbrfit.physics.lights.Light."""
 
     kind: str
     position: tuple = (0.0, 0.0, 0.0)
@@ -367,7 +367,7 @@ def test_cache_round_trip_and_invalidation(tmp_path, monkeypatch):
 
 
 def test_real_light_objects_when_available():
-    lights = pytest.importorskip("pbrfit.lights")
+    lights = pytest.importorskip("pbrfit.physics.lights")
     mesh, n_ground = _occluded_scene()
     light = lights.directional_light(np.array([1.0, 0.0, -1.0]), np.ones(3), 1.0)
     g = compute_gbuffer(mesh, SHADOW_CAM, (light,))
@@ -376,7 +376,7 @@ def test_real_light_objects_when_available():
 
 
 def test_silhouette_marks_hit_pixels_beside_a_miss():
-    from pbrfit.gbuffer import silhouette
+    from pbrfit.scene.gbuffer import silhouette
 
     hit = np.zeros((5, 6), bool)
     hit[1:4, 1:6] = True  # touches the right border: the border is not a miss

@@ -1,4 +1,4 @@
-"""`pbrfit.gradcheck` (``pbrfit check-grads``): the full run passes, and a wrong derivative is caught."""
+"""`pbrfit.checks.gradcheck` (``pbrfit check-grads``): the full run passes, and a wrong derivative is caught."""
 
 from __future__ import annotations
 
@@ -8,8 +8,10 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from pbrfit import brdf, gradcheck, gradcheck_terms
-from pbrfit.cli import main
+from pbrfit import brdf
+from pbrfit.checks import gradcheck
+from pbrfit.checks import terms as gradcheck_terms
+from pbrfit.cli.main import main
 
 
 @pytest.fixture(scope="module")

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 from pbrfit import brdf
-from pbrfit.environment import (Environment, dot3, environment_lookup, load_environment, procedural_sky,
+from pbrfit.lighting.environment import (Environment, dot3, environment_lookup, load_environment, procedural_sky,
                                 resample_equirect, texel_directions, texel_solid_angles)
 from pbrfit.errors import CaptureError
-from pbrfit.brdf_lut import brdf_lut, lookup_brdf_lut, specular_albedo
-from pbrfit.ibl import (IBLSettings, build_ibl, irradiance_lookup, irradiance_map, prefiltered_lookup, sh9_coefficients,
+from pbrfit.lighting.brdf_lut import brdf_lut, lookup_brdf_lut, specular_albedo
+from pbrfit.lighting.ibl import (IBLSettings, build_ibl, irradiance_lookup, irradiance_map, prefiltered_lookup, sh9_coefficients,
                         sh9_irradiance, shade_ibl)
-from pbrfit.model import Model
-from pbrfit.montecarlo import monte_carlo_radiance
+from pbrfit.physics.model import Model
+from pbrfit.lighting.montecarlo import monte_carlo_radiance
 
 SMALL = IBLSettings(lut_size=32, lut_samples=512, prefilter_levels=5, prefilter_resolution=16,
                     prefilter_samples=32, irradiance_resolution=8, env_resolution=32)
@@ -174,8 +174,8 @@ def test_environment_not_two_to_one_is_read_with_a_warning(tmp_path):
     warning per file; 2:1 and odd widths one pixel off are read silently."""
     import warnings
 
-    from pbrfit.environment import EnvironmentWarning
-    from pbrfit.io import write_image
+    from pbrfit.lighting.environment import EnvironmentWarning
+    from pbrfit.io.images import write_image
 
     for name, shape in (("ok", (4, 8)), ("odd", (5, 9)), ("square", (6, 6))):
         write_image(tmp_path / f"{name}.exr", np.ones(shape + (3,), np.float32), "float")
@@ -239,7 +239,7 @@ def sky_tables():
 def test_constant_environment_tables(constant_tables):
     env, sh = constant_tables
     n = jnp.asarray(_unit(np.random.default_rng(3).normal(size=(50, 3))), jnp.float32)
-    from pbrfit.ibl import irradiance_lookup
+    from pbrfit.lighting.ibl import irradiance_lookup
     np.testing.assert_allclose(irradiance_lookup(sh, n), 1.5, rtol=2e-3)
     np.testing.assert_allclose(irradiance_map(env.radiance, 8), 1.5, rtol=1e-5)
     for k, (h, w) in enumerate(sh.level_shapes):
@@ -368,7 +368,7 @@ def test_gradients_wrt_environment_pixels_and_roughness(sky_tables):
 def test_brdf_tables_are_build_ibls_without_the_environment(sky_tables):
     """`brdf_tables` (multiscatter under punctual lights alone) holds exactly the BRDF tables
     `build_ibl` makes for an environment, and no light."""
-    from pbrfit.ibl import brdf_tables
+    from pbrfit.lighting.ibl import brdf_tables
 
     _, full = sky_tables
     alone = brdf_tables(SMALL)
@@ -429,7 +429,7 @@ def test_layered_environment_is_read_through_its_colour_layer(tmp_path):
 def test_gradients_finite_at_a_zero_direction_and_at_normal_incidence():
     """direction_to_uv at the zero vector (arctan2(0, 0)) and at the poles, and the albedo table's
     view direction at n·v = 1 (sqrt(1 - n·v²)), have finite derivatives."""
-    from pbrfit.environment import direction_to_uv
+    from pbrfit.lighting.environment import direction_to_uv
 
     for d in ([0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 1e-20, 0.0]):
         jac = np.asarray(jax.jacfwd(direction_to_uv)(jnp.asarray(d, jnp.float32)))

@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 
 from _capture_fixtures import QUAD_UV_GLTF, glb_accessor, glb_image, read_glb, write_quad_glb
-import pbrfit.atomic
-from pbrfit.color import linear_to_srgb, srgb_to_linear
+import pbrfit.io.atomic
+from pbrfit.physics.color import linear_to_srgb, srgb_to_linear
 from pbrfit.errors import CaptureError
-from pbrfit.atomic import (OUTPUT_MARKER, CacheWarning, atomic_dir, atomic_path, check_not_inside, check_output_dir,
+from pbrfit.io.atomic import (OUTPUT_MARKER, CacheWarning, atomic_dir, atomic_path, check_not_inside, check_output_dir,
                            write_cache_file)
-from pbrfit.gltf_export import write_gltf
-from pbrfit.io import read_image, read_image_info, write_image
-from pbrfit.material_files import read_map, read_material, write_material
-from pbrfit.material import Material
+from pbrfit.io.gltf_export import write_gltf
+from pbrfit.io.images import read_image, read_image_info, write_image
+from pbrfit.io.material_files import read_map, read_material, write_material
+from pbrfit.physics.material import Material
 
 
 def _listing(folder):
@@ -37,7 +37,7 @@ def test_atomic_outputs_get_the_modes_the_umask_gives(tmp_path, monkeypatch):
     import os
     import stat
 
-    from pbrfit import atomic as pio
+    from pbrfit.io import atomic as pio
 
     plain_file, plain_dir = tmp_path / "plain", tmp_path / "plaindir"
     plain_file.write_text("x")
@@ -122,11 +122,11 @@ def test_atomic_dir_success_failure_and_overwrite(tmp_path, monkeypatch):
             pass
     locked = tmp_path / "locked"
     locked.mkdir(mode=0o500)
-    # root may write anywhere, whatever the mode: pbrfit.atomic's os.access answers for this
+    # root may write anywhere, whatever the mode: pbrfit.io.atomic's os.access answers for this
     # folder as it does for any other user, so that the refusal runs under root too
     real_access = os.access
     with monkeypatch.context() as m:
-        m.setattr(pbrfit.atomic.os, "access",
+        m.setattr(pbrfit.io.atomic.os, "access",
                   lambda path, mode, **kw: False if Path(path) == locked else real_access(path, mode, **kw))
         with pytest.raises(CaptureError, match=re.escape(f"cannot write in {locked} (permission denied)")):
             check_output_dir(locked / "out", "fit")
@@ -154,7 +154,7 @@ def test_signals_are_held_while_an_output_is_swapped_in():
     would lose both: the swap holds the signals, which arrive right after it."""
     import signal
 
-    from pbrfit.atomic import _signals_held
+    from pbrfit.io.atomic import _signals_held
 
     got = []
     previous = signal.signal(signal.SIGTERM, lambda signum, frame: got.append(signum))
@@ -407,7 +407,7 @@ def test_write_gltf_keeps_occlusion_and_emissive_of_uniform_materials(tmp_path):
     a 1 x 1 emissive map becomes emissiveFactor. Before, both were dropped or refused."""
     import trimesh
 
-    from pbrfit.mesh import load_mesh
+    from pbrfit.scene.mesh import load_mesh
 
     box = trimesh.creation.box()  # no texture coordinates
     tree, _ = read_glb(write_gltf(tmp_path / "e.glb", box, _uniform_with(emissive=np.full((1, 1, 3), [0.5, 2.0, 0.0]))))
@@ -437,7 +437,7 @@ def test_write_gltf_keeps_occlusion_and_emissive_of_uniform_materials(tmp_path):
 def test_write_gltf_occlusion_of_its_own_size(tmp_path):
     """An occlusion map whose size differs from metallic and roughness cannot share their
     packed image (R = 1 there); it gets its own."""
-    from pbrfit.mesh import load_mesh
+    from pbrfit.scene.mesh import load_mesh
 
     rng = np.random.default_rng(5)
     m = _material(rng, size=(4, 6))
@@ -451,7 +451,7 @@ def test_write_gltf_occlusion_of_its_own_size(tmp_path):
 
 # --- glTF export --------------------------------------------------------------------------------
 def test_write_gltf_uv_and_texture_orientation(tmp_path):
-    from pbrfit.mesh import load_mesh
+    from pbrfit.scene.mesh import load_mesh
 
     mesh = load_mesh(write_quad_glb(tmp_path / "quad.glb"))
     rng = np.random.default_rng(2)
@@ -530,7 +530,7 @@ def test_only_exr_and_associated_tiff_alpha_count_as_premultiplied(tmp_path):
 
 
 def test_convergence_plot_survives_non_finite_losses(tmp_path):
-    from pbrfit.outputs import _convergence_plot
+    from pbrfit.io.outputs import _convergence_plot
 
     history = [dict(step=0, loss=float("inf")), dict(step=1, loss=float("nan")), dict(step=2, loss=0.5),
                dict(step=3, loss=0.01)]
@@ -554,7 +554,7 @@ def _write_oiio(path, pixels, names=None, fmt="float"):
 
 
 def test_damaged_or_non_colour_images_are_refused(tmp_path):
-    from pbrfit.io import color_channels
+    from pbrfit.io.images import color_channels
 
     rng = np.random.default_rng(0)
     jpg = _write_oiio(tmp_path / "f.jpg", (rng.random((32, 32, 3)) * 255).astype(np.uint8), fmt="uint8")

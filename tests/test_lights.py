@@ -7,13 +7,12 @@ import numpy as np
 import pytest
 
 from pbrfit.errors import CaptureError
-from pbrfit.lights import (
+from pbrfit.io.lights import light_from_json, light_to_json
+from pbrfit.physics.lights import (
     MIN_DISTANCE,
     directional_light,
     flash_light,
     incident,
-    light_from_json,
-    light_to_json,
     point_light,
     range_window,
     spot_falloff,
@@ -158,7 +157,7 @@ def test_directional_light_ignores_range():
     with_range = light_from_json({"type": "directional", "direction": [0, -1, 0], "intensity": 2.0, "range": 3}, "l")
     without = light_from_json({"type": "directional", "direction": [0, -1, 0], "intensity": 2.0}, "l")
     pts = np.array([[0.0, 0.0, 0.0], [0.0, 50.0, 0.0]], np.float32)
-    from pbrfit.render import light_arrays
+    from pbrfit.render.shade import light_arrays
 
     for a, b in zip(light_arrays([with_range], pts), light_arrays([without], pts)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

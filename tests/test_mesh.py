@@ -11,8 +11,8 @@ import pytest
 from _capture_fixtures import QUAD_POSITIONS, QUAD_UV_GLTF
 
 from pbrfit.errors import CaptureError
-from pbrfit.gltf_read import glb_chunks, glb_from_chunks
-from pbrfit.mesh import load_mesh
+from pbrfit.scene.gltf_read import glb_chunks, glb_from_chunks
+from pbrfit.scene.mesh import load_mesh
 
 _COMPONENTS = {np.float32: 5126, np.uint32: 5125, np.uint16: 5123, np.uint8: 5121}
 

@@ -1,4 +1,4 @@
-"""`pbrfit.model.Model`: validation, hashing, static use under jit, and what each switch turns off."""
+"""`pbrfit.physics.model.Model`: validation, hashing, static use under jit, and what each switch turns off."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pbrfit import brdf
-from pbrfit.model import DIFFUSES, DISTRIBUTIONS, FRESNELS, GEOMETRIES, IBLS, Model
+from pbrfit.physics.model import DIFFUSES, DISTRIBUTIONS, FRESNELS, GEOMETRIES, IBLS, Model
 
 
 @pytest.mark.parametrize("field", ["distribution", "geometry", "fresnel", "diffuse", "ibl"])

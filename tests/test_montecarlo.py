@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from pbrfit.environment import Environment, procedural_sky, texel_directions, texel_solid_angles
-from pbrfit.brdf_lut import specular_albedo
-from pbrfit.model import Model
-from pbrfit.montecarlo import (environment_pdf, environment_sampler, ggx_vndf_pdf, hammersley, monte_carlo_radiance,
-                               sample_environment, sample_ggx_ndf, sample_ggx_vndf)
+from pbrfit.lighting.environment import Environment, procedural_sky, texel_directions, texel_solid_angles
+from pbrfit.lighting.brdf_lut import specular_albedo
+from pbrfit.physics.model import Model
+from pbrfit.lighting.montecarlo import environment_pdf, environment_sampler, monte_carlo_radiance, sample_environment
+from pbrfit.lighting.sampling import ggx_vndf_pdf, hammersley, sample_ggx_ndf, sample_ggx_vndf
 
 P = 256
 MC_SAMPLES = 64
@@ -158,7 +158,7 @@ def test_monte_carlo_linear_environment_lambert():
 def test_monte_carlo_is_the_same_at_any_batch(metal_case):
     """The estimate depends on the key and sample count only, not on how the loop is batched
     (also guards the CPU miscompilation of jax-ml/jax#39103 on large batches)."""
-    from pbrfit import montecarlo
+    from pbrfit.lighting import montecarlo
 
     args, _ = metal_case
     env, n, v, b, m, r = args

@@ -1,4 +1,4 @@
-"""The noise level function, weighted residuals and the estimated-noise fit (`pbrfit.noise`)."""
+"""The noise level function, weighted residuals and the estimated-noise fit (`pbrfit.fitting.noise`)."""
 
 import dataclasses
 
@@ -7,10 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pbrfit.fit import fit_observations
-from pbrfit.noise import MIN_BIN_COUNT, NOISE_BINS, NOISE_FLOOR, NoiseLevel, estimate_noise_level
-from pbrfit.observations import neighbour_pairs, observations_from_views, texel_layout
-from pbrfit.objective import Problem, linearize, pixel_residuals
+from pbrfit.fitting.api import fit_observations
+from pbrfit.fitting.noise import MIN_BIN_COUNT, NOISE_BINS, NOISE_FLOOR, NoiseLevel, estimate_noise_level
+from pbrfit.fitting.observations import neighbour_pairs, observations_from_views, texel_layout
+from pbrfit.fitting.objective import Problem, linearize, pixel_residuals
 
 from test_fit import VIEWS, _checker, _images
 

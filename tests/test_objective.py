@@ -1,12 +1,12 @@
-"""The fit's objective (`pbrfit.objective`): what a pixel shades with at texel values x."""
+"""The fit's objective (`pbrfit.fitting.objective`): what a pixel shades with at texel values x."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pbrfit.material import Material
-from pbrfit.objective import linearize, pixel_residuals, sample_material, sample_texels
-from pbrfit.parameters import LOWER, UPPER
+from pbrfit.physics.material import Material
+from pbrfit.fitting.objective import linearize, pixel_residuals, sample_material, sample_texels
+from pbrfit.fitting.parameters import LOWER, UPPER
 
 from test_fit import _stack, _texel_problem
 

@@ -1,11 +1,11 @@
-"""The linear solver inside the optimistix least-squares solvers (`pbrfit.optx_solvers.truncated_cg`)."""
+"""The linear solver inside the optimistix least-squares solvers (`pbrfit.fitting.solvers.optx.truncated_cg`)."""
 
 import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 
-from pbrfit.optx_solvers import CG_MAX_STEPS, truncated_cg
+from pbrfit.fitting.solvers.optx import CG_MAX_STEPS, truncated_cg
 
 
 def _solve(diagonal, b, max_steps=CG_MAX_STEPS):

@@ -9,15 +9,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pbrfit.environment import Environment, procedural_sky
-from pbrfit.fit import fit_observations
-from pbrfit.model import Model
-from pbrfit.montecarlo import monte_carlo_radiance
-from pbrfit.observations import observations_from_views
-from pbrfit.pixel_ibl import (PixelIBL, PixelIBLSettings, interpolate_lobes, lobes_for, pixel_ibl,
+from pbrfit.lighting.environment import Environment, procedural_sky
+from pbrfit.fitting.api import fit_observations
+from pbrfit.physics.model import Model
+from pbrfit.lighting.montecarlo import monte_carlo_radiance
+from pbrfit.fitting.observations import observations_from_views
+from pbrfit.lighting.pixel_ibl import (PixelIBL, PixelIBLSettings, interpolate_lobes, lobes_for, pixel_ibl,
                               shade_pixel_ibl)
-from pbrfit.material import Material
-from pbrfit.render import ViewInputs, radiance_view, shade
+from pbrfit.physics.material import Material
+from pbrfit.render.shade import ViewInputs, radiance_view, shade
 
 SKY = procedural_sky(64, sun_elevation_deg=40.0, sun_radius_deg=4.0, sun_illuminance=4.0)
 
@@ -93,7 +93,7 @@ def test_chunks_do_not_change_the_integrals():
 
 
 def test_tables_are_cached_by_everything_they_depend_on(tmp_path, monkeypatch):
-    import pbrfit.pixel_ibl as module
+    import pbrfit.lighting.pixel_ibl as module
 
     n, v = _points(10)
     settings = PixelIBLSettings(levels=3, samples=8)
@@ -229,7 +229,7 @@ def _env_views(n_views=4, res=20):
 def test_uniform_fit_on_ground_truth_images_beats_the_split_sum():
     """Images rendered by the Monte Carlo reference: the per-pixel fit recovers the material, the
     split sum's approximation biases it."""
-    from pbrfit.ibl import build_ibl
+    from pbrfit.lighting.ibl import build_ibl
 
     views = _env_views()
     truth = dict(base=np.float32([0.75, 0.45, 0.2]), metal=1.0, rough=0.3)

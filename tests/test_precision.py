@@ -15,23 +15,23 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pbrfit.color import TONEMAPS, encode
-from pbrfit.environment import Environment, procedural_sky, resample_equirect
-from pbrfit.ibl import IBLSettings, build_ibl, irradiance_map, sh9_coefficients
-from pbrfit.initialisation import coordinate_search, grid_initialise, parity_classes
-from pbrfit.lights import point_light
-from pbrfit.material import Material
-from pbrfit.model import Model
-from pbrfit.montecarlo import monte_carlo_radiance
-from pbrfit.observations import neighbour_pairs, observations_from_views, texel_layout
-from pbrfit.optx_solvers import OPTX_SOLVERS, make_solver, optx_solve
-from pbrfit.lobe_integrals import integrate_lobes
-from pbrfit.pixel_ibl import PixelIBLSettings, lobes_for, pixel_ibl
-from pbrfit.render import ViewInputs, light_arrays, radiance_view
-from pbrfit.normal_matrix import neighbour_blocks, normal_blocks
-from pbrfit.objective import Problem, linearize
-from pbrfit.selection import profile_hessian, uniform_direction
-from pbrfit.solvers import structured_lm
+from pbrfit.physics.color import TONEMAPS, encode
+from pbrfit.lighting.environment import Environment, procedural_sky, resample_equirect
+from pbrfit.lighting.ibl import IBLSettings, build_ibl, irradiance_map, sh9_coefficients
+from pbrfit.fitting.initialisation import coordinate_search, grid_initialise, parity_classes
+from pbrfit.physics.lights import point_light
+from pbrfit.physics.material import Material
+from pbrfit.physics.model import Model
+from pbrfit.lighting.montecarlo import monte_carlo_radiance
+from pbrfit.fitting.observations import neighbour_pairs, observations_from_views, texel_layout
+from pbrfit.fitting.solvers.optx import OPTX_SOLVERS, make_solver, optx_solve
+from pbrfit.lighting.lobe_integrals import integrate_lobes
+from pbrfit.lighting.pixel_ibl import PixelIBLSettings, lobes_for, pixel_ibl
+from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view
+from pbrfit.fitting.normal_matrix import neighbour_blocks, normal_blocks
+from pbrfit.fitting.objective import Problem, linearize
+from pbrfit.fitting.stages.selection import profile_hessian, uniform_direction
+from pbrfit.fitting.solvers.structured import structured_lm
 
 _DOT = re.compile(r"dot_general.*?precision = \[(\w+), (\w+)\]")
 

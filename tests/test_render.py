@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from pbrfit import brdf
-from pbrfit.lights import point_light
-from pbrfit.material import Material, apply_normal_map, material_at
-from pbrfit.model import Model
-from pbrfit.render import ViewInputs, light_arrays, radiance_view, render_view, shade
-from pbrfit.textures import bilinear_weights, build_mips, sample_bilinear
+from pbrfit.physics.lights import point_light
+from pbrfit.physics.material import Material, apply_normal_map, material_at
+from pbrfit.physics.model import Model
+from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view, render_view, shade
+from pbrfit.physics.textures import bilinear_weights, build_mips, sample_bilinear
 
 
 def _plane_view(n=6, light_pos=(0.3, -0.2, 2.0), intensity=10.0):
@@ -130,7 +130,7 @@ def test_texel_centres_return_texel_values():
 
 
 def test_resample_map_box_filters_whole_factors():
-    from pbrfit.textures import resample_map
+    from pbrfit.physics.textures import resample_map
 
     small = np.random.default_rng(0).random((4, 6, 1)).astype(np.float32)
     big = np.repeat(np.repeat(small, 2, axis=0), 3, axis=1)  # each texel repeated 2 x 3

@@ -1,10 +1,10 @@
-"""The basin repair's host-side pieces (`pbrfit.repair`, `pbrfit.misfit`); the whole repair is tested in test_fit."""
+"""The basin repair's host-side pieces (`pbrfit.fitting.stages.repair`, `pbrfit.fitting.stages.misfit`); the whole repair is tested in test_fit."""
 
 import numpy as np
 
-from pbrfit.misfit import MISFIT_FLOOR, identifiable_texels, misfit_texels, outlier_texels, texel_misfit, well_seen_texels
-from pbrfit.repair import evidence_variance, fill_from_nearest, improved_clusters, repair_region
-from pbrfit.uncertainty import residual_variance
+from pbrfit.fitting.stages.misfit import MISFIT_FLOOR, identifiable_texels, misfit_texels, outlier_texels, texel_misfit, well_seen_texels
+from pbrfit.fitting.stages.repair import evidence_variance, fill_from_nearest, improved_clusters, repair_region
+from pbrfit.fitting.uncertainty import residual_variance
 
 
 def test_texel_misfit_means_each_texels_reading_rows():
@@ -210,7 +210,7 @@ def test_evidence_variance_is_the_residual_variance_above_rounding():
 
 
 def test_repair_says_why_it_was_skipped():
-    from pbrfit.repair import repair_skipped
+    from pbrfit.fitting.stages.repair import repair_skipped
 
     on = np.ones(5, np.float32)
     assert repair_skipped("structured", (8, 8), on) is None

@@ -21,11 +21,11 @@ from _capture_fixtures import (
     write_quad_glb,
     write_quad_obj,
 )
-from pbrfit.color import srgb_to_linear
+from pbrfit.physics.color import srgb_to_linear
 from pbrfit.errors import CaptureError
-from pbrfit.io import write_image
-from pbrfit.mesh import load_mesh
-from pbrfit.scene import load_capture
+from pbrfit.io.images import write_image
+from pbrfit.scene.mesh import load_mesh
+from pbrfit.scene.capture import load_capture
 
 
 # --- a well-formed capture ----------------------------------------------------------------------
@@ -107,7 +107,7 @@ def test_environment_mesh_and_bookkeeping(capture, capture_dir):
 def test_a_cut_environment_file_is_named_by_its_key(capture_dir, tmp_path):
     """The header reads (the capture loads), the pixels do not: the error names the key that
     gave the file, capture.json's or render's --environment."""
-    from pbrfit.views import apply_overrides, capture_environment
+    from pbrfit.render.views import apply_overrides, capture_environment
 
     root = tmp_path / "c"
     shutil.copytree(capture_dir, root)
@@ -150,7 +150,7 @@ def test_obj_and_glb_give_the_same_gltf_uv(tmp_path):
 def test_gbuffer_sees_texture_top_at_image_top(tmp_path, kind):
     # End to end through gbuffer: the quad's top edge (y = 1, v = 0.25) is at the top of the
     # view, its bottom edge (y = 0, v = 1) at the bottom, for both mesh formats.
-    from pbrfit.gbuffer import compute_gbuffer
+    from pbrfit.scene.gbuffer import compute_gbuffer
 
     data = base_capture_dict()
     data["mesh"] = f"mesh.{kind}"
@@ -380,8 +380,8 @@ def test_global_fl_and_camera_angle_y(tmp_path):
 
 
 def test_nan_pixels_on_the_mesh_are_an_error_off_it_harmless(tmp_path):
-    from pbrfit.observations import observations_from_capture
-    from pbrfit.views import capture_gbuffers
+    from pbrfit.fitting.observations import observations_from_capture
+    from pbrfit.render.views import capture_gbuffers
 
     pixels = np.ones((H, W, 4), np.float32)
     root = _single_frame(tmp_path / "a", "img.exr", pixels, "float")
@@ -517,7 +517,7 @@ def test_malformed_cases_are_many_and_distinct():
 
 @pytest.mark.parametrize("case", ["missing format", "matrix 3x4", "unknown light type", "mask size mismatch", "no frames"])
 def test_cli_exits_2_with_one_line_and_writes_nothing(tmp_path, capsys, case):
-    from pbrfit.cli import main
+    from pbrfit.cli.main import main
 
     mutate, fragment = MALFORMED[case]
     data = base_capture_dict()
@@ -573,8 +573,8 @@ def test_rgba_mask_uses_its_alpha_too(tmp_path):
 
 
 def test_frames_without_mask_or_alpha_leave_out_the_silhouette(tmp_path):
-    from pbrfit.gbuffer import silhouette
-    from pbrfit.views import capture_gbuffers, capture_views
+    from pbrfit.scene.gbuffer import silhouette
+    from pbrfit.render.views import capture_gbuffers, capture_views
 
     rgb = np.ones((H, W, 3), np.float32)
     cap = load_capture(_single_frame(tmp_path / "a", "img.exr", rgb, "float"))
@@ -684,7 +684,7 @@ def test_exr_data_window_is_placed_in_the_display_window(tmp_path):
     """A cropped OpenEXR (data window inside the display window, as compositors write): the camera
     is the display window's, and pixels outside the data window leave the objective, whatever
     the mask's source; the silhouette rule for images without a mask still applies."""
-    from pbrfit.io import read_image, read_image_info
+    from pbrfit.io.images import read_image, read_image_info
 
     root = _single_frame(tmp_path, "img.exr", np.zeros((H, W, 3), np.float32), "float")
     crop = np.arange(3 * 4 * 3, dtype=np.float32).reshape(3, 4, 3) + 1.0
@@ -722,7 +722,7 @@ def test_png_offsets_do_not_move_the_image(tmp_path):
 
     import OpenImageIO as oiio
 
-    from pbrfit.io import read_image
+    from pbrfit.io.images import read_image
 
     pixels = np.random.default_rng(1).integers(0, 255, size=(H, W, 3)) / 255.0
     write_image(tmp_path / "plain.png", pixels, "uint8")
@@ -740,7 +740,7 @@ def test_png_offsets_do_not_move_the_image(tmp_path):
 
 
 def test_cropped_material_exr_is_refused(tmp_path):
-    from pbrfit.material_files import read_map
+    from pbrfit.io.material_files import read_map
 
     _write_cropped_exr(tmp_path / "roughness.exr", np.ones((2, 2, 1), np.float32), (1, 1), (0, 0, 4, 4))
     with pytest.raises(CaptureError, match="cropped OpenEXR"):
@@ -748,9 +748,9 @@ def test_cropped_material_exr_is_refused(tmp_path):
 
 
 def test_occlusion_and_emissive_maps_are_checked_like_the_others(tmp_path):
-    from pbrfit.io import write_image
-    from pbrfit.material_files import read_material, write_material
-    from pbrfit.material import Material
+    from pbrfit.io.images import write_image
+    from pbrfit.io.material_files import read_material, write_material
+    from pbrfit.physics.material import Material
 
     m = Material.uniform([0.5, 0.5, 0.5], 0.0, 0.5, size=2)
     write_material(tmp_path, m)
@@ -813,7 +813,7 @@ def _quad_glb(path, edit=None):
     """The fixture quad as a GLB (normals written), its JSON chunk passed through ``edit``."""
     import trimesh
 
-    from pbrfit.gltf_read import glb_chunks, glb_from_chunks
+    from pbrfit.scene.gltf_read import glb_chunks, glb_from_chunks
 
     quad = trimesh.Trimesh(QUAD_POSITIONS, [[0, 1, 2], [0, 2, 3]], process=False)
     quad.vertex_normals  # computed: the export writes them

@@ -1,8 +1,8 @@
-"""The uniform check's statistics (`pbrfit.selection`), against their definitions."""
+"""The uniform check's statistics (`pbrfit.fitting.stages.selection`), against their definitions."""
 
 import numpy as np
 
-from pbrfit.selection import (aic_statistic, newton_value, prefers_uniform, texel_precisions, wald_statistic,
+from pbrfit.fitting.stages.selection import (aic_statistic, newton_value, prefers_uniform, texel_precisions, wald_statistic,
                               weighted_value)
 
 

@@ -1,4 +1,4 @@
-"""Sharding the fit over devices (`pbrfit.sharding`).
+"""Sharding the fit over devices (`pbrfit.fitting.sharding`).
 
 The multi-device check needs several JAX devices, and on the CPU their number is fixed by
 ``XLA_FLAGS=--xla_force_host_platform_device_count`` before JAX starts, so it runs this file as
@@ -23,15 +23,15 @@ import numpy as np
 import pytest
 from jax.sharding import PartitionSpec
 
-from pbrfit.color import COLOR_SPACES, TONEMAPS, encode
-from pbrfit.ibl import IBLTables
-from pbrfit.model import Model
-from pbrfit.observations import PIXEL_FIELDS, Observations, coverage_counts, neighbour_pairs, texel_layout
-from pbrfit.render import shade
-from pbrfit.sharding import (PAD_LIGHT, PAD_NORMAL, PAD_VIEW, PIXEL_AXIS, pad_layout, pad_observations, pad_pixel_rows,
+from pbrfit.physics.color import COLOR_SPACES, TONEMAPS, encode
+from pbrfit.lighting.ibl import IBLTables
+from pbrfit.physics.model import Model
+from pbrfit.fitting.observations import PIXEL_FIELDS, Observations, coverage_counts, neighbour_pairs, texel_layout
+from pbrfit.render.shade import shade
+from pbrfit.fitting.sharding import (PAD_LIGHT, PAD_NORMAL, PAD_VIEW, PIXEL_AXIS, pad_layout, pad_observations, pad_pixel_rows,
                              padded_size, pixel_mesh, shard_problem)
-from pbrfit.objective import Problem, linearize, objective, pixel_residuals
-from pbrfit.normal_matrix import gradient, normal_blocks
+from pbrfit.fitting.objective import Problem, linearize, objective, pixel_residuals
+from pbrfit.fitting.normal_matrix import gradient, normal_blocks
 
 DEVICES = 4
 PIXELS = 1001          # not a multiple of DEVICES: the sharded problem is padded to 1004
@@ -199,9 +199,9 @@ def test_shard_problem_on_one_device():
 
 def _multi_device_report() -> dict:
     """Solve the same problem unsharded and sharded over all devices; what the test checks."""
-    from pbrfit.fit import fit_observations
-    from pbrfit.initialisation import coordinate_search, grid_initialise, parity_classes
-    from pbrfit.solvers import structured_lm
+    from pbrfit.fitting.api import fit_observations
+    from pbrfit.fitting.initialisation import coordinate_search, grid_initialise, parity_classes
+    from pbrfit.fitting.solvers.structured import structured_lm
 
     out = dict(devices=len(jax.devices()))
     problem, _ = _problem()
@@ -224,7 +224,7 @@ def _multi_device_report() -> dict:
     x0_sh = grid_initialise(_start(problem), sharded)
     out["init_diff"] = float(jnp.max(jnp.abs(x0 - x0_sh)))
 
-    # As `pbrfit.runner.Runner` does: ahead-of-time compile, then run.
+    # As `pbrfit.fitting.runner.Runner` does: ahead-of-time compile, then run.
     args = (x0, problem, jnp.asarray(30, jnp.int32), 1e-7, 1e-6)
     x, stats, r, jac = structured_lm.lower(*args).compile()(*args)
     args_sh = (x0, sharded, jnp.asarray(30, jnp.int32), 1e-7, 1e-6)
@@ -239,7 +239,7 @@ def _multi_device_report() -> dict:
         residual_diff=float(jnp.max(jnp.abs(r[:real] - r_sh[:real]))),
         padded_residual=float(jnp.max(jnp.abs(r_sh[real:]))), padded_jacobian=float(jnp.max(jnp.abs(jac_sh[real:]))),
     )
-    # residual weights (`pbrfit.noise`) go with their pixels; padded pixels' are 0
+    # residual weights (`pbrfit.fitting.noise`) go with their pixels; padded pixels' are 0
     w = jnp.asarray(np.random.default_rng(7).uniform(0.2, 5.0, (real, 3)), jnp.float32)
     weighted = dataclasses.replace(problem, obs=dataclasses.replace(problem.obs, residual_weight=w))
     lin = jax.jit(linearize)
@@ -293,8 +293,8 @@ def _multi_device_report() -> dict:
         samples_render_diff=max(float(np.max(np.abs(a - b))) for a, b in zip(one.images, many.images)),
     )
     # Per-pixel IBL integrals travel with their pixels.
-    from pbrfit.environment import procedural_sky
-    from pbrfit.pixel_ibl import PixelIBLSettings, pixel_ibl
+    from pbrfit.lighting.environment import procedural_sky
+    from pbrfit.lighting.pixel_ibl import PixelIBLSettings, pixel_ibl
 
     model = Model(ibl="per_pixel")
     table = pixel_ibl(procedural_sky(16), np.asarray(problem.obs.normal), np.asarray(problem.obs.view), model,

@@ -310,14 +310,14 @@ def flash_capture(tmp_path_factory):
 
 
 def _same_light(a, b):
-    from pbrfit.lights import light_to_json
+    from pbrfit.io.lights import light_to_json
 
     assert light_to_json(a) == light_to_json(b)
 
 
 def test_capture_round_trip_linear(peer_capture):
-    from pbrfit.material_files import read_material
-    from pbrfit.scene import load_capture
+    from pbrfit.io.material_files import read_material
+    from pbrfit.scene.capture import load_capture
 
     cap = load_capture(peer_capture.path)
     scene = peer_capture.scene
@@ -345,9 +345,9 @@ def test_capture_round_trip_linear(peer_capture):
 
 
 def test_capture_round_trip_srgb_png_flash(flash_capture):
-    from pbrfit.color import srgb_to_linear
-    from pbrfit.lights import flash_light
-    from pbrfit.scene import load_capture
+    from pbrfit.physics.color import srgb_to_linear
+    from pbrfit.physics.lights import flash_light
+    from pbrfit.scene.capture import load_capture
 
     cap = load_capture(flash_capture.path)
     scene = flash_capture.scene
@@ -366,9 +366,9 @@ def test_capture_round_trip_srgb_png_flash(flash_capture):
 
 
 def test_rerender_with_truth_reproduces_images(peer_capture):
-    from pbrfit.material_files import read_material
-    from pbrfit.scene import load_capture
-    from pbrfit.views import render_capture
+    from pbrfit.io.material_files import read_material
+    from pbrfit.scene.capture import load_capture
+    from pbrfit.render.views import render_capture
 
     cap = load_capture(peer_capture.path)
     renders = render_capture(cap, read_material(cap.truth_dir))
@@ -381,13 +381,13 @@ def test_rerender_with_truth_reproduces_images(peer_capture):
 def test_monte_carlo_environment_matches_the_per_pixel_integrals(tmp_path):
     """A scene rendered with ``ibl="monte_carlo"`` agrees with the fit's per-pixel integrals of the
     true maps: two exact integrators, so within their noise and without bias."""
-    from pbrfit.material_files import read_material
-    from pbrfit.material import material_at
-    from pbrfit.observations import observations_from_capture
-    from pbrfit.pixel_ibl import PixelIBLSettings, pixel_ibl
-    from pbrfit.render import shade
-    from pbrfit.scene import load_capture
-    from pbrfit.views import capture_environment
+    from pbrfit.io.material_files import read_material
+    from pbrfit.physics.material import material_at
+    from pbrfit.fitting.observations import observations_from_capture
+    from pbrfit.lighting.pixel_ibl import PixelIBLSettings, pixel_ibl
+    from pbrfit.render.shade import shade
+    from pbrfit.scene.capture import load_capture
+    from pbrfit.render.views import capture_environment
 
     scene = presets.make_scene("sphere-env", 1, size=24, views=2, texture_size=8)
     scene = scene.replace(model=scene.model.replace(ibl="monte_carlo"), mc_samples=512)
@@ -408,7 +408,7 @@ def test_monte_carlo_environment_matches_the_per_pixel_integrals(tmp_path):
 def test_texture_top_row_is_the_far_edge_seen_from_above(tmp_path):
     """End to end: texel row 0 (v = 0) lies at z = -1 of the +y plane, at the top of a camera
     looking straight down with -Z up in its image."""
-    from pbrfit.lights import directional_light
+    from pbrfit.physics.lights import directional_light
 
     maps = textures.uniform_maps(8, (0.1, 0.1, 0.8), 0.0, 0.8)
     bc = maps.base_color.copy()
@@ -428,7 +428,7 @@ def test_texture_top_row_is_the_far_edge_seen_from_above(tmp_path):
 
 
 def test_cli_synth_writes_and_refuses_bad_input(tmp_path, capsys):
-    from pbrfit.cli import main
+    from pbrfit.cli.main import main
 
     out = tmp_path / "c"
     args = ["synth", "peer-plane", "--out", str(out), "--size", "16", "--views", "2", "--texture-size", "8"]
@@ -436,7 +436,7 @@ def test_cli_synth_writes_and_refuses_bad_input(tmp_path, capsys):
     assert (out / "capture.json").is_file() and capsys.readouterr().out == ""
     # --seed reaches the preset: the truth maps are those of make_scene with that seed, not seed 0's
     from data_synth import presets
-    from pbrfit.material_files import read_material
+    from pbrfit.io.material_files import read_material
 
     seeded = tmp_path / "seed3"
     assert main(["synth", "peer-plane", "--out", str(seeded), "--size", "16", "--views", "2", "--texture-size", "8",
@@ -465,19 +465,19 @@ def test_cli_synth_writes_and_refuses_bad_input(tmp_path, capsys):
     import os
     import signal
 
-    import pbrfit.io
+    import pbrfit.io.images
 
-    real = pbrfit.io.write_image
+    real = pbrfit.io.images.write_image
 
     def killed(*a, **k):
         os.kill(os.getpid(), signal.SIGTERM)
         return real(*a, **k)
 
-    pbrfit.io.write_image = killed
+    pbrfit.io.images.write_image = killed
     try:
         assert main(["synth", "peer-plane", "--out", str(tmp_path / "k"), "--size", "16", "--views", "2"]) == 143
     finally:
-        pbrfit.io.write_image = real
+        pbrfit.io.images.write_image = real
     assert capsys.readouterr().err.strip() == "pbrfit: terminated"
     assert not any(p.name.startswith((".k.", "k")) for p in tmp_path.iterdir())
     assert signal.getsignal(signal.SIGTERM) is not None

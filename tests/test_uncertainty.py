@@ -1,4 +1,4 @@
-"""Standard errors from the normal matrix's blocks (`pbrfit.uncertainty`), on random normal
+"""Standard errors from the normal matrix's blocks (`pbrfit.fitting.uncertainty`), on random normal
 matrices of pixels that read four neighbouring texels, built densely here."""
 
 from __future__ import annotations
@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pbrfit.normal_matrix import NEIGHBOUR_OFFSETS
-from pbrfit.uncertainty import block_standard_errors, window_precisions, window_radii, window_standard_errors
+from pbrfit.fitting.normal_matrix import NEIGHBOUR_OFFSETS
+from pbrfit.fitting.uncertainty import block_standard_errors, window_precisions, window_radii, window_standard_errors
 
 
 def _normal_matrix(shape, k, pixels, seed, wrap=True):
     """(JᵀJ dense (T K, T K), its diagonal blocks (T, K, K), its neighbour blocks (T, 4, K, K) laid
-    out as `pbrfit.normal_matrix.neighbour_blocks` gives them) for random pixels, each reading the four
+    out as `pbrfit.fitting.normal_matrix.neighbour_blocks` gives them) for random pixels, each reading the four
     texels around a random point with bilinear weights, each tap through the pixel's 3 × K Jacobian
     plus some of its own (as a pixel's samples have: the blocks between texels are then not
     symmetric). Without

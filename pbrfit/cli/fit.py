@@ -1,0 +1,271 @@
+"""The `pbrfit fit` command's arguments: its options (`add_fit`), their translation into
+`pbrfit.fit`'s keywords with every refusal naming the flag (`fit_options`), and the summary
+line it prints (`fit_summary`)."""
+
+from __future__ import annotations
+
+from ..errors import CaptureError
+
+__all__ = ["add_fit", "fit_options", "fit_summary", "default_continuation"]
+
+
+def add_fit(sub) -> None:
+    from ..fitting.options import IBL_MODES, LOSS_SCALE, MATERIAL_MAPS
+    from ..fitting.passes import MAX_STEPS
+    from ..fitting.runner import DEFAULT_SOLVER, SOLVERS
+    from ..fitting.noise import NOISE_LEVELS
+    from ..fitting.observations import MAX_PIXEL_SAMPLES
+    from ..lighting.pixel_ibl import PixelIBLSettings
+    from ..fitting.objective import LOSSES
+
+    p = sub.add_parser("fit", help="fit base color, metallic and roughness maps to a capture")
+    p.add_argument("capture", help="capture folder, capture.json or NeRF-style transforms.json")
+    p.add_argument("--out", required=True, help="output folder (written whole or not at all; replaces only an earlier fit output)")
+    p.add_argument("--resolution", type=int, help="map size N (N x N); default from the views' texel coverage")
+    p.add_argument("--maps", choices=("texture", "none"), default="texture",
+                   help="'none' fits one uniform material (five numbers)")
+    p.add_argument("--fit",
+                   help="comma-separated maps to fit, some of base_color, metallic, roughness, normal "
+                        "(a tangent-space normal map, written as normal.png); default: the three maps "
+                        "not held by --base-color, --metallic, --roughness or --*-from; a map neither fitted nor "
+                        "held stays at the prior (base color 0.5 grey, metallic 0, roughness 0.5; report.json's "
+                        "\"held\" says what each map was held at)")
+    p.add_argument("--base-color", help="hold base color fixed at R,G,B (linear)")
+    p.add_argument("--metallic", type=float, help="hold metallic fixed at this value")
+    p.add_argument("--roughness", type=float, help="hold roughness fixed at this value (perceptual)")
+    for name in MATERIAL_MAPS:
+        flag = name.replace("_", "-")
+        p.add_argument(f"--{flag}-from", metavar="DIR", help=f"hold {name} fixed at the map in a material folder")
+    p.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER, help=f"default {DEFAULT_SOLVER}")
+    p.add_argument("--max-steps", type=int, help=f"solver steps at the final resolution (default {MAX_STEPS}); the repair's and the "
+                        "uniform check's re-fits come on top")
+    p.add_argument("--rtol", type=float, default=1e-6,
+                   help="relative stopping tolerance: the structured solver stops at an accepted step that lowers the "
+                        "loss by less than this fraction of it; the optimistix solvers' rtol (default 1e-6)")
+    p.add_argument("--atol", type=float, default=1e-5,
+                   help="absolute stopping tolerance: the structured solver also stops at an accepted step that moves "
+                        "no parameter by more than this; the optimistix solvers' atol (default 1e-5)")
+    p.add_argument("--cg-rtol", type=float, default=None, metavar="TOL",
+                   help="structured solver: relative tolerance of each step's conjugate gradients, in (0, 1) "
+                        "(default 1e-3; 1e-2 solves about a quarter faster, see the README)")
+    p.add_argument("--loss", choices=LOSSES, default="l2", help="robust loss (default l2: off)")
+    p.add_argument("--loss-scale", type=float, default=None, metavar="S",
+                   help="the robust loss's scale, in image units: residuals past it count less "
+                        f"(default {LOSS_SCALE:g}; huber and cauchy only)")
+    p.add_argument("--smooth", type=float, default=0.0, help="weight of the smoothness prior (default 0: off)")
+    p.add_argument("--coarse-to-fine", action="store_true", help="solve a uniform material and coarser maps first")
+    p.add_argument("--ibl", choices=IBL_MODES, default=IBL_MODES[0],
+                   help="environment light: split_sum (default; the renderer's tables) or per_pixel "
+                        "(each pixel's integrals by Monte Carlo before the solve: no split-sum error, slower setup)")
+    p.add_argument("--ibl-samples", type=int,
+                   help=f"per_pixel: sample steps per pixel (default {PixelIBLSettings.samples})")
+    p.add_argument("--ibl-levels", type=int,
+                   help=f"per_pixel: roughness levels tabulated (default {PixelIBLSettings.levels})")
+    p.add_argument("--pixel-samples", default="auto", metavar="{auto,N}",
+                   help=f"shade N x N samples per pixel (N from 1 to {MAX_PIXEL_SAMPLES}) and fit their mean: the pixel "
+                        "footprint of an antialiased or supersampled capture (1: pixel centres; cost grows as N^2). Default auto: pixel centres for "
+                        "linear HDR images; for sRGB or tone-mapped ones, fit both 2 x 2 samples and centres and keep "
+                        "the better match")
+    p.add_argument("--no-search", action="store_true",
+                   help="skip the per-texel re-search of metallic and roughness midway through the solve")
+    p.add_argument("--no-repair", action="store_true",
+                   help="skip the repair after the solve (by default well-seen texels whose pixels fit worse than "
+                        "the noise explains, then those out of line with their neighbours, are started again from "
+                        "their nearest well-fitted neighbour, re-searched and re-solved with their neighbours, each "
+                        "cluster kept where its pixels fit better and the loss falls; report.json's repair says what "
+                        "each pass did)")
+    p.add_argument("--unconstrained-sigma", type=float, default=None, metavar="S",
+                   help="hold at 0.5 (the middle of its range) the roughness of each texel whose standard error "
+                        "exceeds S, and re-fit its base colour: where no highlight reaches a texel the images "
+                        "do not constrain its roughness, and a fitted value is the noise's (default 0.1; inf: hold "
+                        "none; report.json's unconstrained says how many were held)")
+    p.add_argument("--uncertainty-radius", type=int, default=None, metavar="R",
+                   help="uncertainty.exr: each texel's standard error with the (2R+1) x (2R+1) texels around it "
+                        "free as well (0, 1 or 2; default 1; 0: its own block of the normal matrix, the neighbours "
+                        "held, about 10-15%% too small on the peer scene; 2: within 0.1%% of the whole matrix's on a "
+                        "small map, about 4 times the cost; see the README)")
+    p.add_argument("--noise-level", choices=NOISE_LEVELS, default="uniform",
+                   help="uniform (default): every residual weighs alike (plain least squares, the likeliest fit "
+                        "when the noise does not depend on the value); estimated: the noise level as a function "
+                        "of the value is measured from a first fit's residuals, and a second fit from its maps "
+                        "weighs each residual by the inverse of the level at its value (for shot noise, or noise "
+                        "proportional to the signal; 1.1 to 1.5 times the time; report.json's noise_level gives the "
+                        "level function)")
+    p.add_argument("--no-uniform-check", action="store_true",
+                   help="keep metallic and roughness as maps even where the images support only one value for "
+                        "them (by default a map the images cannot tell apart from one value, by Akaike's criterion, "
+                        "becomes that value; report.json's uniform_check says what each test found)")
+    p.add_argument("--continuation", metavar="W[,W...]",
+                   help="weights of the smoothness prior over the first steps, relative to the data's curvature, "
+                        f"released before the end (default {default_continuation()}; 'none' turns it off)")
+    p.add_argument("--devices", type=int,
+                   help="split the pixels over this many JAX devices (default: one device)")
+    p.add_argument("--cache", help="G-buffer and per-pixel IBL cache folder (default $PBRFIT_CACHE, else $XDG_CACHE_HOME/pbrfit, else ~/.cache/pbrfit)")
+    p.add_argument("--no-cache", action="store_true", help="do not read or write the cache")
+    p.add_argument("--quiet", action="store_true", help="no progress bar and no summary line; warnings and errors still print")
+
+
+def fit_options(args) -> dict:
+    """Keyword arguments of `pbrfit.fitting.api.fit` from the command line (errors name the option)."""
+    from ..fitting.options import LOSS_SCALE, MATERIAL_MAPS, OptionNames, check_options, fit_arguments
+    from ..fitting.passes import COARSE_STEPS
+    from ..fitting.runner import DEFAULT_SOLVER
+    from ..io.material_files import read_map
+    from ..fitting.observations import MAX_PIXEL_SAMPLES
+    from ..lighting.pixel_ibl import MAX_LEVELS, MAX_SAMPLES, MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
+    from ..fitting.solvers.structured import CG_RTOL
+    from ..fitting.stages.unconstrained import UNCONSTRAINED_SIGMA
+    from ..fitting.uncertainty import WINDOW_RADIUS
+
+    fixed, held_by = {}, {}
+    if args.base_color is not None:
+        try:
+            rgb = [float(c) for c in args.base_color.split(",")]
+        except ValueError:
+            rgb = []
+        if len(rgb) != 3:
+            raise CaptureError(f"--base-color: expected R,G,B in [0, 1], got {args.base_color!r}")
+        fixed["base_color"], held_by["base_color"] = rgb, "--base-color"
+    for name in ("metallic", "roughness"):
+        if getattr(args, name) is not None:
+            fixed[name], held_by[name] = getattr(args, name), f"--{name}"
+    for name in MATERIAL_MAPS:
+        folder = getattr(args, f"{name}_from")
+        if folder is not None:
+            flag = name.replace("_", "-")
+            if name in fixed:
+                raise CaptureError(f"--{flag}-from: --{flag} holds {name} at a value too; give one of the two")
+            try:
+                fixed[name], held_by[name] = read_map(folder, name), f"--{flag}-from"
+            except CaptureError as err:  # the option that named the folder, then what is wrong with it
+                raise CaptureError(f"--{flag}-from: {err}") from None
+    continuation = _continuation(default_continuation() if args.continuation is None else args.continuation)
+    # a flag a mode does not read is refused even at its default value (check_options, which sees
+    # values only, refuses values other than the default)
+    for flag, given in (("--cg-rtol", args.cg_rtol is not None), ("--continuation", args.continuation is not None
+                                                                   and bool(continuation))):
+        if given and args.solver != DEFAULT_SOLVER:
+            raise CaptureError(f"{flag}: only the {DEFAULT_SOLVER} solver uses it, not --solver {args.solver}")
+        if given and flag == "--continuation" and args.maps == "none":
+            raise CaptureError(f"{flag}: --maps none fits one uniform material (1 x 1 maps)")
+    names = OptionNames(flags=True, held_by=held_by)
+    try:  # the checks `pbrfit.fit` makes, worded with the flags
+        free, fixed = fit_arguments(args.fit, fixed, names)
+        check_options(resolution=args.resolution, maps=args.maps, solver=args.solver, max_steps=args.max_steps,
+                      coarse_steps=COARSE_STEPS, rtol=args.rtol, atol=args.atol,
+                      cg_rtol=CG_RTOL if args.cg_rtol is None else args.cg_rtol,
+                      loss_scale=LOSS_SCALE if args.loss_scale is None else args.loss_scale,
+                      smooth=args.smooth, coarse_to_fine=args.coarse_to_fine,
+                      continuation=continuation if args.continuation is not None else None,
+                      uncertainty_radius=WINDOW_RADIUS if args.uncertainty_radius is None else args.uncertainty_radius,
+                      unconstrained_sigma=(UNCONSTRAINED_SIGMA if args.unconstrained_sigma is None
+                                           else args.unconstrained_sigma),
+                      names=names)
+    except ValueError as e:
+        raise CaptureError(str(e)) from None
+    if args.loss_scale is not None and args.loss == "l2":
+        raise CaptureError("--loss-scale: only a robust loss uses it (--loss huber or cauchy)")
+    for name in ("ibl_samples", "ibl_levels"):
+        if getattr(args, name) is not None and args.ibl != "per_pixel":
+            raise CaptureError(f"--{name.replace('_', '-')}: only --ibl per_pixel uses it")
+    pixel_samples = args.pixel_samples
+    if pixel_samples != "auto":
+        if not (pixel_samples.isascii() and pixel_samples.isdigit() and 1 <= int(pixel_samples) <= MAX_PIXEL_SAMPLES):
+            raise CaptureError(f"--pixel-samples: expected auto or 1 to {MAX_PIXEL_SAMPLES}, got {args.pixel_samples}")
+        pixel_samples = int(pixel_samples)
+    if "normal" in free and args.ibl == "per_pixel":
+        raise CaptureError("--ibl per_pixel: fitted normals need --ibl split_sum (per-pixel integrals hold the normals fixed)")
+    for flag, value, least, most in (("--ibl-levels", args.ibl_levels, MIN_LEVELS, MAX_LEVELS),
+                                     ("--ibl-samples", args.ibl_samples, MIN_SAMPLES, MAX_SAMPLES)):
+        if value is not None and not least <= value <= most:
+            raise CaptureError(f"{flag}: must be between {least} and {most}, got {value}")
+    pixel_ibl_settings = PixelIBLSettings(
+        levels=PixelIBLSettings.levels if args.ibl_levels is None else args.ibl_levels,
+        samples=PixelIBLSettings.samples if args.ibl_samples is None else args.ibl_samples)
+    devices = None
+    if args.devices is not None:
+        import jax
+
+        available = jax.devices()
+        if not 1 <= args.devices <= len(available):
+            raise CaptureError(f"--devices: expected 1 to {len(available)} (the devices JAX sees), got {args.devices}")
+        devices = available[: args.devices] if args.devices > 1 else None
+    return dict(
+        fit=free, fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
+        max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, loss=args.loss, smooth=args.smooth,
+        coarse_to_fine=args.coarse_to_fine, search=not args.no_search, uniform_check=not args.no_uniform_check,
+        repair=not args.no_repair, noise_level=args.noise_level, devices=devices, ibl=args.ibl,
+        pixel_ibl_settings=pixel_ibl_settings, continuation=continuation, pixel_samples=pixel_samples,
+        **({} if args.cg_rtol is None else dict(cg_rtol=args.cg_rtol)),
+        **({} if args.loss_scale is None else dict(loss_scale=args.loss_scale)),
+        **({} if args.uncertainty_radius is None else dict(uncertainty_radius=args.uncertainty_radius)),
+        **({} if args.unconstrained_sigma is None else dict(unconstrained_sigma=args.unconstrained_sigma)),
+    )
+
+
+def _continuation(text: str) -> tuple:
+    """--continuation: 'none' or comma-separated finite weights >= 0."""
+    import math
+
+    if text.strip().lower() in ("none", "off", ""):
+        return ()
+    try:
+        weights = tuple(float(w) for w in text.split(","))
+    except ValueError:
+        weights = ()
+    from ..fitting.options import FLOAT32_MAX
+
+    if not weights or not all(math.isfinite(w) and 0 <= w <= FLOAT32_MAX for w in weights):
+        raise CaptureError(f"--continuation: expected 'none' or comma-separated weights >= 0 within float32, "
+                           f"got {text!r}")
+    return weights
+
+
+def default_continuation() -> str:
+    from ..fitting.passes import CONTINUATION
+
+    return ",".join(str(w) for w in CONTINUATION)
+
+
+def fit_summary(result, errors) -> str:
+    from ..fitting.runner import compile_summary
+    from ..fitting.stages.selection import uniform_channels
+
+    r = result.report
+    h, w = r["resolution"]
+    extra = f", per-pixel IBL {r['ibl']['seconds']:.1f} s" if r.get("ibl", {}).get("mode") == "per_pixel" else ""
+    parts = [f"fit {h}x{w} maps with {r['solver']}: {r['steps']} steps, loss {r['final_loss']:.3e}",
+             f"{r['wall_time']:.1f} s ({compile_summary(r['times'])}{extra})"]
+    n, foot = r.get("pixel_samples", 1), r.get("footprint")
+    if foot is not None and "skipped" in foot:  # auto, on a capture too large to try the samples
+        parts[0] += ", pixel centres (auto: 2x2 samples skipped, too many pixels)"
+    elif foot is not None:  # auto: which footprint explained the images, and by how much
+        other = next(k for k in foot["energies"] if int(k) != foot["selected"])
+        where = "pixel centres" if n == 1 else f"{n}x{n} samples per pixel"
+        parts[0] += (f", {where} (auto: data loss {foot['energies'][str(foot['selected'])]:.3e} against "
+                     f"{foot['energies'][other]:.3e} {'at centres' if other == '1' else f'with {other}x{other}'})")
+    elif n > 1:
+        parts[0] += f", {n}x{n} samples per pixel"
+    if r.get("unseen_texels"):  # no view sees them: left at the prior, σ +inf (coverage.exr 0)
+        parts[0] += f", {r['unseen_texels']} of {h * w} texels unseen (not fitted: coverage 0)"
+    uniform = [f"{name} {r['uniform_check'][name]['value']:.4g}" for name in uniform_channels(r)]
+    if uniform:  # the uniform check found no support for these maps in the images
+        parts[0] += ", one value for " + " and ".join(uniform) + " (uniform check)"
+    held = (r.get("unconstrained") or {}).get("texels", 0)
+    if held:  # roughness the images do not constrain: at the prior, not the noise's value
+        parts[0] += (f", roughness held at 0.5 on {held} texel{'' if held == 1 else 's'} the images do not "
+                     f"constrain (σ > {r['unconstrained']['threshold']:g})")
+    level = r.get("noise_level") or {}
+    kept = [p for p in (r.get("repair") or {}).get("passes", []) if p.get("kept")]
+    if kept:  # texels a solve had left in a wrong basin, started again (estimated: in the first fit)
+        clusters = sum(p["clusters_kept"] for p in kept)
+        whose = "the first fit's " if level.get("mode") == "estimated" else ""
+        parts[0] += (f", {whose}repair re-solved {sum(p['texels_kept'] for p in kept)} texels in {clusters} "
+                     f"cluster{'' if clusters == 1 else 's'} (loss {kept[0]['energy_before']:.3e}"
+                     f" -> {kept[-1]['energy_after']:.3e})")
+    if level.get("mode") == "estimated":  # two fits: the second weighted by the first's noise level
+        parts[0] += (f", weighted by the estimated noise level ({min(level['sigma']):.2g} to "
+                     f"{max(level['sigma']):.2g}; first fit loss {level['first_fit']['final_loss']:.3e})")
+    if errors:
+        parts.append("RMSE " + ", ".join(f"{k} {v:.4f}" for k, v in errors.items()))
+    return "; ".join(parts)

@@ -1,0 +1,487 @@
+"""Fitting: recover glTF base colour, metallic and roughness maps from a capture.
+
+`fit(capture, ...)` ray-casts the views once (`pbrfit.fitting.observations`), then minimises the squared
+difference between the images and the renders of the maps, in the images' own space, with the
+solver chosen by ``solver=``:
+
+- ``"structured"`` (default): projected Levenberg-Marquardt on the exact image-space objective
+  with per-pixel forward-mode Jacobians, block-sparse normal equations and block-Jacobi CG
+  (`pbrfit.fitting.solvers.structured`), started by a per-texel grid search, then a continuation (the first steps
+  under a smoothness prior of falling weight, released before the end), midway re-searching each
+  texel's metallic and roughness with its neighbours fixed (`pbrfit.fitting.initialisation`); optionally
+  coarse to fine (a uniform material first, then maps of growing resolution).
+  `experiments/solvers.md` has the numbers that chose it.
+- ``"lm"``, ``"gn"``, ``"dogleg"``, ``"bfgs"``, ``"lbfgs"``, ``"ncg"``, ``"adam"``: optimistix
+  solvers on the same objective (`pbrfit.fitting.solvers.optx`), run through the same schedule.
+
+After the structured solve, a repair (``repair=True``) starts texels whose pixels fit worse than
+the noise explains, then texels out of line with their neighbours, again from their neighbours
+(`pbrfit.fitting.stages.repair`), and the uniform check
+(``uniform_check=True``) makes metallic, then roughness, one common value where Akaike's
+criterion finds no support for a map in the images (`pbrfit.fitting.stages.selection`). Last, a texel whose
+roughness the images do not constrain (its standard error above ``unconstrained_sigma``) is
+held at the prior's 0.5, its base colour re-fitted (`pbrfit.fitting.stages.unconstrained`).
+
+A pixel's footprint: a display-referred capture (sRGB, tone mapped) is fitted both at pixel
+centres and with 2 × 2 samples per pixel, and the fit whose images match better is kept
+(``pixel_samples="auto"``, `footprint_choice`); linear images are fitted at pixel centres.
+
+The images' noise: plain least squares by default (``noise_level="uniform"``); with
+``noise_level="estimated"`` a second fit weighs each residual by the inverse of the noise
+level the first fit's residuals show at its value (`pbrfit.fitting.noise`): for shot noise, or noise
+proportional to the signal.
+
+Pixels can be split over several devices (``devices=``, `pbrfit.fitting.sharding`). The result carries
+the maps, per-texel standard errors (`pbrfit.fitting.uncertainty`), per-texel coverage, the fitted
+renders of every view and a report.
+
+This module is the API. The options and their checks are `pbrfit.fitting.options`, one pass over
+the levels is `pbrfit.fitting.passes` (its solver runs `pbrfit.fitting.runner`), the map size
+`pbrfit.fitting.resolution`, the pixel footprint `pbrfit.fitting.stages.footprint`, and the result and its report
+`pbrfit.fitting.result`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Mapping, Optional, Sequence
+
+import numpy as np
+
+from ..errors import CaptureError, listed
+from .options import (IBL_MODES, LOSS_SCALE, check_kinds, check_model, check_names, check_normals, check_options,
+                          fit_arguments, held_report)
+from .passes import COARSE_STEPS, CONTINUATION, fit_pass
+from .result import FitResult, closed_times, map_rmse
+from .stages.footprint import footprint_choice
+from ..physics.model import Model
+from .noise import estimate_noise_level
+from .observations import Observations, observations_from_capture
+from ..lighting.pixel_ibl import PixelIBLSettings, pixel_ibl
+from .resolution import LEVEL_FACTOR, default_resolution, schedule
+from .runner import DEFAULT_SOLVER, SOLVERS
+from .stages.selection import uniform_channels
+from .solvers.structured import CG_RTOL
+from ..transfer import to_device
+from .stages.unconstrained import UNCONSTRAINED_SIGMA
+from .uncertainty import WINDOW_RADIUS
+
+__all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "model_for_capture", "SOLVERS",
+           "DEFAULT_SOLVER", "IBL_MODES", "schedule", "footprint_choice", "uniform_channels"]
+
+
+def model_for_capture(capture, fit: Sequence[str] = ("base_color", "metallic", "roughness"), fixed=None) -> Model:
+    """The model the images need: split-sum IBL when there is an environment; the metal lobe
+    only when metallic is fitted or fixed to something nonzero."""
+    from ..render.views import model_for_capture as scene_model
+
+    fixed = fixed or {}
+    metal = "metallic" in fit or bool(np.any(np.asarray(fixed.get("metallic", 0.0)) != 0))
+    return scene_model(capture, metallic=metal)
+
+
+def _ibl_for_capture(capture, model: Model, environment=None):
+    if model.ibl is None and not model.multiscatter:
+        return None
+    from ..render.views import capture_ibl
+
+    return capture_ibl(capture, model=model, environment=environment)
+
+
+def fit_observations(
+    obs: Observations,
+    *,
+    model: Model = Model(),
+    ibl=None,
+    resolution=None,
+    fit: Optional[Sequence[str]] = None,
+    fixed: Optional[Mapping] = None,
+    maps: str = "texture",
+    solver: str = DEFAULT_SOLVER,
+    max_steps: Optional[int] = None,
+    coarse_steps: int = COARSE_STEPS,
+    rtol: float = 1e-6,
+    atol: float = 1e-5,
+    cg_rtol: float = CG_RTOL,
+    loss: str = "l2",
+    loss_scale: float = LOSS_SCALE,
+    smooth: float = 0.0,
+    coarse_to_fine: bool = False,
+    init: str = "grid",
+    search: bool = True,
+    continuation: Optional[Sequence[float]] = CONTINUATION,
+    devices=None,
+    level_factor: int = LEVEL_FACTOR,
+    wrap: str = "repeat",
+    progress: Optional[Callable] = None,
+    setup_time: float = 0.0,
+    centres: Optional[Observations] = None,
+    centre_ibl=None,
+    select_footprint: bool = False,
+    background_compile: bool = True,
+    uniform_check: bool = True,
+    repair: bool = True,
+    uncertainty_radius: int = WINDOW_RADIUS,
+    unconstrained_sigma: float = UNCONSTRAINED_SIGMA,
+    noise_level: str = "uniform",
+) -> FitResult:
+    """Fit maps to prepared `Observations` (see `fit` for the arguments).
+
+    The light is the caller's to describe: ``model`` and ``ibl`` must be those of the capture
+    the observations come from (`fit` derives them: `model_for_capture`, and
+    `pbrfit.render.views.capture_ibl` or `pbrfit.lighting.pixel_ibl.pixel_ibl`). The defaults, ``Model()`` and no
+    tables, shade with the observations' punctual lights alone, so a capture lit by an
+    environment is fitted as if that light were absent.
+
+    With several samples per pixel in `obs`, `centres` (optional) holds the same capture's
+    observations at pixel centres (and `centre_ibl` their IBL, when it is per pixel): the grid
+    start, the continuation's first steps and the coordinate search then run on them, at a
+    quarter of the cost or less, and only the settling and released steps on `obs`. With
+    ``select_footprint`` as well, those last steps run on both, from the same point (centres
+    first), and the fit whose data term is lower over the pixels both use is kept
+    (`pbrfit.fitting.stages.footprint.footprint_energies`; both have the same parameters, so that is the
+    likelier model of the pixels' footprint). With the structured solver the samples stop after
+    their first `pbrfit.fitting.passes.PROBE_STEPS` when these do not yet fit better than the centres'
+    whole finish. The report's "footprint" entry gives both energies, the steps and the choice."""
+    check_names(noise_level=noise_level, loss=loss, init=init, wrap=wrap)
+    check_kinds(**{name: value for name, value in locals().items() if name in _KIND_DEFAULTS})
+    fit, fixed = fit_arguments(fit, fixed)
+    check_model(model, fit)
+    check_options(resolution=resolution, maps=maps, solver=solver, max_steps=max_steps, coarse_steps=coarse_steps,
+                  rtol=rtol, atol=atol, cg_rtol=cg_rtol, loss_scale=loss_scale, smooth=smooth,
+                  coarse_to_fine=coarse_to_fine, continuation=continuation, uncertainty_radius=uncertainty_radius,
+                  unconstrained_sigma=unconstrained_sigma)
+    check_normals(model, fit)
+    kwargs = {name: value for name, value in locals().items() if name not in ("obs", "noise_level")}  # the arguments
+    if noise_level == "uniform":
+        result, _ = fit_pass(obs, **kwargs)
+        result.report["noise_level"] = dict(mode="uniform")
+    else:
+        result = _fit_weighted(obs, kwargs)
+    result.report["iterations"] = result.report["steps"]  # the capture spec's word for them
+    # what the caller held (before the model's own: a model without the metal lobe holds metallic 0)
+    result.report["held"] = held_report([f for f in fit if model.metallic or f != "metallic"], fixed)
+    return result
+
+
+#: `fit_observations`'s defaults of the options `pbrfit.fitting.options.check_options` checks.
+_OPTION_DEFAULTS = {name: param.default for name, param in inspect.signature(fit_observations).parameters.items()
+                    if name in inspect.signature(check_options).parameters}
+#: ... and of those `pbrfit.fitting.options.check_kinds` checks.
+_KIND_DEFAULTS = {name: inspect.signature(fit_observations).parameters[name].default
+                  for name in ("coarse_to_fine", "search", "select_footprint", "background_compile", "uniform_check",
+                               "repair", "progress", "level_factor", "devices")}
+
+
+def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
+    """``noise_level="estimated"`` (`pbrfit.fitting.noise`): a plain fit, the noise level function of its
+    residuals, and a second fit from the first's maps with each residual weighted by
+    σ_ref / σ(v̂) at the first fit's value v̂. The second fit runs the final level on the pixel
+    footprint the first chose, with the uniform check (whose outcome the weights may change)
+    but without the continuation, the coordinate search, the repair or steps on pixel centres:
+    it starts in the basins the first fit found (on the flash scene with relative noise,
+    running the search and repair again took the estimated fit to 155 s against 98 s, the maps
+    the same to within 0.001). Executables compiled for the first fit serve the second. The
+    report is the second fit's, with both fits' steps and times, the first fit's "repair" entry,
+    and a "noise_level" entry: the level function and the first fit's steps, loss, residual σ,
+    levels and continuation."""
+    t_start = time.perf_counter()
+    shared = {}
+    first, x = fit_pass(obs, shared=shared, **kwargs)
+    footprint = first.report.get("footprint")
+    centres = kwargs["centres"]
+    kept = centres if (obs.samples > 1 and footprint is not None and footprint.get("selected") == 1) else obs
+    values = _fitted_values(first, kept)
+    target = np.asarray(kept.pixel_rows(kept.target))
+    n_res = values.size
+    uniform = len(uniform_channels(first.report))
+    # as `pbrfit.fitting.result.finish` counts
+    n_par = (len(first.report["fitted"]) - uniform) * first.report["observed_texels"] + uniform
+    level = estimate_noise_level(values, values - target, dof_scale=n_res / max(n_res - n_par, 1))
+    weights = np.repeat(level.weights(values), kept.samples, axis=0)
+    weighted = dataclasses.replace(kept, residual_weight=to_device(weights, np.float32))
+    shared["where"].clear()
+    shared["where"]["weighted"] = True  # every step from here on reports it
+    second_kwargs = dict(kwargs, centres=None, centre_ibl=None, select_footprint=False, start=x,
+                         coarse_to_fine=False, continuation=None, search=False, repair=False, setup_time=0.0)
+    if kept is centres and kwargs["model"].ibl == "per_pixel":  # the centres' own integrals
+        second_kwargs["ibl"] = kwargs["centre_ibl"]
+    second, _ = fit_pass(weighted, shared=shared, **second_kwargs)
+    report = second.report
+    report["wall_time"] = float(kwargs["setup_time"] + time.perf_counter() - t_start)
+    report["times"] = closed_times(dict(report["times"], setup=float(kwargs["setup_time"]),
+                                        post=first.report["times"].get("post", 0.0) + report["times"].get("post", 0.0)),
+                                   report["wall_time"])
+    report["steps"] += first.report["steps"]
+    if footprint is not None:
+        report["footprint"] = footprint
+    report["repair"] = first.report["repair"]  # (the second fit runs none)
+    report["noise_level"] = dict(mode="estimated", **level.describe(), first_fit=dict(
+        steps=first.report["steps"], final_loss=first.report["final_loss"],
+        residual_sigma=first.report["residual_sigma"], psnr=first.report["psnr"], levels=first.report["levels"],
+        continuation=first.report["continuation"]))
+    return second
+
+
+def _warn_unused_frames(capture, *observations: Optional[Observations]) -> None:
+    """Warn, in one line, of the frames none of whose pixels enter the fit under any footprint it
+    may choose (``observations``: the samples' and the centres'; each pixel masked out, saturated
+    or off the mesh: a camera that looks away, a mask of zeros): they are left out."""
+    index = np.concatenate([np.asarray(o.view_index) for o in observations if o is not None])
+    counts = np.bincount(index[index >= 0], minlength=len(capture.frames))
+    unused = [k for k, count in enumerate(counts[: len(capture.frames)]) if count == 0]
+    if unused:
+        import warnings
+
+        named = listed(f"frames[{k}] ({capture.frames[k].file_path})" for k in unused)
+        warnings.warn(f"{capture.json_path}: {named}: no usable pixel (each masked out, saturated or off the "
+                      "mesh); left out of the fit", UserWarning, stacklevel=3)
+
+
+def _fitted_values(result: FitResult, obs: Observations) -> np.ndarray:
+    """(P, 3) the fitted render's value at each pixel of `obs` (its first sample row's view and
+    pixel; `obs` is the footprint the fit kept, every pixel of which it rendered)."""
+    vidx = np.asarray(obs.pixel_rows(obs.view_index))
+    pix = np.asarray(obs.pixel_rows(obs.pixel))
+    values = np.zeros((obs.num_pixels, 3), np.float32)
+    for view in range(len(result.images)):
+        sel = vidx == view
+        values[sel] = result.images[view].reshape(-1, 3)[pix[sel]]
+    return values
+
+
+def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, ibl: Optional[str] = None,
+        pixel_ibl_settings: PixelIBLSettings = PixelIBLSettings(), pixel_samples="auto", **kwargs) -> FitResult:
+    """Fit material maps to a `pbrfit.scene.capture.Capture` (or the capture folder, read with
+    `pbrfit.scene.capture.load_capture`).
+
+    Keyword arguments (all optional):
+        cache_dir: a folder for the G-buffers (and per-pixel IBL integrals) computed from the
+            capture, read back by later fits of the same capture and settings; default None: none
+            kept (the command line's ``--cache``).
+        views: precomputed `pbrfit.render.shade.ViewInputs`, one per frame in the capture's order (as
+            `pbrfit.render.views.capture_views` makes them), instead of those computed from the capture.
+        pixel_samples: n: shade n × n samples per pixel and compare their mean radiance with the
+            pixel (`pbrfit.fitting.observations`, pixel footprints): the model of an antialiased or
+            supersampled capture (1: pixel centres). The grid start, the continuation's first
+            steps and the search run on pixel centres, the settling and released steps on the
+            samples (`fit_observations`). ``"auto"`` (default, `footprint_choice`): pixel
+            centres for linear HDR images (and with precomputed ``views``); for display-referred
+            ones (sRGB, tone mapped) the last steps run both ways, at centres and with 2 × 2
+            samples (these stop after `pbrfit.fitting.passes.PROBE_STEPS` when they do not yet match better), and the
+            fit whose images match better is kept (the report's "footprint" entry gives both
+            energies, and each fit's step count, the shared start's included).
+        ibl: how the capture's environment light is integrated, ``"split_sum"`` (default: Karis
+            2013, the renderer's tables) or ``"per_pixel"`` (`pbrfit.lighting.pixel_ibl`: each pixel's
+            lobe integrals by Monte Carlo on a roughness grid, once before the solve, with
+            ``pixel_ibl_settings``, cached in ``cache_dir`` like the G-buffers; no split-sum
+            error, not with fitted normals). Ignored without an environment.
+        resolution: map size N (or (H, W)); default `default_resolution(capture)`.
+        fit: which maps are free, some of "base_color", "metallic", "roughness", "normal" (a
+            tangent-space normal map, `pbrfit.fitting.parameters`; needs the mesh's tangents: uv);
+            default: the three material maps, less those ``fixed`` holds (`fit_arguments`).
+        fixed: values of maps held fixed, in [0, 1]: {"roughness": 0.4, "base_color": (H, W, 3)
+            array, ...}; maps neither fitted nor given stay at `pbrfit.fitting.parameters.PRIOR`.
+        maps: "texture" (maps) or "none" (one uniform material, 1 × 1 maps).
+        solver: one of `SOLVERS`; max_steps (final level), coarse_steps, rtol, atol.
+        cg_rtol: the structured solver's conjugate-gradient tolerance per step (in (0, 1),
+            default `pbrfit.fitting.solvers.structured.CG_RTOL`): looser takes fewer CG iterations per step.
+        loss: "l2", "huber" or "cauchy" (scale `loss_scale`, image units); smooth: weight of the
+            neighbour-difference prior (0 = off).
+        coarse_to_fine: run the levels of `schedule`, or (default) the final resolution only.
+        init: "grid" (`pbrfit.fitting.initialisation.grid_initialise`, default) or "prior" (start at PRIOR).
+        search: after `SEARCH_AFTER` steps of the final level, re-search each texel's metallic and
+            roughness with its neighbours fixed (`pbrfit.fitting.initialisation.coordinate_search`), then
+            finish the steps: repairs texels left in a wrong roughness basin (default on). (The
+            step counts named here and below are `pbrfit.fitting.passes`'s.)
+        continuation: weights of a smoothness prior for the final level's first `SEARCH_AFTER`
+            steps (added to ``smooth``), split evenly, relative to the data's curvature
+            (`pbrfit.fitting.passes.continuation_scale`), and the last one for `SETTLE_STEPS` after the
+            search; the steps after them (at least `RELEASED_STEPS`, else no continuation) solve
+            the objective as asked, so the prior only chooses basins (default `CONTINUATION`; () =
+            off; structured solver only). The report's "continuation" entry gives the absolute
+            weights and the step budgets used (None: none ran).
+        uniform_check: after the solve, test whether metallic, then roughness, is better fitted as
+            one common value than as a map (`pbrfit.fitting.stages.selection`: Akaike's criterion on the data
+            term, the common value re-fitted with the other maps): where the images cannot tell
+            the channel's texels apart, the map fits noise and drags the maps correlated with it
+            (base colour with metallic) along. Default on; structured solver, l2 loss and no
+            ``smooth`` only (else the report says why it was skipped). The report's
+            "uniform_check" entry gives each test's statistic, threshold and outcome; a uniform
+            channel holds the value at every seen texel (unseen ones keep the prior) and its
+            uncertainty the value's standard error. Its re-fits add up to
+            (`pbrfit.fitting.stages.selection.NEWTON_STEPS` + 1) × `pbrfit.fitting.stages.selection.REFIT_STEPS` steps per channel,
+            counted in the report's "steps" (a rejected test's too).
+        repair: after the solve and before the uniform check, find the well-determined texels
+            whose pixels fit worse than the noise explains (a cluster of neighbours left in a
+            wrong basin, making up for each other), copy into them the nearest well-fitted
+            texel's values, re-search and re-solve them and their neighbours with every other
+            texel held (`pbrfit.fitting.stages.repair`), and keep each cluster whose pixels fit better where the
+            objective then falls; then once more for the texels out of line with their
+            neighbours. Default on; structured solver only. Each pass adds
+            `pbrfit.fitting.stages.repair.REPAIR_STEPS` steps, counted in the report's "steps"; the report's
+            "repair" entry gives each pass's kind ("misfit" or "outliers"), flagged and moved
+            texels, clusters and texels kept, objective before and after, and whether it was
+            kept.
+        unconstrained_sigma: after the uniform check, a texel whose roughness standard error
+            exceeds this is held at the prior's 0.5, and its base colour re-fitted with it
+            held (`pbrfit.fitting.stages.unconstrained`: where no highlight reaches a texel, the fitted value is
+            the noise's, often on a bound). Default `pbrfit.fitting.stages.unconstrained.UNCONSTRAINED_SIGMA`;
+            ``math.inf``: none is held. Structured solver and no ``smooth`` only; the report's
+            "unconstrained" entry gives the threshold, the texels held and the re-fit's steps
+            (counted in "steps"). A held texel's σ in ``uncertainty`` is what the images give
+            at 0.5 (above the threshold).
+        uncertainty_radius: the standard errors of ``uncertainty`` are each texel's with the
+            (2 r + 1)² texels around it free as well, from the normal matrix's blocks
+            (`pbrfit.fitting.uncertainty.window_standard_errors`): 0 takes the texel's own block alone
+            (its neighbours held: optimistic, pixels read four texels at once), default
+            `pbrfit.fitting.uncertainty.WINDOW_RADIUS` (1), at most `pbrfit.fitting.uncertainty.MAX_UNCERTAINTY_RADIUS`. The
+            report's "uncertainty" entry gives the radius and the window used.
+        devices: a sequence of JAX devices to split the pixels over (`pbrfit.fitting.sharding`); default
+            None: the default device.
+        noise_level: "uniform" (default: every residual weighs alike, the likeliest fit where
+            the noise does not depend on the value) or "estimated" (`pbrfit.fitting.noise`: the first
+            fit's residuals give the noise level as a function of the value, σ(v), and a second
+            fit, started from the first, weighs each residual by σ_ref / σ(v̂) at the first
+            fit's value, σ_ref the median level; for noise that grows with the signal, at 1.1 to
+            1.5 times the cost). The report's "noise_level" entry gives the mode, and for
+            "estimated" the level function and the first fit's steps and loss; "final_loss" and
+            "residual_sigma" are then the weighted residuals' (in units of σ_ref), the PSNR the
+            images'.
+        model: override the `Model` (default `model_for_capture`: the one that rendered the images).
+        background_compile: compile the structured solver and the search for each problem in a
+            background thread as soon as their shapes are known, overlapping the grid start and
+            the steps before their first use (default on; the report's ``times["compile"]`` is
+            the time the fit waited for compiles, ``times["compile_background"]`` what was
+            compiled meanwhile). Off: every compile runs where it is first needed.
+        progress: called with {stage: "ibl", done, total} (pixels) while per-pixel IBL integrals
+            are computed, then with {level, resolution, step, loss} after each step (``check``:
+            the channel, during the uniform check's re-fits; an optimistix
+            solver's: at each evaluation of the objective, one per step; a host callback; leave
+            None for a solve with no host round-trips).
+    """
+    t0 = time.perf_counter()
+    # the arguments first: a wrong one is said at once, before the capture is read
+    if ibl not in (None,) + IBL_MODES:
+        raise ValueError(f"ibl must be one of {', '.join(IBL_MODES)}, got {ibl!r}")
+    kwargs["fit"], kwargs["fixed"] = fit_arguments(kwargs.get("fit"), kwargs.get("fixed"))
+    check_options(**{name: kwargs.get(name, default) for name, default in _OPTION_DEFAULTS.items()})
+    check_kinds(**{name: kwargs.get(name, default) for name, default in _KIND_DEFAULTS.items()})
+    check_names(noise_level=kwargs.get("noise_level", "uniform"), loss=kwargs.get("loss", "l2"),
+                 init=kwargs.get("init", "grid"), wrap=kwargs.get("wrap", "repeat"), pixel_samples=pixel_samples)
+    if model is not None:
+        check_model(model, kwargs["fit"])
+    if isinstance(capture, (str, os.PathLike)):
+        from ..scene.capture import load_capture
+
+        capture = load_capture(capture, require_uv=kwargs.get("maps", "texture") == "texture"
+                               or "normal" in kwargs["fit"])
+    from ..scene.capture import Capture
+
+    if not isinstance(capture, Capture):
+        raise ValueError(f"capture: expected a pbrfit.scene.capture.Capture or a capture folder, got {type(capture).__name__}")
+    model = model_for_capture(capture, kwargs["fit"], kwargs["fixed"]) if model is None else model
+    if model.ibl == "monte_carlo":
+        raise ValueError("model: Model(ibl='monte_carlo') is the reference integrator, not a fit's shading; "
+                         "use 'split_sum' or 'per_pixel'")
+    from ..render.views import capture_environment, check_environment, environment_is_dark
+
+    check_environment(model, capture)
+    if ibl is not None and model.ibl is not None:
+        model = model.replace(ibl=ibl)
+    check_normals(model, kwargs["fit"])
+    _check_brightness(capture)
+    pixel_samples, select, skipped = footprint_choice(capture, pixel_samples, views)
+    obs = observations_from_capture(capture, cache_dir=cache_dir, views=views, pixel_samples=pixel_samples)
+    centres = None if obs.samples == 1 else observations_from_capture(capture, cache_dir=cache_dir, views=views)
+    _warn_unused_frames(capture, obs, centres)
+    t_ibl = time.perf_counter()
+    lit = bool(np.max(np.asarray(obs.light_radiance), initial=0.0) > 0.0)
+    env = None
+    if model.ibl is not None or not lit:  # (read once: the tables and the check below share it)
+        env = capture_environment(capture)
+    if not lit and environment_is_dark(capture, env):
+        # (no environment at all was refused with the observations)
+        raise CaptureError(f"{capture.json_path}: no light reaches the mesh: the environment "
+                           f"{capture.environment.file} is black, and every light is off or points away")
+    centre_tables = None
+    if model.ibl == "per_pixel":
+        report = kwargs.get("progress")
+        parts = [obs] if centres is None else [centres, obs]
+        rows = np.cumsum([0] + [o.num_rows for o in parts])
+        both = pixel_ibl(env, np.concatenate([np.asarray(o.normal) for o in parts]),
+                         np.concatenate([np.asarray(o.view) for o in parts]), model, pixel_ibl_settings,
+                         cache_dir=cache_dir, progress=None if report is None else (
+                             lambda done, total: report(dict(stage="ibl", done=done, total=total))))
+        tables = dataclasses.replace(both, table=both.table[rows[-2]:])
+        if centres is not None:
+            centre_tables = dataclasses.replace(both, table=both.table[: rows[1]])
+    else:
+        tables = _ibl_for_capture(capture, model, env)
+    t_ibl = time.perf_counter() - t_ibl
+    result = fit_observations(obs, model=model, ibl=tables, setup_time=time.perf_counter() - t0, centres=centres,
+                              centre_ibl=centre_tables, select_footprint=select, **kwargs)
+    _check_finite(result, capture)
+    if skipped is not None:
+        result.report["footprint"] = dict(selected=1, skipped=skipped)
+    if model.ibl is not None:
+        result.report["ibl"] = dict(mode=model.ibl, seconds=t_ibl, **(
+            dataclasses.asdict(pixel_ibl_settings) if model.ibl == "per_pixel" else {}))
+    return result
+
+
+def _brightest_pixel(capture) -> tuple[float, int, int, int]:
+    """(|value|, frame, row, column) of the largest image value the fit may read (in a mask)."""
+    best = (0.0, 0, 0, 0)
+    for i, frame in enumerate(capture.frames):
+        values = np.where(frame.mask[..., None], np.abs(frame.image), 0.0)
+        if values.size and float(np.max(values)) > best[0]:
+            row, col, _ = np.unravel_index(int(np.argmax(values)), values.shape)
+            best = (float(values[row, col].max()), i, int(row), int(col))
+    return best
+
+
+def _check_brightness(capture) -> None:
+    """`CaptureError` naming the frame and pixel where an image value is too bright for the float32
+    solve: the sum of squared residuals over every pixel value would overflow float32 from that
+    value alone, |v| > sqrt(float32 max / n), n the pixel values the fit may read."""
+    n = 3 * max(sum(int(np.sum(f.mask)) for f in capture.frames), 1)
+    limit = math.sqrt(float(np.finfo(np.float32).max) / n)
+    value, i, row, col = _brightest_pixel(capture)
+    if value > limit:
+        raise CaptureError(
+            f"{capture.frames[i].file_path}: frames[{i}]: pixel value {value:.3g} at row {row}, column {col} is "
+            f"too bright for the float32 solve (squared and summed over the {n} pixel values it would "
+            f"overflow; at most {limit:.3g}); mask it out or bring the images nearer 1")
+
+
+def _check_finite(result: FitResult, capture) -> None:
+    """`CaptureError` where the fit came out NaN or inf: every input is finite float32, but the
+    solve squares and sums the residuals and their derivatives, so lights or an environment too
+    bright for it (a light of 1e20 cd, an environment pixel of 1e30; too bright images are
+    refused before the fit, `_check_brightness`) overflow it, and the maps or standard errors it
+    writes would be NaN."""
+    m = result.material
+    bad = [name for name, values in (("base_color", m.base_color), ("metallic", m.metallic),
+                                     ("roughness", m.roughness), ("normal", m.normal))
+           if values is not None and not np.all(np.isfinite(np.asarray(values)))]
+    seen = np.asarray(result.coverage) > 0
+    if np.any(np.isnan(np.asarray(result.uncertainty)[..., :5][seen])):
+        bad.append("uncertainty")
+    if not math.isfinite(result.report.get("final_loss", 0.0)):
+        bad.append("loss")
+    if not bad:
+        return
+    value, k, _, _ = _brightest_pixel(capture)
+    where = capture.json_path or capture.root
+    raise CaptureError(
+        f"{where}: the fit's {', '.join(bad)} came out NaN or beyond float32, as when the images or the light "
+        f"they are rendered with are too bright for the float32 solve once squared (brightest image value "
+        f"{value:.3g}, in frames[{k}] {Path(capture.frames[k].file_path).name}); bring them "
+        "nearer 1 (the images' values, the lights' intensity, the environment's intensity or exposure)")

@@ -1,0 +1,203 @@
+"""Solver runs compiled ahead of time, and the jitted evaluations a fit's passes share.
+
+`Runner` runs the fit's solver (the structured one, `pbrfit.fitting.solvers.structured.structured_lm`, or an
+optimistix one, `pbrfit.fitting.solvers.optx`) on a `pbrfit.fitting.objective.Problem`, compiled once per problem
+shape by `Compiler`, which can compile in a background thread while the fit does other work and
+keeps compile time apart from run time. `timed` runs any other jitted pass (the grid start, the
+coordinate search) the same way.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import contextlib
+import itertools
+import time
+from typing import Mapping
+
+import jax
+import numpy as np
+
+from .solvers.optx import OPTX_SOLVERS, make_solver, optx_solve
+from .objective import Problem, objective
+from .normal_matrix import neighbour_blocks, normal_blocks
+from .solvers.structured import CG_RTOL, structured_lm
+from ..transfer import to_device
+
+__all__ = ["DEFAULT_SOLVER", "SOLVERS", "Compiler", "Runner", "timed", "timed_rest", "thread_time", "problem_key",
+           "compile_summary", "jitted_normal_blocks", "jitted_neighbour_blocks", "problem_energy"]
+
+DEFAULT_SOLVER = "structured"
+#: Every solver a fit can run: the structured one (the default), then the optimistix ones.
+SOLVERS = (DEFAULT_SOLVER,) + OPTX_SOLVERS
+
+#: The per-texel blocks of JᵀJ, one jitted function for the repair, the uniform check, the
+#: preconditioner's scale and the uncertainty (one compile per problem shape).
+jitted_normal_blocks = jax.jit(normal_blocks)
+#: The blocks between neighbouring texels, for the uncertainty's windows (one compile per map size).
+jitted_neighbour_blocks = jax.jit(neighbour_blocks, static_argnums=2)
+
+
+def problem_energy(residuals, x, problem: Problem) -> float:
+    """The objective at x from its residuals (the prior's term evaluated where it is on)."""
+    if float(problem.smooth) > 0:
+        return float(jax.jit(objective)(to_device(x, np.float32), problem))
+    return 0.5 * float(np.sum(np.square(np.asarray(residuals, np.float64))))
+
+
+class Compiler:
+    """Ahead-of-time compilation, timed apart from the runs, each executable compiled once per key.
+
+    `prefetch` starts a compile in a background thread as soon as the arguments' shapes are
+    known, so that it overlaps the work before its first use (compiling is mostly single-threaded,
+    so a second core is idle meanwhile); `get` returns the executable, waiting for it if needed.
+    The thread compiles under the caller's default device, matmul precision and x64 setting
+    (JAX's contexts for them are thread-local). ``clock["compile"]`` gets the time the fit waits
+    for compiles, ``clock["compile_background"]`` the compile time the thread spent while the fit
+    did other work (its compile time less the wait)."""
+
+    def __init__(self, clock: dict, background: bool = True):
+        self.clock, self.background = clock, background
+        self.clock.setdefault("compile", 0.0)
+        self.executor = None
+        self.pending, self.done = {}, {}
+
+    def prefetch(self, key, fn, *args, **kwargs) -> None:
+        if not self.background or key in self.pending or key in self.done:
+            return
+        if self.executor is None:
+            self.executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pbrfit-compile")
+        config = jax.config
+        device, precision, x64 = (config.jax_default_device, config.jax_default_matmul_precision,
+                                  config.jax_enable_x64)
+
+        def work():
+            with jax.default_device(device), jax.default_matmul_precision(precision), jax.enable_x64(x64):
+                t0 = time.perf_counter()
+                compiled = fn.lower(*args, **kwargs).compile()
+                return compiled, time.perf_counter() - t0
+
+        self.pending[key] = self.executor.submit(work)
+
+    def get(self, key, fn, *args, **kwargs):
+        if key in self.done:
+            return self.done[key]
+        t0 = time.perf_counter()
+        future = self.pending.pop(key, None)
+        if future is None:
+            compiled = fn.lower(*args, **kwargs).compile()
+        else:
+            compiled, took = future.result()
+            overlapped = max(took - (time.perf_counter() - t0), 0.0)
+            self.clock["compile_background"] = self.clock.get("compile_background", 0.0) + overlapped
+        self.clock["compile"] += time.perf_counter() - t0
+        self.done[key] = compiled
+        return compiled
+
+    def close(self) -> None:
+        """Stop: compiles not started are dropped; a running one finishes in its thread, unwaited."""
+        if self.executor is not None:
+            self.executor.shutdown(wait=False, cancel_futures=True)
+            self.executor = None
+        self.pending.clear()
+
+
+def compile_summary(times: Mapping[str, float]) -> str:
+    """A report's compile times in words: waited for, and compiled meanwhile in the background."""
+    text = f"compile {times.get('compile', 0.0):.1f} s"
+    if times.get("compile_background", 0.0) > 0.0:
+        text += f", {times['compile_background']:.1f} s more overlapped"
+    return text
+
+
+def problem_key(problem: Problem) -> tuple:
+    """What an executable over `problem` is specialised to: rows per pixel and the shapes."""
+    return (problem.obs.samples, tuple(problem.index.shape), tuple(problem.free.shape), tuple(problem.pairs.shape))
+
+
+#: Clock entries that are not time on the fit's own thread (`Compiler`'s overlapped compiles).
+_OFF_THREAD = ("compile_background",)
+
+
+def thread_time(clock: Mapping[str, float]) -> float:
+    """The time ``clock``'s entries spent on the fit's own thread (all but `Compiler`'s overlapped
+    compiles, which ran beside it)."""
+    return sum(v for k, v in clock.items() if k not in _OFF_THREAD)
+
+
+@contextlib.contextmanager
+def timed_rest(clock: dict, name: str):
+    """Add to ``clock[name]`` the wall time of the block that no other entry of ``clock`` took
+    meanwhile: a stage's own work (its host-side steps and jitted evaluations compiled on first
+    use), with its solver steps, searches and waited-for compiles counted where they are."""
+    before, t0 = thread_time(clock), time.perf_counter()
+    try:
+        yield
+    finally:
+        rest = (time.perf_counter() - t0) - (thread_time(clock) - before)
+        clock[name] = clock.get(name, 0.0) + max(rest, 0.0)
+
+
+def timed(compiler: Compiler, key, fn, name: str, *args):
+    """Run `fn` compiled ahead of time (`Compiler.get`) and add the run time to ``clock[name]``."""
+    compiled = compiler.get(key, fn, *args)
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(compiled(*args))
+    compiler.clock[name] = compiler.clock.get(name, 0.0) + time.perf_counter() - t0
+    return out
+
+
+class Runner:
+    """Runs a solver, compiled ahead of time once per problem shape (`Compiler`): once per fit,
+    or twice when the start runs on pixel centres (`pbrfit.fitting.api.fit_observations`); an optimistix solver
+    also once per step budget (its loop length is static)."""
+
+    def __init__(self, solver, rtol, atol, progress, compiler: Compiler, cg_rtol: float = CG_RTOL):
+        self.solver, self.rtol, self.atol, self.progress, self.compiler = solver, rtol, atol, progress, compiler
+        self.cg_rtol = float(cg_rtol)
+        self.clock = compiler.clock
+        # an optimistix solver reports each evaluation of the objective, numbered here from 0 in
+        # every run (one lambda per runner: the compiled solve keeps the one it was traced with)
+        self.evaluations = itertools.count()
+        self.tick = None if progress is None else (lambda value: progress(next(self.evaluations), value))
+
+    def _call(self, x0, problem, steps, num_free):
+        """(key, fn, args, kwargs, optimistix solver or None) of a run."""
+        if self.solver == DEFAULT_SOLVER:
+            args = (x0, problem, to_device(steps, np.int32), self.rtol, self.atol)
+            # cg_rtol as an array: one executable serves every tolerance
+            kwargs = dict(cg_rtol=to_device(self.cg_rtol, np.float32), progress=self.progress)
+            return ("structured",) + problem_key(problem), structured_lm, args, kwargs, None
+        opt, is_ls = make_solver(self.solver, self.rtol, self.atol, num_free)
+        key = (type(opt).__name__, steps) + problem_key(problem)
+        return key, optx_solve, (x0, problem, opt, is_ls, steps, self.tick), {}, opt
+
+    def prefetch(self, x0, problem, num_free) -> None:
+        """Start compiling the structured solver for `problem` in the background (its step
+        budget is an argument; an optimistix solver's is not known yet, so it is not)."""
+        if self.solver == DEFAULT_SOLVER:
+            key, fn, args, kwargs, _ = self._call(x0, problem, 0, num_free)
+            self.compiler.prefetch(key, fn, *args, **kwargs)
+
+    def __call__(self, x0, problem, steps, num_free):
+        self.evaluations = itertools.count()
+        key, fn, args, kwargs, opt = self._call(x0, problem, steps, num_free)
+        compiled = self.compiler.get(key, fn, *args, **kwargs)
+        t0 = time.perf_counter()
+        out = compiled(*args, **kwargs)
+        x = np.asarray(jax.block_until_ready(out[0]))
+        self.clock["solve"] += time.perf_counter() - t0
+        if opt is None:
+            s = out[1]
+            info = dict(steps=int(s.steps), accepted=int(s.accepted), cg_iterations=int(s.cg_iterations))
+            self.linearization = (out[2], out[3])
+        else:
+            info = dict(steps=int(out[1]), result=int(out[2]), method=type(opt).__name__)
+            self.linearization = None
+        return x, info
+
+    def jacobian(self, x, problem, num_free):
+        """Per-pixel Jacobians (P, 3, K) at x: the structured solver's step 0, which only
+        linearises (compiled already for the solve)."""
+        self(x, problem, 0, num_free)
+        return self.linearization[1]

@@ -1,0 +1,175 @@
+"""Sharding a fit over several devices: pixels split, texels replicated.
+
+The solver's work is per pixel: every step renders each pixel, takes its 3 × 5 Jacobian by
+forward mode and scatters w_pk J_pᵀ r_p and w_pk² J_pᵀ J_p onto its texels
+(`pbrfit.fitting.objective`, `pbrfit.fitting.normal_matrix`). The per-texel arrays (T × 5 values, their 5 × 5
+blocks, the CG vectors) are small next to the per-pixel ones (P × 3 × 5 Jacobians, with P in the
+millions for a real capture). So the scheme is data parallel over pixels:
+
+- every per-pixel array of a `Problem` (the `Observations` fields, the (P, 4) texel `index`
+  and `weight`, per-pixel IBL integrals) is split along its leading axis over a one-axis
+  device mesh named ``"pixels"`` (`PartitionSpec("pixels")`);
+- everything else (free mask, smoothness pairs, scalars, split-sum tables) is replicated.
+
+Nothing in the solver changes: under `jax.jit`, XLA partitions the per-pixel work across
+devices, and each texel-space `segment_sum` becomes a per-device partial sum followed by an
+all-reduce, so every device holds the full (replicated) texel-space state of the
+Levenberg-Marquardt loop and its conjugate gradients.
+
+Padding. A mesh of n devices needs P to be a multiple of n (the rows, a multiple of n × the
+samples per pixel, so that no pixel's samples straddle two devices). `pad_observations` appends
+inert pixels: normal +z, view -z (so n·v = -1 < 0, where `pbrfit.render.shade.shade` returns exactly 0 for
+the punctual lights and the split-sum environment alike, through a `jnp.where` whose forward-
+mode tangent is exactly 0 too), lights of zero radiance along +x (n·l = 0, v·l = 0: no
+singular half vector even in the branch `where` discards), uv 0, exposure 0, target 0 and
+residual weight 0.
+Every tone map and both colour spaces send radiance 0 to 0 (`pbrfit.physics.color.encode`; the
+ACES Hill fit maps 0 slightly below 0 and clips), and every robust loss keeps r = 0 at 0, so a
+padded pixel's residual and Jacobian are exactly zero: E(x), its gradient and the normal
+blocks are unchanged. Padded pixels belong to no view: ``view_index = pixel = -1``.
+`pad_layout` pads a `TexelLayout` to match with texel 0 and weight 0, so padded pixels add
+nothing to texel sums (nor to `coverage_counts`) even where their Jacobian would not be 0.
+Build layouts from the real observations and pad them; a layout computed from padded
+observations would give the padded pixels bilinear weights at uv 0.
+
+Results that are per pixel (the solver's residuals and Jacobians) come back padded; their
+first ``num_real`` rows are the real pixels, in the original order. With several samples per
+pixel, ``num_real`` counts rows: the residuals (one per pixel) have ``num_real / samples`` real
+rows, the Jacobians (one per sample) ``num_real``.
+
+`shard_problem` places host or single-device arrays with `jax.device_put`, so it is for one
+process driving all the mesh's devices (one host, several GPUs or CPU devices).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jaxtyping import Array, Float, Int
+
+from .observations import PIXEL_FIELDS, Observations, TexelLayout
+from .objective import Problem
+
+__all__ = ["PIXEL_AXIS", "PAD_NORMAL", "PAD_VIEW", "PAD_LIGHT", "padded_size", "pad_observations", "pad_pixel_rows",
+           "pad_layout", "pixel_mesh", "pixel_sharding", "shard_problem"]
+
+#: Name of the mesh axis the pixels are split over.
+PIXEL_AXIS = "pixels"
+#: Geometry of a padded pixel: n·v = -1 (nothing is shaded) and n·l = v·l = 0.
+PAD_NORMAL = (0.0, 0.0, 1.0)
+PAD_VIEW = (0.0, 0.0, -1.0)
+PAD_LIGHT = (1.0, 0.0, 0.0)
+
+#: Tangent frame of a padded pixel: a normal map tilts its normal within z > 0, so n·v stays < 0.
+PAD_TANGENT = (1.0, 0.0, 0.0, 1.0)
+
+
+def padded_size(count: int, multiple: int) -> int:
+    """The smallest multiple of `multiple` that is at least `count`."""
+    if multiple < 1:
+        raise ValueError(f"multiple must be a positive integer, got {multiple!r}")
+    return -(-int(count) // multiple) * multiple
+
+
+def _append(a, extra: int, fill) -> np.ndarray:
+    """`a` (on the host) with `extra` rows of `fill` (broadcast to a row) appended along axis 0."""
+    a = np.asarray(a)
+    pad = np.broadcast_to(np.asarray(fill, a.dtype), (extra,) + a.shape[1:])
+    return np.concatenate([a, pad], axis=0)
+
+
+def _padded_pixel_fields(obs: Observations, multiple: int) -> dict:
+    """The per-pixel fields of `obs` padded on the host (empty when no padding is needed)."""
+    extra = padded_size(obs.num_rows, multiple * obs.samples) - obs.num_rows
+    if extra == 0:
+        return {}
+    fills = dict(normal=PAD_NORMAL, tangent=PAD_TANGENT, view=PAD_VIEW, light_l=PAD_LIGHT, light_radiance=0.0, uv=0.0, exposure=0.0,
+                 target=0.0, residual_weight=0.0, view_index=-1, pixel=-1)
+    return {name: _append(getattr(obs, name), extra, fills[name]) for name in PIXEL_FIELDS}
+
+
+def _padded_texel_rows(index, weight, multiple: int) -> tuple[np.ndarray, np.ndarray]:
+    extra = padded_size(index.shape[0], multiple) - index.shape[0]
+    return _append(index, extra, 0), _append(weight, extra, 0.0)
+
+
+def pad_observations(obs: Observations, multiple: int) -> tuple[Observations, int]:
+    """Pad the pixel axis to a multiple of `multiple` with inert pixels (module docstring).
+
+    Returns the padded observations and the number of real rows (the first rows; pixels × samples
+    per pixel, padded to a multiple of `multiple` pixels). Padded
+    pixels have zero residual and zero Jacobian in `pbrfit.fitting.objective.pixel_residuals` and
+    `linearize` for every model, environment, tone map, colour space and loss.
+    """
+    padded = _padded_pixel_fields(obs, multiple)
+    return dataclasses.replace(obs, **{k: jnp.asarray(v) for k, v in padded.items()}), obs.num_rows
+
+
+def pad_pixel_rows(
+    index: Int[Array, "P 4"], weight: Float[Array, "P 4"], multiple: int, samples: int = 1
+) -> tuple[Int[Array, "Q 4"], Float[Array, "Q 4"]]:
+    """Texel indices and weights padded like `pad_observations` (of observations with `samples`
+    rows per pixel): texel 0 with weight 0."""
+    index, weight = _padded_texel_rows(index, weight, multiple * samples)
+    return jnp.asarray(index), jnp.asarray(weight)
+
+
+def pad_layout(layout: TexelLayout, multiple: int, samples: int = 1) -> TexelLayout:
+    """A `TexelLayout` padded to match `pad_observations(obs, multiple)` (`samples`: the
+    observations' rows per pixel)."""
+    index, weight = pad_pixel_rows(layout.index, layout.weight, multiple, samples)
+    return TexelLayout(index, weight, layout.shape)
+
+
+def pixel_mesh(devices: Optional[Sequence[jax.Device]] = None) -> Mesh:
+    """A one-axis mesh named ``"pixels"`` over `devices` (default: all of `jax.devices()`)."""
+    devices = jax.devices() if devices is None else list(devices)
+    if not devices:
+        raise ValueError("pixel_mesh needs at least one device")
+    return Mesh(np.asarray(devices, dtype=object), (PIXEL_AXIS,))
+
+
+def pixel_sharding(mesh: Mesh) -> NamedSharding:
+    """Split the leading (pixel) axis over the mesh's ``"pixels"`` axis."""
+    return NamedSharding(mesh, PartitionSpec(PIXEL_AXIS))
+
+
+def _put(tree, sharding: NamedSharding):
+    return jax.tree_util.tree_map(lambda a: jax.device_put(a, sharding) if eqx.is_array(a) else a, tree)
+
+
+def shard_problem(problem: Problem, mesh: Mesh) -> Problem:
+    """`problem` with its pixels split over `mesh` and everything else replicated on it.
+
+    The pixel axis is padded with inert pixels (`pad_observations`, `pad_pixel_rows`) to a
+    multiple of the mesh's size along ``"pixels"``; the real pixels are the first
+    ``problem.obs.num_pixels`` rows. The objective, its gradient, the normal blocks and hence
+    the solution of `pbrfit.fitting.solvers.structured.structured_lm` are those of `problem` (to float32 round-off:
+    sums run in a different order).
+    """
+    n = int(mesh.shape[PIXEL_AXIS])
+    rows = pixel_sharding(mesh)
+    whole = NamedSharding(mesh, PartitionSpec())
+    # Padding is done on the host and the padded arrays go straight to their shards.
+    obs = problem.obs
+    pixel_fields = {name: getattr(obs, name) for name in PIXEL_FIELDS}
+    pixel_fields.update(_padded_pixel_fields(obs, n))
+    obs = dataclasses.replace(obs, **{k: jax.device_put(v, rows) for k, v in pixel_fields.items()})
+    index, weight = problem.index, problem.weight
+    if padded_size(index.shape[0], n * obs.samples) != index.shape[0]:
+        index, weight = _padded_texel_rows(index, weight, n * obs.samples)
+    changes = dict(obs=obs, index=jax.device_put(index, rows), weight=jax.device_put(weight, rows))
+    if problem.model.ibl == "per_pixel":  # per-pixel integrals go with their pixels (zero for padding)
+        count = padded_size(problem.ibl.num_pixels, n * obs.samples)
+        table = _append(problem.ibl.table, count - problem.ibl.num_pixels, 0.0)
+        changes["ibl"] = dataclasses.replace(problem.ibl, table=jax.device_put(table, rows))
+    for field in dataclasses.fields(problem):
+        if field.name not in changes and not field.metadata.get("static", False):
+            changes[field.name] = _put(getattr(problem, field.name), whole)
+    return dataclasses.replace(problem, **changes)

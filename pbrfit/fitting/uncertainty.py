@@ -1,0 +1,203 @@
+"""Per-texel standard errors from the Gauss-Newton normal matrix at the solution.
+
+Near the optimum of a least-squares problem with independent residual noise of variance σ², the
+covariance of the estimate is σ² (JᵀJ)⁻¹ (e.g. Nocedal & Wright, "Numerical Optimization",
+2nd ed., section 10.3; Hartley & Zisserman, section 5.2). We keep the per-texel 5 × 5 diagonal
+blocks D_t of JᵀJ (`pbrfit.fitting.normal_matrix.normal_blocks`) restricted to the fitted channels, invert
+them, and scale by the residual variance σ̂² = 2 E / (residuals - parameters). Inverting a block
+alone gives each texel's error with its neighbours held at their values: pixels read four texels
+at once (bilinear filtering), so a texel trades off against its neighbours, and the errors come
+out optimistic (the conditional variance, not the marginal one).
+
+`window_standard_errors` takes that coupling in: for each texel it builds the normal matrix of
+the (2r + 1)² texels around it from the diagonal blocks and the neighbour blocks
+(`pbrfit.fitting.normal_matrix.neighbour_blocks`), and inverts it. The texel's block of that inverse is
+(D_t - B_t S_t⁻¹ B_tᵀ)⁻¹, with S_t the other texels' matrix and B_t their coupling to t (a Schur
+complement): the texel's error with the window's other texels free and the texels beyond it
+held. The errors grow with r, from the per-texel blocks' (r = 0) towards the marginal
+σ² diag((JᵀJ)⁻¹) of the whole map: for a positive definite A whose principal submatrix W holds
+the window, the window's part of A⁻¹ is (W - X)⁻¹ with X ⪰ 0 the Schur term of the texels
+outside it, hence ⪰ W⁻¹ (the partitioned inverse; e.g. Horn & Johnson, "Matrix Analysis", on the
+Schur complement), and a wider window is a larger principal submatrix. On data_synth's flash
+scene at 4 views of 32² and an 8 × 8 map, whose matrix can be inverted whole, r = 0 gives a
+median 83% of the marginal σ, r = 1 98% and r = 2 99.9%.
+`experiments/uncertainty.py` measures the calibration of each r against the spread of repeated
+fits under fresh noise.
+
+A channel that sits on a bound of its range is held by the projected solver
+(`pbrfit.fitting.solvers.structured`): `window_standard_errors` then holds it for the other channels' errors as
+well (``pinned``). Counted as free, a binary metallic map at 0 and 1 widened base colour's σ
+on the flash scene until the fits scattered by 0.62 σ (experiments/uncertainty.md).
+
+A direction the images do not constrain (a channel no view separates, e.g. roughness where no
+highlight is ever seen) has a tiny eigenvalue: its σ is large, and +inf when the eigenvalue is
+below `EIGEN_FLOOR` of the block's largest. Fixed channels get 0, unobserved texels +inf.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["EIGEN_FLOOR", "MAX_UNCERTAINTY_RADIUS", "WINDOW_RADIUS", "block_standard_errors", "residual_variance",
+           "window_precisions", "window_radii", "window_standard_errors"]
+
+#: Eigenvalues below this fraction of a block's largest count as unconstrained (float32 round-off
+#: of JᵀJ sits near 1e-7 relative; 1e-10 in the float64 inversion keeps only exact degeneracies).
+EIGEN_FLOOR = 1e-10
+#: The default window radius of `window_standard_errors` (`fit`'s ``uncertainty_radius``).
+WINDOW_RADIUS = 1
+#: The largest radius `fit` takes: a window of (2 r + 1)² texels costs about ((2 r + 1)² K)³ / 3
+#: per texel, host float64 (K = 5 on this 2-core CPU: r = 1 0.12 s and r = 2 about 1 s for a
+#: 64² map, 256 times that at 1024²; r = 3 would take hours at 256²).
+MAX_UNCERTAINTY_RADIUS = 2
+#: Ridge added to the window's Jacobi-scaled matrix (unit diagonal) before it is solved: keeps a
+#: direction no pixel constrains (whose coupling is zero as well) from making it singular, at the
+#: float32 round-off of the blocks (about 1e-7), below which a direction cannot be told from one
+#: the pixels leave free.
+WINDOW_RIDGE = 1e-6
+#: Bytes of window matrices assembled at once (float64).
+_WINDOW_CHUNK_BYTES = 1 << 26
+
+
+def residual_variance(loss: float, residual_count: int, parameter_count: int) -> float:
+    """σ̂² = 2 E / (n - p): the unbiased noise estimate of a least-squares fit."""
+    dof = max(residual_count - parameter_count, 1)
+    return 2.0 * float(loss) / dof
+
+
+def block_standard_errors(blocks: np.ndarray, channels: np.ndarray, seen: np.ndarray, sigma2: float) -> np.ndarray:
+    """(T, K) one-sigma errors from (T, K, K) normal-matrix blocks, the (K,) fitted-channel mask
+    and the (T,) observed-texel mask (K = 5, or 7 with normals).
+
+    σ_c² = σ̂² Σ_k V_ck² / e_k over the eigenpairs (e_k, V_k) of the block restricted to the
+    fitted channels; 0 for fixed channels; +inf for fitted channels of texels no pixel reads.
+    """
+    blocks = np.asarray(blocks, np.float64)
+    free = np.broadcast_to(np.asarray(channels, bool), blocks.shape[:2])
+    seen = np.asarray(seen, bool)
+    mask2 = free[:, :, None] & free[:, None, :] & seen[:, None, None]  # (nothing of an unseen texel is read)
+    eye = np.eye(blocks.shape[1])
+    b = np.where(mask2, blocks, 0.0) + np.where(free, 0.0, 1.0)[:, :, None] * eye
+    broken = ~np.all(np.isfinite(b), axis=(1, 2))  # an overflowed solve's blocks: NaN out (`pbrfit.fit` refuses it)
+    e, v = np.linalg.eigh(np.where(broken[:, None, None], eye, b))
+    top = np.max(np.abs(e), axis=1, keepdims=True)
+    ok = e > EIGEN_FLOOR * np.maximum(top, np.finfo(np.float64).tiny)
+    inv_e = np.where(ok, 1.0 / np.where(ok, e, 1.0), np.inf)
+    # Σ_k V_ck² / e_k, with 0 · inf taken as 0 (a degenerate direction that misses channel c).
+    with np.errstate(invalid="ignore"):  # (and a NaN σ̂² from an overflowed solve: `pbrfit.fit` refuses it)
+        contrib = np.where(v * v > 0, v * v * inv_e[:, None, :], 0.0)
+        total = np.sum(contrib, axis=2)
+        # a direction no pixel constrains is unknown even where the fit is exact (σ̂² = 0): +inf, not 0 · inf
+        out = np.where(np.isposinf(total), np.inf, np.sqrt(sigma2 * np.where(np.isposinf(total), 0.0, total)))
+    out = np.where(seen[:, None], np.where(broken[:, None], np.nan, out), np.inf)
+    return np.where(free, out, 0.0).astype(np.float32)
+
+
+def window_radii(shape: tuple[int, int], radius: int) -> tuple[int, int]:
+    """The window's half sizes (r_i, r_j) on an (H, W) map: at most `radius`, and small enough
+    that the window's texels are distinct and that none of them is a neighbour of another through
+    the map's wrap unless it is one inside the window (2 r + 2 <= H)."""
+    h, w = shape
+    return max(0, min(radius, (h - 2) // 2)), max(0, min(radius, (w - 2) // 2))
+
+
+def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[int, int], channels: np.ndarray,
+                      seen: np.ndarray, radius: int) -> np.ndarray:
+    """(T, K, K) precision of each texel's channels with the other texels of its window free:
+    P_t = D_t - B_t S_t⁻¹ B_tᵀ (float64), from the diagonal blocks D (T, K, K), the neighbour
+    blocks C (T, 4, K, K) of `pbrfit.fitting.normal_matrix.neighbour_blocks`, the (K,) or (T, K) fitted-channel mask and
+    the (T,) observed-texel mask. Fixed channels and unobserved texels take no part (their rows
+    are replaced by the identity). S is Jacobi-scaled and gets a `WINDOW_RIDGE` before the solve."""
+    h, w = shape
+    t, k = blocks.shape[0], blocks.shape[1]
+    ri, rj = window_radii(shape, radius)
+    # the texel itself first, so that its channels are the window matrix's first K rows
+    offsets = [(0, 0)] + [(di, dj) for di in range(-ri, ri + 1) for dj in range(-rj, rj + 1) if (di, dj) != (0, 0)]
+    n = len(offsets)
+    if n == 1:
+        return np.asarray(blocks, np.float64)
+    from .normal_matrix import NEIGHBOUR_OFFSETS
+
+    codes = {o: q for q, o in enumerate(NEIGHBOUR_OFFSETS)}
+    # each (a, b) block of a window's matrix: D of texel a, C of texel a towards b, or C of b
+    # towards a transposed (blocks further apart are zero)
+    diag_ab, ahead, behind = [], [], []  # (a, b), and (a, b, code) for the other two
+    for a, (ai, aj) in enumerate(offsets):
+        for b, (bi, bj) in enumerate(offsets):
+            rel = (bi - ai, bj - aj)
+            if rel == (0, 0):
+                diag_ab.append((a, b))
+            elif rel in codes:
+                ahead.append((a, b, codes[rel]))
+            elif (-rel[0], -rel[1]) in codes:
+                behind.append((a, b, codes[(-rel[0], -rel[1])]))
+    diag_ab, ahead, behind = (np.array(v, np.intp) for v in (diag_ab, ahead, behind))
+    q = len(NEIGHBOUR_OFFSETS)
+    free = np.asarray(channels, bool)
+    seen = np.asarray(seen, bool)
+    rows, cols = np.divmod(np.arange(t), w)
+
+    def texels(at, steps):  # (len(at), len(steps)): the texels the steps lead to, wrapped
+        return np.stack([((rows[at] + di) % h) * w + (cols[at] + dj) % w for di, dj in steps], axis=1)
+
+    # rows and columns that take no part are zeroed here, so that nothing in them (a non-finite
+    # derivative of a fixed channel) reaches the window's solve
+    part = seen[:, None] & np.broadcast_to(free, (t, k))  # (T, K)
+    towards = texels(slice(None), NEIGHBOUR_OFFSETS)
+    blocks = np.where(part[:, :, None] & part[:, None, :], blocks, 0.0)
+    flat = np.where(part[:, None, :, None] & part[towards][:, :, None, :], couplings, 0.0).reshape(t * q, k, k)
+    out = np.empty((t, k, k))
+    chunk = max(1, _WINDOW_CHUNK_BYTES // (8 * n * n * k * k))
+    rest = np.arange(k, n * k)
+    for lo in range(0, t, chunk):
+        ts = np.arange(lo, min(t, lo + chunk))
+        u = texels(ts, offsets)  # (c, n)
+        # assembled in place as (c, n, K, n, K), the layout of the (c, n K, n K) window matrix: the
+        # (a, b) blocks, indexed by two arrays around a slice, take values shaped (pairs, c, K, K)
+        m = np.zeros((len(ts), n, k, n, k))
+        m[:, diag_ab[:, 0], :, diag_ab[:, 1]] = np.moveaxis(blocks[u[:, diag_ab[:, 0]]], 1, 0)
+        m[:, ahead[:, 0], :, ahead[:, 1]] = np.moveaxis(flat[u[:, ahead[:, 0]] * q + ahead[:, 2]], 1, 0)
+        m[:, behind[:, 0], :, behind[:, 1]] = np.moveaxis(
+            np.swapaxes(flat[u[:, behind[:, 1]] * q + behind[:, 2]], -1, -2), 1, 0)
+        m = m.reshape(len(ts), n * k, n * k)
+        on = part[u].reshape(len(ts), n * k)
+        diag = np.diagonal(m, axis1=1, axis2=2)
+        live = on & (diag > 0)  # a row of JᵀJ with a zero diagonal is zero (positive semi-definite)
+        # Jacobi scaling, 0 for the rows that take no part (the identity's, below)
+        scale = np.where(live, 1.0 / np.sqrt(np.where(live, diag, 1.0)), 0.0)
+        m *= scale[:, :, None]
+        m *= scale[:, None, :]
+        m[:, np.arange(k), np.arange(k)] = 1.0  # the unit diagonal
+        m[:, rest, rest] = 1.0 + WINDOW_RIDGE  # and S's, with the ridge
+        b = m[:, :k, k:]
+        p = m[:, :k, :k] - b @ np.linalg.solve(m[:, k:, k:], np.swapaxes(b, 1, 2))
+        p = 0.5 * (p + np.swapaxes(p, 1, 2))
+        keep = live[:, :k]
+        own = np.where(keep, scale[:, :k], 1.0)
+        out[ts] = np.where(keep[:, :, None] & keep[:, None, :], p / own[:, :, None] / own[:, None, :], 0.0)
+    return out
+
+
+def window_standard_errors(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[int, int], channels: np.ndarray,
+                           seen: np.ndarray, sigma2: float, radius: int = WINDOW_RADIUS,
+                           pinned: np.ndarray | None = None) -> np.ndarray:
+    """(T, K) one-sigma errors with each texel's (2 r + 1)² window free (`window_precisions`),
+    as `block_standard_errors` reads a block; never below the per-texel blocks' own (which
+    they bound from below in exact arithmetic: where the neighbour blocks leave out couplings
+    between texels further apart, the window's matrix is not exactly JᵀJ's). ``radius`` 0 gives
+    `block_standard_errors`. ``channels`` is (K,) or per texel (T, K).
+
+    ``pinned`` (T, K), optional: fitted channels that sit on a bound of their range, where a
+    projected solver holds them (metallic at 0 or 1, a base colour at 1). The other channels'
+    errors are then those with the pinned ones held, as the solver's estimate is; a pinned
+    channel's own error stays that with every channel free (its estimate is one-sided)."""
+    free = np.broadcast_to(np.asarray(channels, bool), np.asarray(blocks).shape[:2])
+    if pinned is not None and np.any(pinned & free):
+        everyone = window_standard_errors(blocks, couplings, shape, free, seen, sigma2, radius)
+        held = window_standard_errors(blocks, couplings, shape, free & ~pinned, seen, sigma2, radius)
+        return np.where(pinned & free, everyone, held)
+    own = block_standard_errors(blocks, free, seen, sigma2)
+    if radius <= 0:
+        return own
+    precisions = window_precisions(blocks, couplings, shape, free, seen, radius)
+    return np.maximum(block_standard_errors(precisions, free, seen, sigma2), own)

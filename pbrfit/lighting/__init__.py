@@ -1,0 +1,9 @@
+"""How environment light reaches a point: the environment map (`environment`), the split
+sum's tables and LUT (`brdf_lut`, `ibl`), per-pixel lobe integrals (`lobe_integrals`,
+`pixel_ibl`) and the Monte Carlo reference integrator (`sampling`, `montecarlo`) the others are
+measured against.
+
+May import: `pbrfit.physics`, `pbrfit.io`.
+"""
+
+from . import brdf_lut, environment, ibl, lobe_integrals, montecarlo, pixel_ibl, sampling

@@ -1,0 +1,20 @@
+"""The fixed geometry and what is known of it: the capture (`capture`, `capture_cameras`,
+`capture_frames`: `capture.json` read and checked, every error named), cameras, meshes and glTF
+reading, uv layout, ray casting and the per-view G-buffers computed once.
+
+May import: `pbrfit.physics`, `pbrfit.io`, `pbrfit.lighting`.
+"""
+
+from . import (
+    camera,
+    capture,
+    capture_cameras,
+    capture_frames,
+    gbuffer,
+    gltf_accessors,
+    gltf_geometry,
+    gltf_read,
+    mesh,
+    raycast,
+    uv_layout,
+)
