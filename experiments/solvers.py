@@ -191,7 +191,8 @@ def _oracle(obs, model, ibl, truth, resolution, max_steps=40):
 def run(scenes, configs):
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
-    from pbrfit.fitting.api import _ibl_for_capture, fit_observations, model_for_capture
+    from pbrfit.fitting.api import _ibl_for_capture, fit_observations
+    from pbrfit.render.views import model_for_capture
     from pbrfit.io.material_files import read_material
     from pbrfit.fitting.observations import observations_from_capture
     from pbrfit.scene.capture import load_capture

@@ -47,6 +47,7 @@ _LAZY = {
     "compute_gbuffer": ("scene.gbuffer", "compute_gbuffer"),
     "render_capture": ("render.views", "render_capture"),
     "fit": ("fitting.api", "fit"),
+    "FitOptions": ("fitting.options", "FitOptions"),
     "FitResult": ("fitting.result", "FitResult"),
     "PixelIBLSettings": ("lighting.pixel_ibl", "PixelIBLSettings"),
     "read_material": ("io.material_files", "read_material"),

@@ -77,6 +77,7 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
 
     from .fit_command import run_fit
     from ..errors import CaptureError, listed
+    from ..fitting.options import FitOptions
     from ..fitting.runner import compile_summary
     from ..io.atomic import check_output_dir
     from ..io.material_files import read_material
@@ -103,7 +104,7 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
     t_synth = time.perf_counter() - start
     capture = load_capture(out / "capture")
     say(f"  capture written to {out / 'capture'} in {t_synth:.1f} s; fitting ...")
-    result, _ = run_fit(capture, out / "fit", {}, default_cache_dir(), quiet)
+    result, _ = run_fit(capture, out / "fit", FitOptions(), default_cache_dir(), quiet)
     seen = np.asarray(result.coverage) > 0
     truth = read_material(capture.truth_dir)
     r = result.report

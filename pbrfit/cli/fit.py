@@ -17,6 +17,7 @@ def add_fit(sub) -> None:
     from ..fitting.observations import MAX_PIXEL_SAMPLES
     from ..lighting.pixel_ibl import PixelIBLSettings
     from ..fitting.objective import LOSSES
+    from .model_flag import add_model_argument
 
     p = sub.add_parser("fit", help="fit base color, metallic and roughness maps to a capture")
     p.add_argument("capture", help="capture folder, capture.json or NeRF-style transforms.json")
@@ -98,6 +99,7 @@ def add_fit(sub) -> None:
     p.add_argument("--continuation", metavar="W[,W...]",
                    help="weights of the smoothness prior over the first steps, relative to the data's curvature, "
                         f"released before the end (default {default_continuation()}; 'none' turns it off)")
+    add_model_argument(p)
     p.add_argument("--devices", type=int,
                    help="split the pixels over this many JAX devices (default: one device)")
     p.add_argument("--cache", help="G-buffer and per-pixel IBL cache folder (default $PBRFIT_CACHE, else $XDG_CACHE_HOME/pbrfit, else ~/.cache/pbrfit)")
@@ -105,17 +107,14 @@ def add_fit(sub) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary line; warnings and errors still print")
 
 
-def fit_options(args) -> dict:
-    """Keyword arguments of `pbrfit.fitting.api.fit` from the command line (errors name the option)."""
-    from ..fitting.options import LOSS_SCALE, MATERIAL_MAPS, OptionNames, check_options, fit_arguments
-    from ..fitting.passes import COARSE_STEPS
+def fit_options(args):
+    """The `pbrfit.FitOptions` of the command line (errors name the flag)."""
+    from ..fitting.options import MATERIAL_MAPS, FitOptions, OptionNames
     from ..fitting.runner import DEFAULT_SOLVER
     from ..io.material_files import read_map
     from ..fitting.observations import MAX_PIXEL_SAMPLES
     from ..lighting.pixel_ibl import MAX_LEVELS, MAX_SAMPLES, MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
-    from ..fitting.solvers.structured import CG_RTOL
-    from ..fitting.stages.unconstrained import UNCONSTRAINED_SIGMA
-    from ..fitting.uncertainty import WINDOW_RADIUS
+    from .model_flag import model_changes
 
     fixed, held_by = {}, {}
     if args.base_color is not None:
@@ -148,21 +147,6 @@ def fit_options(args) -> dict:
             raise CaptureError(f"{flag}: only the {DEFAULT_SOLVER} solver uses it, not --solver {args.solver}")
         if given and flag == "--continuation" and args.maps == "none":
             raise CaptureError(f"{flag}: --maps none fits one uniform material (1 x 1 maps)")
-    names = OptionNames(flags=True, held_by=held_by)
-    try:  # the checks `pbrfit.fit` makes, worded with the flags
-        free, fixed = fit_arguments(args.fit, fixed, names)
-        check_options(resolution=args.resolution, maps=args.maps, solver=args.solver, max_steps=args.max_steps,
-                      coarse_steps=COARSE_STEPS, rtol=args.rtol, atol=args.atol,
-                      cg_rtol=CG_RTOL if args.cg_rtol is None else args.cg_rtol,
-                      loss_scale=LOSS_SCALE if args.loss_scale is None else args.loss_scale,
-                      smooth=args.smooth, coarse_to_fine=args.coarse_to_fine,
-                      continuation=continuation if args.continuation is not None else None,
-                      uncertainty_radius=WINDOW_RADIUS if args.uncertainty_radius is None else args.uncertainty_radius,
-                      unconstrained_sigma=(UNCONSTRAINED_SIGMA if args.unconstrained_sigma is None
-                                           else args.unconstrained_sigma),
-                      names=names)
-    except ValueError as e:
-        raise CaptureError(str(e)) from None
     if args.loss_scale is not None and args.loss == "l2":
         raise CaptureError("--loss-scale: only a robust loss uses it (--loss huber or cauchy)")
     for name in ("ibl_samples", "ibl_levels"):
@@ -173,8 +157,6 @@ def fit_options(args) -> dict:
         if not (pixel_samples.isascii() and pixel_samples.isdigit() and 1 <= int(pixel_samples) <= MAX_PIXEL_SAMPLES):
             raise CaptureError(f"--pixel-samples: expected auto or 1 to {MAX_PIXEL_SAMPLES}, got {args.pixel_samples}")
         pixel_samples = int(pixel_samples)
-    if "normal" in free and args.ibl == "per_pixel":
-        raise CaptureError("--ibl per_pixel: fitted normals need --ibl split_sum (per-pixel integrals hold the normals fixed)")
     for flag, value, least, most in (("--ibl-levels", args.ibl_levels, MIN_LEVELS, MAX_LEVELS),
                                      ("--ibl-samples", args.ibl_samples, MIN_SAMPLES, MAX_SAMPLES)):
         if value is not None and not least <= value <= most:
@@ -190,17 +172,24 @@ def fit_options(args) -> dict:
         if not 1 <= args.devices <= len(available):
             raise CaptureError(f"--devices: expected 1 to {len(available)} (the devices JAX sees), got {args.devices}")
         devices = available[: args.devices] if args.devices > 1 else None
-    return dict(
-        fit=free, fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
+    options = dict(
+        fit=args.fit, fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
         max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, loss=args.loss, smooth=args.smooth,
         coarse_to_fine=args.coarse_to_fine, search=not args.no_search, uniform_check=not args.no_uniform_check,
         repair=not args.no_repair, noise_level=args.noise_level, devices=devices, ibl=args.ibl,
         pixel_ibl_settings=pixel_ibl_settings, continuation=continuation, pixel_samples=pixel_samples,
-        **({} if args.cg_rtol is None else dict(cg_rtol=args.cg_rtol)),
-        **({} if args.loss_scale is None else dict(loss_scale=args.loss_scale)),
-        **({} if args.uncertainty_radius is None else dict(uncertainty_radius=args.uncertainty_radius)),
-        **({} if args.unconstrained_sigma is None else dict(unconstrained_sigma=args.unconstrained_sigma)),
-    )
+        cg_rtol=args.cg_rtol, loss_scale=args.loss_scale, uncertainty_radius=args.uncertainty_radius,
+        unconstrained_sigma=args.unconstrained_sigma, model=model_changes(args.model) or None)
+    try:  # checked as `pbrfit.fit` checks them, worded with the flags
+        return FitOptions(**{k: v for k, v in options.items() if v is not None or k in _NONE_IS_A_VALUE},
+                          names=OptionNames(flags=True, held_by=held_by))
+    except ValueError as e:
+        raise CaptureError(str(e)) from None
+
+
+#: The options whose value None means something (not "the default"): the map size from the
+#: views, the solver's own step count, every map not held, one device, the capture's model.
+_NONE_IS_A_VALUE = ("resolution", "max_steps", "fit", "devices", "model")
 
 
 def _continuation(text: str) -> tuple:

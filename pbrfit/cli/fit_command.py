@@ -77,8 +77,8 @@ def loss_history(steps: list, report: dict) -> list:
     return [dict(step=i, loss=h["loss"]) for i, h in enumerate(h for h in steps if plotted(h))]
 
 
-def run_fit(capture, out, options: dict, cache_dir=None, quiet: bool = False):
-    """Fit `capture`, add truth errors to the report when `truth/` exists, write `out`; return
+def run_fit(capture, out, options, cache_dir=None, quiet: bool = False):
+    """Fit `capture` with `options` (a `pbrfit.FitOptions`), add truth errors to the report when `truth/` exists, write `out`; return
     (result, per-map RMSE or None)."""
     import numpy as np
 
@@ -94,7 +94,7 @@ def run_fit(capture, out, options: dict, cache_dir=None, quiet: bool = False):
             print(f"pbrfit: warning: {err}; truth/ ignored (no truth_rmse)", file=sys.stderr)
     progress = FitProgress(not quiet)
     try:
-        result = fit(capture, cache_dir=cache_dir, progress=progress, **options)
+        result = fit(capture, options, cache_dir=cache_dir, progress=progress)
     finally:
         progress.close()
     errors = None

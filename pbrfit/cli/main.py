@@ -14,6 +14,7 @@ import warnings
 from typing import Optional, Sequence
 
 from .fit import add_fit, fit_options, fit_summary
+from .model_flag import add_model_argument, model_changes
 from ..errors import CaptureError
 
 __all__ = ["main"]
@@ -67,6 +68,7 @@ def _add_render(sub) -> None:
     p.add_argument("--environment", help="relight with this equirect HDR instead of the capture's (the capture's intensity and rotation_deg apply to it)")
     p.add_argument("--lights", help="relight with these global lights: a JSON file, or inline JSON, holding a list of lights "
                         "(KHR_lights_punctual units)")
+    add_model_argument(p)
     p.add_argument("--cache", help="G-buffer cache folder (default $PBRFIT_CACHE, else $XDG_CACHE_HOME/pbrfit, else ~/.cache/pbrfit)")
     p.add_argument("--no-cache", action="store_true", help="do not read or write the G-buffer cache")
     p.add_argument("--quiet", action="store_true", help="print only errors")
@@ -99,9 +101,11 @@ def _cmd_render(args) -> int:
     from ..scene.uv_layout import check_uv_layout
     from ..scene.capture import load_capture
     from ..render.output import write_rendered_capture
-    from ..render.views import apply_overrides, capture_environment, environment_is_dark, load_lights_override, render_capture
+    from ..render.views import (apply_overrides, capture_environment, environment_is_dark, load_lights_override,
+                                model_for_capture, render_capture)
 
     start = time.perf_counter()
+    changes = model_changes(args.model)
     if not 1 <= args.supersample <= MAX_SUPERSAMPLE:
         raise CaptureError(f"--supersample: must be from 1 to {MAX_SUPERSAMPLE}, got {args.supersample}")
     check_output_dir(args.out, "capture")
@@ -122,7 +126,10 @@ def _cmd_render(args) -> int:
         sky = "no environment" if capture.environment is None else f"the environment {capture.environment.file} is black"
         raise CaptureError(f"{where}: no light: {sky}, every light is off and the material emits none, "
                            "so every render would be black (give --lights or --environment)")
-    renders = render_capture(capture, material, cache_dir=_cache_dir(args), supersample=args.supersample,
+    model = model_for_capture(capture, material, **changes)
+    if model.ibl is not None and capture.environment is None:
+        raise CaptureError(f"--model: ibl={model.ibl} shades an environment light, and {capture.json_path} has none")
+    renders = render_capture(capture, material, model, cache_dir=_cache_dir(args), supersample=args.supersample,
                              environment=environment)
     write_rendered_capture(capture, renders, args.out, args.environment, lights_json)
     if not args.quiet:
@@ -225,13 +232,13 @@ def _cmd_fit(args) -> int:
     options = fit_options(args)
     out = Path(args.out)
     check_output_dir(out, "fit")
-    capture = load_capture(args.capture, require_uv=options["maps"] == "texture" or "normal" in options["fit"])
+    capture = load_capture(args.capture, require_uv=options.maps == "texture" or "normal" in options.fitted)
     check_not_inside(capture.root, out, "capture being fitted")
     for name in MATERIAL_MAPS:
         folder = getattr(args, f"{name}_from")
         if folder is not None:
             check_not_inside(folder, out, f"{name} map of --{name.replace('_', '-')}-from")
-        if name not in options["fit"] and name not in options["fixed"] and not args.quiet:
+        if name not in options.fitted and name not in options.held and not args.quiet:
             print(f"pbrfit: note: {name} is neither fitted nor held (--fit, --{name.replace('_', '-')}): "
                   "it stays at the prior", file=sys.stderr)
     if args.ibl == "per_pixel" and capture.environment is None:

@@ -44,97 +44,63 @@ the levels is `pbrfit.fitting.passes` (its solver runs `pbrfit.fitting.runner`),
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import math
 import os
-import sys
 import time
+import warnings
 from pathlib import Path
-from typing import Callable, Mapping, Optional, Sequence
+from typing import Optional
 
 import numpy as np
 
 from ..errors import CaptureError, listed
-from .options import (IBL_MODES, LOSS_SCALE, check_kinds, check_model, check_names, check_normals, check_options,
-                          fit_arguments, held_report)
-from .passes import COARSE_STEPS, CONTINUATION, fit_pass
+from .options import IBL_MODES, FitOptions, check_model, check_normals, held_report, options_from
+from .passes import PassInputs, fit_pass
 from .result import FitResult, closed_times, map_rmse
 from .stages.footprint import footprint_choice
 from ..physics.model import Model
 from .noise import estimate_noise_level
 from .observations import Observations, observations_from_capture
-from ..lighting.pixel_ibl import PixelIBLSettings, pixel_ibl
-from .resolution import LEVEL_FACTOR, default_resolution, schedule
+from ..lighting.pixel_ibl import pixel_ibl
+from ..render.views import capture_environment, capture_ibl, check_environment, environment_is_dark
+from ..render.views import model_for_capture
+from ..scene.capture import Capture, load_capture
+from .resolution import default_resolution, schedule
 from .runner import DEFAULT_SOLVER, SOLVERS
 from .stages.selection import uniform_channels
-from .solvers.structured import CG_RTOL
 from ..transfer import to_device
-from .stages.unconstrained import UNCONSTRAINED_SIGMA
-from .uncertainty import WINDOW_RADIUS
 
-__all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "model_for_capture", "SOLVERS",
+__all__ = ["fit", "fit_observations", "FitResult", "default_resolution", "map_rmse", "fit_model", "SOLVERS",
            "DEFAULT_SOLVER", "IBL_MODES", "schedule", "footprint_choice", "uniform_channels"]
 
 
-def model_for_capture(capture, fit: Sequence[str] = ("base_color", "metallic", "roughness"), fixed=None) -> Model:
-    """The model the images need: split-sum IBL when there is an environment; the metal lobe
-    only when metallic is fitted or fixed to something nonzero."""
-    from ..render.views import model_for_capture as scene_model
-
-    fixed = fixed or {}
-    metal = "metallic" in fit or bool(np.any(np.asarray(fixed.get("metallic", 0.0)) != 0))
-    return scene_model(capture, metallic=metal)
+def fit_model(capture, options: FitOptions) -> Model:
+    """The model a fit shades with: ``options.model`` where it is a `Model`; else the one the
+    capture requires (`pbrfit.render.views.model_for_capture`: split-sum IBL when there is an
+    environment; the metal lobe only when metallic is fitted or held at something nonzero), with
+    the fields a mapping ``options.model`` gives changed."""
+    if isinstance(options.model, Model):
+        return options.model
+    held_metal = np.any(np.asarray(options.held.get("metallic", 0.0)) != 0)
+    changes = dict(metallic="metallic" in options.fitted or bool(held_metal), **(options.model or {}))
+    model = model_for_capture(capture, **changes)
+    check_model(model, options.fitted)
+    return model
 
 
 def _ibl_for_capture(capture, model: Model, environment=None):
     if model.ibl is None and not model.multiscatter:
         return None
-    from ..render.views import capture_ibl
-
     return capture_ibl(capture, model=model, environment=environment)
 
 
-def fit_observations(
-    obs: Observations,
-    *,
-    model: Model = Model(),
-    ibl=None,
-    resolution=None,
-    fit: Optional[Sequence[str]] = None,
-    fixed: Optional[Mapping] = None,
-    maps: str = "texture",
-    solver: str = DEFAULT_SOLVER,
-    max_steps: Optional[int] = None,
-    coarse_steps: int = COARSE_STEPS,
-    rtol: float = 1e-6,
-    atol: float = 1e-5,
-    cg_rtol: float = CG_RTOL,
-    loss: str = "l2",
-    loss_scale: float = LOSS_SCALE,
-    smooth: float = 0.0,
-    coarse_to_fine: bool = False,
-    init: str = "grid",
-    search: bool = True,
-    continuation: Optional[Sequence[float]] = CONTINUATION,
-    devices=None,
-    level_factor: int = LEVEL_FACTOR,
-    wrap: str = "repeat",
-    progress: Optional[Callable] = None,
-    setup_time: float = 0.0,
-    centres: Optional[Observations] = None,
-    centre_ibl=None,
-    select_footprint: bool = False,
-    background_compile: bool = True,
-    uniform_check: bool = True,
-    repair: bool = True,
-    uncertainty_radius: int = WINDOW_RADIUS,
-    unconstrained_sigma: float = UNCONSTRAINED_SIGMA,
-    noise_level: str = "uniform",
-) -> FitResult:
+def fit_observations(obs: Observations, options: Optional[FitOptions] = None, *, model: Optional[Model] = None,
+                     ibl=None, centres: Optional[Observations] = None, centre_ibl=None, select_footprint: bool = False,
+                     setup_time: float = 0.0, **overrides) -> FitResult:
     """Fit maps to prepared `Observations` (see `fit` for the arguments).
 
     The light is the caller's to describe: ``model`` and ``ibl`` must be those of the capture
-    the observations come from (`fit` derives them: `model_for_capture`, and
+    the observations come from (`fit` derives them: `fit_model`, and
     `pbrfit.render.views.capture_ibl` or `pbrfit.lighting.pixel_ibl.pixel_ibl`). The defaults, ``Model()`` and no
     tables, shade with the observations' punctual lights alone, so a capture lit by an
     environment is fitted as if that light were absent.
@@ -149,37 +115,24 @@ def fit_observations(
     likelier model of the pixels' footprint). With the structured solver the samples stop after
     their first `pbrfit.fitting.passes.PROBE_STEPS` when these do not yet fit better than the centres'
     whole finish. The report's "footprint" entry gives both energies, the steps and the choice."""
-    check_names(noise_level=noise_level, loss=loss, init=init, wrap=wrap)
-    check_kinds(**{name: value for name, value in locals().items() if name in _KIND_DEFAULTS})
-    fit, fixed = fit_arguments(fit, fixed)
-    check_model(model, fit)
-    check_options(resolution=resolution, maps=maps, solver=solver, max_steps=max_steps, coarse_steps=coarse_steps,
-                  rtol=rtol, atol=atol, cg_rtol=cg_rtol, loss_scale=loss_scale, smooth=smooth,
-                  coarse_to_fine=coarse_to_fine, continuation=continuation, uncertainty_radius=uncertainty_radius,
-                  unconstrained_sigma=unconstrained_sigma)
-    check_normals(model, fit)
-    kwargs = {name: value for name, value in locals().items() if name not in ("obs", "noise_level")}  # the arguments
-    if noise_level == "uniform":
-        result, _ = fit_pass(obs, **kwargs)
+    options = options_from(options, overrides)
+    model = (options.model or Model()) if model is None else model
+    check_model(model, options.fitted)
+    check_normals(model, options.fitted)
+    inputs = PassInputs(model=model, ibl=ibl, centres=centres, centre_ibl=centre_ibl,
+                        select_footprint=select_footprint, setup_time=setup_time)
+    if options.noise_level == "uniform":
+        result, _ = fit_pass(obs, options, inputs)
         result.report["noise_level"] = dict(mode="uniform")
     else:
-        result = _fit_weighted(obs, kwargs)
+        result = _fit_weighted(obs, options, inputs)
     result.report["iterations"] = result.report["steps"]  # the capture spec's word for them
     # what the caller held (before the model's own: a model without the metal lobe holds metallic 0)
-    result.report["held"] = held_report([f for f in fit if model.metallic or f != "metallic"], fixed)
+    result.report["held"] = held_report([f for f in options.fitted if model.metallic or f != "metallic"], options.held)
     return result
 
 
-#: `fit_observations`'s defaults of the options `pbrfit.fitting.options.check_options` checks.
-_OPTION_DEFAULTS = {name: param.default for name, param in inspect.signature(fit_observations).parameters.items()
-                    if name in inspect.signature(check_options).parameters}
-#: ... and of those `pbrfit.fitting.options.check_kinds` checks.
-_KIND_DEFAULTS = {name: inspect.signature(fit_observations).parameters[name].default
-                  for name in ("coarse_to_fine", "search", "select_footprint", "background_compile", "uniform_check",
-                               "repair", "progress", "level_factor", "devices")}
-
-
-def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
+def _fit_weighted(obs: Observations, options: FitOptions, inputs: PassInputs) -> FitResult:
     """``noise_level="estimated"`` (`pbrfit.fitting.noise`): a plain fit, the noise level function of its
     residuals, and a second fit from the first's maps with each residual weighted by
     σ_ref / σ(v̂) at the first fit's value v̂. The second fit runs the final level on the pixel
@@ -193,9 +146,9 @@ def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
     levels and continuation."""
     t_start = time.perf_counter()
     shared = {}
-    first, x = fit_pass(obs, shared=shared, **kwargs)
+    first, x = fit_pass(obs, options, inputs, shared)
     footprint = first.report.get("footprint")
-    centres = kwargs["centres"]
+    centres = inputs.centres
     kept = centres if (obs.samples > 1 and footprint is not None and footprint.get("selected") == 1) else obs
     values = _fitted_values(first, kept)
     target = np.asarray(kept.pixel_rows(kept.target))
@@ -208,14 +161,13 @@ def _fit_weighted(obs: Observations, kwargs: dict) -> FitResult:
     weighted = dataclasses.replace(kept, residual_weight=to_device(weights, np.float32))
     shared["where"].clear()
     shared["where"]["weighted"] = True  # every step from here on reports it
-    second_kwargs = dict(kwargs, centres=None, centre_ibl=None, select_footprint=False, start=x,
-                         coarse_to_fine=False, continuation=None, search=False, repair=False, setup_time=0.0)
-    if kept is centres and kwargs["model"].ibl == "per_pixel":  # the centres' own integrals
-        second_kwargs["ibl"] = kwargs["centre_ibl"]
-    second, _ = fit_pass(weighted, shared=shared, **second_kwargs)
+    second_options = options.replace(coarse_to_fine=False, continuation=None, search=False, repair=False)
+    centre_ibl = kept is centres and inputs.model.ibl == "per_pixel"  # the centres' own integrals
+    second_inputs = PassInputs(model=inputs.model, ibl=inputs.centre_ibl if centre_ibl else inputs.ibl, start=x)
+    second, _ = fit_pass(weighted, second_options, second_inputs, shared)
     report = second.report
-    report["wall_time"] = float(kwargs["setup_time"] + time.perf_counter() - t_start)
-    report["times"] = closed_times(dict(report["times"], setup=float(kwargs["setup_time"]),
+    report["wall_time"] = float(inputs.setup_time + time.perf_counter() - t_start)
+    report["times"] = closed_times(dict(report["times"], setup=float(inputs.setup_time),
                                         post=first.report["times"].get("post", 0.0) + report["times"].get("post", 0.0)),
                                    report["wall_time"])
     report["steps"] += first.report["steps"]
@@ -237,8 +189,6 @@ def _warn_unused_frames(capture, *observations: Optional[Observations]) -> None:
     counts = np.bincount(index[index >= 0], minlength=len(capture.frames))
     unused = [k for k, count in enumerate(counts[: len(capture.frames)]) if count == 0]
     if unused:
-        import warnings
-
         named = listed(f"frames[{k}] ({capture.frames[k].file_path})" for k in unused)
         warnings.warn(f"{capture.json_path}: {named}: no usable pixel (each masked out, saturated or off the "
                       "mesh); left out of the fit", UserWarning, stacklevel=3)
@@ -256,12 +206,13 @@ def _fitted_values(result: FitResult, obs: Observations) -> np.ndarray:
     return values
 
 
-def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, ibl: Optional[str] = None,
-        pixel_ibl_settings: PixelIBLSettings = PixelIBLSettings(), pixel_samples="auto", **kwargs) -> FitResult:
+def fit(capture, options: Optional[FitOptions] = None, *, views=None, **overrides) -> FitResult:
     """Fit material maps to a `pbrfit.scene.capture.Capture` (or the capture folder, read with
-    `pbrfit.scene.capture.load_capture`).
+    `pbrfit.scene.capture.load_capture`), with ``options`` (a `FitOptions`, default
+    ``FitOptions()``) and any of its fields given as keywords (``pbrfit.fit(capture,
+    resolution=64)``): the options are checked before the capture is read.
 
-    Keyword arguments (all optional):
+    Options (the fields of `FitOptions`, all optional):
         cache_dir: a folder for the G-buffers (and per-pixel IBL integrals) computed from the
             capture, read back by later fits of the same capture and settings; default None: none
             kept (the command line's ``--cache``).
@@ -354,7 +305,8 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             "estimated" the level function and the first fit's steps and loss; "final_loss" and
             "residual_sigma" are then the weighted residuals' (in units of σ_ref), the PSNR the
             images'.
-        model: override the `Model` (default `model_for_capture`: the one that rendered the images).
+        model: the `Model` (default `fit_model`: the one the capture requires), or a mapping of the
+            fields to change in it (``{"diffuse": "burley"}``; the command line's ``--model``).
         background_compile: compile the structured solver and the search for each problem in a
             background thread as soon as their shapes are known, overlapping the grid start and
             the steps before their first use (default on; the report's ``times["compile"]`` is
@@ -367,37 +319,20 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
             None for a solve with no host round-trips).
     """
     t0 = time.perf_counter()
-    # the arguments first: a wrong one is said at once, before the capture is read
-    if ibl not in (None,) + IBL_MODES:
-        raise ValueError(f"ibl must be one of {', '.join(IBL_MODES)}, got {ibl!r}")
-    kwargs["fit"], kwargs["fixed"] = fit_arguments(kwargs.get("fit"), kwargs.get("fixed"))
-    check_options(**{name: kwargs.get(name, default) for name, default in _OPTION_DEFAULTS.items()})
-    check_kinds(**{name: kwargs.get(name, default) for name, default in _KIND_DEFAULTS.items()})
-    check_names(noise_level=kwargs.get("noise_level", "uniform"), loss=kwargs.get("loss", "l2"),
-                 init=kwargs.get("init", "grid"), wrap=kwargs.get("wrap", "repeat"), pixel_samples=pixel_samples)
-    if model is not None:
-        check_model(model, kwargs["fit"])
+    options = options_from(options, overrides)  # checked at once, before the capture is read
     if isinstance(capture, (str, os.PathLike)):
-        from ..scene.capture import load_capture
-
-        capture = load_capture(capture, require_uv=kwargs.get("maps", "texture") == "texture"
-                               or "normal" in kwargs["fit"])
-    from ..scene.capture import Capture
-
+        capture = load_capture(capture, require_uv=options.maps == "texture" or "normal" in options.fitted)
     if not isinstance(capture, Capture):
-        raise ValueError(f"capture: expected a pbrfit.scene.capture.Capture or a capture folder, got {type(capture).__name__}")
-    model = model_for_capture(capture, kwargs["fit"], kwargs["fixed"]) if model is None else model
-    if model.ibl == "monte_carlo":
-        raise ValueError("model: Model(ibl='monte_carlo') is the reference integrator, not a fit's shading; "
-                         "use 'split_sum' or 'per_pixel'")
-    from ..render.views import capture_environment, check_environment, environment_is_dark
-
+        raise ValueError(f"capture: expected a pbrfit.scene.capture.Capture or a capture folder, "
+                         f"got {type(capture).__name__}")
+    model = fit_model(capture, options)
     check_environment(model, capture)
-    if ibl is not None and model.ibl is not None:
-        model = model.replace(ibl=ibl)
-    check_normals(model, kwargs["fit"])
+    if options.ibl is not None and model.ibl is not None:
+        model = model.replace(ibl=options.ibl)
+    check_normals(model, options.fitted)
     _check_brightness(capture)
-    pixel_samples, select, skipped = footprint_choice(capture, pixel_samples, views)
+    pixel_samples, select, skipped = footprint_choice(capture, options.pixel_samples, views)
+    cache_dir = options.cache_dir
     obs = observations_from_capture(capture, cache_dir=cache_dir, views=views, pixel_samples=pixel_samples)
     centres = None if obs.samples == 1 else observations_from_capture(capture, cache_dir=cache_dir, views=views)
     _warn_unused_frames(capture, obs, centres)
@@ -412,11 +347,11 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
                            f"{capture.environment.file} is black, and every light is off or points away")
     centre_tables = None
     if model.ibl == "per_pixel":
-        report = kwargs.get("progress")
+        report = options.progress
         parts = [obs] if centres is None else [centres, obs]
         rows = np.cumsum([0] + [o.num_rows for o in parts])
         both = pixel_ibl(env, np.concatenate([np.asarray(o.normal) for o in parts]),
-                         np.concatenate([np.asarray(o.view) for o in parts]), model, pixel_ibl_settings,
+                         np.concatenate([np.asarray(o.view) for o in parts]), model, options.pixel_ibl_settings,
                          cache_dir=cache_dir, progress=None if report is None else (
                              lambda done, total: report(dict(stage="ibl", done=done, total=total))))
         tables = dataclasses.replace(both, table=both.table[rows[-2]:])
@@ -425,14 +360,14 @@ def fit(capture, *, model: Optional[Model] = None, cache_dir=None, views=None, i
     else:
         tables = _ibl_for_capture(capture, model, env)
     t_ibl = time.perf_counter() - t_ibl
-    result = fit_observations(obs, model=model, ibl=tables, setup_time=time.perf_counter() - t0, centres=centres,
-                              centre_ibl=centre_tables, select_footprint=select, **kwargs)
+    result = fit_observations(obs, options, model=model, ibl=tables, setup_time=time.perf_counter() - t0,
+                              centres=centres, centre_ibl=centre_tables, select_footprint=select)
     _check_finite(result, capture)
     if skipped is not None:
         result.report["footprint"] = dict(selected=1, skipped=skipped)
     if model.ibl is not None:
         result.report["ibl"] = dict(mode=model.ibl, seconds=t_ibl, **(
-            dataclasses.asdict(pixel_ibl_settings) if model.ibl == "per_pixel" else {}))
+            dataclasses.asdict(options.pixel_ibl_settings) if model.ibl == "per_pixel" else {}))
     return result
 
 

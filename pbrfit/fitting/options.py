@@ -1,27 +1,30 @@
-"""A fit's options: the maps it frees and holds (`fit_arguments`), and every option checked
-before any work (`check_options`, `check_kinds`, `check_names`, `check_model`), with messages
-worded for the Python API or the command line (`OptionNames`)."""
+"""A fit's options: `FitOptions`, every option with its default, checked once when it is made
+(the maps it frees and holds, `fit_arguments`; values, `check_options`; kinds, `check_kinds`;
+named choices, `check_names`; the model, `check_model`), with messages worded for the Python API
+or the command line (`OptionNames`)."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Mapping, Optional, Sequence
+from typing import Any, Callable, Mapping, Optional, Sequence, Union
 
 import jax
 import numpy as np
 
-from .passes import CONTINUATION
+from ..lighting.pixel_ibl import PixelIBLSettings
+from .passes import COARSE_STEPS, CONTINUATION
 from ..physics.model import Model
 from .noise import NOISE_LEVELS
 from .parameters import FIT_GROUPS, prior
+from .resolution import LEVEL_FACTOR
 from .runner import DEFAULT_SOLVER, SOLVERS
 from .objective import LOSSES
 from .solvers.structured import CG_RTOL
 from .stages.unconstrained import UNCONSTRAINED_SIGMA
-from .uncertainty import MAX_UNCERTAINTY_RADIUS
+from .uncertainty import MAX_UNCERTAINTY_RADIUS, WINDOW_RADIUS
 
-__all__ = ["OptionNames", "fit_arguments", "held_report", "check_options", "check_kinds", "check_names",
+__all__ = ["FitOptions", "options_from", "OptionNames", "fit_arguments", "held_report", "check_options", "check_kinds", "check_names",
            "check_model", "check_normals", "MATERIAL_MAPS", "IBL_MODES", "LOSS_SCALE", "FLOAT32_MAX", "MAX_MAP_SIDE",
            "MAX_SOLVER_STEPS"]
 
@@ -183,6 +186,127 @@ def check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, at
                             ("continuation", given_continuation), ("coarse_to_fine", coarse_to_fine)):
             if given:
                 raise ValueError(f"{say(name)}: {names.setting('maps', 'none')} fits one uniform material (1 x 1 maps)")
+
+
+@dataclasses.dataclass(frozen=True)
+class FitOptions:
+    """Every option of a fit, with its default (`pbrfit.fit` documents each), checked once when
+    made: a value out of range, of the wrong kind or given to a mode that does not read it raises
+    `ValueError` in one line, worded by ``names`` (the Python keyword, or the command line's flag).
+
+    ``FitOptions(resolution=64, fixed={"metallic": 0.0})``; ``dataclasses.replace(options, ...)``
+    (or ``pbrfit.fit(capture, options, **overrides)``) makes a checked copy. ``fit`` and ``fixed``
+    stay as given; `fitted` and `held` are what they mean (`fit_arguments`): the maps freed, as a
+    tuple, and the values held, as float32 arrays.
+    """
+
+    # what is fitted, at what size
+    resolution: Union[None, int, tuple[int, int]] = None
+    fit: Optional[Sequence[str]] = None
+    fixed: Optional[Mapping[str, Any]] = None
+    maps: str = "texture"
+    model: Union[None, Model, Mapping[str, Any]] = None
+    # the solver and when it stops
+    solver: str = DEFAULT_SOLVER
+    max_steps: Optional[int] = None
+    coarse_steps: int = COARSE_STEPS
+    rtol: float = 1e-6
+    atol: float = 1e-5
+    cg_rtol: float = CG_RTOL
+    # the objective
+    loss: str = "l2"
+    loss_scale: float = LOSS_SCALE
+    smooth: float = 0.0
+    noise_level: str = "uniform"
+    # the schedule
+    coarse_to_fine: bool = False
+    level_factor: int = LEVEL_FACTOR
+    init: str = "grid"
+    search: bool = True
+    continuation: Optional[Sequence[float]] = CONTINUATION
+    # the stages after the solve
+    repair: bool = True
+    uniform_check: bool = True
+    unconstrained_sigma: float = UNCONSTRAINED_SIGMA
+    uncertainty_radius: int = WINDOW_RADIUS
+    # how the images are modelled
+    ibl: Optional[str] = None
+    pixel_ibl_settings: PixelIBLSettings = PixelIBLSettings()
+    pixel_samples: Union[str, int] = "auto"
+    wrap: str = "repeat"
+    # where it runs
+    devices: Optional[Sequence[Any]] = None
+    background_compile: bool = True
+    cache_dir: Any = None
+    progress: Optional[Callable[[dict], Any]] = None
+    #: how refusals name the options (not an option: left out of comparisons)
+    names: OptionNames = dataclasses.field(default=OptionNames(), compare=False, repr=False)
+
+    def __post_init__(self):
+        say = self.names.option
+        if self.ibl not in (None,) + IBL_MODES:
+            raise ValueError(f"{say('ibl')} must be one of {', '.join(IBL_MODES)}, got {self.ibl!r}")
+        fit, fixed = fit_arguments(self.fit, self.fixed, self.names)
+        object.__setattr__(self, "_fitted", fit)
+        object.__setattr__(self, "_held", fixed)
+        check_options(**{name: getattr(self, name) for name in _CHECKED}, names=self.names)
+        check_kinds(**{name: getattr(self, name) for name in _KINDS})
+        check_names(noise_level=self.noise_level, loss=self.loss, init=self.init, wrap=self.wrap,
+                    pixel_samples=self.pixel_samples)
+        if self.ibl == "per_pixel" and "normal" in fit:
+            raise ValueError(f"{self.names.setting('ibl', 'per_pixel')}: fitted normals need "
+                             f"{self.names.setting('ibl', 'split_sum')} (per-pixel integrals hold the normals fixed)")
+        if not isinstance(self.pixel_ibl_settings, PixelIBLSettings):
+            raise ValueError(f"pixel_ibl_settings: expected a PixelIBLSettings, got {self.pixel_ibl_settings!r}")
+        if isinstance(self.model, Mapping):  # fields of the capture's own model to change
+            try:
+                Model(**self.model)
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"{say('model')}: {err}") from None
+            if self.model.get("metallic") is False and "metallic" in fit:
+                raise ValueError(f"{say('model')}: metallic=False has no metal lobe, and metallic is fitted "
+                                 f"(hold it with {self.names.holder('metallic')})")
+        elif self.model is not None:
+            check_model(self.model, fit)
+            check_normals(self.model, fit)
+            if self.model.ibl == "monte_carlo":
+                raise ValueError("model: Model(ibl='monte_carlo') is the reference integrator, not a fit's "
+                                 "shading; use 'split_sum' or 'per_pixel'")
+
+    @property
+    def fitted(self) -> tuple[str, ...]:
+        """The maps the fit frees (``fit``, or every material map ``fixed`` does not hold)."""
+        return self._fitted
+
+    @property
+    def held(self) -> dict:
+        """The values ``fixed`` holds, as float32 arrays."""
+        return self._held
+
+    def replace(self, **overrides) -> "FitOptions":
+        """A checked copy with ``overrides``."""
+        return dataclasses.replace(self, **overrides) if overrides else self
+
+
+#: The options `check_options` checks, and those `check_kinds` checks.
+_CHECKED = ("resolution", "maps", "solver", "max_steps", "coarse_steps", "rtol", "atol", "cg_rtol", "loss_scale",
+            "smooth", "coarse_to_fine", "continuation", "uncertainty_radius", "unconstrained_sigma")
+_KINDS = ("coarse_to_fine", "search", "background_compile", "uniform_check", "repair", "progress", "level_factor",
+          "devices")
+
+
+def options_from(options: Optional[FitOptions], overrides: Mapping[str, Any]) -> FitOptions:
+    """``options`` (default `FitOptions()`) with ``overrides``, checked; an unknown keyword is a
+    `TypeError` naming it, as a function's would be."""
+    fields = {f.name for f in dataclasses.fields(FitOptions)}
+    unknown = [name for name in overrides if name not in fields]
+    if unknown:
+        raise TypeError(f"unknown fit option {unknown[0]!r} (FitOptions has {', '.join(sorted(fields - {'names'}))})")
+    if options is None:
+        return FitOptions(**overrides)
+    if not isinstance(options, FitOptions):
+        raise TypeError(f"options: expected a pbrfit.FitOptions, got {type(options).__name__}")
+    return options.replace(**overrides)
 
 
 def held_report(fit: Sequence[str], fixed: Optional[Mapping]) -> dict:

@@ -1,13 +1,13 @@
 """One pass of a fit: the solve at each level, then the repair, the uniform check and the hold of
 roughness the images do not constrain (`pbrfit.fitting.stages.unconstrained`).
 
-`fit_pass` runs the levels of a fit (`pbrfit.fitting.resolution.schedule`: the final map size, or coarse
-to fine), each from the last one's maps: the grid start, the continuation (a smoothness prior
+`fit_pass` runs the levels of a fit (`pbrfit.fitting.resolution.schedule`: the final map size, or
+coarse to fine), each from the last one's maps: the grid start, the continuation (a smoothness prior
 of falling weight over the first steps), the coordinate search of metallic and roughness, the
 settling steps and the released ones; on the final level the pixel footprint's choice
-(`pbrfit.fitting.stages.footprint`), then the repair (`pbrfit.fitting.stages.repair`) and the uniform check
-(`pbrfit.fitting.stages.selection`), and the result (`pbrfit.fitting.result.finish`). `pbrfit.fitting.api.fit_observations`
-runs one pass, or two with ``noise_level="estimated"``.
+(`pbrfit.fitting.stages.footprint`), then the repair (`pbrfit.fitting.stages.repair`) and the
+uniform check (`pbrfit.fitting.stages.selection`), and the result (`pbrfit.fitting.result.finish`).
+`pbrfit.fitting.api.fit_observations` runs one pass, or two with ``noise_level="estimated"``.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import Mapping, Optional
+from typing import TYPE_CHECKING, Any, Mapping, Optional
 
 import jax
 import jax.numpy as jnp
@@ -30,13 +30,17 @@ from .stages.repair import repair_skipped, run_repair
 from .resolution import default_resolution, schedule
 from .runner import DEFAULT_SOLVER, Compiler, Runner, jitted_normal_blocks, problem_key, timed, timed_rest
 from .stages.selection import SELECTABLE, run_uniform_check, uniform_check_skipped
-from .stages.unconstrained import UNCONSTRAINED_SIGMA, hold_skipped, run_hold
+from .stages.unconstrained import hold_skipped, run_hold
 from .sharding import pixel_mesh, shard_problem
 from .objective import Problem
 from ..physics.textures import resample_map, sample_bilinear
+from ..physics.model import Model
 from ..transfer import to_device
 
-__all__ = ["fit_pass", "continuation_scale", "with_smooth", "COARSE_STEPS", "MAX_STEPS", "SEARCH_AFTER",
+if TYPE_CHECKING:  # (the options import the passes' defaults)
+    from .options import FitOptions
+
+__all__ = ["fit_pass", "PassInputs", "continuation_scale", "with_smooth", "COARSE_STEPS", "MAX_STEPS", "SEARCH_AFTER",
            "SEARCH_ROUNDS", "CONTINUATION", "SETTLE_STEPS", "RELEASED_STEPS", "PROBE_STEPS", "TURNED_OFF"]
 
 #: Default step limits: per coarse level, and for the final level.
@@ -99,51 +103,69 @@ def _upsample(x: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 TURNED_OFF = "turned off"
 
 
-def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, solver, max_steps, coarse_steps, rtol,
-              atol, cg_rtol, loss, loss_scale, smooth, coarse_to_fine, init, search, continuation, devices,
-              level_factor, wrap, progress, setup_time, centres, centre_ibl, select_footprint, background_compile,
-              uniform_check, repair, uncertainty_radius, unconstrained_sigma=UNCONSTRAINED_SIGMA, start=None,
-              shared=None) -> tuple[FitResult, np.ndarray]:
-    """One fit (`pbrfit.fitting.api.fit_observations`): the result and the final (T, K) texel values. ``start``:
-    (T, K) values to start from at the final level (no grid start, no coarser levels);
-    ``shared``: a dict that keeps the solver runner, its compiler (whose clock collects every
+@dataclasses.dataclass(frozen=True)
+class PassInputs:
+    """What a pass fits with besides its `FitOptions`: the shading (``model`` and its ``ibl``
+    tables or integrals, those of the capture the observations come from), the same capture's
+    observations at pixel centres when ``obs`` holds several samples per pixel (``centres``, and
+    ``centre_ibl``, their integrals where the IBL is per pixel; ``select_footprint``: keep the
+    footprint that explains the pixels better, `pbrfit.fitting.stages.footprint`), the (T, K)
+    texel values to ``start`` from at the final level (no grid start, no coarser levels) and the
+    ``setup_time`` spent before the pass, for its report."""
+
+    model: Model = Model()
+    ibl: Any = None
+    centres: Optional[Observations] = None
+    centre_ibl: Any = None
+    select_footprint: bool = False
+    start: Optional[np.ndarray] = None
+    setup_time: float = 0.0
+
+
+def fit_pass(obs: Observations, options: "FitOptions", inputs: PassInputs,
+             shared: Optional[dict] = None) -> tuple[FitResult, np.ndarray]:
+    """One fit (`pbrfit.fitting.api.fit_observations`): the result and the final (T, K) texel
+    values. ``shared``: a dict that keeps the solver runner, its compiler (whose clock collects every
     pass's times) and the progress callback's ``where`` from one pass to the next (empty: this
     pass makes them)."""
     t_start = time.perf_counter()
-    fixed = dict(fixed or {})
-    channels = channel_mask(fit)
+    fixed = dict(options.held)
+    channels = channel_mask(options.fitted)
     k = len(channels)
-    if not model.metallic:
+    if not inputs.model.metallic:
         channels[3] = 0.0
         fixed.setdefault("metallic", 0.0)
-    if maps == "none":
+    if options.maps == "none":
         final = (1, 1)
     else:
-        res = default_resolution(obs) if resolution is None else resolution
+        res = default_resolution(obs) if options.resolution is None else options.resolution
         final = (int(res), int(res)) if np.isscalar(res) else tuple(int(r) for r in res)
-    levels = schedule(final, level_factor) if coarse_to_fine and start is None else [final]
+    coarse_to_fine = options.coarse_to_fine and inputs.start is None
+    levels = schedule(final, options.level_factor) if coarse_to_fine else [final]
     t_final = final[0] * final[1]
-    max_steps = MAX_STEPS if max_steps is None else int(max_steps)
+    max_steps = MAX_STEPS if options.max_steps is None else int(options.max_steps)
     pairs_final = neighbour_pairs(final)
     e_final = pairs_final.shape[0]
 
-    if select_footprint and (centres is None or obs.samples == 1):
+    if inputs.select_footprint and (inputs.centres is None or obs.samples == 1):
         raise ValueError("select_footprint needs observations with several samples per pixel and their centres")
-    if centres is not None and obs.samples > 1 and model.ibl == "per_pixel" and centre_ibl is None:
+    if (inputs.centres is not None and obs.samples > 1 and inputs.model.ibl == "per_pixel"
+            and inputs.centre_ibl is None):
         raise ValueError("centres with a per-pixel IBL model need centre_ibl: the centres' own integrals")
-    mesh = None if devices is None else pixel_mesh(devices)
-    continuation = () if continuation is None else tuple(float(w) for w in np.ravel(continuation))  # check_options checked them
-    x = None if start is None else np.asarray(start, np.float32).reshape(final + (k,))
+    mesh = None if options.devices is None else pixel_mesh(options.devices)
+    continuation = () if options.continuation is None else tuple(float(w) for w in np.ravel(options.continuation))
+    x = None if inputs.start is None else np.asarray(inputs.start, np.float32).reshape(final + (k,))
     history = []
     annealed = footprint = None
     if shared is None:
         shared = {}
     if "runner" not in shared:
         where = dict(level=0, resolution=levels[0])
-        cb = None if progress is None else (
-            lambda step, value: progress(dict(where, step=int(step), loss=float(value))))
-        compiler = Compiler(dict(compile=0.0, solve=0.0), background_compile)
-        shared.update(where=where, runner=Runner(solver, rtol, atol, cb, compiler, cg_rtol))
+        cb = None if options.progress is None else (
+            lambda step, value: options.progress(dict(where, step=int(step), loss=float(value))))
+        compiler = Compiler(dict(compile=0.0, solve=0.0), options.background_compile)
+        shared.update(where=where, runner=Runner(options.solver, options.rtol, options.atol, cb, compiler,
+                                                 options.cg_rtol))
     # (an executable keeps the callback it was compiled with: a later pass reports through the
     # same one, so it tells that callback where it is through the same `where`)
     where, runner = shared["where"], shared["runner"]
@@ -153,7 +175,7 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
     try:
         for level, shape in enumerate(levels):
             where.update(level=level, resolution=tuple(shape))
-            layout = layout_for(obs, shape, wrap)
+            layout = layout_for(obs, shape, options.wrap)
             cov = coverage_counts(layout).reshape(-1)
             t = shape[0] * shape[1]
             seen = np.zeros(t_final, bool)
@@ -167,21 +189,23 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
                 x0[:t] = np.where(channels[None, :] > 0, up, x0[:t])
             x0[:t] = np.where(seen[:t, None], x0[:t], fixed_x[:t])
             last = level == len(levels) - 1
-            steps = max_steps if last else min(coarse_steps, max_steps)
+            steps = max_steps if last else min(options.coarse_steps, max_steps)
             head = min(SEARCH_AFTER, steps)
             maps_level = shape != (1, 1)
-            searching = last and search and maps_level and np.any(channels[3:] > 0) and head < steps
-            annealing = (last and maps_level and solver == DEFAULT_SOLVER and any(w > 0 for w in continuation)
-                         and steps - head >= RELEASED_STEPS)
-            prior_on = maps_level and (smooth > 0 or annealing)
+            searching = last and options.search and maps_level and np.any(channels[3:] > 0) and head < steps
+            annealing = (last and maps_level and options.solver == DEFAULT_SOLVER
+                         and any(w > 0 for w in continuation) and steps - head >= RELEASED_STEPS)
+            prior_on = maps_level and (options.smooth > 0 or annealing)
             pairs, pw = _neighbour_weights(shape, seen, e_final, prior_on)
             problem = Problem(obs, layout.index, layout.weight, to_device(free), to_device(pairs), to_device(pw),
-                              to_device(smooth, np.float32), to_device(loss_scale, np.float32), ibl, model, loss)
+                              to_device(options.smooth, np.float32), to_device(options.loss_scale, np.float32),
+                              inputs.ibl, inputs.model, options.loss)
             if mesh is not None:
                 problem = shard_problem(problem, mesh)
             early = problem  # the start, the continuation's steps and the search
-            if centres is not None and obs.samples > 1 and (last or (level == 0 and init == "grid" and start is None)):
-                lay = layout_for(centres, shape, wrap)
+            grid_start = level == 0 and options.init == "grid" and inputs.start is None
+            if inputs.centres is not None and obs.samples > 1 and (last or grid_start):
+                lay = layout_for(inputs.centres, shape, options.wrap)
                 # the texels the centres see are free here (as in a fit of centres alone); texels only
                 # samples read keep their start until the samples' steps, and texels only centres read
                 # (where some sample misses the mesh) go back to their fixed values for those steps
@@ -189,10 +213,10 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
                 centre_seen[:t] = coverage_counts(lay).reshape(-1) > 0
                 c_pairs, c_pw = _neighbour_weights(shape, centre_seen, e_final, prior_on)
                 centre_free = (centre_seen[:, None] * channels[None, :]).astype(np.float32)
-                early = dataclasses.replace(problem, obs=centres, index=lay.index, weight=lay.weight,
+                early = dataclasses.replace(problem, obs=inputs.centres, index=lay.index, weight=lay.weight,
                                             free=to_device(centre_free),
                                             pairs=to_device(c_pairs), pair_weight=to_device(c_pw),
-                                            ibl=centre_ibl if model.ibl == "per_pixel" else ibl)
+                                            ibl=inputs.centre_ibl if inputs.model.ibl == "per_pixel" else inputs.ibl)
                 if mesh is not None:
                     early = shard_problem(early, mesh)
             num_free = int(np.sum(free))
@@ -200,7 +224,7 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
             classes = to_device(parity_classes(shape)) if searching else None
             search_key = ("search", shape) + problem_key(early)
             search_static = (SEARCH_ROUNDS, bool(channels[3] > 0))
-            selecting = last and select_footprint
+            selecting = last and inputs.select_footprint
             # compiles this level needs, in the order of their first use, overlap the work before it
             if early is problem or annealing or searching or selecting:  # else only the grid start runs on it
                 runner.prefetch(x0, early, num_free)
@@ -208,7 +232,7 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
                 compiler.prefetch(search_key, coordinate_search, x0, early, classes, *search_static)
             if early is not problem:
                 runner.prefetch(x0, problem, num_free)
-            if level == 0 and init == "grid" and start is None:
+            if grid_start:
                 x0 = to_device(np.asarray(timed(compiler, ("grid",) + problem_key(early), grid_initialise, "init",
                                                  x0, early)), np.float32)
             xs, info = x0, None
@@ -220,8 +244,8 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
                 weights = [w * scale for w in continuation]
                 for w, n in zip(weights, (len(a) for a in np.array_split(np.arange(head), len(weights)))):
                     if n > 0:
-                        xs, info = _merge(info, runner(to_device(xs, np.float32), with_smooth(early, smooth + w), n,
-                                                       num_free))
+                        xs, info = _merge(info, runner(to_device(xs, np.float32),
+                                                       with_smooth(early, options.smooth + w), n, num_free))
                 annealed = dict(relative=list(continuation), weights=weights, curvature=scale, steps=head,
                                 settle_steps=0)
             elif searching:
@@ -237,7 +261,8 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
                 if settle:
                     annealed["settle_steps"] = SETTLE_STEPS
 
-            tail = dict(steps=steps - done, num_free=num_free, settle_weight=smooth + weights[-1] if settle else None)
+            tail = dict(steps=steps - done, num_free=num_free,
+                        settle_weight=options.smooth + weights[-1] if settle else None)
             if selecting:  # the same steps at pixel centres first, from the same point
                 where["footprint"] = 1
                 x_c, info_c, lin_c = _finish_level(runner, early, xs, info, **tail)
@@ -245,11 +270,11 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
                 where["footprint"] = n_side = samples_side(obs)
             if early is not problem:
                 xs = np.where(seen[:, None], xs, fixed_x)
-            probing = selecting and solver == DEFAULT_SOLVER and tail["steps"] > PROBE_STEPS
+            probing = selecting and options.solver == DEFAULT_SOLVER and tail["steps"] > PROBE_STEPS
             stopped = False
             if probing:  # the samples' first steps, then a look at how well they fit already
                 xs, info, linearization = _finish_level(runner, problem, xs, info, **dict(tail, steps=PROBE_STEPS))
-                stopped = centres_explain_better(footprint_energies(obs, linearization[0], centres, r_c))
+                stopped = centres_explain_better(footprint_energies(obs, linearization[0], inputs.centres, r_c))
                 if not stopped:
                     xs, info, linearization = _finish_level(runner, problem, xs, info, tail["steps"] - PROBE_STEPS,
                                                             num_free)
@@ -258,19 +283,19 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
             if selecting:
                 where.pop("footprint")
                 e_samples, e_centres, common = footprint_energies(
-                    obs, final_residuals(xs, problem, linearization), centres, r_c)
+                    obs, final_residuals(xs, problem, linearization), inputs.centres, r_c)
                 footprint = dict(selected=n_side, energies={str(n_side): e_samples, "1": e_centres}, pixels=common,
                                  steps={str(n_side): info["steps"], "1": info_c["steps"]}, stopped_early=stopped)
                 if centres_explain_better((e_samples, e_centres)):
                     footprint["selected"] = 1
                     # texels only samples read are unseen here: their fixed values, as in a fit of centres alone
                     xs, info, linearization = np.where(centre_seen[:, None], x_c, fixed_x), info_c, lin_c
-                    obs, problem, seen = centres, early, centre_seen
+                    obs, problem, seen = inputs.centres, early, centre_seen
             history.append(dict(resolution=list(shape), **info))
             x = xs[:t].reshape(shape + (k,))
         repaired = None
-        if repair:
-            skipped = repair_skipped(solver, final, channels)
+        if options.repair:
+            skipped = repair_skipped(options.solver, final, channels)
             if skipped is not None:
                 repaired = dict(skipped=skipped)
             else:
@@ -279,8 +304,8 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
                                                           channels, num_free, where)
                 x = xs[:t_final].reshape(final + (k,))
         checks, uniform = {}, {}
-        if uniform_check:
-            skipped = uniform_check_skipped(solver, loss, smooth, final, channels)
+        if options.uniform_check:
+            skipped = uniform_check_skipped(options.solver, options.loss, options.smooth, final, channels)
             if skipped is not None:
                 checks = dict(skipped=skipped)
             else:
@@ -289,24 +314,24 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
                         runner, problem, xs, linearization, channels, seen, obs.num_pixels, where)
                 x = xs[:t_final].reshape(final + (k,))
         held = dict(skipped=TURNED_OFF)
-        if math.isfinite(unconstrained_sigma):
-            skipped = hold_skipped(solver, smooth, final, channels, uniform)
+        if math.isfinite(options.unconstrained_sigma):
+            skipped = hold_skipped(options.solver, options.smooth, final, channels, uniform)
             if skipped is not None:
                 held = dict(skipped=skipped)
             else:
                 with timed_rest(clock, "unconstrained"):
                     xs, linearization, problem, held = run_hold(runner, problem, xs, linearization, channels, seen,
-                                                                final, obs.num_pixels, unconstrained_sigma,
-                                                                int(uncertainty_radius), uniform)
+                                                                final, obs.num_pixels, options.unconstrained_sigma,
+                                                                int(options.uncertainty_radius), uniform)
                 x = xs[:t_final].reshape(final + (k,))
     finally:
         compiler.close()
 
     t_post = time.perf_counter()
-    result = finish(obs, problem, x, final, channels, seen[:t_final], model, solver, history, loss, smooth,
-                     dict(setup=setup_time, **clock), t_post, t_start, linearization, wrap, uniform,
-                     int(uncertainty_radius))
-    if uniform_check:
+    result = finish(obs, problem, x, final, channels, seen[:t_final], inputs.model, options.solver, history,
+                    options.loss, options.smooth, dict(setup=inputs.setup_time, **clock), t_post, t_start,
+                    linearization, options.wrap, uniform, int(options.uncertainty_radius))
+    if options.uniform_check:
         for name, c in SELECTABLE:  # the value's σ as uncertainty holds it: the kept fit's residual variance
             if checks.get(name, {}).get("uniform"):
                 checks[name]["sigma"] = float(np.asarray(result.uncertainty)[..., c][seen[:t_final].reshape(final)][0])
@@ -316,19 +341,19 @@ def fit_pass(obs: Observations, *, model, ibl, resolution, fit, fixed, maps, sol
         result.report["uniform_check"] = dict(skipped=TURNED_OFF)
     result.report["unconstrained"] = held
     result.report["steps"] += held.get("steps", 0)
-    if repair:
+    if options.repair:
         result.report["repair"] = repaired
         result.report["steps"] += sum(p.get("steps", 0) for p in repaired.get("passes", ()))
     else:
         result.report["repair"] = dict(skipped=TURNED_OFF)
     # when each level stops (`pbrfit.fitting.api.fit_observations`), and the robust loss's scale
-    result.report["stopping"] = dict(max_steps=int(max_steps), coarse_steps=int(coarse_steps), rtol=float(rtol),
-                                     atol=float(atol))
-    if loss != "l2":
-        result.report["loss_scale"] = float(loss_scale)
+    result.report["stopping"] = dict(max_steps=int(max_steps), coarse_steps=int(options.coarse_steps),
+                                     rtol=float(options.rtol), atol=float(options.atol))
+    if options.loss != "l2":
+        result.report["loss_scale"] = float(options.loss_scale)
     result.report["continuation"] = annealed
-    if solver == DEFAULT_SOLVER:
-        result.report["cg_rtol"] = float(cg_rtol)
+    if options.solver == DEFAULT_SOLVER:
+        result.report["cg_rtol"] = float(options.cg_rtol)
     if footprint is not None:
         result.report["footprint"] = footprint
     return result, np.asarray(xs, np.float32)[:t_final]

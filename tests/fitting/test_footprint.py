@@ -13,7 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pbrfit.fitting.api import fit, map_rmse, model_for_capture
+from pbrfit.fitting.api import fit, map_rmse
+from pbrfit.render.views import model_for_capture
 from pbrfit.fitting.passes import PROBE_STEPS, SEARCH_AFTER
 from pbrfit.scene.camera import Camera
 from pbrfit.scene.gbuffer import compute_gbuffer

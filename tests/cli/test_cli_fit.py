@@ -5,6 +5,7 @@ import json
 import numpy as np
 import pytest
 
+from pbrfit import FitOptions
 from pbrfit.cli.main import main
 from pbrfit.io.images import read_image
 
@@ -80,7 +81,7 @@ def test_noise_level_option_reaches_the_fit():
     def options(*extra):
         return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
 
-    assert options()["noise_level"] == "uniform" and options("--noise-level", "estimated")["noise_level"] == "estimated"
+    assert options().noise_level == "uniform" and options("--noise-level", "estimated").noise_level == "estimated"
 
 
 def test_fit_with_normals_writes_normal_png(capture, tmp_path, monkeypatch):
@@ -235,6 +236,13 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--maps", "none", "--continuation", "0.1"], "--continuation: --maps none fits one uniform material"),
         (["--ibl-levels", "9", "--ibl", "split_sum"], "--ibl-levels: only --ibl per_pixel uses it"),
         (["--ibl-samples", "512"], "--ibl-samples: only --ibl per_pixel uses it"),
+        (["--model", "diffuse=burly"], "--model: unknown Model.diffuse 'burly'; expected one of 'lambert', 'burley'"),
+        (["--model", "burley"], "--model: expected KEY=VALUE pairs separated by commas, got 'burley'"),
+        (["--model", "shine=1"], "--model: unknown field 'shine'; expected one of distribution, geometry"),
+        (["--model", "specular=maybe"], "--model: specular must be true or false, got 'maybe'"),
+        (["--model", "ior=0.5"], "--model: Model.ior must be a finite number >= 1, got 0.5"),
+        (["--model", "diffuse=burley,diffuse=none"], "--model: diffuse is given twice"),
+        (["--model", "metallic=false"], "--model: metallic=False has no metal lobe, and metallic is fitted"),
     ],
 )
 def test_bad_fit_options_exit_2_and_write_nothing(capture, tmp_path, capsys, extra, message):
@@ -256,15 +264,36 @@ def test_bad_fit_options_exit_2_and_write_nothing(capture, tmp_path, capsys, ext
     assert (sorted(p.name for p in out.iterdir()) if out.exists() else None) == before
 
 
+def test_model_option_fits_a_capture_rendered_with_that_brdf(capture, tmp_path, monkeypatch):
+    """A capture rendered with Burley diffuse (`render --model diffuse=burley`) is fitted exactly
+    with the matching model (`fit --model diffuse=burley`, recorded in report.json), and not
+    with the default Lambert one: the BRDF variant reaches the render and the fit."""
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    burley = tmp_path / "burley"
+    assert main(["render", str(capture), "--material", str(capture / "truth"), "--out", str(burley),
+                 "--model", "diffuse=burley", "--quiet"]) == 0
+    lambert, _ = read_image(capture / "images" / "000.exr")
+    rendered, _ = read_image(burley / "images" / "000.exr")
+    assert np.abs(rendered[..., :3] - lambert[..., :3]).max() > 1e-3  # the two BRDFs differ here
+    reports = {}
+    for name, extra in (("burley", ["--model", "diffuse=burley"]), ("lambert", [])):
+        out = tmp_path / name
+        assert main(["fit", str(burley), "--out", str(out), "--resolution", "8", "--max-steps", "30",
+                     "--quiet", *extra]) == 0
+        reports[name] = json.loads((out / "report.json").read_text())
+    assert reports["burley"]["model"]["diffuse"] == "burley" and reports["lambert"]["model"]["diffuse"] == "lambert"
+    assert reports["burley"]["final_loss"] < 1e-3 * reports["lambert"]["final_loss"]
+
+
 def test_options_that_mean_nothing_else_parse():
     """'none' or the default spelled out is no conflict: only what another mode would ignore is."""
     from pbrfit.cli.main import build_parser
     from pbrfit.cli.fit import fit_options
 
     parse = lambda *extra: fit_options(build_parser().parse_args(["fit", "cap", "--out", "o", *extra]))
-    assert parse("--solver", "lm", "--continuation", "none")["continuation"] == ()
-    assert parse("--maps", "none", "--continuation", "none", "--smooth", "0")["maps"] == "none"
-    assert parse("--ibl", "per_pixel", "--ibl-samples", "64")["pixel_ibl_settings"].samples == 64
+    assert parse("--solver", "lm", "--continuation", "none").continuation == ()
+    assert parse("--maps", "none", "--continuation", "none", "--smooth", "0").maps == "none"
+    assert parse("--ibl", "per_pixel", "--ibl-samples", "64").pixel_ibl_settings.samples == 64
 
 
 def test_fit_continuation_option(capture, tmp_path, monkeypatch):
@@ -580,7 +609,7 @@ def test_no_uniform_check_option_reaches_the_fit():
     def options(*extra):
         return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
 
-    assert options()["uniform_check"] is True and options("--no-uniform-check")["uniform_check"] is False
+    assert options().uniform_check is True and options("--no-uniform-check").uniform_check is False
 
 
 def test_cg_rtol_option_reaches_the_fit():
@@ -590,8 +619,8 @@ def test_cg_rtol_option_reaches_the_fit():
     def options(*extra):
         return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
 
-    assert options("--cg-rtol", "0.01")["cg_rtol"] == 0.01
-    assert "cg_rtol" not in options()  # the library's default, CG_RTOL
+    assert options("--cg-rtol", "0.01").cg_rtol == 0.01
+    assert options().cg_rtol == FitOptions().cg_rtol  # the library's default, CG_RTOL
 
 
 def test_loss_scale_option_reaches_the_fit():
@@ -602,8 +631,8 @@ def test_loss_scale_option_reaches_the_fit():
     def options(*extra):
         return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
 
-    assert options("--loss", "cauchy", "--loss-scale", "0.2")["loss_scale"] == 0.2
-    assert "loss_scale" not in options("--loss", "huber")  # the library's default, LOSS_SCALE
+    assert options("--loss", "cauchy", "--loss-scale", "0.2").loss_scale == 0.2
+    assert options("--loss", "huber").loss_scale == FitOptions().loss_scale  # the library's default, LOSS_SCALE
     for extra, message in ((("--loss-scale", "0.2"), "--loss-scale: only a robust loss uses it"),
                            (("--loss", "huber", "--loss-scale", "0"), "--loss-scale: must be a finite number > 0"),
                            (("--loss", "huber", "--loss-scale", "nan"), "--loss-scale: must be a finite number > 0")):
@@ -618,9 +647,9 @@ def test_uncertainty_radius_option_reaches_the_fit():
     def options(*extra):
         return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
 
-    assert options("--uncertainty-radius", "0")["uncertainty_radius"] == 0
-    assert options("--uncertainty-radius", "2")["uncertainty_radius"] == 2
-    assert "uncertainty_radius" not in options()  # the library's default, WINDOW_RADIUS
+    assert options("--uncertainty-radius", "0").uncertainty_radius == 0
+    assert options("--uncertainty-radius", "2").uncertainty_radius == 2
+    assert options().uncertainty_radius == FitOptions().uncertainty_radius  # the library's default, WINDOW_RADIUS
 
 
 def test_unconstrained_sigma_option_reaches_the_fit():
@@ -630,29 +659,25 @@ def test_unconstrained_sigma_option_reaches_the_fit():
     def options(*extra):
         return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
 
-    assert options("--unconstrained-sigma", "0.2")["unconstrained_sigma"] == 0.2
-    assert options("--unconstrained-sigma", "inf")["unconstrained_sigma"] == float("inf")
-    assert "unconstrained_sigma" not in options()  # the library's default, UNCONSTRAINED_SIGMA
+    assert options("--unconstrained-sigma", "0.2").unconstrained_sigma == 0.2
+    assert options("--unconstrained-sigma", "inf").unconstrained_sigma == float("inf")
+    assert options().unconstrained_sigma == FitOptions().unconstrained_sigma  # the library's default, UNCONSTRAINED_SIGMA
 
 
 def test_solve_options_reach_the_fit():
     """--smooth, --rtol, --atol, --coarse-to-fine, --no-search and --no-repair each reach the
-    fit's keyword, given or not; not given, they are the library's own defaults."""
-    import inspect
-
+    fit's option, given or not; not given, they are the library's own defaults."""
     from pbrfit.cli.main import build_parser
     from pbrfit.cli.fit import fit_options
-    from pbrfit.fitting.api import fit_observations
 
     def options(*extra):
         return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
 
     keys = ("smooth", "rtol", "atol", "coarse_to_fine", "search", "repair")
-    library = inspect.signature(fit_observations).parameters
-    assert {k: options()[k] for k in keys} == {k: library[k].default for k in keys}
+    assert {k: getattr(options(), k) for k in keys} == {k: getattr(FitOptions(), k) for k in keys}
     given = options("--smooth", "0.25", "--rtol", "1e-3", "--atol", "2e-4", "--coarse-to-fine", "--no-search",
                     "--no-repair")
-    assert {k: given[k] for k in keys} == dict(smooth=0.25, rtol=1e-3, atol=2e-4, coarse_to_fine=True, search=False,
+    assert {k: getattr(given, k) for k in keys} == dict(smooth=0.25, rtol=1e-3, atol=2e-4, coarse_to_fine=True, search=False,
                                                repair=False)
 
 
