@@ -75,7 +75,7 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
 
-    from .fit_command import run_fit
+    from .fit import run_fit
     from ..errors import CaptureError, listed
     from ..fitting.options import FitOptions
     from ..fitting.runner import compile_summary

@@ -1,12 +1,16 @@
-"""The `pbrfit fit` command's arguments: its options (`add_fit`), their translation into
-`pbrfit.fit`'s keywords with every refusal naming the flag (`fit_options`), and the summary
-line it prints (`fit_summary`)."""
+"""`pbrfit fit`: its arguments (`add_fit`), their `pbrfit.FitOptions` with every refusal naming
+the flag (`fit_options`), the fit as `pbrfit fit` and `pbrfit demo` run it (`run_fit`: a live
+progress line on a terminal, `FitProgress`; the errors against `truth/` when the capture has
+one; the output folder with the convergence plot of the steps kept, `loss_history`) and the
+summary line it prints (`fit_summary`)."""
 
 from __future__ import annotations
 
+import sys
+
 from ..errors import CaptureError
 
-__all__ = ["add_fit", "fit_options", "fit_summary", "default_continuation"]
+__all__ = ["add_fit", "fit_options", "fit_summary", "default_continuation", "FitProgress", "loss_history", "run_fit"]
 
 
 def add_fit(sub) -> None:
@@ -48,7 +52,7 @@ def add_fit(sub) -> None:
                         "no parameter by more than this; the optimistix solvers' atol (default 1e-5)")
     p.add_argument("--cg-rtol", type=float, default=None, metavar="TOL",
                    help="structured solver: relative tolerance of each step's conjugate gradients, in (0, 1) "
-                        "(default 1e-3; 1e-2 solves about a quarter faster, see the README)")
+                        "(default 1e-3; 1e-2 solves about a quarter faster, see docs/results.md)")
     p.add_argument("--loss", choices=LOSSES, default="l2", help="robust loss (default l2: off)")
     p.add_argument("--loss-scale", type=float, default=None, metavar="S",
                    help="the robust loss's scale, in image units: residuals past it count less "
@@ -84,7 +88,7 @@ def add_fit(sub) -> None:
                    help="uncertainty.exr: each texel's standard error with the (2R+1) x (2R+1) texels around it "
                         "free as well (0, 1 or 2; default 1; 0: its own block of the normal matrix, the neighbours "
                         "held, about 10-15%% too small on the peer scene; 2: within 0.1%% of the whole matrix's on a "
-                        "small map, about 4 times the cost; see the README)")
+                        "small map, about 4 times the cost; see docs/error-bars.md)")
     p.add_argument("--noise-level", choices=NOISE_LEVELS, default="uniform",
                    help="uniform (default): every residual weighs alike (plain least squares, the likeliest fit "
                         "when the noise does not depend on the value); estimated: the noise level as a function "
@@ -258,3 +262,107 @@ def fit_summary(result, errors) -> str:
     if errors:
         parts.append("RMSE " + ", ".join(f"{k} {v:.4f}" for k, v in errors.items()))
     return "; ".join(parts)
+
+
+class FitProgress:
+    """A live line (rich) with level, step, loss and elapsed time (before the solve, the per-pixel IBL
+    integrals' progress); also keeps the loss history."""
+
+    def __init__(self, enabled: bool):
+        import time
+
+        self.history = []
+        self._start = time.perf_counter()
+        self._clock = time.perf_counter
+        self._live = None
+        if enabled and sys.stderr.isatty():
+            from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+            self._live = Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
+                                  transient=True)
+            self._task = self._live.add_task("fitting")
+            self._live.start()
+
+    def __call__(self, info: dict) -> None:
+        if info.get("stage") == "ibl":  # the per-pixel integrals before the solve: no loss yet
+            if self._live is not None:
+                self._live.update(self._task, description=f"per-pixel IBL {info['done']:,} / {info['total']:,} pixels")
+            return
+        self.history.append(dict(info, time=self._clock() - self._start))
+        if self._live is not None:
+            h, w = info["resolution"]
+            n = info.get("footprint")  # the auto footprint's two finishes: centres, then samples
+            where = "" if n is None else ("  pixel centres" if n == 1 else f"  {n}x{n} samples")
+            if "repair" in info:
+                where += f"  repair {info['repair']}"
+            if info.get("weighted"):
+                where += "  weighted"
+            if "check" in info:
+                where += f"  uniform {info['check']}?"
+            self._live.update(self._task, description=(
+                f"level {info['level']} ({h}x{w}){where} step {info['step']:3d}  loss {info['loss']:.4e}"))
+
+    def close(self) -> None:
+        if self._live is not None:
+            self._live.stop()
+
+
+def loss_history(steps: list, report: dict) -> list:
+    """The convergence plot's (step, loss) points: every step reported, but of the automatic
+    footprint's two finishes (entries tagged "footprint") only the kept one's, of the repair's
+    passes (tagged "repair", numbered from 1) only the kept ones', and of the uniform check's
+    re-fits (tagged "check") only those of a channel made uniform. With an estimated noise level
+    only the weighted fit's steps (tagged "weighted"): its loss is of the weighted residuals, on
+    another scale than the first fit's."""
+    from ..fitting.stages.selection import uniform_channels
+
+    if any(h.get("weighted") for h in steps):
+        steps = [h for h in steps if h.get("weighted")]
+    kept = report.get("footprint", {}).get("selected")
+    uniform = set(uniform_channels(report))
+    passes = (report.get("repair") or {}).get("passes", [])
+    repaired = {i + 1 for i, p in enumerate(passes) if p.get("kept")}
+
+    def plotted(h) -> bool:
+        return (h.get("footprint", kept) == kept and h.get("repair", None) in repaired | {None}
+                and h.get("check", None) in uniform | {None})
+
+    return [dict(step=i, loss=h["loss"]) for i, h in enumerate(h for h in steps if plotted(h))]
+
+
+def run_fit(capture, out, options, cache_dir=None, quiet: bool = False):
+    """Fit `capture` with `options` (a `pbrfit.FitOptions`), add truth errors to the report when `truth/` exists, write `out`; return
+    (result, per-map RMSE or None)."""
+    import numpy as np
+
+    from ..fitting.api import fit, map_rmse
+    from ..io.material_files import read_material
+    from ..io.outputs import write_fit_output
+
+    truth = None
+    if capture.truth_dir is not None:  # read first: only evaluation uses it, so a bad one is skipped
+        try:
+            truth = read_material(capture.truth_dir)
+        except CaptureError as err:
+            print(f"pbrfit: warning: {err}; truth/ ignored (no truth_rmse)", file=sys.stderr)
+    progress = FitProgress(not quiet)
+    try:
+        result = fit(capture, options, cache_dir=cache_dir, progress=progress)
+    finally:
+        progress.close()
+    errors = None
+    if truth is not None:
+        errors = map_rmse(truth, result)
+        result.report["truth_rmse"] = errors
+    history = loss_history(progress.history, result.report)
+    normals = result.material.normal is not None
+    if normals:  # uncertainty.exr holds the spec's five channels; the slopes' σ goes to the report
+        sig = np.asarray(result.uncertainty)[..., 5:7]
+        seen = np.asarray(result.coverage) > 0
+        result.report["normal_slope_sigma_median"] = float(np.median(sig[seen])) if seen.any() else float("nan")
+    write_fit_output(
+        out, capture, result.material, np.asarray(result.uncertainty)[..., :5], result.coverage, result.report,
+        targets=list(zip(result.targets, result.masks)), renders=result.images, history=history,
+        write_normal=normals,
+    )
+    return result, errors

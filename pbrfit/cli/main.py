@@ -13,7 +13,7 @@ import sys
 import warnings
 from typing import Optional, Sequence
 
-from .fit import add_fit, fit_options, fit_summary
+from .fit import add_fit, fit_options, fit_summary, run_fit
 from .model_flag import add_model_argument, model_changes
 from ..errors import CaptureError
 
@@ -225,7 +225,6 @@ def _cmd_fit(args) -> int:
     from pathlib import Path
 
     from ..io.atomic import check_not_inside, check_output_dir
-    from .fit_command import run_fit
     from ..fitting.options import MATERIAL_MAPS
     from ..scene.capture import load_capture
 

@@ -210,9 +210,10 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
     """Fit material maps to a `pbrfit.scene.capture.Capture` (or the capture folder, read with
     `pbrfit.scene.capture.load_capture`), with ``options`` (a `FitOptions`, default
     ``FitOptions()``) and any of its fields given as keywords (``pbrfit.fit(capture,
-    resolution=64)``): the options are checked before the capture is read.
+    resolution=64)``): the options are checked before the capture is read. The options, the
+    fields of `FitOptions`, are all optional:
 
-    Options (the fields of `FitOptions`, all optional):
+    Other Parameters:
         cache_dir: a folder for the G-buffers (and per-pixel IBL integrals) computed from the
             capture, read back by later fits of the same capture and settings; default None: none
             kept (the command line's ``--cache``).

@@ -226,7 +226,7 @@ def observations_from_capture(capture, cache_dir=None, views=None, pixel_samples
     out. `views` may pass precomputed `ViewInputs` (one per frame) to skip the ray casting.
     A capture that leaves no usable pixel, or whose pixels no light reaches (no environment,
     every punctual light off or pointing away), is `CaptureError`: nothing could be fitted; so
-    is a NaN or inf pixel on the mesh (`pbrfit.scene.capture_frames.Frame.nonfinite`).
+    is a NaN or inf pixel on the mesh (`pbrfit.scene.capture.Frame.nonfinite`).
 
     `pixel_samples` n > 1 ray-casts each frame n × n times, at the `pixel_offsets` (module
     docstring: pixel footprints), and keeps the pixels every sample sees.

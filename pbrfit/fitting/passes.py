@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import TYPE_CHECKING, Any, Mapping, Optional
+from typing import Any, Mapping, Optional
 
 import jax
 import jax.numpy as jnp
@@ -26,22 +26,18 @@ from .stages.footprint import centres_explain_better, final_residuals, footprint
 from .initialisation import coordinate_search, grid_initialise, parity_classes
 from .observations import Observations, coverage_counts, layout_for, neighbour_pairs
 from .parameters import FIT_GROUPS, channel_mask, prior
-from .stages.repair import repair_skipped, run_repair
 from .resolution import default_resolution, schedule
-from .runner import DEFAULT_SOLVER, Compiler, Runner, jitted_normal_blocks, problem_key, timed, timed_rest
-from .stages.selection import SELECTABLE, run_uniform_check, uniform_check_skipped
-from .stages.unconstrained import hold_skipped, run_hold
+from .runner import DEFAULT_SOLVER, Compiler, Runner, jitted_normal_blocks, problem_key, timed
+from .stages.pipeline import STAGES, StageState, run_stages
+from .stages.selection import SELECTABLE
 from .sharding import pixel_mesh, shard_problem
 from .objective import Problem
 from ..physics.textures import resample_map, sample_bilinear
 from ..physics.model import Model
 from ..transfer import to_device
 
-if TYPE_CHECKING:  # (the options import the passes' defaults)
-    from .options import FitOptions
-
 __all__ = ["fit_pass", "PassInputs", "continuation_scale", "with_smooth", "COARSE_STEPS", "MAX_STEPS", "SEARCH_AFTER",
-           "SEARCH_ROUNDS", "CONTINUATION", "SETTLE_STEPS", "RELEASED_STEPS", "PROBE_STEPS", "TURNED_OFF"]
+           "SEARCH_ROUNDS", "CONTINUATION", "SETTLE_STEPS", "RELEASED_STEPS", "PROBE_STEPS"]
 
 #: Default step limits: per coarse level, and for the final level.
 COARSE_STEPS = 20
@@ -99,10 +95,6 @@ def _upsample(x: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return np.asarray(sample_bilinear(jnp.asarray(x), jnp.asarray(uv), "clamp"))
 
 
-#: The report's "skipped" entry of a stage the caller turned off (``repair=False``, ``--no-uniform-check``).
-TURNED_OFF = "turned off"
-
-
 @dataclasses.dataclass(frozen=True)
 class PassInputs:
     """What a pass fits with besides its `FitOptions`: the shading (``model`` and its ``ibl``
@@ -122,10 +114,11 @@ class PassInputs:
     setup_time: float = 0.0
 
 
-def fit_pass(obs: Observations, options: "FitOptions", inputs: PassInputs,
+def fit_pass(obs: Observations, options, inputs: PassInputs,
              shared: Optional[dict] = None) -> tuple[FitResult, np.ndarray]:
-    """One fit (`pbrfit.fitting.api.fit_observations`): the result and the final (T, K) texel
-    values. ``shared``: a dict that keeps the solver runner, its compiler (whose clock collects every
+    """One fit (`pbrfit.fitting.api.fit_observations`) with ``options`` (a
+    `pbrfit.fitting.options.FitOptions`, which imports this module's defaults): the result and
+    the final (T, K) texel values. ``shared``: a dict that keeps the solver runner, its compiler (whose clock collects every
     pass's times) and the progress callback's ``where`` from one pass to the next (empty: this
     pass makes them)."""
     t_start = time.perf_counter()
@@ -293,37 +286,11 @@ def fit_pass(obs: Observations, options: "FitOptions", inputs: PassInputs,
                     obs, problem, seen = inputs.centres, early, centre_seen
             history.append(dict(resolution=list(shape), **info))
             x = xs[:t].reshape(shape + (k,))
-        repaired = None
-        if options.repair:
-            skipped = repair_skipped(options.solver, final, channels)
-            if skipped is not None:
-                repaired = dict(skipped=skipped)
-            else:
-                with timed_rest(clock, "repair"):
-                    xs, linearization, repaired = run_repair(runner, compiler, problem, xs, linearization, final, seen,
-                                                          channels, num_free, where)
-                x = xs[:t_final].reshape(final + (k,))
-        checks, uniform = {}, {}
-        if options.uniform_check:
-            skipped = uniform_check_skipped(options.solver, options.loss, options.smooth, final, channels)
-            if skipped is not None:
-                checks = dict(skipped=skipped)
-            else:
-                with timed_rest(clock, "uniform_check"):
-                    xs, linearization, problem, checks, uniform = run_uniform_check(
-                        runner, problem, xs, linearization, channels, seen, obs.num_pixels, where)
-                x = xs[:t_final].reshape(final + (k,))
-        held = dict(skipped=TURNED_OFF)
-        if math.isfinite(options.unconstrained_sigma):
-            skipped = hold_skipped(options.solver, options.smooth, final, channels, uniform)
-            if skipped is not None:
-                held = dict(skipped=skipped)
-            else:
-                with timed_rest(clock, "unconstrained"):
-                    xs, linearization, problem, held = run_hold(runner, problem, xs, linearization, channels, seen,
-                                                                final, obs.num_pixels, options.unconstrained_sigma,
-                                                                int(options.uncertainty_radius), uniform)
-                x = xs[:t_final].reshape(final + (k,))
+        state = StageState(options, runner, compiler, problem, xs, linearization, final, seen, channels, num_free,
+                           obs.num_pixels, where)
+        entries, stages = run_stages(STAGES, state, clock)
+        problem, xs, linearization, uniform = state.problem, state.xs, state.linearization, state.uniform
+        x = xs[:t_final].reshape(final + (k,))
     finally:
         compiler.close()
 
@@ -331,21 +298,13 @@ def fit_pass(obs: Observations, options: "FitOptions", inputs: PassInputs,
     result = finish(obs, problem, x, final, channels, seen[:t_final], inputs.model, options.solver, history,
                     options.loss, options.smooth, dict(setup=inputs.setup_time, **clock), t_post, t_start,
                     linearization, options.wrap, uniform, int(options.uncertainty_radius))
-    if options.uniform_check:
-        for name, c in SELECTABLE:  # the value's σ as uncertainty holds it: the kept fit's residual variance
-            if checks.get(name, {}).get("uniform"):
-                checks[name]["sigma"] = float(np.asarray(result.uncertainty)[..., c][seen[:t_final].reshape(final)][0])
-        result.report["uniform_check"] = checks
-        result.report["steps"] += sum(c.get("steps", 0) for c in checks.values() if isinstance(c, dict))
-    else:
-        result.report["uniform_check"] = dict(skipped=TURNED_OFF)
-    result.report["unconstrained"] = held
-    result.report["steps"] += held.get("steps", 0)
-    if options.repair:
-        result.report["repair"] = repaired
-        result.report["steps"] += sum(p.get("steps", 0) for p in repaired.get("passes", ()))
-    else:
-        result.report["repair"] = dict(skipped=TURNED_OFF)
+    checks = entries["uniform_check"]
+    for name, c in SELECTABLE:  # the value's σ as uncertainty holds it: the kept fit's residual variance
+        if checks.get(name, {}).get("uniform"):
+            checks[name]["sigma"] = float(np.asarray(result.uncertainty)[..., c][seen[:t_final].reshape(final)][0])
+    result.report.update(entries)
+    result.report["stages"] = stages
+    result.report["steps"] += sum(s["steps"] for s in stages)
     # when each level stops (`pbrfit.fitting.api.fit_observations`), and the robust loss's scale
     result.report["stopping"] = dict(max_steps=int(max_steps), coarse_steps=int(options.coarse_steps),
                                      rtol=float(options.rtol), atol=float(options.atol))

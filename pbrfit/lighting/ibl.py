@@ -83,7 +83,7 @@ IRRADIANCE_SOURCE_MIN_HEIGHT = 64
 
 @dataclasses.dataclass(frozen=True)
 class IBLSettings:
-    """Knobs of the split sum. Defaults chosen by `experiments/ibl_accuracy.py` (see its README section).
+    """Knobs of the split sum. Defaults chosen by `experiments/ibl_accuracy.py` (see docs/ibl.md).
 
     Attributes:
         lut_size: BRDF LUT entries per axis (n·v and perceptual roughness).

@@ -1,6 +1,6 @@
-"""The fixed geometry and what is known of it: the capture (`capture`, `capture_cameras`,
-`capture_frames`: `capture.json` read and checked, every error named), cameras, meshes and glTF
-reading, uv layout, ray casting and the per-view G-buffers computed once.
+"""The fixed geometry and what is known of it: the capture (`capture`: `capture.json` read and
+checked, its frames and their cameras, every error named), cameras, meshes and glTF reading,
+uv layout, ray casting and the per-view G-buffers computed once.
 
 May import: `pbrfit.physics`, `pbrfit.io`, `pbrfit.lighting`.
 """
@@ -8,8 +8,6 @@ May import: `pbrfit.physics`, `pbrfit.io`, `pbrfit.lighting`.
 from . import (
     camera,
     capture,
-    capture_cameras,
-    capture_frames,
     gbuffer,
     gltf_accessors,
     gltf_geometry,

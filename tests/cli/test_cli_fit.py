@@ -277,7 +277,7 @@ def test_model_option_fits_a_capture_rendered_with_that_brdf(capture, tmp_path, 
     assert np.abs(rendered[..., :3] - lambert[..., :3]).max() > 1e-3  # the two BRDFs differ here
     reports = {}
     for name, extra in (("burley", ["--model", "diffuse=burley"]), ("lambert", [])):
-        out = tmp_path / name
+        out = tmp_path / f"fit-{name}"
         assert main(["fit", str(burley), "--out", str(out), "--resolution", "8", "--max-steps", "30",
                      "--quiet", *extra]) == 0
         reports[name] = json.loads((out / "report.json").read_text())
@@ -559,7 +559,7 @@ def test_summary_line_names_the_footprint():
 
 
 def test_loss_history_keeps_the_kept_footprint_only():
-    from pbrfit.cli.fit_command import loss_history
+    from pbrfit.cli.fit import loss_history
 
     steps = [dict(loss=9.0), dict(loss=5.0), dict(loss=4.0, footprint=1), dict(loss=3.0, footprint=1),
              dict(loss=2.0, footprint=2)]
@@ -570,7 +570,7 @@ def test_loss_history_keeps_the_kept_footprint_only():
 
 
 def test_loss_history_keeps_the_weighted_fit_only():
-    from pbrfit.cli.fit_command import loss_history
+    from pbrfit.cli.fit import loss_history
 
     steps = [dict(loss=9.0), dict(loss=5.0, footprint=1), dict(loss=4.0, footprint=2), dict(loss=3.0, repair=1),
              dict(loss=2.5, weighted=True), dict(loss=2.0, weighted=True, repair=1)]
@@ -581,7 +581,7 @@ def test_loss_history_keeps_the_weighted_fit_only():
 
 
 def test_loss_history_keeps_kept_repair_passes_only():
-    from pbrfit.cli.fit_command import loss_history
+    from pbrfit.cli.fit import loss_history
 
     steps = [dict(loss=9.0), dict(loss=5.0), dict(loss=3.0, repair=1), dict(loss=4.0, repair=2)]
     passes = [dict(flagged=3, kept=True), dict(flagged=2, kept=False)]
@@ -590,7 +590,7 @@ def test_loss_history_keeps_kept_repair_passes_only():
 
 
 def test_loss_history_keeps_uniform_check_refits_only_where_kept():
-    from pbrfit.cli.fit_command import loss_history
+    from pbrfit.cli.fit import loss_history
 
     steps = [dict(loss=9.0), dict(loss=5.0), dict(loss=6.0, check="metallic"), dict(loss=5.5, check="metallic"),
              dict(loss=7.0, check="roughness")]

@@ -25,7 +25,8 @@ import pbrfit.fitting.solvers.structured
 from pbrfit.fitting.api import SOLVERS, default_resolution, fit_observations, map_rmse, schedule
 from pbrfit.fitting.options import fit_arguments
 from pbrfit.fitting.options import LOSS_SCALE
-from pbrfit.fitting.passes import COARSE_STEPS, RELEASED_STEPS, SEARCH_AFTER, SETTLE_STEPS, TURNED_OFF
+from pbrfit.fitting.passes import COARSE_STEPS, RELEASED_STEPS, SEARCH_AFTER, SETTLE_STEPS
+from pbrfit.fitting.stages.pipeline import TURNED_OFF
 from pbrfit.fitting.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, grid_initialise, parity_classes
 from pbrfit.physics.lights import point_light
 from pbrfit.physics.material import Material
@@ -945,6 +946,13 @@ def test_repair_restarts_a_cluster_left_in_a_wrong_basin():
     err = map_rmse(truth, res)
     assert err["roughness"] < 1e-4 and err["base_color"] < 1e-4 and err["metallic"] < 1e-4, err
     passes = res.report["repair"]["passes"]
+    # every stage after the solve has one summary, in the order they ran
+    assert [s["name"] for s in res.report["stages"]] == ["repair", "uniform_check", "unconstrained"]
+    repair = res.report["stages"][0]
+    assert repair["ran"] and repair["skipped"] is None and repair["seconds"] > 0
+    assert repair["steps"] == sum(p["steps"] for p in passes) > 0
+    off = plain.report["stages"][0]
+    assert off == dict(name="repair", ran=False, skipped=TURNED_OFF, seconds=off["seconds"], steps=0)
     first = passes[0]
     assert first["kept"] and first["flagged"] > 0 and first["moved"] >= first["flagged"]
     assert first["energy_after"] < 1e-2 * first["energy_before"]

@@ -231,9 +231,9 @@ def test_pixel_samples_with_per_pixel_ibl(tmp_path, monkeypatch):
     settings = PixelIBLSettings(samples=16, levels=4)
     seen = {}
 
-    def spy(obs, **kwargs):
-        seen.update(kwargs, obs=obs)
-        return fit_observations(obs, **kwargs)
+    def spy(obs, options, **kwargs):
+        seen.update(kwargs, obs=obs, options=options)
+        return fit_observations(obs, options, **kwargs)
 
     fit_observations = fit_module.fit_observations
     monkeypatch.setattr(fit_module, "fit_observations", spy)

@@ -1,8 +1,8 @@
-"""The basin repair's host-side pieces (`pbrfit.fitting.stages.repair`, `pbrfit.fitting.stages.misfit`); the whole repair is tested in test_fit."""
+"""The basin repair's host-side pieces (`pbrfit.fitting.stages.repair`); the whole repair is tested in test_fit."""
 
 import numpy as np
 
-from pbrfit.fitting.stages.misfit import MISFIT_FLOOR, identifiable_texels, misfit_texels, outlier_texels, texel_misfit, well_seen_texels
+from pbrfit.fitting.stages.repair import MISFIT_FLOOR, identifiable_texels, misfit_texels, outlier_texels, texel_misfit, well_seen_texels
 from pbrfit.fitting.stages.repair import evidence_variance, fill_from_nearest, improved_clusters, repair_region
 from pbrfit.fitting.uncertainty import residual_variance
 

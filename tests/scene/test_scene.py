@@ -789,7 +789,7 @@ def test_mesh_with_non_finite_values_or_an_unknown_format_is_refused(tmp_path):
 def test_mesh_normals_from_the_file_or_else_trimeshs(tmp_path, suffix):
     """Normals the file gives are kept; without them, trimesh's (the spec's loader): the
     angle-weighted mean of the faces' normals at each shared vertex, as Mitsuba computes them,
-    not glTF 2.0's flat ones (README, where the spec is silent)."""
+    not glTF 2.0's flat ones (docs/conventions.md, where the spec is silent)."""
     import trimesh
 
     # a ridge along z: two slopes, the crest's vertices shared by both (a right angle of each)
