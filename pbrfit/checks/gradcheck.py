@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..physics import brdf
+from ..physics import brdf, lights
 from .finite_differences import KINK_MARGIN, STEP_1, STEP_2, fd_estimates, rel_error, stencil_points
 from .terms import Spec, all_specs, product_grid
 
@@ -213,7 +213,6 @@ def _fmt_point(point: dict) -> str:
 
 def print_report(results: Sequence[CheckResult], quiet: bool = False) -> bool:
     """Print the results table, the named numerical floors and a summary line; return overall pass."""
-    from ..physics import lights  # floors reported alongside the BRDF's
 
     ok = all(r.passed for r in results)
     rows = [r for r in results if not (quiet and r.passed)]

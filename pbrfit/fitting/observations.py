@@ -39,6 +39,7 @@ from ..render.views import capture_gbuffers, capture_views, view_rows
 from ..scene.camera import pixel_offsets, sample_camera
 from ..physics.textures import bilinear_weights
 from ..transfer import to_device
+from ..physics.color import linear_to_srgb_host
 
 __all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "observations_from_views", "observations_from_capture",
            "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout",
@@ -245,7 +246,6 @@ def observations_from_capture(capture, cache_dir=None, views=None, pixel_samples
         per_frame = _sample_views(capture, cache_dir, n)
         return _interleave([observations_from_capture(capture, views=[v[s] for v in per_frame])
                             for s in range(n * n)])
-    from ..physics.color import linear_to_srgb_host
     color_space = getattr(capture, "color_space", "linear")
     if views is None:
         views = capture_views(capture, capture_gbuffers(capture, cache_dir))

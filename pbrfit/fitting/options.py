@@ -23,6 +23,8 @@ from .objective import LOSSES
 from .solvers.structured import CG_RTOL
 from .stages.unconstrained import UNCONSTRAINED_SIGMA
 from .uncertainty import MAX_UNCERTAINTY_RADIUS, WINDOW_RADIUS
+from .observations import MAX_PIXEL_SAMPLES
+from ..physics.textures import WRAPS
 
 __all__ = ["FitOptions", "options_from", "OptionNames", "fit_arguments", "held_report", "check_options", "check_kinds", "check_names",
            "check_model", "check_normals", "MATERIAL_MAPS", "IBL_MODES", "LOSS_SCALE", "FLOAT32_MAX", "MAX_MAP_SIDE",
@@ -361,8 +363,6 @@ def check_kinds(*, progress, level_factor, devices, **switches) -> None:
 def check_names(*, noise_level, loss, init, wrap, pixel_samples="auto") -> None:
     """`ValueError` for a named choice out of its list (`pbrfit.fitting.api.fit_observations`; `pbrfit.fit` before
     it reads the capture and casts its rays, with ``pixel_samples`` too)."""
-    from .observations import MAX_PIXEL_SAMPLES
-    from ..physics.textures import WRAPS
 
     for name, value, choices in (("noise_level", noise_level, NOISE_LEVELS), ("loss", loss, LOSSES),
                                  ("init", init, ("grid", "prior")), ("wrap", wrap, WRAPS)):

@@ -38,6 +38,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .normal_matrix import NEIGHBOUR_OFFSETS
+
 __all__ = ["EIGEN_FLOOR", "MAX_UNCERTAINTY_RADIUS", "WINDOW_RADIUS", "block_standard_errors", "residual_variance",
            "window_precisions", "window_radii", "window_standard_errors"]
 
@@ -116,7 +118,6 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
     n = len(offsets)
     if n == 1:
         return np.asarray(blocks, np.float64)
-    from .normal_matrix import NEIGHBOUR_OFFSETS
 
     codes = {o: q for q, o in enumerate(NEIGHBOUR_OFFSETS)}
     # each (a, b) block of a window's matrix: D of texel a, C of texel a towards b, or C of b

@@ -28,6 +28,7 @@ import numpy as np
 
 from .atomic import atomic_path
 from ..errors import CaptureError
+from ..physics.color import linear_to_srgb_host, srgb_to_linear_host
 
 __all__ = ["ImageInfo", "read_image", "color_channels", "read_image_info", "data_window_mask", "write_image",
            "srgb_encoded", "srgb_decoded"]
@@ -347,13 +348,11 @@ def write_image(
 
 def srgb_encoded(x: np.ndarray) -> np.ndarray:
     """Linear values clipped to [0, 1], sRGB-encoded (numpy: for 8- and 16-bit files)."""
-    from ..physics.color import linear_to_srgb_host
 
     return linear_to_srgb_host(np.clip(np.asarray(x, np.float32), 0.0, 1.0))
 
 
 def srgb_decoded(x: np.ndarray) -> np.ndarray:
     """sRGB-encoded values decoded to linear (numpy)."""
-    from ..physics.color import srgb_to_linear_host
 
     return srgb_to_linear_host(x)

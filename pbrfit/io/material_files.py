@@ -13,6 +13,7 @@ import numpy as np
 
 from ..errors import CaptureError
 from .images import ImageInfo, read_image, srgb_decoded, srgb_encoded, write_image
+from ..physics.material import Material
 
 __all__ = ["MATERIAL_FILES", "write_material", "read_material", "read_map", "map_array", "pack_orm", "encode_normal"]
 
@@ -189,7 +190,6 @@ def read_material(directory: str | os.PathLike):
     ``metallic_roughness.png``). ``normal.png``, ``occlusion.exr`` and ``emissive.exr`` are
     optional. Raises `CaptureError` naming the folder when a required map is missing.
     """
-    from ..physics.material import Material
 
     directory = Path(directory)
     base, metallic, roughness = (read_map(directory, name) for name in ("base_color", "metallic", "roughness"))

@@ -15,6 +15,12 @@ from typing import Sequence
 
 import numpy as np
 
+from ..physics.color import linear_to_srgb_host
+from .atomic import atomic_dir
+from .gltf_export import write_gltf
+from .images import write_image
+from .material_files import write_material
+
 __all__ = ["UNCERTAINTY_CHANNELS", "contact_sheet", "write_fit_output"]
 
 #: Channel names of uncertainty.exr, in the spec's order (base R, G, B, metallic, roughness).
@@ -31,7 +37,6 @@ def _heat(err: np.ndarray, scale: float) -> np.ndarray:
 
 def _display(x: np.ndarray, is_srgb: bool) -> np.ndarray:
     """Values to show in an 8-bit PNG: sRGB-encoded, clipped."""
-    from ..physics.color import linear_to_srgb_host
 
     x = np.clip(np.asarray(x, np.float32), 0.0, 1.0)
     return x if is_srgb else linear_to_srgb_host(x)
@@ -127,10 +132,6 @@ def write_fit_output(
     targets: per view (image as the file holds it, mask); renders: per view the fitted render in
     the same space. Both optional (no contact sheets without them).
     """
-    from .atomic import atomic_dir
-    from .gltf_export import write_gltf
-    from .images import write_image
-    from .material_files import write_material
 
     out_dir = Path(out_dir)
     uncertainty = np.asarray(uncertainty, np.float32)

@@ -31,6 +31,8 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..errors import CaptureError
+from ..io.images import color_channels, read_image
+from ..physics.clamps import clamp_inward
 
 __all__ = [
     "Environment",
@@ -104,7 +106,6 @@ def load_environment(path, world_up: str = "+y", intensity: float = 1.0,
     prefixed with ``where``: the capture's key or the option that gave it); warns (`EnvironmentWarning`,
     once per file) when it is not 2:1.
     """
-    from ..io.images import color_channels, read_image
 
     path = Path(path)
     if world_up not in WORLD_UPS:
@@ -363,7 +364,6 @@ def sample_stack(stack: Float[Array, "K H W C"], shapes: tuple, uv: Float[Array,
     at level 0 and K-1 (roughness 0 and 1) with the derivative from inside (`pbrfit.physics.clamps.clamp_inward`:
     a clip's is half of it there).
     """
-    from ..physics.clamps import clamp_inward
 
     k = stack.shape[0]
     level = clamp_inward(level, 0.0, k - 1.0)

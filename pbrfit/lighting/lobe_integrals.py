@@ -25,6 +25,7 @@ from .environment import direction_to_uv, dot3, from_environment_frame, sample_e
 from ..physics.model import Model
 from .montecarlo import counter_uniforms, environment_pdf, environment_sampler, hash32, sample_environment
 from .sampling import ggx_vndf_pdf, sample_cosine, sample_ggx_vndf, tangent_frame
+from .brdf_lut import lookup_brdf_lut
 
 __all__ = ["SPECULAR_LOBES", "DIFFUSE_LOBES", "integrate_lobes"]
 
@@ -151,8 +152,6 @@ def integrate_lobes(env, lut, n, v, first, seed, *, model, lobes, levels, sample
     if burley:
         parts["burley"] = bur_acc * inv
     if "dfg_scale" in lobes:
-        from .brdf_lut import lookup_brdf_lut
-
         dfg = lookup_brdf_lut(lut, jnp.clip(nv, 0.0, 1.0)[:, None], jnp.broadcast_to(rough, nv.shape + (levels,)))
         parts["dfg_scale"] = jnp.broadcast_to(dfg[..., 0:1], zeros_r.shape)
         parts["dfg_bias"] = jnp.broadcast_to(dfg[..., 1:2], zeros_r.shape)

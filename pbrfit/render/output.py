@@ -17,6 +17,10 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..errors import CaptureError
+from ..scene.gltf_read import gltf_file_uris
+from ..io.atomic import atomic_dir
+from ..io.images import write_image
+from ..scene.capture import CAPTURE_FORMAT
 
 __all__ = ["NO_ALPHA_SUFFIXES", "write_rendered_capture"]
 
@@ -56,8 +60,6 @@ def _copy_mesh(src: Path, root_out: Path, rel: str) -> list[str]:
         _copy_into(src, root_out, rel)
         return [rel]
     from urllib.parse import quote
-
-    from ..scene.gltf_read import gltf_file_uris
 
     try:
         doc = json.loads(src.read_text(encoding="utf-8"))
@@ -104,9 +106,6 @@ def write_rendered_capture(
     without ``format`` gets it, so the output loads as a capture. The folder is built under a
     temporary name and renamed into place, so a failure leaves nothing.
     """
-    from ..io.atomic import atomic_dir
-    from ..io.images import write_image
-    from ..scene.capture import CAPTURE_FORMAT
 
     raw = copy.deepcopy(capture.raw)
     raw["format"] = CAPTURE_FORMAT

@@ -23,6 +23,10 @@ from ..physics.color import encode
 from ..physics.material import Material, apply_normal_map, material_at
 from ..physics.model import Model
 from ..transfer import to_device
+from ..physics.lights import incident
+from ..lighting.pixel_ibl import interpolate_lobes, pixel_dfg, shade_pixel_ibl
+from ..lighting.brdf_lut import lookup_brdf_lut
+from ..lighting.ibl import shade_ibl
 
 __all__ = [
     "ViewInputs",
@@ -82,8 +86,6 @@ def light_arrays(lights, points: np.ndarray, visibility: Optional[np.ndarray] = 
 
 @eqx.filter_jit  # eagerly: one compile per image size and light set, not one per operation
 def _light_arrays(lights, points, visibility):
-    from ..physics.lights import incident
-
     dirs, rad = zip(*(incident(light, points) for light in lights))
     light_l = jnp.stack(dirs, axis=1)
     light_radiance = jnp.stack(rad, axis=1)
@@ -181,26 +183,20 @@ def shade(
         if ibl is None:
             raise ValueError("Model(multiscatter=True) needs IBL tables (for the DFG LUT)")
         if model.ibl == "per_pixel":
-            from ..lighting.pixel_ibl import interpolate_lobes, pixel_dfg
-
             dfg = pixel_dfg(ibl, interpolate_lobes(ibl.table, roughness[..., 0]))
         else:
-            from ..lighting.brdf_lut import lookup_brdf_lut
-
             n_dot_v = jnp.clip(jnp.sum(normal * view, axis=-1), 0.0, 1.0)
             dfg = lookup_brdf_lut(ibl.lut, n_dot_v, roughness[..., 0])
     out = shade_punctual(normal, view, light_l, light_radiance, base_color, metallic, roughness, model, dfg)
     if model.ibl == "split_sum":
         if ibl is None:
             raise ValueError("Model(ibl='split_sum') needs IBL tables; build them with pbrfit.lighting.ibl.build_ibl")
-        from ..lighting.ibl import shade_ibl
 
         out = out + shade_ibl(ibl, normal, view, base_color, metallic, roughness, model, occlusion)
     elif model.ibl == "per_pixel":
         if ibl is None:
             raise ValueError("Model(ibl='per_pixel') needs the points' lobe integrals; "
                              "build them with pbrfit.lighting.pixel_ibl.pixel_ibl")
-        from ..lighting.pixel_ibl import shade_pixel_ibl
 
         env = shade_pixel_ibl(ibl, base_color, metallic, roughness, model)
         out = out + (env if occlusion is None else env * occlusion)

@@ -25,6 +25,13 @@ from ..io.json_fields import JSONError, parse_json
 from ..physics.material import Material
 from ..physics.model import Model
 from .shade import ViewInputs, prepare_view, render_view
+from ..lighting.environment import environment_lookup, load_environment
+from ..lighting.ibl import IBLSettings, brdf_tables, build_ibl
+from ..scene.capture import Capture, EnvironmentSpec, load_capture
+from ..io.gltf_export import needs_texture_coordinates
+from ..physics.color import encode
+from ..scene.camera import pixel_offsets, sample_camera
+from ..io.lights import light_from_json
 
 __all__ = [
     "view_rows",
@@ -70,7 +77,6 @@ def capture_environment(capture):
     """The capture's environment as a `pbrfit.lighting.environment.Environment`, or None."""
     if capture.environment is None:
         return None
-    from ..lighting.environment import load_environment
 
     spec = capture.environment
     return load_environment(spec.file, capture.world_up, spec.intensity, spec.rotation_deg, spec.where)
@@ -88,7 +94,6 @@ def capture_ibl(capture, settings=None, environment=None, model: Optional[Model]
     """Split-sum tables for the capture's environment (or `environment`); `model` picks the lobes
     the tables hold (see `pbrfit.lighting.ibl.build_ibl`). Without an environment: the BRDF tables alone
     where ``model.multiscatter`` reads them (`pbrfit.lighting.ibl.brdf_tables`), else None."""
-    from ..lighting.ibl import IBLSettings, brdf_tables, build_ibl
 
     env = environment if environment is not None else capture_environment(capture)
     if env is None:
@@ -146,11 +151,8 @@ def render_capture(
     that shades an environment the capture lacks, is refused (`ValueError`); material values
     outside [0, 1] are clipped (`pbrfit.render.shade.shading_inputs`).
     """
-    from ..scene.capture import Capture, load_capture
 
     if isinstance(capture, (str, os.PathLike)):
-        from ..io.gltf_export import needs_texture_coordinates
-
         capture = load_capture(capture, require_uv=needs_texture_coordinates(material))
     if not isinstance(capture, Capture):
         raise ValueError(f"capture: expected a pbrfit.scene.capture.Capture or a capture folder, got {type(capture).__name__}")
@@ -178,7 +180,6 @@ def render_capture(
     for frame, view in zip(capture.frames, views):
         background = None
         if environment is not None:  # what the camera sees past the mesh
-            from ..physics.color import encode
 
             background = encode(_sky(environment, frame.camera), frame.exposure, capture.tonemap, frame.color_space)
         image, alpha = render_view(
@@ -198,7 +199,6 @@ PAD_ROWS = 256
 
 def _sky(environment, camera):
     """The environment's radiance along each pixel's ray (H · W, 3): what a camera sees past the mesh."""
-    from ..lighting.environment import environment_lookup
 
     _, dirs = camera.rays()
     return environment_lookup(environment, jnp.asarray(dirs, jnp.float32))
@@ -209,8 +209,6 @@ def _render_supersampled(frame, capture, material, model, ibl, environment, k: i
     once per sample position (`pbrfit.scene.camera.pixel_offsets`, the frame's camera with its
     principal point moved so that its pixel centres fall there, as the fit's footprint samples
     them), averaged, then encoded as the frame's file holds it. Memory stays that of one sample."""
-    from ..physics.color import encode
-    from ..scene.camera import pixel_offsets, sample_camera
 
     c = frame.camera
     pixels = c.height * c.width
@@ -239,7 +237,6 @@ def _render_supersampled(frame, capture, material, model, ibl, environment, k: i
 def load_lights_override(path: os.PathLike | str) -> list:
     """Read `--lights`: a JSON list of lights (or an object with a ``lights`` list), in a file or
     given inline (a string starting with ``[`` or ``{``)."""
-    from ..io.lights import light_from_json
 
     text = str(path).strip()
     if text.startswith(("[", "{")):
@@ -274,8 +271,6 @@ def apply_overrides(capture, environment_file: Optional[os.PathLike] = None, lig
 
     Per-frame lights and the flash stay; the environment keeps its intensity and rotation.
     """
-    from ..io.lights import light_from_json
-    from ..scene.capture import EnvironmentSpec
 
     changes = {}
     if environment_file is not None:

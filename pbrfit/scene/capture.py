@@ -64,6 +64,7 @@ from ..io.lights import color_and_intensity, light_from_json
 from ..physics.lights import Light, flash_light
 from .camera import Camera, camera_axes
 from .mesh import load_mesh
+from ..physics.color import COLOR_SPACES, TONEMAPS
 
 __all__ = [
     "CAPTURE_FORMAT",
@@ -493,7 +494,6 @@ def load_capture(path: str | Path, require_uv: bool = True) -> Capture:
     input. ``require_uv=False`` accepts a mesh without texture coordinates (uniform fits).
     See the module docstring for every rule.
     """
-    from ..physics.color import COLOR_SPACES, TONEMAPS
 
     json_path = _json_path(Path(path))
     root = json_path.parent
