@@ -1,7 +1,7 @@
 """Solver runs compiled ahead of time, and the jitted evaluations a fit's passes share.
 
-`Runner` runs the fit's solver (the structured one, `pbrfit.fitting.solvers.structured.structured_lm`, or an
-optimistix one, `pbrfit.fitting.solvers.optx`) on a `pbrfit.fitting.objective.Problem`, compiled once per problem
+`Runner` runs the fit's solver (the structured one, `pbrfit.fitting.solvers.structured.StructuredLM`, or an
+optimistix one, `pbrfit.fitting.solvers.optx`) through `optx.least_squares` on a `pbrfit.fitting.objective.Problem`, compiled once per problem
 shape by `Compiler`, which can compile in a background thread while the fit does other work and
 keeps compile time apart from run time. `timed` runs any other jitted pass (the grid start, the
 coordinate search) the same way.
@@ -21,7 +21,8 @@ import numpy as np
 from .solvers.optx import OPTX_SOLVERS, make_solver, optx_solve
 from .objective import Problem, objective
 from .normal_matrix import neighbour_blocks, normal_blocks
-from .solvers.structured import CG_RTOL, structured_lm
+from .solvers import structured
+from .solvers.structured import CG_RTOL
 from ..transfer import to_device
 
 __all__ = ["DEFAULT_SOLVER", "SOLVERS", "Compiler", "Runner", "timed", "timed_rest", "thread_time", "problem_key",
@@ -164,10 +165,10 @@ class Runner:
     def _call(self, x0, problem, steps, num_free):
         """(key, fn, args, kwargs, optimistix solver or None) of a run."""
         if self.solver == DEFAULT_SOLVER:
-            args = (x0, problem, to_device(steps, np.int32), self.rtol, self.atol)
             # cg_rtol as an array: one executable serves every tolerance
-            kwargs = dict(cg_rtol=to_device(self.cg_rtol, np.float32), progress=self.progress)
-            return ("structured",) + problem_key(problem), structured_lm, args, kwargs, None
+            solver = structured.StructuredLM(self.rtol, self.atol, to_device(self.cg_rtol, np.float32))
+            args = (x0, problem, solver, to_device(steps, np.int32), self.progress)
+            return ("structured",) + problem_key(problem), structured.solve, args, {}, None
         opt, is_ls = make_solver(self.solver, self.rtol, self.atol, num_free)
         key = (type(opt).__name__, steps) + problem_key(problem)
         return key, optx_solve, (x0, problem, opt, is_ls, steps, self.tick), {}, opt
