@@ -132,8 +132,7 @@ def test_fitting(per_pixel):
     _check(grid_initialise, x0, problem)
     _check(coordinate_search, x0, problem, jnp.asarray(parity_classes((4, 4))))
     for name in OPTX_SOLVERS:
-        solver, least_squares = make_solver(name, 1e-6, 1e-6, 80)
-        _check(optx_solve, x0, problem, solver, least_squares, 3)
+        _check(optx_solve, x0, problem, make_solver(name, 1e-6, 1e-6), 3)
     # after the solve: the normal matrix's blocks of the uncertainty windows and the uniform
     # check's profile curvature (lowering reads only the shapes of the residuals and Jacobians)
     r, jac = (jnp.zeros(a.shape, a.dtype) for a in jax.eval_shape(linearize, x0, problem)[:2])
