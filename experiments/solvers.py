@@ -160,7 +160,7 @@ def _oracle(obs, model, ibl, truth, resolution, max_steps=40):
     from pbrfit.fitting.observations import coverage_counts, neighbour_pairs, texel_layout
     from pbrfit.fitting.parameters import channel_mask
     from pbrfit.fitting.objective import Problem, objective
-    from pbrfit.fitting.solvers.structured import structured_lm
+    from pbrfit.fitting.solvers.structured import StructuredLM, solve
 
     layout = texel_layout(obs, resolution, "repeat")
     seen = coverage_counts(layout).reshape(-1) > 0
@@ -174,9 +174,9 @@ def _oracle(obs, model, ibl, truth, resolution, max_steps=40):
     problem = Problem(obs, layout.index, layout.weight, jnp.asarray(free), jnp.zeros((e, 2), jnp.int32),
                       jnp.zeros(e, jnp.float32), jnp.asarray(0.0, jnp.float32), jnp.asarray(0.05, jnp.float32),
                       ibl, model, "l2")
-    args = (jnp.asarray(x0), problem, jnp.asarray(max_steps, jnp.int32))
+    args = (jnp.asarray(x0), problem, StructuredLM(), jnp.asarray(max_steps, jnp.int32))
     t0 = time.perf_counter()
-    compiled = structured_lm.lower(*args).compile()
+    compiled = solve.lower(*args).compile()
     t1 = time.perf_counter()
     out = compiled(*args)
     x = np.asarray(jax.block_until_ready(out[0])).reshape(tuple(resolution) + (5,))

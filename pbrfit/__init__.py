@@ -48,6 +48,7 @@ _LAZY = {
     "render_capture": ("render.views", "render_capture"),
     "fit": ("fitting.api", "fit"),
     "FitOptions": ("fitting.options", "FitOptions"),
+    "StructuredLM": ("fitting.solvers.structured", "StructuredLM"),
     "FitResult": ("fitting.result", "FitResult"),
     "PixelIBLSettings": ("lighting.pixel_ibl", "PixelIBLSettings"),
     "read_material": ("io.material_files", "read_material"),

@@ -16,7 +16,8 @@ __all__ = ["add_fit", "fit_options", "fit_summary", "default_continuation", "Fit
 def add_fit(sub) -> None:
     from ..fitting.options import IBL_MODES, LOSS_SCALE, MATERIAL_MAPS
     from ..fitting.passes import MAX_STEPS
-    from ..fitting.runner import DEFAULT_SOLVER, SOLVERS
+    from ..fitting.solvers.names import DEFAULT_SOLVER, SOLVERS
+    from ..fitting.solvers.structured import ATOL, CG_RTOL, RTOL
     from ..fitting.noise import NOISE_LEVELS
     from ..fitting.observations import MAX_PIXEL_SAMPLES
     from ..lighting.pixel_ibl import PixelIBLSettings
@@ -44,15 +45,15 @@ def add_fit(sub) -> None:
     p.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER, help=f"default {DEFAULT_SOLVER}")
     p.add_argument("--max-steps", type=int, help=f"solver steps at the final resolution (default {MAX_STEPS}); the repair's and the "
                         "uniform check's re-fits come on top")
-    p.add_argument("--rtol", type=float, default=1e-6,
+    p.add_argument("--rtol", type=float, default=None,
                    help="relative stopping tolerance: the structured solver stops at an accepted step that lowers the "
-                        "loss by less than this fraction of it; the optimistix solvers' rtol (default 1e-6)")
-    p.add_argument("--atol", type=float, default=1e-5,
+                        f"loss by less than this fraction of it; the optimistix solvers' rtol (default {RTOL:g})")
+    p.add_argument("--atol", type=float, default=None,
                    help="absolute stopping tolerance: the structured solver also stops at an accepted step that moves "
-                        "no parameter by more than this; the optimistix solvers' atol (default 1e-5)")
+                        f"no parameter by more than this; the optimistix solvers' atol (default {ATOL:g})")
     p.add_argument("--cg-rtol", type=float, default=None, metavar="TOL",
                    help="structured solver: relative tolerance of each step's conjugate gradients, in (0, 1) "
-                        "(default 1e-3; 1e-2 solves about a quarter faster, see docs/results.md)")
+                        f"(default {CG_RTOL:g}; 1e-2 solves about a quarter faster, see docs/results.md)")
     p.add_argument("--loss", choices=LOSSES, default="l2", help="robust loss (default l2: off)")
     p.add_argument("--loss-scale", type=float, default=None, metavar="S",
                    help="the robust loss's scale, in image units: residuals past it count less "
@@ -114,7 +115,7 @@ def add_fit(sub) -> None:
 def fit_options(args):
     """The `pbrfit.FitOptions` of the command line (errors name the flag)."""
     from ..fitting.options import MATERIAL_MAPS, FitOptions, OptionNames
-    from ..fitting.runner import DEFAULT_SOLVER
+    from ..fitting.solvers.names import DEFAULT_SOLVER
     from ..io.material_files import read_map
     from ..fitting.observations import MAX_PIXEL_SAMPLES
     from ..lighting.pixel_ibl import MAX_LEVELS, MAX_SAMPLES, MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings

@@ -66,7 +66,7 @@ from ..render.views import capture_environment, capture_ibl, check_environment, 
 from ..render.views import model_for_capture
 from ..scene.capture import Capture, load_capture
 from .resolution import default_resolution, schedule
-from .runner import DEFAULT_SOLVER, SOLVERS
+from .solvers.names import DEFAULT_SOLVER, SOLVERS
 from .stages.selection import uniform_channels
 from ..transfer import to_device
 
@@ -241,7 +241,11 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
         fixed: values of maps held fixed, in [0, 1]: {"roughness": 0.4, "base_color": (H, W, 3)
             array, ...}; maps neither fitted nor given stay at `pbrfit.fitting.parameters.PRIOR`.
         maps: "texture" (maps) or "none" (one uniform material, 1 × 1 maps).
-        solver: one of `SOLVERS`; max_steps (final level), coarse_steps, rtol, atol.
+        solver: an optimistix solver (an `optx.AbstractLeastSquaresSolver` or `optx.AbstractMinimiser`;
+            default `pbrfit.StructuredLM()`), or its name, one of `SOLVERS` (made by
+            `pbrfit.fitting.solvers.names.solver_for`); max_steps (final level), coarse_steps.
+        rtol, atol: the solver's stopping tolerances, when given (default: the solver's own,
+            `pbrfit.fitting.solvers.structured.RTOL` and `ATOL` for a named one).
         cg_rtol: the structured solver's conjugate-gradient tolerance per step (in (0, 1),
             default `pbrfit.fitting.solvers.structured.CG_RTOL`): looser takes fewer CG iterations per step.
         loss: "l2", "huber" or "cauchy" (scale `loss_scale`, image units); smooth: weight of the

@@ -9,8 +9,10 @@ import dataclasses
 import math
 from typing import Any, Callable, Mapping, Optional, Sequence, Union
 
+import equinox as eqx
 import jax
 import numpy as np
+import optimistix as optx
 
 from ..lighting.pixel_ibl import PixelIBLSettings
 from .passes import COARSE_STEPS, CONTINUATION
@@ -18,17 +20,17 @@ from ..physics.model import Model
 from .noise import NOISE_LEVELS
 from .parameters import FIT_GROUPS, prior
 from .resolution import LEVEL_FACTOR
-from .runner import DEFAULT_SOLVER, SOLVERS
 from .objective import LOSSES
-from .solvers.structured import CG_RTOL
+from .solvers.names import DEFAULT_SOLVER, SOLVERS, is_structured, solver_for, solver_name
+from .solvers.structured import CG_RTOL, StructuredLM
 from .stages.unconstrained import UNCONSTRAINED_SIGMA
 from .uncertainty import MAX_UNCERTAINTY_RADIUS, WINDOW_RADIUS
 from .observations import MAX_PIXEL_SAMPLES
 from ..physics.textures import WRAPS
 
 __all__ = ["FitOptions", "options_from", "OptionNames", "fit_arguments", "held_report", "check_options", "check_kinds", "check_names",
-           "check_model", "check_normals", "MATERIAL_MAPS", "IBL_MODES", "LOSS_SCALE", "FLOAT32_MAX", "MAX_MAP_SIDE",
-           "MAX_SOLVER_STEPS"]
+           "check_model", "check_normals", "with_tolerances", "MATERIAL_MAPS", "IBL_MODES", "LOSS_SCALE", "FLOAT32_MAX",
+           "MAX_MAP_SIDE", "MAX_SOLVER_STEPS"]
 
 #: What `fit` may integrate a capture's environment light with (``ibl=``); the first is the default.
 IBL_MODES = ("split_sum", "per_pixel")
@@ -142,10 +144,17 @@ def check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, at
                   coarse_to_fine, continuation, uncertainty_radius, unconstrained_sigma=UNCONSTRAINED_SIGMA,
                   names: OptionNames = OptionNames()) -> None:
     """`ValueError` (worded with ``names``) for option values out of range, or given to a mode
-    that does not read them: `fit`, `pbrfit.fitting.api.fit_observations` and the command line refuse alike."""
+    that does not read them: `fit`, `pbrfit.fitting.api.fit_observations` and the command line refuse alike.
+    ``solver`` is a name of `SOLVERS` or an optimistix solver; ``rtol``, ``atol`` and ``cg_rtol``
+    None stand for the solver's own (a `StructuredLM`'s are checked as if given)."""
     say = names.option
-    if not isinstance(solver, str) or solver not in SOLVERS:
-        raise ValueError(f"{say('solver')}: must be one of {', '.join(SOLVERS)}, got {solver!r}")
+    if not _solver_object(solver) and (not isinstance(solver, str) or solver not in SOLVERS):
+        raise ValueError(f"{say('solver')}: must be one of {', '.join(SOLVERS)}, or an optimistix least-squares "
+                         f"solver or minimiser, got {solver!r}")
+    if isinstance(solver, StructuredLM):  # its own tolerances, where the options do not set them
+        rtol, atol = (solver.rtol if rtol is None else rtol), (solver.atol if atol is None else atol)
+        if cg_rtol is None and _real(solver.cg_rtol):  # (an array: a runner's, not checked)
+            cg_rtol = solver.cg_rtol
     if maps not in ("texture", "none"):
         raise ValueError(f"{say('maps')}: must be 'texture' or 'none', got {maps!r}")
     if resolution is not None:
@@ -162,6 +171,8 @@ def check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, at
         if not _integer(value) or not least <= value <= most:
             raise ValueError(f"{say(name)}: must be an integer from {least} to {most}, got {value!r}")
     for name, value in (("rtol", rtol), ("atol", atol), ("smooth", smooth)):
+        if value is None and name != "smooth":  # the solver's own
+            continue
         if not (_real(value) and math.isfinite(value) and value >= 0):
             raise ValueError(f"{say(name)}: must be a finite number >= 0, got {value!r}")
         if value > FLOAT32_MAX:  # the solve runs in float32
@@ -174,15 +185,16 @@ def check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, at
     if not (_real(unconstrained_sigma) and unconstrained_sigma > 0):  # (inf: hold none)
         raise ValueError(f"{say('unconstrained_sigma')}: must be a number > 0 (inf: hold no texel), "
                          f"got {unconstrained_sigma!r}")
-    if not (_real(cg_rtol) and 0.0 < cg_rtol < 1.0):
+    if cg_rtol is not None and not (_real(cg_rtol) and 0.0 < cg_rtol < 1.0):
         raise ValueError(f"{say('cg_rtol')}: must be a number in (0, 1), got {cg_rtol!r}")
     given_continuation = continuation is not None and len(np.ravel(continuation)) > 0 \
         and tuple(np.ravel(continuation)) != CONTINUATION
-    if solver != DEFAULT_SOLVER:  # options only the structured solver reads
-        for name, given in (("cg_rtol", cg_rtol != CG_RTOL), ("continuation", given_continuation)):
+    if not is_structured(solver):  # options only the structured solver reads
+        for name, given in (("cg_rtol", cg_rtol is not None and cg_rtol != CG_RTOL),
+                            ("continuation", given_continuation)):
             if given:
                 raise ValueError(f"{say(name)}: only the {DEFAULT_SOLVER} solver uses it, "
-                                 f"not {names.setting('solver', solver)}")
+                                 f"not {names.setting('solver', solver_name(solver))}")
     if maps == "none":  # one texel: no map size, no neighbours, no levels
         for name, given in (("resolution", resolution is not None), ("smooth", smooth > 0),
                             ("continuation", given_continuation), ("coarse_to_fine", coarse_to_fine)):
@@ -208,13 +220,14 @@ class FitOptions:
     fixed: Optional[Mapping[str, Any]] = None
     maps: str = "texture"
     model: Union[None, Model, Mapping[str, Any]] = None
-    # the solver and when it stops
-    solver: str = DEFAULT_SOLVER
+    # the solver and when it stops: an optimistix solver, or its name in `SOLVERS` (made by
+    # `solver_for`); rtol, atol and cg_rtol, when given, set the solver's (None: its own)
+    solver: Any = dataclasses.field(default_factory=StructuredLM)
     max_steps: Optional[int] = None
     coarse_steps: int = COARSE_STEPS
-    rtol: float = 1e-6
-    atol: float = 1e-5
-    cg_rtol: float = CG_RTOL
+    rtol: Optional[float] = None
+    atol: Optional[float] = None
+    cg_rtol: Optional[float] = None
     # the objective
     loss: str = "l2"
     loss_scale: float = LOSS_SCALE
@@ -252,6 +265,7 @@ class FitOptions:
         object.__setattr__(self, "_fitted", fit)
         object.__setattr__(self, "_held", fixed)
         check_options(**{name: getattr(self, name) for name in _CHECKED}, names=self.names)
+        object.__setattr__(self, "solver", with_tolerances(self.solver, self.rtol, self.atol, self.cg_rtol))
         check_kinds(**{name: getattr(self, name) for name in _KINDS})
         check_names(noise_level=self.noise_level, loss=self.loss, init=self.init, wrap=self.wrap,
                     pixel_samples=self.pixel_samples)
@@ -295,6 +309,23 @@ _CHECKED = ("resolution", "maps", "solver", "max_steps", "coarse_steps", "rtol",
             "smooth", "coarse_to_fine", "continuation", "uncertainty_radius", "unconstrained_sigma")
 _KINDS = ("coarse_to_fine", "search", "background_compile", "uniform_check", "repair", "progress", "level_factor",
           "devices")
+
+
+def _solver_object(solver) -> bool:
+    """Whether ``solver`` is a solver object a fit can run (an optimistix least-squares solver
+    or minimiser)."""
+    return isinstance(solver, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser))
+
+
+def with_tolerances(solver, rtol=None, atol=None, cg_rtol=None):
+    """The solver object of ``solver`` (a name of `SOLVERS`, made by `solver_for`, or an object)
+    with the tolerances given set (None: its own; ``cg_rtol`` is the structured solver's alone)."""
+    if isinstance(solver, str):
+        return solver_for(solver, rtol, atol, cg_rtol)
+    for name, value in (("rtol", rtol), ("atol", atol), ("cg_rtol", cg_rtol)):
+        if value is not None and (name != "cg_rtol" or isinstance(solver, StructuredLM)):
+            solver = eqx.tree_at(lambda s: getattr(s, name), solver, float(value))
+    return solver
 
 
 def options_from(options: Optional[FitOptions], overrides: Mapping[str, Any]) -> FitOptions:

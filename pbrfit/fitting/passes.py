@@ -27,11 +27,12 @@ from .initialisation import coordinate_search, grid_initialise, parity_classes
 from .observations import Observations, coverage_counts, layout_for, neighbour_pairs
 from .parameters import FIT_GROUPS, channel_mask, prior
 from .resolution import default_resolution, schedule
-from .runner import DEFAULT_SOLVER, Compiler, Runner, jitted_normal_blocks, problem_key, timed
+from .runner import Compiler, Runner, jitted_normal_blocks, problem_key, timed
 from .stages.pipeline import STAGES, StageState, run_stages
 from .stages.selection import SELECTABLE
 from .sharding import pixel_mesh, shard_problem
 from .objective import Problem
+from .solvers.names import solver_name
 from ..physics.textures import resample_map, sample_bilinear
 from ..physics.model import Model
 from ..transfer import to_device
@@ -157,8 +158,7 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
         cb = None if options.progress is None else (
             lambda step, value: options.progress(dict(where, step=int(step), loss=float(value))))
         compiler = Compiler(dict(compile=0.0, solve=0.0), options.background_compile)
-        shared.update(where=where, runner=Runner(options.solver, options.rtol, options.atol, cb, compiler,
-                                                 options.cg_rtol))
+        shared.update(where=where, runner=Runner(options.solver, cb, compiler))
     # (an executable keeps the callback it was compiled with: a later pass reports through the
     # same one, so it tells that callback where it is through the same `where`)
     where, runner = shared["where"], shared["runner"]
@@ -186,7 +186,7 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
             head = min(SEARCH_AFTER, steps)
             maps_level = shape != (1, 1)
             searching = last and options.search and maps_level and np.any(channels[3:] > 0) and head < steps
-            annealing = (last and maps_level and options.solver == DEFAULT_SOLVER
+            annealing = (last and maps_level and runner.structured
                          and any(w > 0 for w in continuation) and steps - head >= RELEASED_STEPS)
             prior_on = maps_level and (options.smooth > 0 or annealing)
             pairs, pw = _neighbour_weights(shape, seen, e_final, prior_on)
@@ -263,7 +263,7 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
                 where["footprint"] = n_side = samples_side(obs)
             if early is not problem:
                 xs = np.where(seen[:, None], xs, fixed_x)
-            probing = selecting and options.solver == DEFAULT_SOLVER and tail["steps"] > PROBE_STEPS
+            probing = selecting and runner.structured and tail["steps"] > PROBE_STEPS
             stopped = False
             if probing:  # the samples' first steps, then a look at how well they fit already
                 xs, info, linearization = _finish_level(runner, problem, xs, info, **dict(tail, steps=PROBE_STEPS))
@@ -295,8 +295,8 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
         compiler.close()
 
     t_post = time.perf_counter()
-    result = finish(obs, problem, x, final, channels, seen[:t_final], inputs.model, options.solver, history,
-                    options.loss, options.smooth, dict(setup=inputs.setup_time, **clock), t_post, t_start,
+    result = finish(obs, problem, x, final, channels, seen[:t_final], inputs.model, solver_name(options.solver),
+                    history, options.loss, options.smooth, dict(setup=inputs.setup_time, **clock), t_post, t_start,
                     linearization, options.wrap, uniform, int(options.uncertainty_radius))
     checks = entries["uniform_check"]
     for name, c in SELECTABLE:  # the value's σ as uncertainty holds it: the kept fit's residual variance
@@ -307,12 +307,12 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
     result.report["steps"] += sum(s["steps"] for s in stages)
     # when each level stops (`pbrfit.fitting.api.fit_observations`), and the robust loss's scale
     result.report["stopping"] = dict(max_steps=int(max_steps), coarse_steps=int(options.coarse_steps),
-                                     rtol=float(options.rtol), atol=float(options.atol))
+                                     rtol=float(options.solver.rtol), atol=float(options.solver.atol))
     if options.loss != "l2":
         result.report["loss_scale"] = float(options.loss_scale)
     result.report["continuation"] = annealed
-    if options.solver == DEFAULT_SOLVER:
-        result.report["cg_rtol"] = float(options.cg_rtol)
+    if runner.structured:
+        result.report["cg_rtol"] = float(options.solver.cg_rtol)
     if footprint is not None:
         result.report["footprint"] = footprint
     return result, np.asarray(xs, np.float32)[:t_final]

@@ -1,8 +1,8 @@
 """Solver runs compiled ahead of time, and the jitted evaluations a fit's passes share.
 
-`Runner` runs the fit's solver (the structured one, `pbrfit.fitting.solvers.structured.structured_lm`, or an
-optimistix one, `pbrfit.fitting.solvers.optx`) on a `pbrfit.fitting.objective.Problem`, compiled once per problem
-shape by `Compiler`, which can compile in a background thread while the fit does other work and
+`Runner` runs the fit's solver, an optimistix solver object (the structured one,
+`pbrfit.fitting.solvers.structured.StructuredLM`, or any other, `pbrfit.fitting.solvers.optx`), through
+`optx.least_squares` on a `pbrfit.fitting.objective.Problem`, compiled once per problem shape by `Compiler`, which can compile in a background thread while the fit does other work and
 keeps compile time apart from run time. `timed` runs any other jitted pass (the grid start, the
 coordinate search) the same way.
 """
@@ -15,21 +15,18 @@ import itertools
 import time
 from typing import Mapping
 
+import equinox as eqx
 import jax
 import numpy as np
 
-from .solvers.optx import OPTX_SOLVERS, make_solver, optx_solve
+from .solvers.optx import for_size, optx_solve
 from .objective import Problem, objective
 from .normal_matrix import neighbour_blocks, normal_blocks
-from .solvers.structured import CG_RTOL, structured_lm
+from .solvers import structured
 from ..transfer import to_device
 
-__all__ = ["DEFAULT_SOLVER", "SOLVERS", "Compiler", "Runner", "timed", "timed_rest", "thread_time", "problem_key",
+__all__ = ["Compiler", "Runner", "timed", "timed_rest", "thread_time", "problem_key",
            "compile_summary", "jitted_normal_blocks", "jitted_neighbour_blocks", "problem_energy"]
-
-DEFAULT_SOLVER = "structured"
-#: Every solver a fit can run: the structured one (the default), then the optimistix ones.
-SOLVERS = (DEFAULT_SOLVER,) + OPTX_SOLVERS
 
 #: The per-texel blocks of JᵀJ, one jitted function for the repair, the uniform check, the
 #: preconditioner's scale and the uncertainty (one compile per problem shape).
@@ -148,46 +145,52 @@ def timed(compiler: Compiler, key, fn, name: str, *args):
 
 
 class Runner:
-    """Runs a solver, compiled ahead of time once per problem shape (`Compiler`): once per fit,
-    or twice when the start runs on pixel centres (`pbrfit.fitting.api.fit_observations`); an optimistix solver
-    also once per step budget (its loop length is static)."""
+    """Runs a solver (an optimistix solver object), compiled ahead of time once per problem shape
+    (`Compiler`): once per fit, or twice when the start runs on pixel centres
+    (`pbrfit.fitting.api.fit_observations`). The structured solver takes its step budget as an
+    argument; any other solver is also compiled once per step budget (optimistix's loop length is
+    static)."""
 
-    def __init__(self, solver, rtol, atol, progress, compiler: Compiler, cg_rtol: float = CG_RTOL):
-        self.solver, self.rtol, self.atol, self.progress, self.compiler = solver, rtol, atol, progress, compiler
-        self.cg_rtol = float(cg_rtol)
+    def __init__(self, solver, progress, compiler: Compiler):
+        if isinstance(solver, structured.StructuredLM):
+            # cg_rtol as an array: one executable serves every tolerance
+            solver = eqx.tree_at(lambda s: s.cg_rtol, solver, to_device(solver.cg_rtol, np.float32))
+        self.solver, self.progress, self.compiler = solver, progress, compiler
         self.clock = compiler.clock
         # an optimistix solver reports each evaluation of the objective, numbered here from 0 in
         # every run (one lambda per runner: the compiled solve keeps the one it was traced with)
         self.evaluations = itertools.count()
         self.tick = None if progress is None else (lambda value: progress(next(self.evaluations), value))
 
+    @property
+    def structured(self) -> bool:
+        return isinstance(self.solver, structured.StructuredLM)
+
     def _call(self, x0, problem, steps, num_free):
-        """(key, fn, args, kwargs, optimistix solver or None) of a run."""
-        if self.solver == DEFAULT_SOLVER:
-            args = (x0, problem, to_device(steps, np.int32), self.rtol, self.atol)
-            # cg_rtol as an array: one executable serves every tolerance
-            kwargs = dict(cg_rtol=to_device(self.cg_rtol, np.float32), progress=self.progress)
-            return ("structured",) + problem_key(problem), structured_lm, args, kwargs, None
-        opt, is_ls = make_solver(self.solver, self.rtol, self.atol, num_free)
+        """(key, fn, args, solver run) of a run."""
+        if self.structured:
+            args = (x0, problem, self.solver, to_device(steps, np.int32), self.progress)
+            return ("structured",) + problem_key(problem), structured.solve, args, self.solver
+        opt = for_size(self.solver, num_free)
         key = (type(opt).__name__, steps) + problem_key(problem)
-        return key, optx_solve, (x0, problem, opt, is_ls, steps, self.tick), {}, opt
+        return key, optx_solve, (x0, problem, opt, steps, self.tick), opt
 
     def prefetch(self, x0, problem, num_free) -> None:
         """Start compiling the structured solver for `problem` in the background (its step
-        budget is an argument; an optimistix solver's is not known yet, so it is not)."""
-        if self.solver == DEFAULT_SOLVER:
-            key, fn, args, kwargs, _ = self._call(x0, problem, 0, num_free)
-            self.compiler.prefetch(key, fn, *args, **kwargs)
+        budget is an argument; another solver's is not known yet, so it is not)."""
+        if self.structured:
+            key, fn, args, _ = self._call(x0, problem, 0, num_free)
+            self.compiler.prefetch(key, fn, *args)
 
     def __call__(self, x0, problem, steps, num_free):
         self.evaluations = itertools.count()
-        key, fn, args, kwargs, opt = self._call(x0, problem, steps, num_free)
-        compiled = self.compiler.get(key, fn, *args, **kwargs)
+        key, fn, args, opt = self._call(x0, problem, steps, num_free)
+        compiled = self.compiler.get(key, fn, *args)
         t0 = time.perf_counter()
-        out = compiled(*args, **kwargs)
+        out = compiled(*args)
         x = np.asarray(jax.block_until_ready(out[0]))
         self.clock["solve"] += time.perf_counter() - t0
-        if opt is None:
+        if self.structured:
             s = out[1]
             info = dict(steps=int(s.steps), accepted=int(s.accepted), cg_iterations=int(s.cg_iterations))
             self.linearization = (out[2], out[3])

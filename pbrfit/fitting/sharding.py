@@ -150,7 +150,7 @@ def shard_problem(problem: Problem, mesh: Mesh) -> Problem:
     The pixel axis is padded with inert pixels (`pad_observations`, `pad_pixel_rows`) to a
     multiple of the mesh's size along ``"pixels"``; the real pixels are the first
     ``problem.obs.num_pixels`` rows. The objective, its gradient, the normal blocks and hence
-    the solution of `pbrfit.fitting.solvers.structured.structured_lm` are those of `problem` (to float32 round-off:
+    the solution of `pbrfit.fitting.solvers.structured.StructuredLM` are those of `problem` (to float32 round-off:
     sums run in a different order).
     """
     n = int(mesh.shape[PIXEL_AXIS])

@@ -36,7 +36,7 @@ from pbrfit.fitting.parameters import LOWER, UPPER, from_sine, to_sine
 from pbrfit.fitting.stages.repair import REPAIR_PROGRESS
 from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view
 from pbrfit.fitting.objective import Problem, objective
-from pbrfit.fitting.solvers.structured import structured_lm
+from pbrfit.fitting.solvers.structured import solve
 
 RES = 24  # pixels per view side
 
@@ -561,8 +561,8 @@ def test_coordinate_search_repairs_texels_in_wrong_basins(smooth):
     ratio = got[knocked, 4] / np.asarray(x_true)[knocked, 4]
     assert np.all((ratio < SEARCH_ROUGHNESS_RATIO) & (ratio > 1 / SEARCH_ROUGHNESS_RATIO)), got[knocked]
     # the neighbours bent towards the knocked texels while those were wrong; a solve finishes
-    polished = np.asarray(structured_lm(x, problem, jnp.asarray(40))[0])
-    optimum = np.asarray(structured_lm(x_true, problem, jnp.asarray(40))[0])  # the truth, unless smooth > 0
+    polished = np.asarray(solve(x, problem, max_steps=jnp.asarray(40))[0])
+    optimum = np.asarray(solve(x_true, problem, max_steps=jnp.asarray(40))[0])  # the truth, unless smooth > 0
     np.testing.assert_allclose(polished, optimum, atol=2e-3)
 
 
@@ -586,7 +586,7 @@ def test_coordinate_search_tries_blended_metallic():
     energy = jax.jit(objective)
     assert float(energy(jnp.asarray(x), problem)) < float(energy(jnp.asarray(plain), problem))
     # from the blend a solve reaches the truth
-    polished = np.asarray(structured_lm(jnp.asarray(x), problem, jnp.asarray(40))[0])
+    polished = np.asarray(solve(jnp.asarray(x), problem, max_steps=jnp.asarray(40))[0])
     np.testing.assert_allclose(polished, x_true, atol=2e-3)
 
 

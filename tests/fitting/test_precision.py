@@ -31,7 +31,7 @@ from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view
 from pbrfit.fitting.normal_matrix import neighbour_blocks, normal_blocks
 from pbrfit.fitting.objective import Problem, linearize
 from pbrfit.fitting.stages.selection import profile_hessian, uniform_direction
-from pbrfit.fitting.solvers.structured import structured_lm
+from pbrfit.fitting.solvers.structured import StructuredLM, solve
 
 _DOT = re.compile(r"dot_general.*?precision = \[(\w+), (\w+)\]")
 
@@ -128,12 +128,11 @@ def test_fitting(per_pixel):
                           PixelIBLSettings(levels=3, samples=4))
         problem = dataclasses.replace(problem, ibl=table, model=model)
     x0 = jnp.full((16, 5), 0.5)
-    _check(structured_lm, x0, problem, jnp.asarray(3), 1e-6, 1e-5)
+    _check(solve, x0, problem, StructuredLM(), jnp.asarray(3))
     _check(grid_initialise, x0, problem)
     _check(coordinate_search, x0, problem, jnp.asarray(parity_classes((4, 4))))
     for name in OPTX_SOLVERS:
-        solver, least_squares = make_solver(name, 1e-6, 1e-6, 80)
-        _check(optx_solve, x0, problem, solver, least_squares, 3)
+        _check(optx_solve, x0, problem, make_solver(name, 1e-6, 1e-6), 3)
     # after the solve: the normal matrix's blocks of the uncertainty windows and the uniform
     # check's profile curvature (lowering reads only the shapes of the residuals and Jacobians)
     r, jac = (jnp.zeros(a.shape, a.dtype) for a in jax.eval_shape(linearize, x0, problem)[:2])

@@ -201,7 +201,7 @@ def _multi_device_report() -> dict:
     """Solve the same problem unsharded and sharded over all devices; what the test checks."""
     from pbrfit.fitting.api import fit_observations
     from pbrfit.fitting.initialisation import coordinate_search, grid_initialise, parity_classes
-    from pbrfit.fitting.solvers.structured import structured_lm
+    from pbrfit.fitting.solvers.structured import StructuredLM, solve
 
     out = dict(devices=len(jax.devices()))
     problem, _ = _problem()
@@ -225,10 +225,11 @@ def _multi_device_report() -> dict:
     out["init_diff"] = float(jnp.max(jnp.abs(x0 - x0_sh)))
 
     # As `pbrfit.fitting.runner.Runner` does: ahead-of-time compile, then run.
-    args = (x0, problem, jnp.asarray(30, jnp.int32), 1e-7, 1e-6)
-    x, stats, r, jac = structured_lm.lower(*args).compile()(*args)
-    args_sh = (x0, sharded, jnp.asarray(30, jnp.int32), 1e-7, 1e-6)
-    x_sh, stats_sh, r_sh, jac_sh = structured_lm.lower(*args_sh).compile()(*args_sh)
+    solver = StructuredLM(rtol=1e-7, atol=1e-6)
+    args = (x0, problem, solver, jnp.asarray(30, jnp.int32))
+    x, stats, r, jac = solve.lower(*args).compile()(*args)
+    args_sh = (x0, sharded, solver, jnp.asarray(30, jnp.int32))
+    x_sh, stats_sh, r_sh, jac_sh = solve.lower(*args_sh).compile()(*args_sh)
     energy = jax.jit(objective)
     out.update(
         x_diff=float(jnp.max(jnp.abs(x - x_sh))),

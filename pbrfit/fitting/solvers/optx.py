@@ -3,14 +3,16 @@
 These solvers know nothing of bounds or of the problem's block structure, so they work on the
 sine storage of `pbrfit.fitting.parameters` (``value = lo + (hi - lo)(1 + sin z)/2``, bounds reached at
 finite z) with the fixed and unobserved channels masked back to their values, and see the
-residuals of `pbrfit.fitting.objective.residuals` as a black box:
+residuals of `pbrfit.fitting.objective.residuals` as a black box. `make_solver` makes them by name
+(`pbrfit.fitting.solvers.names`); a user's own optimistix solver runs through the same `optx_solve`:
 
 - ``lm``: `optx.LevenbergMarquardt` with a matrix-free normal-equations CG (`lx.Normal(lx.CG)`);
   its default QR would materialise the (pixels × parameters) Jacobian.
 - ``gn``: `optx.GaussNewton` with the same matrix-free linear solver.
 - ``dogleg``: `optx.Dogleg` (trust region), same linear solver.
-- ``bfgs``: `optx.BFGS` (dense inverse Hessian) up to `BFGS_MAX_PARAMETERS` unknowns, else
-  `optx.LBFGS` (a dense N × N matrix at 20,000 unknowns is 1.6 GB); ``lbfgs`` asks for it directly.
+- ``bfgs``: `optx.BFGS` (dense inverse Hessian), run as `optx.LBFGS` above `BFGS_MAX_PARAMETERS`
+  unknowns (`for_size`: a dense N × N matrix at 20,000 unknowns is 1.6 GB); ``lbfgs`` asks for
+  L-BFGS directly.
 - ``ncg``: `optx.NonlinearCG`;  ``adam``: `optx.OptaxMinimiser(optax.adam)`.
 
 The CG of the three least-squares solvers is pbrfit's own truncated CG (`truncated_cg`): after
@@ -36,8 +38,8 @@ import jax.numpy as jnp
 from ..parameters import from_sine, lower, to_sine, upper
 from ..objective import Problem, residuals
 
-__all__ = ["OPTX_SOLVERS", "BFGS_MAX_PARAMETERS", "ADAM_LEARNING_RATE", "START_MARGIN", "make_solver", "optx_solve",
-           "truncated_cg"]
+__all__ = ["OPTX_SOLVERS", "BFGS_MAX_PARAMETERS", "ADAM_LEARNING_RATE", "START_MARGIN", "make_solver", "for_size",
+           "optx_solve", "truncated_cg"]
 
 OPTX_SOLVERS = ("lm", "gn", "dogleg", "bfgs", "lbfgs", "ncg", "adam")
 #: Above this many unknowns "bfgs" uses L-BFGS: the dense inverse Hessian grows as N².
@@ -135,30 +137,44 @@ def truncated_cg():
     return TruncatedCG
 
 
-def make_solver(name: str, rtol: float, atol: float, num_parameters: int):
-    """The optimistix solver for `name` (see the module docstring) and whether it is least squares."""
-    # optimistix, lineax and optax are imported here, not with the module: the default solver
-    # never needs them, and they cost every fit about 0.4 s of imports.
+@functools.lru_cache(maxsize=64)
+def make_solver(name: str, rtol: float, atol: float):
+    """The optimistix solver named `name` (one of `OPTX_SOLVERS`; see the module docstring). One
+    object per name and tolerances, so that `pbrfit.fitting.solvers.names.solver_name` knows it
+    again (optax's transformations compare by identity)."""
+    # optimistix, lineax and optax are imported here, not with the module: they cost every fit
+    # that runs none of these solvers about 0.4 s of imports.
     import lineax as lx
     import optax
     import optimistix as optx
 
     cg = lx.Normal(truncated_cg()(rtol=1e-3, atol=1e-8, max_steps=CG_MAX_STEPS))
     if name == "lm":
-        return optx.LevenbergMarquardt(rtol, atol, linear_solver=cg), True
+        return optx.LevenbergMarquardt(rtol, atol, linear_solver=cg)
     if name == "gn":
-        return optx.GaussNewton(rtol, atol, linear_solver=cg), True
+        return optx.GaussNewton(rtol, atol, linear_solver=cg)
     if name == "dogleg":
-        return optx.Dogleg(rtol, atol, linear_solver=cg), True
-    if name == "bfgs" and num_parameters <= BFGS_MAX_PARAMETERS:
-        return optx.BFGS(rtol, atol), False
-    if name in ("bfgs", "lbfgs"):
-        return optx.LBFGS(rtol, atol), False
+        return optx.Dogleg(rtol, atol, linear_solver=cg)
+    if name == "bfgs":
+        return optx.BFGS(rtol, atol)
+    if name == "lbfgs":
+        return optx.LBFGS(rtol, atol)
     if name == "ncg":
-        return optx.NonlinearCG(rtol, atol), False
+        return optx.NonlinearCG(rtol, atol)
     if name == "adam":
-        return optx.OptaxMinimiser(optax.adam(ADAM_LEARNING_RATE), rtol, atol), False
+        return optx.OptaxMinimiser(optax.adam(ADAM_LEARNING_RATE), rtol, atol)
     raise ValueError(f"unknown solver {name!r}; expected one of {', '.join(OPTX_SOLVERS)}")
+
+
+def for_size(solver, num_parameters: int):
+    """`solver` as it runs on `num_parameters` unknowns: an `optx.BFGS` above
+    `BFGS_MAX_PARAMETERS` becomes an `optx.LBFGS` with its tolerances (its dense inverse Hessian
+    grows as N²); every other solver as it is."""
+    import optimistix as optx
+
+    if type(solver) is optx.BFGS and num_parameters > BFGS_MAX_PARAMETERS:
+        return optx.LBFGS(solver.rtol, solver.atol, solver.norm)
+    return solver
 
 
 def _values(z, x_fixed, problem: Problem):
@@ -166,9 +182,9 @@ def _values(z, x_fixed, problem: Problem):
 
 
 @eqx.filter_jit
-def optx_solve(x0, problem: Problem, solver, least_squares: bool, max_steps: int,
-               progress: Optional[Callable] = None):
-    """Run an optimistix solver from texel values x0; returns (x, steps, result code).
+def optx_solve(x0, problem: Problem, solver, max_steps: int, progress: Optional[Callable] = None):
+    """Run an optimistix solver (an `optx.AbstractLeastSquaresSolver` on the residuals, or an
+    `optx.AbstractMinimiser` on ½ Σ r²) from texel values x0; returns (x, steps, result code).
 
     ``progress(loss)``, when given, is called on the host with the objective ½ Σ r² at every
     evaluation of it (``jax.debug.callback``): optimistix's solvers keep their steps to
@@ -194,7 +210,7 @@ def optx_solve(x0, problem: Problem, solver, least_squares: bool, max_steps: int
     # optimistix, lineax and optax contract at JAX's default precision, which is TF32 on GPUs;
     # the fit's float32 contractions all run at full precision (`pbrfit.fitting.objective`, `pbrfit.fitting.normal_matrix`).
     with jax.default_matmul_precision("highest"):
-        if least_squares:
+        if isinstance(solver, optx.AbstractLeastSquaresSolver):
             sol = optx.least_squares(res, solver, z0, max_steps=max_steps, throw=False)
         else:
             sol = optx.minimise(loss, solver, z0, max_steps=max_steps, throw=False)

@@ -1,4 +1,5 @@
-"""The fit's structured Levenberg-Marquardt solver (`structured_lm`).
+"""The fit's structured Levenberg-Marquardt solver, `StructuredLM`: an optimistix least-squares
+solver whose step is pbrfit's own (the projected, block-Jacobi-preconditioned one).
 
 On the objective of `pbrfit.fitting.objective`, with the Gauss-Newton matrix of `pbrfit.fitting.normal_matrix`,
 the damped normal equations
@@ -13,12 +14,17 @@ IMM-REP-1999-05). This is a projected Levenberg-Marquardt method (as in e.g. C. 
 "Levenberg-Marquardt methods with strong local convergence properties for solving nonlinear
 equations with convex constraints", 2004).
 
-Why not an optimistix solver: optimistix's LM and Gauss-Newton take a lineax solver for the
-step, but they do not support bounds (the active set and the projection live between the linear
-solve and the acceptance test), and lineax's CG has no preconditioner hook for the block
-diagonal we assemble from the same per-pixel Jacobians. So this loop is a jitted
-`lax.while_loop` in plain JAX: no host round-trips, every array has a fixed shape, and pixels
-and texels can be sharded. The generic optimistix solvers run the same objective through
+Why its own step: optimistix's LM and Gauss-Newton take a lineax solver for the step, but they
+do not support bounds (the active set and the projection live between the linear solve and the
+acceptance test), and lineax's CG has no preconditioner hook for the block diagonal assembled from
+the same per-pixel Jacobians. So `StructuredLM` is an `optx.AbstractLeastSquaresSolver` whose
+`step` linearises the problem itself (`pbrfit.fitting.objective.linearize`: residuals and per-pixel
+Jacobians in one pass) rather than asking optimistix for a Jacobian: it is run as
+``optx.least_squares(fn, StructuredLM(), x0, args=problem, options=dict(max_steps=n))`` with
+``args`` the `pbrfit.fitting.objective.Problem` and ``fn(x, problem)`` its residuals
+(`pbrfit.fitting.objective.residuals`, what the solve minimises ½ Σ r² of; `solve` does this). The
+loop is optimistix's `lax.while_loop`: no host round-trips, every array has a fixed shape, and
+pixels and texels can be sharded. The generic optimistix solvers run the same objective through
 `pbrfit.fitting.solvers.optx`.
 
 Precision: every contraction here passes ``precision=HIGHEST``; JAX's default lets a GPU
@@ -27,20 +33,28 @@ multiply float32 in TF32 (10-bit mantissa), too coarse for the normal equations.
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+from typing import Any, Callable, Optional
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import optimistix as optx
 from jax import lax
 from jaxtyping import Array, Float
 
 from ..normal_matrix import gauss_newton_factors, gn_product, gradient, normal_blocks
-from ..objective import Problem, linearize, prior_degree
+from ..objective import Problem, linearize, prior_degree, residuals
 from ..parameters import lower, upper
 
-__all__ = ["structured_lm", "pcg", "LMStats", "CG_RTOL", "DAMPING_FLOOR", "LAMBDA_INIT", "LAMBDA_MAX"]
+__all__ = ["StructuredLM", "solve", "pcg", "LMStats", "RTOL", "ATOL", "CG_RTOL", "CG_MAX_STEPS", "DAMPING_FLOOR",
+           "LAMBDA_INIT", "LAMBDA_MAX"]
 
+#: Relative stopping tolerance: an accepted step that lowers E by less than ``RTOL · E`` ends the
+#: solve (also the named optimistix solvers' rtol).
+RTOL = 1e-6
+#: Absolute stopping tolerance: an accepted step that moves no value by more than this ends the
+#: solve (also the named optimistix solvers' atol).
+ATOL = 1e-5
 #: Relative floor on the damping diagonal, times the mean diagonal of the free channels: keeps the
 #: damped blocks invertible for channels the images barely constrain (roughness without highlights).
 DAMPING_FLOOR = 1e-6
@@ -49,8 +63,12 @@ LAMBDA_INIT = 1e-3
 #: Damping above this means the model cannot be decreased further from here: stop.
 LAMBDA_MAX = 1e10
 #: Relative residual at which a step's conjugate gradients stop, ||r|| <= CG_RTOL ||g|| (an inexact
-#: Levenberg-Marquardt step; `fit --cg-rtol` trades it for speed, measured in the README).
+#: Levenberg-Marquardt step; `fit --cg-rtol` trades it for speed, measured in docs/results.md).
 CG_RTOL = 1e-3
+#: Conjugate-gradient iterations per step, at most.
+CG_MAX_STEPS = 100
+#: The step budget when the options give none: optimistix's ``max_steps`` bounds the solve then.
+_NO_BUDGET = jnp.iinfo(jnp.int32).max
 
 
 def _vdot(a, b):
@@ -85,6 +103,9 @@ def pcg(matvec: Callable, b, precond: Callable, rtol, max_steps: int):
 
 
 class LMStats(eqx.Module):
+    """What a `StructuredLM` solve did: steps taken (the linearisation at the start not counted),
+    steps accepted, conjugate-gradient iterations, the final E and the final damping λ."""
+
     steps: Array
     accepted: Array
     cg_iterations: Array
@@ -99,44 +120,73 @@ def _active(x, g, free):
     return free * (~blocked).astype(x.dtype)
 
 
-@eqx.filter_jit
-def structured_lm(
-    x0: Float[Array, "T K"],
-    problem: Problem,
-    max_steps: int = 50,
-    rtol: float = 1e-6,
-    atol: float = 1e-5,
-    cg_rtol: float = CG_RTOL,
-    cg_max_steps: int = 100,
-    progress: Optional[Callable] = None,
-):
-    """Projected Levenberg-Marquardt on the structured objective (module docstring).
+class _StructuredLMState(eqx.Module):
+    """The iterate's residuals r (P, 3), per-row Jacobians (R, 3, K) and E, the damping λ and
+    Nielsen's factor ν, the count k of calls to `step` (step 0 only linearises), whether the last
+    step ended the solve, the steps accepted, the CG iterations and the step budget."""
 
-    Stops after `max_steps` steps, or at an accepted step that lowers E by less than
-    ``rtol · E`` or moves no value by more than `atol`. Returns (x, LMStats, residuals (P, 3),
-    per-row Jacobians (R, 3, K); R = P with one sample per pixel) at the returned x.
+    r: Array
+    jac: Array
+    loss: Array
+    lam: Array
+    nu: Array
+    k: Array
+    done: Array
+    accepted: Array
+    cg: Array
+    budget: Array
+
+
+class StructuredLM(optx.AbstractLeastSquaresSolver):
+    """Projected Levenberg-Marquardt on the structured objective (module docstring), as an
+    optimistix least-squares solver: ``args`` is the `pbrfit.fitting.objective.Problem`, and ``fn``
+    (its residuals, `pbrfit.fitting.objective.residuals`) is not called, as `step` linearises the
+    problem itself.
+
+    Stops at an accepted step that lowers E by less than ``rtol · E`` or moves no value by more
+    than `atol` (in `norm`, the max norm by default), when λ passes `LAMBDA_MAX`, at a step that
+    moves nothing, or after ``options["max_steps"]`` steps (an int32 array, so that one compiled
+    program serves every budget; without it, optimistix's ``max_steps`` bounds the solve, and
+    counts the first call to `step`, which only linearises at the start clipped into the box).
+    Each step reports ``options["progress"](k, E)`` on the host when given (step 0: the start's E).
+    The final state holds the residuals ``r`` and Jacobians ``jac`` at the returned x, and
+    `postprocess` the stats of `LMStats` (`solve` gathers both).
+
+    ``cg_rtol``: the relative residual at which each step's conjugate gradients stop (an array
+    too, where one program should serve every tolerance); ``cg_max_steps``: their most iterations.
     """
-    k = x0.shape[-1]
-    lo, hi = jnp.asarray(lower(k)), jnp.asarray(upper(k))
-    x0 = jnp.clip(x0, lo, hi)
-    p = problem.num_pixels
-    eye = jnp.eye(k, dtype=x0.dtype)
-    degree = prior_degree(problem)
-    # Step 0 only linearises at x0 (no step is taken: every channel inactive), so the
-    # linearisation is traced once, inside the loop.
-    r0 = jnp.zeros((p, 3), x0.dtype)
-    j0 = jnp.zeros((problem.index.shape[0], 3, k), x0.dtype)
-    loss0 = jnp.asarray(jnp.inf, x0.dtype)
 
-    def cond(c):
-        return (c["k"] <= max_steps) & ~c["done"]
+    rtol: float = RTOL
+    atol: float = ATOL
+    cg_rtol: Any = CG_RTOL
+    cg_max_steps: int = eqx.field(static=True, default=CG_MAX_STEPS)
+    norm: Callable = optx.max_norm
 
-    def body(c):
-        x, r, jac, loss, lam, nu = c["x"], c["r"], c["jac"], c["loss"], c["lam"], c["nu"]
+    def init(self, fn, y, args: Problem, options, f_struct, aux_struct, tags) -> _StructuredLMState:
+        del fn, f_struct, aux_struct, tags
+        # The first step only linearises at the start (no step is taken: every channel inactive),
+        # so the linearisation is traced once, inside the loop.
+        k = y.shape[-1]
+        budget = options.get("max_steps") if options else None
+        budget = jnp.asarray(_NO_BUDGET if budget is None else budget, jnp.int32)
+        return _StructuredLMState(
+            r=jnp.zeros((args.num_pixels, 3), y.dtype), jac=jnp.zeros((args.index.shape[0], 3, k), y.dtype),
+            loss=jnp.asarray(jnp.inf, y.dtype), lam=jnp.asarray(LAMBDA_INIT, y.dtype), nu=jnp.asarray(2.0, y.dtype),
+            k=jnp.asarray(0), done=jnp.asarray(False), accepted=jnp.asarray(0), cg=jnp.asarray(0), budget=budget)
+
+    def step(self, fn, y, args: Problem, options, state: _StructuredLMState, tags):
+        del fn, tags
+        problem, x = args, y
+        k = x.shape[-1]
+        lo, hi = jnp.asarray(lower(k), x.dtype), jnp.asarray(upper(k), x.dtype)
+        eye = jnp.eye(k, dtype=x.dtype)
+        degree = prior_degree(problem)
+        r, jac, loss, lam, nu = state.r, state.jac, state.loss, state.lam, state.nu
+        first = state.k == 0
         gp = gauss_newton_factors(jac, problem)
         g = gradient(r, jac, x, problem)
         blocks = normal_blocks(jac, problem) + problem.smooth * degree[:, None, None] * eye
-        a = _active(x, g, problem.free) * (c["k"] > 0)
+        a = _active(x, g, problem.free) * ~first
         diag = jnp.diagonal(blocks, axis1=1, axis2=2)
         mean_diag = jnp.sum(diag * problem.free) / jnp.maximum(jnp.sum(problem.free), 1.0)
         damp = diag + DAMPING_FLOOR * mean_diag
@@ -151,36 +201,60 @@ def structured_lm(
         def precond(v):
             return jnp.einsum("tij,tj->ti", m_inv, v, precision=lax.Precision.HIGHEST)
 
-        delta, iters = pcg(matvec, -a * g, precond, cg_rtol, cg_max_steps)
+        delta, iters = pcg(matvec, -a * g, precond, self.cg_rtol, self.cg_max_steps)
         x_new = jnp.clip(x + a * delta, lo, hi)
         step = x_new - x
         predicted = -(_vdot(g, step) + 0.5 * _vdot(step, gn_product(gp, step, problem)))
         r_new, jac_new, loss_new = linearize(x_new, problem)
-        actual = jnp.where(c["k"] > 0, loss - loss_new, 0.0)
-        # step 0 only linearises at x0: kept even where the loss is not finite (an overflow), so
-        # that the returned residuals and loss are x0's and the caller sees it, not zeros and inf
-        accept = (c["k"] == 0) | (jnp.isfinite(loss_new) & (loss_new < loss))
+        actual = jnp.where(first, 0.0, loss - loss_new)
+        # step 0 only linearises at the start: kept even where the loss is not finite (an
+        # overflow), so that the returned residuals and loss are the start's and the caller sees
+        # it, not zeros and inf
+        accept = first | (jnp.isfinite(loss_new) & (loss_new < loss))
         rho = actual / jnp.maximum(predicted, jnp.finfo(x.dtype).tiny)
         lam_new = jnp.where(accept, lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), lam * nu)
         nu_new = jnp.where(accept, 2.0, 2.0 * nu)
-        small = (actual <= rtol * loss) | (jnp.max(jnp.abs(step)) <= atol)
-        first = c["k"] == 0
-        done = ~first & ((accept & small) | (lam_new > LAMBDA_MAX) | (jnp.max(jnp.abs(step)) == 0))
+        moved = self.norm(step)
+        small = (actual <= self.rtol * loss) | (moved <= self.atol)
+        done = ~first & ((accept & small) | (lam_new > LAMBDA_MAX) | (moved == 0))
         lam_new = jnp.where(first, lam, lam_new)
         nu_new = jnp.where(first, nu, nu_new)
+        progress = options.get("progress") if options else None
         if progress is not None:
-            jax.debug.callback(progress, c["k"], jnp.where(accept, loss_new, loss))
+            jax.debug.callback(progress, state.k, jnp.where(accept, loss_new, loss))
         pick = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
-        return dict(
-            x=pick(x_new, x), r=pick(r_new, r), jac=pick(jac_new, jac), loss=pick(loss_new, loss),
-            lam=lam_new, nu=nu_new, k=c["k"] + 1, done=done,
-            accepted=c["accepted"] + (accept & ~first).astype(jnp.int32),
-            cg=c["cg"] + iters,
-        )
+        new_state = _StructuredLMState(
+            r=pick(r_new, r), jac=pick(jac_new, jac), loss=pick(loss_new, loss), lam=lam_new, nu=nu_new,
+            k=state.k + 1, done=done, accepted=state.accepted + (accept & ~first).astype(jnp.int32),
+            cg=state.cg + iters, budget=state.budget)
+        return pick(x_new, x), new_state, None
 
-    init = dict(x=x0, r=r0, jac=j0, loss=loss0, lam=jnp.asarray(LAMBDA_INIT, x0.dtype),
-                nu=jnp.asarray(2.0, x0.dtype), k=jnp.asarray(0), done=jnp.asarray(False),
-                accepted=jnp.asarray(0), cg=jnp.asarray(0))
-    out = lax.while_loop(cond, body, init)
-    stats = LMStats(jnp.maximum(out["k"] - 1, 0), out["accepted"], out["cg"], out["loss"], out["lam"])
-    return out["x"], stats, out["r"], out["jac"]
+    def terminate(self, fn, y, args, options, state: _StructuredLMState, tags):
+        del fn, y, args, options, tags
+        return state.done | (state.k > state.budget), optx.RESULTS.successful
+
+    def postprocess(self, fn, y, aux, args, options, state: _StructuredLMState, tags, result):
+        del fn, args, options, tags, result
+        return y, aux, dict(steps=jnp.maximum(state.k - 1, 0), accepted=state.accepted, cg_iterations=state.cg,
+                            loss=state.loss, damping=state.lam)
+
+
+def _residuals(x, problem: Problem):
+    return residuals(x, problem)
+
+
+@eqx.filter_jit
+def solve(x0: Float[Array, "T K"], problem: Problem, solver: StructuredLM = StructuredLM(), max_steps=50,
+          progress: Optional[Callable] = None):
+    """`solver` on `problem` from texel values x0 through `optx.least_squares`, at most
+    `max_steps` steps (an int32 array: one compiled program serves every budget; 0 only
+    linearises at x0). ``progress(k, E)`` is called on the host at each step.
+
+    Returns (x, LMStats, residuals (P, 3), per-row Jacobians (R, 3, K); R = P with one sample per
+    pixel) at the returned x."""
+    sol = optx.least_squares(_residuals, solver, x0, args=problem,
+                             options=dict(max_steps=jnp.asarray(max_steps, jnp.int32), progress=progress),
+                             max_steps=None, throw=False)
+    s = sol.stats
+    stats = LMStats(s["steps"], s["accepted"], s["cg_iterations"], s["loss"], s["damping"])
+    return sol.value, stats, sol.state.r, sol.state.jac

@@ -99,7 +99,8 @@ from scipy.sparse import csgraph
 
 from ..initialisation import coordinate_search, parity_classes
 from ..parameters import CHANNELS
-from ..runner import DEFAULT_SOLVER, jitted_normal_blocks, problem_energy, problem_key, timed
+from ..runner import jitted_normal_blocks, problem_energy, problem_key, timed
+from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ..objective import Problem
 from ...transfer import to_device
 from ..uncertainty import block_standard_errors, residual_variance
@@ -394,7 +395,7 @@ def repair_skipped(solver, final, channels) -> Optional[str]:
     """Why the basin repair does not apply to a fit, or None where it does."""
     if tuple(final) == (1, 1):
         return "a uniform material"
-    if solver != DEFAULT_SOLVER:
+    if not is_structured(solver):
         return f"needs the {DEFAULT_SOLVER} solver"
     if not np.any(np.asarray(channels) > 0):
         return "no channel is fitted"

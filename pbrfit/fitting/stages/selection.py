@@ -59,7 +59,8 @@ from jax import lax
 from jaxtyping import Array, Float
 
 from ..parameters import lower, upper
-from ..runner import DEFAULT_SOLVER, jitted_normal_blocks, problem_energy
+from ..runner import jitted_normal_blocks, problem_energy
+from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ..objective import Problem
 from ..normal_matrix import gauss_newton_factors, gn_product, gradient, normal_blocks
 from ..solvers.structured import pcg
@@ -193,7 +194,7 @@ def uniform_check_skipped(solver, loss, smooth, final, channels) -> Optional[str
     """Why the uniform check does not apply to a fit, or None where it does."""
     if tuple(final) == (1, 1):
         return "a uniform material"
-    if solver != DEFAULT_SOLVER:
+    if not is_structured(solver):
         return f"needs the {DEFAULT_SOLVER} solver"
     if loss != "l2":
         return f"needs the l2 loss (the test reads the data term as a Gaussian likelihood), not {loss}"

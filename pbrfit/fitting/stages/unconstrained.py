@@ -42,7 +42,8 @@ import numpy as np
 from ..result import texel_standard_errors
 from ..objective import Problem, linearize
 from ..parameters import FIT_GROUPS, PRIOR
-from ..runner import DEFAULT_SOLVER, problem_energy
+from ..runner import problem_energy
+from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ...transfer import to_device
 
 __all__ = ["UNCONSTRAINED_SIGMA", "HOLD_STEPS", "HOLD_ROUNDS", "ROUGHNESS", "hold_skipped", "unconstrained_texels", "run_hold"]
@@ -66,7 +67,7 @@ def hold_skipped(solver, smooth, final, channels, uniform) -> Optional[str]:
     """Why roughness is not held anywhere in a fit, or None where the test applies."""
     if tuple(final) == (1, 1):
         return "a uniform material"
-    if solver != DEFAULT_SOLVER:
+    if not is_structured(solver):
         return f"needs the {DEFAULT_SOLVER} solver"
     if smooth > 0:
         return "the smoothness prior already ties the texels together"

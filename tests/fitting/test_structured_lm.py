@@ -1,0 +1,152 @@
+"""The fit's solvers as optimistix solvers: `pbrfit.StructuredLM` (`pbrfit.fitting.solvers.structured`)
+run through `optx.least_squares`, the names of `pbrfit.fitting.solvers.names`, and a user's own
+optimistix solver in `pbrfit.fit` and on the command line.
+
+The small problem is `test_sharding`'s: a plane under two lights, 1001 pixels, a 4 × 4 map,
+metallic held, targets rendered from a random material plus noise."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+
+import pbrfit
+from pbrfit.fitting.initialisation import grid_initialise
+from pbrfit.fitting.objective import linearize, residuals
+from pbrfit.fitting.options import FitOptions
+from pbrfit.fitting.parameters import lower, upper
+from pbrfit.fitting.solvers.names import SOLVERS, is_structured, solver_for, solver_name
+from pbrfit.fitting.solvers.structured import ATOL, CG_RTOL, RTOL, StructuredLM, solve
+from test_sharding import _problem, _start
+
+# The hand-written loop this solver replaced (a jitted lax.while_loop), on `_problem` from the
+# grid start with rtol 1e-7 and atol 1e-6, 30 steps at most: (steps, accepted, CG iterations),
+# E, λ and the mean of each channel of x (CPU, float32). With the prior (smooth 1e-3) three steps
+# are accepted, then eight are refused until λ passes LAMBDA_MAX; without it the fifth accepted
+# step is small enough to stop.
+REFERENCE = {
+    1e-3: ((11, 3, 115), 0.14778105914592743, 2545166.0, (0.57315881, 0.46256701, 0.55512854, 0.0, 0.48584193)),
+    0.0: ((5, 5, 62), 0.14532418549060822, 4.115227056900039e-06, (0.5731611, 0.46256968, 0.55513157, 0.0, 0.48588595)),
+}
+
+
+@pytest.fixture(scope="module", params=sorted(REFERENCE))
+def start(request):
+    problem, _ = _problem(smooth=request.param)
+    return request.param, problem, grid_initialise(_start(problem), problem)
+
+
+def test_the_fit_options_hold_optimistix_solvers():
+    solver = FitOptions().solver
+    assert isinstance(solver, optx.AbstractLeastSquaresSolver) and isinstance(solver, StructuredLM)
+    assert pbrfit.StructuredLM is StructuredLM and is_structured(solver)
+    assert (solver.rtol, solver.atol, solver.cg_rtol) == (RTOL, ATOL, CG_RTOL)
+    for name in SOLVERS:  # every name is an optimistix solver, and the report names it again
+        made = FitOptions(solver=name).solver
+        assert isinstance(made, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser)), name
+        assert solver_name(made) == name and (made.rtol, made.atol) == (RTOL, ATOL)
+        assert is_structured(made) == (name == "structured")
+    # the tolerance options set the solver's; a user's solver keeps its own unless they are given
+    tuned = FitOptions(rtol=1e-7, atol=1e-4, cg_rtol=0.01).solver
+    assert (tuned.rtol, tuned.atol, tuned.cg_rtol) == (1e-7, 1e-4, 0.01)
+    assert FitOptions(solver="lm", atol=1e-3).solver == solver_for("lm", RTOL, 1e-3)
+    own = optx.LevenbergMarquardt(rtol=1e-3, atol=1e-2)
+    options = FitOptions(solver=own)
+    assert options.solver is own and solver_name(own) == "LevenbergMarquardt"
+    assert dataclasses.replace(options, max_steps=5).solver is own
+    assert options.replace(rtol=1e-8).solver.rtol == 1e-8
+    assert FitOptions(solver=StructuredLM(cg_rtol=0.1)).solver.cg_rtol == 0.1
+    for bad, match in ((dict(solver=optx.Bisection(1e-6, 1e-6)), "solver: must be one of structured, lm"),
+                       (dict(solver=StructuredLM(cg_rtol=2.0)), "cg_rtol: must be a number in"),
+                       (dict(solver=own, cg_rtol=0.1), "cg_rtol: only the structured solver uses it, not "
+                                                       "solver='LevenbergMarquardt'")):
+        with pytest.raises(ValueError, match=match):
+            FitOptions(**bad)
+
+
+def test_structured_lm_steps_as_the_loop_it_replaced(start):
+    smooth, problem, x0 = start
+    (steps, accepted, cg), loss, damping, mean = REFERENCE[smooth]
+    seen = []
+    sol = optx.least_squares(lambda x, p: residuals(x, p), StructuredLM(rtol=1e-7, atol=1e-6), x0, args=problem,
+                             options=dict(max_steps=jnp.asarray(30, jnp.int32), progress=lambda k, e: seen.append(int(k))),
+                             max_steps=None, throw=False)
+    jax.block_until_ready(sol.value)
+    s = sol.stats
+    assert (int(s["steps"]), int(s["accepted"]), int(s["cg_iterations"])) == (steps, accepted, cg)
+    assert int(s["num_steps"]) == steps + 1  # optimistix counts the first call, which only linearises
+    assert float(s["loss"]) == pytest.approx(loss, rel=1e-5) and float(s["damping"]) == pytest.approx(damping, rel=1e-3)
+    np.testing.assert_allclose(np.asarray(sol.value, np.float64).mean(0), mean, atol=1e-6)
+    assert sol.result == optx.RESULTS.successful
+    assert seen == list(range(steps + 1))  # progress at every step, the start's E first
+    # the residuals and Jacobians at the returned x are in the final state
+    r, jac, e = jax.jit(linearize)(sol.value, problem)
+    np.testing.assert_allclose(np.asarray(sol.state.r), np.asarray(r), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(sol.state.jac), np.asarray(jac), rtol=1e-5, atol=1e-6)
+    assert float(e) == pytest.approx(float(s["loss"]), rel=1e-6)
+
+
+def test_one_program_serves_every_step_budget(start):
+    smooth, problem, x0 = start
+    solver = StructuredLM(rtol=1e-7, atol=1e-6)
+    compiled = solve.lower(x0, problem, solver, jnp.asarray(0, jnp.int32)).compile()
+    x, stats, r, jac = compiled(x0, problem, solver, jnp.asarray(0, jnp.int32))
+    # 0 steps only linearises, at the start clipped into the box (the runner's Jacobian)
+    clipped = jnp.clip(x0, jnp.asarray(lower(5)), jnp.asarray(upper(5)))
+    np.testing.assert_array_equal(np.asarray(x), np.asarray(clipped))
+    assert int(stats.steps) == 0 and int(stats.accepted) == 0
+    np.testing.assert_allclose(np.asarray(jac), np.asarray(jax.jit(linearize)(clipped, problem)[1]), rtol=1e-5, atol=1e-6)
+    x2, stats2, *_ = compiled(x0, problem, solver, jnp.asarray(2, jnp.int32))
+    assert int(stats2.steps) == 2 and float(stats2.loss) < float(stats.loss)
+    _, stats30, *_ = compiled(x0, problem, solver, jnp.asarray(30, jnp.int32))
+    assert int(stats30.steps) == REFERENCE[smooth][0][0]
+
+
+def test_without_a_budget_optimistix_max_steps_bounds_the_solve(start):
+    _, problem, x0 = start
+    sol = optx.least_squares(lambda x, p: residuals(x, p), StructuredLM(rtol=1e-7, atol=1e-6), x0, args=problem,
+                             max_steps=3, throw=False)
+    assert int(sol.stats["num_steps"]) == 3 and int(sol.stats["steps"]) == 2
+    assert sol.result == optx.RESULTS.nonlinear_max_steps_reached
+
+
+def _capture(tmp_path):
+    from _capture_fixtures import base_capture_dict, write_capture
+
+    data = base_capture_dict()
+    del data["environment"]  # point lights alone: no IBL tables to build
+    return write_capture(tmp_path / "cap", data)
+
+
+def test_fit_runs_a_users_optimistix_solver(tmp_path):
+    seen = []
+    result = pbrfit.fit(_capture(tmp_path), solver=optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6), resolution=4,
+                        max_steps=4, init="prior", search=False, progress=seen.append)
+    losses = [entry["loss"] for entry in seen if "loss" in entry]
+    assert result.report["solver"] == "LevenbergMarquardt" and 1 <= result.report["steps"] <= 4
+    assert result.report["stopping"]["rtol"] == 1e-6 and result.report["stopping"]["atol"] == 1e-6
+    assert result.report["final_loss"] < 0.9 * losses[0], losses
+    assert result.report["repair"] == dict(skipped="needs the structured solver")
+    assert "cg_rtol" not in result.report
+
+
+def test_the_command_line_names_a_solver(tmp_path):
+    from pbrfit.cli.fit import fit_options
+    from pbrfit.cli.main import build_parser, main
+
+    def options(*extra):
+        return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra])).solver
+
+    assert options() == StructuredLM() and options("--rtol", "1e-7", "--cg-rtol", "0.01") == StructuredLM(1e-7, ATOL, 0.01)
+    assert options("--solver", "lm", "--atol", "1e-4") == solver_for("lm", RTOL, 1e-4)
+    out = tmp_path / "fit"
+    assert main(["fit", str(_capture(tmp_path)), "--out", str(out), "--solver", "lm", "--resolution", "4",
+                 "--max-steps", "3", "--no-search", "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["solver"] == "lm" and 1 <= report["steps"] <= 3 and np.isfinite(report["final_loss"])
