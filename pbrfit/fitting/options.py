@@ -140,13 +140,15 @@ def fit_arguments(fit=None, fixed: Optional[Mapping] = None,
     return fit, held
 
 
-def check_options(*, resolution, maps, solver, max_steps, coarse_steps, rtol, atol, cg_rtol, loss_scale, smooth,
-                  coarse_to_fine, continuation, uncertainty_radius, unconstrained_sigma=UNCONSTRAINED_SIGMA,
-                  names: OptionNames = OptionNames()) -> None:
-    """`ValueError` (worded with ``names``) for option values out of range, or given to a mode
-    that does not read them: `fit`, `pbrfit.fitting.api.fit_observations` and the command line refuse alike.
-    ``solver`` is a name of `SOLVERS` or an optimistix solver; ``rtol``, ``atol`` and ``cg_rtol``
-    None stand for the solver's own (a `StructuredLM`'s are checked as if given)."""
+def check_options(options: "FitOptions") -> None:
+    """`ValueError` (worded with ``options.names``) for option values out of range, or given to a
+    mode that does not read them: `fit`, `pbrfit.fitting.api.fit_observations` and the command
+    line refuse alike. ``solver`` is a name of `SOLVERS` or an optimistix solver; ``rtol``,
+    ``atol`` and ``cg_rtol`` None stand for the solver's own (a `StructuredLM`'s are checked as if
+    given)."""
+    (resolution, maps, solver, max_steps, coarse_steps, rtol, atol, cg_rtol, loss_scale, smooth, coarse_to_fine,
+     continuation, uncertainty_radius, unconstrained_sigma) = (getattr(options, name) for name in _CHECKED)
+    names = options.names
     say = names.option
     if not _solver_object(solver) and (not isinstance(solver, str) or solver not in SOLVERS):
         raise ValueError(f"{say('solver')}: must be one of {', '.join(SOLVERS)}, or an optimistix least-squares "
@@ -264,7 +266,7 @@ class FitOptions:
         fit, fixed = fit_arguments(self.fit, self.fixed, self.names)
         object.__setattr__(self, "_fitted", fit)
         object.__setattr__(self, "_held", fixed)
-        check_options(**{name: getattr(self, name) for name in _CHECKED}, names=self.names)
+        check_options(self)
         object.__setattr__(self, "solver", with_tolerances(self.solver, self.rtol, self.atol, self.cg_rtol))
         check_kinds(**{name: getattr(self, name) for name in _KINDS})
         check_names(noise_level=self.noise_level, loss=self.loss, init=self.init, wrap=self.wrap,

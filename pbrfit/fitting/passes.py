@@ -32,7 +32,6 @@ from .stages.pipeline import STAGES, StageState, run_stages
 from .stages.selection import SELECTABLE
 from .sharding import pixel_mesh, shard_problem
 from .objective import Problem
-from .solvers.names import solver_name
 from ..physics.textures import resample_map, sample_bilinear
 from ..physics.model import Model
 from ..transfer import to_device
@@ -289,15 +288,11 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
         state = StageState(options, runner, compiler, problem, xs, linearization, final, seen, channels, num_free,
                            obs.num_pixels, where)
         entries, stages = run_stages(STAGES, state, clock)
-        problem, xs, linearization, uniform = state.problem, state.xs, state.linearization, state.uniform
-        x = xs[:t_final].reshape(final + (k,))
+        x = state.xs[:t_final].reshape(final + (k,))
     finally:
         compiler.close()
 
-    t_post = time.perf_counter()
-    result = finish(obs, problem, x, final, channels, seen[:t_final], inputs.model, solver_name(options.solver),
-                    history, options.loss, options.smooth, dict(setup=inputs.setup_time, **clock), t_post, t_start,
-                    linearization, options.wrap, uniform, int(options.uncertainty_radius))
+    result = finish(obs, state, x, inputs.model, options, history, dict(setup=inputs.setup_time, **clock), t_start)
     checks = entries["uniform_check"]
     for name, c in SELECTABLE:  # the value's σ as uncertainty holds it: the kept fit's residual variance
         if checks.get(name, {}).get("uniform"):

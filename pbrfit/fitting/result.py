@@ -16,6 +16,7 @@ from ..physics.material import Material
 from .observations import coverage_counts, layout_for
 from .parameters import CHANNELS, NORMAL_CHANNELS, lower, normal_from_slopes, upper
 from .runner import jitted_neighbour_blocks, jitted_normal_blocks, thread_time
+from .solvers.names import solver_name
 from .stages.selection import profile_hessian, uniform_direction
 from .objective import linearize, objective, pixel_residuals
 from ..physics.textures import resample_map
@@ -87,16 +88,24 @@ def texel_standard_errors(problem, x, jac, data_energy: float, final, texel_chan
     return sigma, sigma2
 
 
-def finish(obs, problem, x, final, channels, seen, model, solver, history, loss, smooth, times, t_post, t_start,
-            linearization=None, wrap: str = "repeat", uniform: Optional[Mapping] = None,
-            uncertainty_radius: int = WINDOW_RADIUS):
+def finish(obs, state, x, model, options, history, times, t_start):
     """The result at the fit's x. The maps' standard errors come from each texel's window of
     ``uncertainty_radius`` (`pbrfit.fitting.uncertainty.window_standard_errors`; 0: its own block), with
     the channels that sit on a bound held for the others' errors.
     ``uniform`` {channel: value}: channels fitted as one common value
     (`pbrfit.fitting.stages.selection.run_uniform_check`); their standard errors, at every seen texel, are
-    σ̂ sqrt(diag(P⁻¹)) for P their profile curvature matrix (`pbrfit.fitting.stages.selection.profile_hessian`)."""
-    uniform = dict(uniform or {})
+    σ̂ sqrt(diag(P⁻¹)) for P their profile curvature matrix (`pbrfit.fitting.stages.selection.profile_hessian`).
+
+    ``state``: the `pbrfit.fitting.stages.pipeline.StageState` the stages after the solve left
+    (the final problem, map shape, channels, texels seen, linearisation at ``x`` or None, and
+    the uniform channels); ``options``: the fit's `pbrfit.fitting.options.FitOptions`;
+    ``times``: the clock so far; ``t_start``: when the pass began."""
+    t_post = time.perf_counter()
+    problem, final, channels, seen = state.problem, state.final, state.channels, state.seen
+    linearization, uniform = state.linearization, dict(state.uniform or {})
+    loss, smooth, wrap = options.loss, options.smooth, options.wrap
+    uncertainty_radius = int(options.uncertainty_radius)
+    solver = solver_name(options.solver)
     k = len(channels)
     texel_channels = np.asarray(channels, np.float32).copy()
     texel_channels[list(uniform)] = 0.0
