@@ -31,10 +31,10 @@ def test_render_with_truth_reproduces_synth(tmp_path, monkeypatch, preset, extra
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
     cap, out = tmp_path / "cap", tmp_path / "out"
     assert main(["synth", preset, "--out", str(cap), "--size", "24", "--views", "2", "--quiet", *extra]) == 0
-    import pbrfit.lighting.environment
+    import pbrfit.render.views  # the one caller of load_environment: every read goes through it
 
-    reads, load = [], pbrfit.lighting.environment.load_environment
-    monkeypatch.setattr(pbrfit.lighting.environment, "load_environment", lambda *a, **kw: reads.append(a[0]) or load(*a, **kw))
+    reads, load = [], pbrfit.render.views.load_environment
+    monkeypatch.setattr(pbrfit.render.views, "load_environment", lambda *a, **kw: reads.append(a[0]) or load(*a, **kw))
     assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--quiet",
                  "--supersample", str(supersample)]) == 0
     # the environment file is read once, also where it is the only light and so is checked first
