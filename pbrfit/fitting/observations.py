@@ -28,7 +28,6 @@ import functools
 from typing import Optional, Sequence
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int

@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import Mapping, Optional
+from typing import Optional
 
 import jax
 import numpy as np
