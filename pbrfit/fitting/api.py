@@ -49,7 +49,7 @@ import os
 import time
 import warnings
 from pathlib import Path
-from typing import Optional
+from typing import Mapping, Optional
 
 import numpy as np
 
@@ -94,12 +94,13 @@ def _ibl_for_capture(capture, model: Model, environment=None):
     return capture_ibl(capture, model=model, environment=environment)
 
 
-def fit_observations(obs: Observations, options: Optional[FitOptions] = None, *, model: Optional[Model] = None,
+def fit_observations(obs: Observations, options: Optional[FitOptions] = None, *, model=None,
                      ibl=None, centres: Optional[Observations] = None, centre_ibl=None, select_footprint: bool = False,
                      setup_time: float = 0.0, **overrides) -> FitResult:
     """Fit maps to prepared `Observations` (see `fit` for the arguments).
 
-    The light is the caller's to describe: ``model`` and ``ibl`` must be those of the capture
+    The light is the caller's to describe: ``model`` (else ``options.model``: a `Model`, or a
+    mapping of the fields to change in the default one) and ``ibl`` must be those of the capture
     the observations come from (`fit` derives them: `fit_model`, and
     `pbrfit.render.views.capture_ibl` or `pbrfit.lighting.pixel_ibl.pixel_ibl`). The defaults, ``Model()`` and no
     tables, shade with the observations' punctual lights alone, so a capture lit by an
@@ -116,9 +117,11 @@ def fit_observations(obs: Observations, options: Optional[FitOptions] = None, *,
     their first `pbrfit.fitting.passes.PROBE_STEPS` when these do not yet fit better than the centres'
     whole finish. The report's "footprint" entry gives both energies, the steps and the choice."""
     options = options_from(options, overrides)
-    model = (options.model or Model()) if model is None else model
+    model = options.model if model is None else model
+    if model is None or isinstance(model, Mapping):  # the default model, with the fields given changed
+        model = Model(**(model or {}))
     check_model(model, options.fitted)
-    check_normals(model, options.fitted)
+    check_normals(model.ibl, options.fitted)
     inputs = PassInputs(model=model, ibl=ibl, centres=centres, centre_ibl=centre_ibl,
                         select_footprint=select_footprint, setup_time=setup_time)
     if options.noise_level == "uniform":
@@ -334,7 +337,7 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
     check_environment(model, capture)
     if options.ibl is not None and model.ibl is not None:
         model = model.replace(ibl=options.ibl)
-    check_normals(model, options.fitted)
+    check_normals(model.ibl, options.fitted)
     _check_brightness(capture)
     pixel_samples, select, skipped = footprint_choice(capture, options.pixel_samples, views)
     cache_dir = options.cache_dir

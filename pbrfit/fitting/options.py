@@ -271,9 +271,7 @@ class FitOptions:
         check_kinds(**{name: getattr(self, name) for name in _KINDS})
         check_names(noise_level=self.noise_level, loss=self.loss, init=self.init, wrap=self.wrap,
                     pixel_samples=self.pixel_samples)
-        if self.ibl == "per_pixel" and "normal" in fit:
-            raise ValueError(f"{self.names.setting('ibl', 'per_pixel')}: fitted normals need "
-                             f"{self.names.setting('ibl', 'split_sum')} (per-pixel integrals hold the normals fixed)")
+        check_normals(self.ibl, fit, self.names)
         if not isinstance(self.pixel_ibl_settings, PixelIBLSettings):
             raise ValueError(f"pixel_ibl_settings: expected a PixelIBLSettings, got {self.pixel_ibl_settings!r}")
         if isinstance(self.model, Mapping):  # fields of the capture's own model to change
@@ -286,7 +284,7 @@ class FitOptions:
                                  f"(hold it with {self.names.holder('metallic')})")
         elif self.model is not None:
             check_model(self.model, fit)
-            check_normals(self.model, fit)
+            check_normals(self.model.ibl, fit, self.names)
             if self.model.ibl == "monte_carlo":
                 raise ValueError("model: Model(ibl='monte_carlo') is the reference integrator, not a fit's "
                                  "shading; use 'split_sum' or 'per_pixel'")
@@ -367,9 +365,12 @@ def held_report(fit: Sequence[str], fixed: Optional[Mapping]) -> dict:
     return out
 
 
-def check_normals(model: Model, fit: Sequence[str]) -> None:
-    if model.ibl == "per_pixel" and "normal" in fit:
-        raise ValueError("fitting normals needs ibl='split_sum': per-pixel IBL integrals hold each pixel's normal fixed")
+def check_normals(ibl: Optional[str], fit: Sequence[str], names: OptionNames = OptionNames()) -> None:
+    """`ValueError` where normals are fitted under per-pixel IBL (``ibl``: the option's or the
+    model's): the per-pixel integrals hold each pixel's normal fixed."""
+    if ibl == "per_pixel" and "normal" in fit:
+        raise ValueError(f"{names.setting('ibl', 'per_pixel')}: fitted normals need "
+                         f"{names.setting('ibl', 'split_sum')} (per-pixel integrals hold the normals fixed)")
 
 
 def check_kinds(*, progress, level_factor, devices, **switches) -> None:

@@ -1,8 +1,9 @@
 """Solver runs compiled ahead of time, and the jitted evaluations a fit's passes share.
 
 `Runner` runs the fit's solver, an optimistix solver object (the structured one,
-`pbrfit.fitting.solvers.structured.StructuredLM`, or any other, `pbrfit.fitting.solvers.optx`), through
-`optx.least_squares` on a `pbrfit.fitting.objective.Problem`, compiled once per problem shape by `Compiler`, which can compile in a background thread while the fit does other work and
+`pbrfit.fitting.solvers.structured.StructuredLM`, or any other, `pbrfit.fitting.solvers.optx`),
+through `optx.least_squares` on a `pbrfit.fitting.objective.Problem`, compiled once per problem
+shape by `Compiler`, which can compile in a background thread while the fit does other work and
 keeps compile time apart from run time. `timed` runs any other jitted pass (the grid start, the
 coordinate search) the same way.
 """

@@ -141,6 +141,18 @@ def test_uniform_material_recovered(truth):
     assert res.report["solver"] == "structured" and len(res.report["psnr"]) == len(VIEWS)
 
 
+def test_fit_observations_takes_the_model_fields_the_options_change():
+    """``model={"diffuse": "burley"}`` in the options shades with those fields changed in the
+    default model (the command line's ``--model``), as the report records; the images were
+    rendered with Lambert, so the fit does not match them exactly."""
+    obs = observations_from_views(VIEWS, _images(VIEWS, Material.uniform((0.6, 0.35, 0.2), 0.0, 0.35)))
+    burley = fit_observations(obs, maps="none", max_steps=20, model={"diffuse": "burley"})
+    lambert = fit_observations(obs, maps="none", max_steps=20)
+    assert burley.report["model"] == Model(diffuse="burley").describe()
+    assert lambert.report["model"]["diffuse"] == "lambert"
+    assert burley.report["final_loss"] > 1e3 * lambert.report["final_loss"]
+
+
 def test_default_resolution_has_no_more_texels_than_pixels():
     """Views that see a speck of the texture (here 1e-5 of its width) ask for the finest map
     their footprint resolves (2048, almost all unseen); the default stops at one texel per pixel."""
