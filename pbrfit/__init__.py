@@ -10,6 +10,7 @@ the physics is imported on first use, so `import pbrfit` stays light.
 import importlib
 import os
 import pkgutil
+from importlib import metadata
 
 
 def _xla_workarounds() -> None:
@@ -18,8 +19,6 @@ def _xla_workarounds() -> None:
     silently differ from eager ones. Turning that YNN fusion off is the upstream workaround. The
     flag only exists in that release, and XLA rejects unknown flags, so it is set for it alone
     (before the backend starts, which reads XLA_FLAGS once)."""
-    from importlib import metadata
-
     try:
         version = metadata.version("jaxlib")
     except metadata.PackageNotFoundError:

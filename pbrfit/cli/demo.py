@@ -11,7 +11,21 @@ import re
 import time
 from pathlib import Path
 
+import numpy as np
+
+from data_synth.presets import make_scene
+from data_synth.writer import synthesize
+
+from .fit import run_fit
+from ..errors import CaptureError, listed
+from ..fitting.options import FitOptions
 from ..fitting.parameters import FIT_GROUPS
+from ..fitting.runner import compile_summary
+from ..io.atomic import check_output_dir
+from ..io.material_files import read_material
+from ..physics.textures import resample_map
+from ..render.views import default_cache_dir
+from ..scene.capture import load_capture
 
 __all__ = ["run_demo", "recovery_table", "CONFIDENT_SIGMA", "DEMO_FOLDERS"]
 
@@ -25,10 +39,6 @@ def recovery_table(fitted, truth, sigma, coverage) -> list[dict]:
     """Per map, over observed texels: RMSE against the truth; the RMSE and count of the texels
     whose standard error is at most `CONFIDENT_SIGMA`; the median σ; and the fraction of texel
     channels whose error is within 2σ (≈ 95% when the uncertainty is honest)."""
-    import numpy as np
-
-    from ..physics.textures import resample_map
-
     x = np.concatenate([np.asarray(fitted.base_color), np.asarray(fitted.metallic), np.asarray(fitted.roughness)], -1)
     t = np.concatenate([np.asarray(truth.base_color), np.asarray(truth.metallic), np.asarray(truth.roughness)], -1)
     if t.shape != x.shape:  # truth at another resolution: resampled as `pbrfit.fitting.api.map_rmse` does
@@ -70,20 +80,6 @@ _LEFTOVER = re.compile(r"\.(?:capture|fit)\..+\.(?:tmp|old)")
 def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **scene) -> int:
     """Synthesize, fit and report; returns the exit status. `scene` overrides the preset's
     parameters (``size``, ``views``, ``texture_size``...; see `data_synth.presets.make_scene`)."""
-    import numpy as np
-
-    from data_synth.presets import make_scene
-    from data_synth.writer import synthesize
-
-    from .fit import run_fit
-    from ..errors import CaptureError, listed
-    from ..fitting.options import FitOptions
-    from ..fitting.runner import compile_summary
-    from ..io.atomic import check_output_dir
-    from ..io.material_files import read_material
-    from ..scene.capture import load_capture
-    from ..render.views import default_cache_dir
-
     def say(message: str) -> None:
         if not quiet:
             print(message, flush=True)

@@ -6,24 +6,34 @@ summary line it prints (`fit_summary`)."""
 
 from __future__ import annotations
 
+import math
 import sys
+import time
 
+import jax
+import numpy as np
+from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+from .model_flag import add_model_argument, model_changes
 from ..errors import CaptureError
+from ..fitting.api import fit, map_rmse
+from ..fitting.noise import NOISE_LEVELS
+from ..fitting.objective import LOSSES
+from ..fitting.observations import MAX_PIXEL_SAMPLES
+from ..fitting.options import FLOAT32_MAX, IBL_MODES, LOSS_SCALE, MATERIAL_MAPS, FitOptions, OptionNames
+from ..fitting.passes import CONTINUATION, MAX_STEPS
+from ..fitting.runner import compile_summary
+from ..fitting.solvers.names import DEFAULT_SOLVER, SOLVERS
+from ..fitting.solvers.structured import ATOL, CG_RTOL, RTOL
+from ..fitting.stages.selection import uniform_channels
+from ..io.material_files import read_map, read_material
+from ..io.outputs import write_fit_output
+from ..lighting.pixel_ibl import MAX_LEVELS, MAX_SAMPLES, MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
 
 __all__ = ["add_fit", "fit_options", "fit_summary", "default_continuation", "FitProgress", "loss_history", "run_fit"]
 
 
 def add_fit(sub) -> None:
-    from ..fitting.options import IBL_MODES, LOSS_SCALE, MATERIAL_MAPS
-    from ..fitting.passes import MAX_STEPS
-    from ..fitting.solvers.names import DEFAULT_SOLVER, SOLVERS
-    from ..fitting.solvers.structured import ATOL, CG_RTOL, RTOL
-    from ..fitting.noise import NOISE_LEVELS
-    from ..fitting.observations import MAX_PIXEL_SAMPLES
-    from ..lighting.pixel_ibl import PixelIBLSettings
-    from ..fitting.objective import LOSSES
-    from .model_flag import add_model_argument
-
     p = sub.add_parser("fit", help="fit base color, metallic and roughness maps to a capture")
     p.add_argument("capture", help="capture folder, capture.json or NeRF-style transforms.json")
     p.add_argument("--out", required=True, help="output folder (written whole or not at all; replaces only an earlier fit output)")
@@ -114,13 +124,6 @@ def add_fit(sub) -> None:
 
 def fit_options(args):
     """The `pbrfit.FitOptions` of the command line (errors name the flag)."""
-    from ..fitting.options import MATERIAL_MAPS, FitOptions, OptionNames
-    from ..fitting.solvers.names import DEFAULT_SOLVER
-    from ..io.material_files import read_map
-    from ..fitting.observations import MAX_PIXEL_SAMPLES
-    from ..lighting.pixel_ibl import MAX_LEVELS, MAX_SAMPLES, MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
-    from .model_flag import model_changes
-
     fixed, held_by = {}, {}
     if args.base_color is not None:
         try:
@@ -171,8 +174,6 @@ def fit_options(args):
         samples=PixelIBLSettings.samples if args.ibl_samples is None else args.ibl_samples)
     devices = None
     if args.devices is not None:
-        import jax
-
         available = jax.devices()
         if not 1 <= args.devices <= len(available):
             raise CaptureError(f"--devices: expected 1 to {len(available)} (the devices JAX sees), got {args.devices}")
@@ -199,15 +200,12 @@ _NONE_IS_A_VALUE = ("resolution", "max_steps", "fit", "devices", "model")
 
 def _continuation(text: str) -> tuple:
     """--continuation: 'none' or comma-separated finite weights >= 0."""
-    import math
-
     if text.strip().lower() in ("none", "off", ""):
         return ()
     try:
         weights = tuple(float(w) for w in text.split(","))
     except ValueError:
         weights = ()
-    from ..fitting.options import FLOAT32_MAX
 
     if not weights or not all(math.isfinite(w) and 0 <= w <= FLOAT32_MAX for w in weights):
         raise CaptureError(f"--continuation: expected 'none' or comma-separated weights >= 0 within float32, "
@@ -216,15 +214,10 @@ def _continuation(text: str) -> tuple:
 
 
 def default_continuation() -> str:
-    from ..fitting.passes import CONTINUATION
-
     return ",".join(str(w) for w in CONTINUATION)
 
 
 def fit_summary(result, errors) -> str:
-    from ..fitting.runner import compile_summary
-    from ..fitting.stages.selection import uniform_channels
-
     r = result.report
     h, w = r["resolution"]
     extra = f", per-pixel IBL {r['ibl']['seconds']:.1f} s" if r.get("ibl", {}).get("mode") == "per_pixel" else ""
@@ -270,15 +263,11 @@ class FitProgress:
     integrals' progress); also keeps the loss history."""
 
     def __init__(self, enabled: bool):
-        import time
-
         self.history = []
         self._start = time.perf_counter()
         self._clock = time.perf_counter
         self._live = None
         if enabled and sys.stderr.isatty():
-            from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
-
             self._live = Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
                                   transient=True)
             self._task = self._live.add_task("fitting")
@@ -315,8 +304,6 @@ def loss_history(steps: list, report: dict) -> list:
     re-fits (tagged "check") only those of a channel made uniform. With an estimated noise level
     only the weighted fit's steps (tagged "weighted"): its loss is of the weighted residuals, on
     another scale than the first fit's."""
-    from ..fitting.stages.selection import uniform_channels
-
     if any(h.get("weighted") for h in steps):
         steps = [h for h in steps if h.get("weighted")]
     kept = report.get("footprint", {}).get("selected")
@@ -334,12 +321,6 @@ def loss_history(steps: list, report: dict) -> list:
 def run_fit(capture, out, options, cache_dir=None, quiet: bool = False):
     """Fit `capture` with `options` (a `pbrfit.FitOptions`), add truth errors to the report when `truth/` exists, write `out`; return
     (result, per-map RMSE or None)."""
-    import numpy as np
-
-    from ..fitting.api import fit, map_rmse
-    from ..io.material_files import read_material
-    from ..io.outputs import write_fit_output
-
     truth = None
     if capture.truth_dir is not None:  # read first: only evaluation uses it, so a bad one is skipped
         try:

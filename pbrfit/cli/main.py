@@ -7,15 +7,38 @@ on stderr, ``pbrfit: error: <what and where>``, and exit status 2; nothing is ha
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import signal
 import sys
+import time
 import warnings
+from pathlib import Path
 from typing import Optional, Sequence
 
+import numpy as np
+
+from data_synth.noise import NOISE_MODELS
+from data_synth.presets import IMAGE_FORMATS, describe_presets, make_scene, preset_names
+from data_synth.writer import synthesize
+
+from .demo import run_demo
 from .fit import add_fit, fit_options, fit_summary, run_fit
 from .model_flag import add_model_argument, model_changes
+from ..checks.gradcheck import print_report, run_checks
 from ..errors import CaptureError
+from ..fitting.options import MATERIAL_MAPS
+from ..fitting.runner import enable_compilation_cache
+from ..io.atomic import REFUSED_ERRNOS, check_not_inside, check_output_dir
+from ..io.gltf_export import needs_texture_coordinates
+from ..io.images import _first_line
+from ..io.material_files import read_material
+from ..lighting.pixel_ibl import MAX_SAMPLES
+from ..render.output import write_rendered_capture
+from ..render.views import (apply_overrides, capture_environment, default_cache_dir, environment_is_dark,
+                            load_lights_override, model_for_capture, render_capture)
+from ..scene.capture import load_capture
+from ..scene.uv_layout import check_uv_layout
 
 __all__ = ["main"]
 
@@ -31,8 +54,6 @@ def _add_check_grads(sub) -> None:
 
 
 def _cmd_check_grads(args) -> int:
-    from ..checks.gradcheck import print_report, run_checks
-
     results = run_checks()
     ok = print_report(results, quiet=args.quiet)
     return EXIT_OK if ok else EXIT_FAILED
@@ -46,8 +67,6 @@ def _add_demo(sub) -> None:
 
 
 def _cmd_demo(args) -> int:
-    from .demo import run_demo
-
     return run_demo(out=args.out, quiet=args.quiet)
 
 
@@ -77,10 +96,6 @@ def _add_render(sub) -> None:
 def _cache_dir(args):
     """The G-buffer (and XLA) cache folder of a command, or None; a path that is not a folder
     is refused."""
-    from pathlib import Path
-
-    from ..render.views import default_cache_dir
-
     if getattr(args, "no_cache", False):
         return None
     folder = Path(args.cache) if getattr(args, "cache", None) else default_cache_dir()
@@ -91,19 +106,6 @@ def _cache_dir(args):
 
 
 def _cmd_render(args) -> int:
-    import time
-
-    import numpy as np
-
-    from ..io.atomic import check_not_inside, check_output_dir
-    from ..io.gltf_export import needs_texture_coordinates
-    from ..io.material_files import read_material
-    from ..scene.uv_layout import check_uv_layout
-    from ..scene.capture import load_capture
-    from ..render.output import write_rendered_capture
-    from ..render.views import (apply_overrides, capture_environment, environment_is_dark, load_lights_override,
-                                model_for_capture, render_capture)
-
     start = time.perf_counter()
     changes = model_changes(args.model)
     if not 1 <= args.supersample <= MAX_SUPERSAMPLE:
@@ -139,9 +141,6 @@ def _cmd_render(args) -> int:
 
 # --- synth -----------------------------------------------------------------------------------
 def _add_synth(sub) -> None:
-    from data_synth.noise import NOISE_MODELS
-    from data_synth.presets import IMAGE_FORMATS, describe_presets, preset_names
-
     p = sub.add_parser(
         "synth",
         help="write a synthetic capture with ground-truth maps (data_synth presets)",
@@ -169,15 +168,6 @@ def _add_synth(sub) -> None:
 
 
 def _cmd_synth(args) -> int:
-    import math
-    from pathlib import Path
-
-    from data_synth.presets import make_scene
-    from data_synth.writer import synthesize
-
-    from ..io.atomic import check_output_dir
-    from ..lighting.pixel_ibl import MAX_SAMPLES
-
     bounds = (("size", 1, MAX_SIZE), ("views", 1, MAX_VIEWS), ("supersample", 1, MAX_SUPERSAMPLE),
               ("texture_size", 1, MAX_SIZE), ("ibl_samples", 1, MAX_SAMPLES), ("seed", 0, None))
     for name, low, high in bounds:
@@ -222,12 +212,6 @@ def _cmd_synth(args) -> int:
 
 
 def _cmd_fit(args) -> int:
-    from pathlib import Path
-
-    from ..io.atomic import check_not_inside, check_output_dir
-    from ..fitting.options import MATERIAL_MAPS
-    from ..scene.capture import load_capture
-
     options = fit_options(args)
     out = Path(args.out)
     check_output_dir(out, "fit")
@@ -265,15 +249,13 @@ def _enable_compilation_cache(args) -> None:
     every run (a small fit: 5.6 s of compile waited for, then 2.9 s on the second run)."""
     if getattr(args, "no_cache", False) or os.environ.get("PBRFIT_NO_COMPILE_CACHE"):
         return
-    import jax
 
     try:
         folder = _cache_dir(args)
     except CaptureError:  # not a folder: the commands that use the cache say so; the rest run uncached
         return
     try:
-        jax.config.update("jax_compilation_cache_dir", str(os.path.join(folder, "xla")))
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+        enable_compilation_cache(os.path.join(folder, "xla"))
     except Exception:  # an older or newer JAX without these options: run uncached
         pass
 
@@ -386,7 +368,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except OSError as err:
         # the system refused a file (a name too long, a full disk, no permission, a read-only
         # place): one line naming it; anything else is a bug and keeps its traceback
-        from ..io.atomic import REFUSED_ERRNOS
 
         if err.errno not in REFUSED_ERRNOS:
             raise
@@ -398,7 +379,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         # anything else is a bug, and keeps its traceback
         if not (isinstance(err, MemoryError) or "RESOURCE_EXHAUSTED" in str(err)):
             raise
-        from ..io.images import _first_line
 
         hint = _LESS.get(args.command, "use smaller inputs")
         print(f"pbrfit: error: out of memory: {_first_line(str(err))}; {hint}", file=sys.stderr)

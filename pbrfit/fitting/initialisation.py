@@ -301,7 +301,7 @@ def _normal_search(x, problem: Problem, member):
 
 
 @eqx.filter_jit
-def coordinate_search(x, problem: Problem, classes, rounds: int = 1, blend: bool = True):
+def coordinate_search(x, problem: Problem, classes, rounds=1, blend: bool = True):
     """Per-texel grid search with neighbours held fixed, one parity class at a time.
 
     For class c, every texel t of the class tries each (metallic, roughness) candidate with its
@@ -314,8 +314,9 @@ def coordinate_search(x, problem: Problem, classes, rounds: int = 1, blend: bool
     checked against the exact local energy (robust loss and smoothness prior included) and kept
     only where it lowers it, so the objective never rises. When normals are fitted, the class's
     texels then try the slopes of `NORMAL_SEARCH_SLOPES` the same way (other channels kept).
-    `rounds` sweeps over the four classes. `classes` is `parity_classes(shape)` (T,); channels
-    that are not free keep x.
+    `rounds` sweeps over the four classes; the fit passes it as an int32 array (a Python int is
+    static), so its search and its repair share one executable. `classes` is `parity_classes(shape)` (T,); channels that are
+    not free keep x.
     """
     obs = problem.obs
     free = problem.free
@@ -392,6 +393,4 @@ def coordinate_search(x, problem: Problem, classes, rounds: int = 1, blend: bool
         # map; there the local energies are not separable, so check the whole objective.
         return jnp.where(objective(new, problem) <= energy, new, x), None
 
-    order = jnp.tile(jnp.arange(4, dtype=jnp.int32), rounds)
-    x, _ = jax.lax.scan(sweep, x, order)
-    return x
+    return jax.lax.fori_loop(0, 4 * rounds, lambda i, x: sweep(x, i % 4)[0], x)

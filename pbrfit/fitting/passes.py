@@ -27,7 +27,7 @@ from .initialisation import coordinate_search, grid_initialise, parity_classes
 from .observations import Observations, coverage_counts, layout_for, neighbour_pairs
 from .parameters import FIT_GROUPS, channel_mask, prior
 from .resolution import default_resolution, schedule
-from .runner import Compiler, Runner, jitted_normal_blocks, problem_key, timed
+from .runner import Compiler, Runner, jitted_normal_blocks, problem_key, search_key, timed
 from .stages.pipeline import STAGES, StageState, run_stages
 from .stages.selection import SELECTABLE
 from .sharding import pixel_mesh, shard_problem
@@ -214,14 +214,14 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
             num_free = int(np.sum(free))
             x0 = to_device(x0, np.float32)
             classes = to_device(parity_classes(shape)) if searching else None
-            search_key = ("search", shape) + problem_key(early)
-            search_static = (SEARCH_ROUNDS, bool(channels[3] > 0))
+            searched = search_key(shape, early)
+            search_args = (to_device(SEARCH_ROUNDS, np.int32), bool(channels[3] > 0))
             selecting = last and inputs.select_footprint
             # compiles this level needs, in the order of their first use, overlap the work before it
             if early is problem or annealing or searching or selecting:  # else only the grid start runs on it
                 runner.prefetch(x0, early, num_free)
             if searching:
-                compiler.prefetch(search_key, coordinate_search, x0, early, classes, *search_static)
+                compiler.prefetch(searched, coordinate_search, x0, early, classes, *search_args)
             if early is not problem:
                 runner.prefetch(x0, problem, num_free)
             if grid_start:
@@ -245,8 +245,8 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
             done = head if (annealing or searching) else 0
             settle = False
             if searching:
-                xn = np.asarray(timed(compiler, search_key, coordinate_search, "search", to_device(xs, np.float32),
-                                       early, classes, *search_static))
+                xn = np.asarray(timed(compiler, searched, coordinate_search, "search", to_device(xs, np.float32),
+                                       early, classes, *search_args))
                 info["search_moved"] = int(np.sum(np.any(xn[:t] != np.asarray(xs)[:t], axis=1)))
                 xs = xn
                 settle = annealing and weights[-1] > 0 and steps - done - SETTLE_STEPS >= RELEASED_STEPS

@@ -26,8 +26,24 @@ from .normal_matrix import neighbour_blocks, normal_blocks
 from .solvers import structured
 from ..transfer import to_device
 
-__all__ = ["Compiler", "Runner", "timed", "timed_rest", "thread_time", "problem_key",
+__all__ = ["enable_compilation_cache", "Compiler", "Runner", "timed", "timed_rest", "thread_time", "problem_key",
            "compile_summary", "jitted_normal_blocks", "jitted_neighbour_blocks", "problem_energy"]
+
+#: Compiles shorter than this are not kept on disk (loading costs about as much).
+MIN_CACHED_COMPILE_SECONDS = 0.5
+#: The persistent compilation cache's size: the oldest executables are evicted beyond it. A size
+#: also makes JAX lock the folder (``filelock``) for each read and write, so processes that share
+#: it (two fits at once, a test suite's workers) never read an executable another is writing.
+COMPILATION_CACHE_BYTES = 2 * 1024**3
+
+
+def enable_compilation_cache(folder) -> None:
+    """Keep XLA executables in ``folder`` (JAX's persistent compilation cache), shared safely by
+    the processes that use it. JAX opens the folder at its first compile and keeps it."""
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_CACHED_COMPILE_SECONDS)
+    jax.config.update("jax_compilation_cache_max_size", COMPILATION_CACHE_BYTES)
+
 
 #: The per-texel blocks of JᵀJ, one jitted function for the repair, the uniform check, the
 #: preconditioner's scale and the uncertainty (one compile per problem shape).
@@ -111,6 +127,12 @@ def compile_summary(times: Mapping[str, float]) -> str:
 def problem_key(problem: Problem) -> tuple:
     """What an executable over `problem` is specialised to: rows per pixel and the shapes."""
     return (problem.obs.samples, tuple(problem.index.shape), tuple(problem.free.shape), tuple(problem.pairs.shape))
+
+
+def search_key(shape, problem: Problem) -> tuple:
+    """The key of `coordinate_search`'s executable at map ``shape``: one for the fit's search and
+    its repair (the rounds are an argument)."""
+    return ("coordinate_search", tuple(shape)) + problem_key(problem)
 
 
 #: Clock entries that are not time on the fit's own thread (`Compiler`'s overlapped compiles).

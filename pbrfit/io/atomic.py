@@ -9,7 +9,9 @@ import contextlib
 import errno
 import os
 import shutil
+import signal
 import tempfile
+import threading
 import warnings
 from pathlib import Path
 from typing import BinaryIO, Callable, Iterator, Optional
@@ -171,8 +173,6 @@ def _signals_held() -> Iterator[None]:
     swapped for ones that only note the signal (a thread's signal mask would not do: another
     thread, a compile's or XLA's, takes a signal the main thread blocks). Elsewhere than in the
     main thread nothing is held."""
-    import signal
-    import threading
 
     if threading.current_thread() is not threading.main_thread():
         yield

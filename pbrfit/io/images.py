@@ -19,12 +19,14 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Optional, Sequence
 
 import numpy as np
+import OpenImageIO as oiio
 
 from .atomic import atomic_path
 from ..errors import CaptureError
@@ -36,12 +38,6 @@ __all__ = ["ImageInfo", "read_image", "color_channels", "read_image_info", "data
 # pixel formats OpenImageIO reports for integer (low dynamic range) files, and their code maxima
 _LDR_MAX = {"uint8": 255, "uint16": 65535, "uint32": 4294967295, "int8": 127, "int16": 32767}
 _WRITE_DTYPES = {"float": np.float32, "half": np.float16, "uint8": np.uint8, "uint16": np.uint16}
-
-
-def _oiio():
-    import OpenImageIO as oiio
-
-    return oiio
 
 
 
@@ -86,7 +82,6 @@ def _first_line(message: str) -> str:
 
 
 def _unassociated_config():
-    oiio = _oiio()
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)
     return config
@@ -185,7 +180,6 @@ def _held_stderr(sink: list) -> Iterator[None]:
     and append it to `sink`: libpng prints "libpng error: ..." itself before OpenImageIO reports
     the failure, which pbrfit words as one line of its own. Where standard error has no file
     descriptor (a test's capture), nothing is held."""
-    import sys
 
     try:
         fd = sys.stderr.fileno()
@@ -207,7 +201,6 @@ def _held_stderr(sink: list) -> Iterator[None]:
 
 def _open_image(path: Path, where: str | None, printed: Optional[list] = None):
     """An open OpenImageIO ImageInput (alpha unassociated), or `CaptureError` naming the file."""
-    oiio = _oiio()
     prefix = f"{where}: " if where else ""
     if not path.is_file():
         raise CaptureError(f"{prefix}image file not found: {path}")
@@ -237,7 +230,6 @@ def read_image(path: str | os.PathLike, where: str | None = None) -> tuple[np.nd
     when the file is missing or OpenImageIO cannot read it, or reads it but reports a fault (a
     truncated JPEG).
     """
-    oiio = _oiio()
     path = Path(path)
     prefix = f"{where}: " if where else ""
     printed = []  # what the format's library printed itself (libpng: "libpng error: ...")
@@ -301,7 +293,6 @@ def write_image(
     """
     if color_space not in ("srgb", "linear"):
         raise ValueError(f"color_space must be 'srgb' or 'linear', got {color_space!r}")
-    oiio = _oiio()
     if dtype not in _WRITE_DTYPES:
         raise ValueError(f"dtype must be one of {', '.join(_WRITE_DTYPES)}, got {dtype!r}")
     arr = np.asarray(pixels)

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+from PIL import Image, ImageDraw, ImageFont
 
 from ..physics.color import linear_to_srgb_host
 from .atomic import atomic_dir
@@ -57,7 +58,6 @@ def contact_sheet(target: np.ndarray, fitted: np.ndarray, mask: np.ndarray, is_s
 def _convergence_plot(path: Path, history: Sequence[dict], size: tuple[int, int] = (520, 320)) -> None:
     """Loss against step on a log axis, drawn with PIL (no plotting library to import: the plot is
     one of a fit's outputs, and a fit's wall time is a feature). Decade grid lines, labelled."""
-    from PIL import Image, ImageDraw, ImageFont
 
     steps = np.asarray([h["step"] for h in history], np.float64)
     with np.errstate(invalid="ignore"):

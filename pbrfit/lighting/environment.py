@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 from pathlib import Path
 
 import equinox as eqx
@@ -120,7 +121,6 @@ def load_environment(path, world_up: str = "+y", intensity: float = 1.0,
     pixels, info = read_image(path, where)  # a cropped OpenEXR is placed in its display window
     height, width = pixels.shape[:2]
     if abs(width - 2 * height) > 1 and str(path) not in _WARNED:  # odd sizes round either way
-        import warnings
 
         _WARNED.add(str(path))
         warnings.warn(f"{path}: environment is {width} x {height}, not 2:1; read as an equirectangular "

@@ -13,6 +13,7 @@ import os
 import shutil
 from pathlib import Path
 from typing import Optional, Sequence
+from urllib.parse import quote
 
 import numpy as np
 
@@ -59,7 +60,6 @@ def _copy_mesh(src: Path, root_out: Path, rel: str) -> list[str]:
     if src.suffix.lower() != ".gltf":
         _copy_into(src, root_out, rel)
         return [rel]
-    from urllib.parse import quote
 
     try:
         doc = json.loads(src.read_text(encoding="utf-8"))

@@ -40,10 +40,14 @@ from __future__ import annotations
 import codecs
 import contextlib
 import io as _io
+import logging
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
+import trimesh
+from trimesh.visual.texture import TextureVisuals
 
 from ..errors import CaptureError
 from .gltf_read import load_gltf_scene
@@ -75,7 +79,6 @@ def _flatten(scene, where: str, path: Path) -> list:
     and non-finite transforms raise `CaptureError` (``where``, ``path`` name the file);
     `load_mesh` checks the positions.
     """
-    import trimesh
 
     parts = []
     for node in scene.graph.nodes_geometry:
@@ -120,8 +123,6 @@ MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
 def _quiet_trimesh():
     """No numpy floating-point warnings and no trimesh log records while a mesh loads: what is
     wrong with a file is said once, by `load_mesh`."""
-    import logging
-    import warnings
 
     logger = logging.getLogger("trimesh")
     level = logger.level
@@ -279,8 +280,6 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     triangles or non-finite positions or texture coordinates, or (with ``require_uv``) lacks
     texture coordinates on any of its meshes or has texture coordinates that span no area.
     """
-    import trimesh
-    from trimesh.visual.texture import TextureVisuals
 
     path = Path(path)
     if not path.is_file():
@@ -361,7 +360,6 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
 def _warn_shared_uv_space(parts, uvs, where: str, path: Path) -> None:
     """A warning where two of the file's materials lay their texture coordinates over the same
     texture space (`pbrfit.scene.uv_layout.shared_uv_space`): the fit's one set of maps would mix them."""
-    import warnings
 
     named = [(str(name), uv, np.asarray(part.faces)) for part, uv in zip(parts, uvs)
              if (name := getattr(getattr(part.visual, "material", None), "name", None))]

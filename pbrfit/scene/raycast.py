@@ -119,7 +119,7 @@ def make_first_hit(mesh: trimesh.Trimesh, backend: str):
     if backend == "embree":
         if not has_embree:
             raise RuntimeError("gbuffer: backend 'embree' requested but embreex is not installed")
-        from trimesh.ray.ray_pyembree import RayMeshIntersector
+        from trimesh.ray.ray_pyembree import RayMeshIntersector  # here: needs the optional embreex
 
         intersector = RayMeshIntersector(mesh)
         return lambda o, d: np.asarray(intersector.intersects_first(o, d), dtype=np.int64)

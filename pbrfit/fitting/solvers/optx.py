@@ -34,6 +34,10 @@ from typing import Callable, Optional
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
+import optax
+import optimistix as optx
+from jax.flatten_util import ravel_pytree
 
 from ..parameters import from_sine, lower, to_sine, upper
 from ..objective import Problem, residuals
@@ -84,8 +88,6 @@ def truncated_cg():
     at 20,000 unknowns every curvature under 0.24 breaks down, which ended `lm` after 3 of its 20
     steps on the peer preset at 64 × 64 and `gn` after 11. Made on first use, so that lineax is
     imported only by the solvers that need it."""
-    import lineax as lx
-    from jax.flatten_util import ravel_pytree
 
     class TruncatedCG(lx.CG):
         def compute(self, state, vector, options):
@@ -144,9 +146,6 @@ def make_solver(name: str, rtol: float, atol: float):
     again (optax's transformations compare by identity)."""
     # optimistix, lineax and optax are imported here, not with the module: they cost every fit
     # that runs none of these solvers about 0.4 s of imports.
-    import lineax as lx
-    import optax
-    import optimistix as optx
 
     cg = lx.Normal(truncated_cg()(rtol=1e-3, atol=1e-8, max_steps=CG_MAX_STEPS))
     if name == "lm":
@@ -170,7 +169,6 @@ def for_size(solver, num_parameters: int):
     """`solver` as it runs on `num_parameters` unknowns: an `optx.BFGS` above
     `BFGS_MAX_PARAMETERS` becomes an `optx.LBFGS` with its tolerances (its dense inverse Hessian
     grows as N²); every other solver as it is."""
-    import optimistix as optx
 
     if type(solver) is optx.BFGS and num_parameters > BFGS_MAX_PARAMETERS:
         return optx.LBFGS(solver.rtol, solver.atol, solver.norm)
@@ -190,7 +188,6 @@ def optx_solve(x0, problem: Problem, solver, max_steps: int, progress: Optional[
     evaluation of it (``jax.debug.callback``): optimistix's solvers keep their steps to
     themselves, and an evaluation is what a step of each of them costs (line searches and trust
     regions evaluate rejected points too)."""
-    import optimistix as optx
 
     k = x0.shape[-1]
     lo, hi = jnp.asarray(lower(k), x0.dtype), jnp.asarray(upper(k), x0.dtype)

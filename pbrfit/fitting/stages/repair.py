@@ -99,7 +99,7 @@ from scipy.sparse import csgraph
 
 from ..initialisation import coordinate_search, parity_classes
 from ..parameters import CHANNELS
-from ..runner import jitted_normal_blocks, problem_energy, problem_key, timed
+from ..runner import jitted_normal_blocks, problem_energy, search_key, timed
 from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ..objective import Problem
 from ...transfer import to_device
@@ -422,8 +422,8 @@ def run_repair(runner, compiler, problem: Problem, xs, linearization, shape, see
     index, weight, free = np.asarray(problem.index), np.asarray(problem.weight), np.asarray(problem.free)
     fitted = np.asarray(channels) > 0
     classes = to_device(parity_classes(shape))
-    key = ("repair", tuple(shape)) + problem_key(problem)
-    static = (REPAIR_ROUNDS, bool(channels[3] > 0))
+    key = search_key(shape, problem)
+    static = (to_device(REPAIR_ROUNDS, np.int32), bool(channels[3] > 0))
     xs = np.asarray(xs, np.float32)
     energy = problem_energy(linearization[0], xs, problem)
     passes = []
