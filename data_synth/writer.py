@@ -319,7 +319,7 @@ def synthesize(
         truth = tmp / "truth"
         material = scene.truth.to_material()
         write_material(truth, material)
-        write_gltf(truth / "material.glb", mesh, material)  # mesh: glTF-oriented uv, as loaded
+        write_gltf(truth / "material.glb", mesh, material, scene.world_up)  # mesh: glTF-oriented uv, as loaded
         if write_contact_sheet:
             write_image(tmp / "contact_sheet.png", contact_sheet(images, color_space), "uint8")
         seconds = time.perf_counter() - t0

@@ -91,6 +91,42 @@ def glb_accessor(tree: dict, blob: bytes, index: int) -> np.ndarray:
     return np.frombuffer(blob, dtype, acc["count"] * width, start).reshape(acc["count"], width)
 
 
+def _quaternion_matrix(q) -> np.ndarray:
+    """3 x 3 rotation of the unit quaternion ``q`` = (x, y, z, w), glTF's order."""
+    x, y, z, w = (float(c) for c in q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def glb_mesh_transforms(tree: dict) -> list[tuple[int, np.ndarray]]:
+    """(mesh index, 4 x 4 node-to-scene matrix) for each node of the default scene that holds a
+    mesh: the nodes' transforms composed from the scene's roots down, each a ``matrix``
+    (column-major) or T * R * S (glTF 2.0, "Transformations")."""
+
+    def local(node: dict) -> np.ndarray:
+        if "matrix" in node:
+            return np.asarray(node["matrix"], np.float64).reshape(4, 4).T
+        m = np.eye(4)
+        m[:3, :3] = _quaternion_matrix(node.get("rotation", (0, 0, 0, 1))) * np.asarray(node.get("scale", (1, 1, 1)))
+        m[:3, 3] = node.get("translation", (0, 0, 0))
+        return m
+
+    found = []
+
+    def visit(index: int, parent: np.ndarray) -> None:
+        node = tree["nodes"][index]
+        world = parent @ local(node)
+        if "mesh" in node:
+            found.append((node["mesh"], world))
+        for child in node.get("children", []):
+            visit(child, world)
+
+    for root in tree["scenes"][tree.get("scene", 0)]["nodes"]:
+        visit(root, np.eye(4))
+    return found
+
+
 def glb_image(tree: dict, blob: bytes, texture_index: int) -> np.ndarray:
     from io import BytesIO
 

@@ -1,9 +1,11 @@
 """glTF export: a mesh with a fitted material as a binary glTF (GLB) that glTF viewers and Blender
 open (`write_gltf`): the maps as textures in glTF's packing, or a uniform material as exact
-factors."""
+factors, upright in glTF's +Y-up frame whatever the capture's ``world_up``, and clean under the
+Khronos glTF-Validator (bufferView targets, an explicit sampler)."""
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -13,7 +15,17 @@ from .atomic import atomic_path
 from .images import srgb_encoded
 from .material_files import encode_normal, map_array, pack_orm
 
-__all__ = ["write_gltf", "needs_texture_coordinates"]
+__all__ = ["write_gltf", "needs_texture_coordinates", "WORLD_TO_GLTF_ROTATION"]
+
+#: The rotation, as a unit quaternion (x, y, z, w), that turns a capture's world (``world_up``,
+#: the capture spec's values) into glTF's frame, +Y up (glTF 2.0, "Coordinate System and
+#: Units"): none for +y; for +z, -90 degrees about +X, (x, y, z) -> (x, z, -y), the Blender to
+#: glTF axis change `pbrfit.lighting.environment.to_environment_frame` applies to a +z world.
+WORLD_TO_GLTF_ROTATION = {"+y": None, "+z": (-math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5))}
+
+# glTF 2.0 enums (the WebGL values of bufferView.target, sampler.magFilter / minFilter / wrapS / wrapT).
+_ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
+_LINEAR, _LINEAR_MIPMAP_LINEAR, _REPEAT = 9729, 9987, 10497
 
 
 def _pil_image(pixels: np.ndarray):
@@ -58,9 +70,71 @@ def _glb_with_json(data: bytes, edit) -> bytes:
     return struct.pack("<4sII", magic, version, 12 + len(chunk) + len(rest)) + chunk + rest
 
 
-def _export_glb(path, mesh, visual, edit=None) -> Path:
+def _set_buffer_view_targets(tree: dict) -> dict:
+    """Set each bufferView's ``target`` from its use (glTF 2.0, "Buffers and Buffer Views": it
+    SHOULD be defined for vertex and index data): ARRAY_BUFFER for a view a primitive's
+    attributes read, ELEMENT_ARRAY_BUFFER for its indices. Views of images keep none."""
+    accessors, views = tree.get("accessors", []), tree.get("bufferViews", [])
+
+    def mark(accessor: int, target: int) -> None:
+        view = accessors[accessor].get("bufferView")
+        if view is not None:
+            views[view]["target"] = target
+
+    for mesh in tree.get("meshes", []):
+        for prim in mesh.get("primitives", []):
+            for accessor in prim.get("attributes", {}).values():
+                mark(accessor, _ARRAY_BUFFER)
+            if "indices" in prim:
+                mark(prim["indices"], _ELEMENT_ARRAY_BUFFER)
+    return tree
+
+
+def _set_sampler(tree: dict) -> dict:
+    """Give every texture one sampler: REPEAT in u and v, as pbrfit samples (the capture spec),
+    magnification LINEAR (pbrfit's bilinear lookup), minification LINEAR_MIPMAP_LINEAR.
+
+    The maps are fitted at the size whose texels cover at least a pixel in the views
+    (`pbrfit.fitting.resolution.default_resolution`), where a viewer magnifies and LINEAR is
+    pbrfit's own lookup. Zoomed out, LINEAR alone aliases; trilinear mipmaps give the average
+    the pixel sees, and are what glTF-Sample-Viewer (``gltfSampler``) and three.js
+    (``GLTFLoader``) use for a texture without a sampler, whose filtering glTF 2.0 leaves to
+    the viewer (``texture.sampler``): the file states the filtering viewers already pick.
+    No sampler when there is no texture (it would go unused)."""
+    if tree.get("textures"):
+        tree["samplers"] = [dict(magFilter=_LINEAR, minFilter=_LINEAR_MIPMAP_LINEAR, wrapS=_REPEAT, wrapT=_REPEAT)]
+        for texture in tree["textures"]:
+            texture["sampler"] = 0
+    return tree
+
+
+def _set_up_axis(tree: dict, world_up: str) -> dict:
+    """Put the scene under one root node that turns ``world_up`` into glTF's +Y up
+    (`WORLD_TO_GLTF_ROTATION`); for +y the tree is unchanged.
+
+    A node rotation rather than rotated vertices: the vertex data (POSITION, NORMAL) stay the
+    capture mesh's, in the capture's world, so the file holds the geometry the material was
+    fitted on, and the change of frame is one quaternion a reader sees (and drops to get the
+    world back); nothing else (normals, a tangent frame) needs turning with it. Every glTF
+    reader applies node transforms (glTF 2.0, "Transformations"); Blender's importer then
+    turns glTF's +Y up into its own +Z, so a +z capture opens in Blender in its own frame."""
+    rotation = WORLD_TO_GLTF_ROTATION[world_up]
+    if rotation is None:
+        return tree
+    nodes = tree.setdefault("nodes", [])
+    scenes = tree.get("scenes") or [{"nodes": []}]
+    for scene in scenes:
+        nodes.append({"name": f"world_{world_up[1]}_up", "rotation": [float(c) for c in rotation],
+                      "children": list(scene.get("nodes", []))})
+        scene["nodes"] = [len(nodes) - 1]
+    tree["scenes"] = scenes
+    return tree
+
+
+def _export_glb(path, mesh, visual, world_up: str, edit=None) -> Path:
     """``mesh``'s vertices, faces and vertex normals with ``visual``, as a GLB at ``path``
-    (atomically); ``edit`` may rewrite the glTF JSON first (`_glb_with_json`)."""
+    (atomically), upright in glTF's frame (`_set_up_axis`), with bufferView targets and a
+    sampler; ``edit`` may rewrite the glTF JSON first (`_glb_with_json`)."""
     import trimesh
 
     out_mesh = trimesh.Trimesh(
@@ -71,15 +145,19 @@ def _export_glb(path, mesh, visual, edit=None) -> Path:
         process=False,
     )
     data = out_mesh.export(file_type="glb", include_normals=True)
-    if edit is not None:
-        data = _glb_with_json(data, edit)
+
+    def conventions(tree: dict) -> dict:
+        tree = edit(tree) if edit is not None else tree
+        return _set_up_axis(_set_sampler(_set_buffer_view_targets(tree)), world_up)
+
+    data = _glb_with_json(data, conventions)
     path = Path(path)
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
     return path
 
 
-def _write_uniform_gltf(path: Path, mesh, material) -> Path:
+def _write_uniform_gltf(path: Path, mesh, material, world_up: str) -> Path:
     from trimesh.visual.material import PBRMaterial
     from trimesh.visual.texture import TextureVisuals
 
@@ -95,11 +173,16 @@ def _write_uniform_gltf(path: Path, mesh, material) -> Path:
                 m["emissiveFactor"] = [float(v) for v in np.clip(emissive.reshape(-1)[:3], 0.0, 1.0)]
         return tree
 
-    return _export_glb(path, mesh, TextureVisuals(material=PBRMaterial(name="pbrfit", doubleSided=True)), exact_factors)
+    visual = TextureVisuals(material=PBRMaterial(name="pbrfit", doubleSided=True))
+    return _export_glb(path, mesh, visual, world_up, exact_factors)
 
 
-def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
+def write_gltf(path: str | os.PathLike, mesh, material, world_up: str = "+y") -> Path:
     """Write ``mesh`` with ``material`` as a binary glTF (GLB) at ``path``, atomically.
+
+    ``mesh`` is in the capture's world, whose up axis is ``world_up`` (``"+y"`` or ``"+z"``,
+    the capture spec's ``world_up``); the file is +Y up as glTF requires, by a rotation of a
+    root node (`_set_up_axis`), so every viewer shows it upright.
 
     ``mesh`` is a `trimesh.Trimesh` whose ``visual.uv`` is in glTF orientation (v = 0 at the
     top row of the texture), as `pbrfit.scene.capture.load_capture` gives it. trimesh's exporter
@@ -110,7 +193,8 @@ def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
     factors 1; normalTexture, occlusionTexture (the same image's R, or an image of its own when its
     size differs from metallic and roughness) and emissiveTexture
     (factor 1, clipped to [0, 1]) when the material has them. Vertex normals are written
-    (NORMAL), so shading matches the mesh the material was fitted on.
+    (NORMAL), so shading matches the mesh the material was fitted on. Every bufferView of
+    vertex or index data names its target and every texture the one sampler (`_set_sampler`).
 
     A uniform material (1 x 1 maps, emissive included; no normal or occlusion map) is written as
     glTF factors instead, exactly (baseColorFactor is linear, as the fit's base color): no
@@ -121,8 +205,10 @@ def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
     from trimesh.visual.material import PBRMaterial
     from trimesh.visual.texture import TextureVisuals
 
+    if world_up not in WORLD_TO_GLTF_ROTATION:
+        raise ValueError(f"write_gltf: world_up must be one of {', '.join(WORLD_TO_GLTF_ROTATION)}, got {world_up!r}")
     if _is_uniform(material):
-        return _write_uniform_gltf(Path(path), mesh, material)
+        return _write_uniform_gltf(Path(path), mesh, material, world_up)
     uv = getattr(getattr(mesh, "visual", None), "uv", None)
     if uv is None or len(uv) != len(mesh.vertices):
         if needs_texture_coordinates(material):
@@ -155,4 +241,4 @@ def write_gltf(path: str | os.PathLike, mesh, material) -> Path:
         kwargs["emissiveFactor"] = [1.0, 1.0, 1.0]
     uv = np.asarray(uv, dtype=np.float64)[:, :2]
     uv_trimesh = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])  # undone by trimesh's exporter
-    return _export_glb(path, mesh, TextureVisuals(uv=uv_trimesh, material=PBRMaterial(**kwargs)))
+    return _export_glb(path, mesh, TextureVisuals(uv=uv_trimesh, material=PBRMaterial(**kwargs)), world_up)

@@ -145,7 +145,7 @@ def write_fit_output(
         write_material(tmp, material)
         write_image(tmp / "uncertainty.exr", uncertainty, "float", channel_names=UNCERTAINTY_CHANNELS)
         write_image(tmp / "coverage.exr", coverage[..., None] if coverage.ndim == 2 else coverage, "float")
-        write_gltf(tmp / "material.glb", capture.mesh, material)
+        write_gltf(tmp / "material.glb", capture.mesh, material, capture.world_up)
         if targets and renders:
             (tmp / "views").mkdir()
             for k, ((target, mask), fitted) in enumerate(zip(targets, renders)):

@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from _capture_fixtures import QUAD_UV_GLTF, glb_accessor, glb_image, read_glb, write_quad_glb
+from _capture_fixtures import QUAD_UV_GLTF, glb_accessor, glb_image, glb_mesh_transforms, read_glb, write_quad_glb
 import pbrfit.io.atomic
 from pbrfit.physics.color import linear_to_srgb, srgb_to_linear
 from pbrfit.errors import CaptureError
@@ -482,6 +482,61 @@ def test_write_gltf_uv_and_texture_orientation(tmp_path):
     again = load_mesh(out)
     np.testing.assert_allclose(again.visual.uv, QUAD_UV_GLTF)
     np.testing.assert_allclose(again.vertices, mesh.vertices)
+
+
+def test_write_gltf_turns_a_z_up_world_upright(tmp_path):
+    """glTF is +Y up: a +z world's mesh goes under a root node whose rotation is the axis change
+    the environment makes for a +z world (`to_environment_frame`), its vertex data untouched, so
+    the quad (the z = 0 floor, facing +z) faces +Y in a viewer; a +y world gets no transform."""
+    import jax.numpy as jnp
+    import trimesh
+
+    from pbrfit.lighting.environment import to_environment_frame
+    from pbrfit.scene.mesh import load_mesh
+
+    mesh = load_mesh(write_quad_glb(tmp_path / "quad.glb"))
+    m = _material(np.random.default_rng(6), size=(4, 4))
+    dirs = np.random.default_rng(7).normal(size=(16, 3))
+    for up, floor_normal in (("+y", [0, 0, 1]), ("+z", [0, 1, 0])):
+        out = write_gltf(tmp_path / f"{up[1]}.glb", mesh, m, up)
+        tree, blob = read_glb(out)
+        prim = tree["meshes"][0]["primitives"][0]
+        np.testing.assert_array_equal(glb_accessor(tree, blob, prim["attributes"]["POSITION"]),
+                                      np.asarray(mesh.vertices, np.float32))
+        [(_, world)] = glb_mesh_transforms(tree)
+        np.testing.assert_allclose(dirs @ world[:3, :3].T, to_environment_frame(jnp.asarray(dirs), up), atol=1e-6)
+        normals = glb_accessor(tree, blob, prim["attributes"]["NORMAL"]) @ world[:3, :3].T
+        np.testing.assert_allclose(normals, np.broadcast_to(floor_normal, normals.shape), atol=1e-6)
+        # trimesh, a reader of its own, applies the node transform too: the floor's faces face up
+        np.testing.assert_allclose(trimesh.load(out, force="mesh").face_normals, [floor_normal] * 2, atol=1e-6)
+    assert len(tree["nodes"]) == 2 and tree["scenes"][0]["nodes"] == [1]  # +z: one root node added
+    tree, _ = read_glb(tmp_path / "y.glb")
+    assert [set(node) - {"name"} for node in tree["nodes"]] == [{"mesh"}]  # +y: no transform at all
+    with pytest.raises(ValueError, match="world_up"):
+        write_gltf(tmp_path / "x.glb", mesh, m, "-z")
+
+
+def test_write_gltf_names_buffer_view_targets_and_a_repeat_sampler(tmp_path):
+    """Vertex data in ARRAY_BUFFER views, indices in an ELEMENT_ARRAY_BUFFER view, images in
+    views without a target; every texture samples REPEAT, LINEAR magnified and trilinear
+    minified; a uniform material has no texture and no sampler."""
+    import trimesh
+
+    from pbrfit.scene.mesh import load_mesh
+
+    mesh = load_mesh(write_quad_glb(tmp_path / "quad.glb"))
+    tree, _ = read_glb(write_gltf(tmp_path / "m.glb", mesh, _material(np.random.default_rng(8), normal=True)))
+    prim = tree["meshes"][0]["primitives"][0]
+    target = lambda accessor: tree["bufferViews"][tree["accessors"][accessor]["bufferView"]].get("target")
+    assert {name: target(a) for name, a in prim["attributes"].items()} == {
+        "POSITION": 34962, "NORMAL": 34962, "TEXCOORD_0": 34962}
+    assert target(prim["indices"]) == 34963
+    assert all("target" not in tree["bufferViews"][image["bufferView"]] for image in tree["images"])
+    assert tree["samplers"] == [{"magFilter": 9729, "minFilter": 9987, "wrapS": 10497, "wrapT": 10497}]
+    assert len(tree["textures"]) == 3 and all(t["sampler"] == 0 for t in tree["textures"])
+    tree, _ = read_glb(write_gltf(tmp_path / "u.glb", trimesh.creation.box(), Material.uniform([0.5] * 3, 0.0, 0.5)))
+    assert "samplers" not in tree and "textures" not in tree
+    assert {tree["bufferViews"][v]["target"] for v in range(len(tree["bufferViews"]))} == {34962, 34963}
 
 
 def _png_chunks(path):
