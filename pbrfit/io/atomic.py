@@ -173,7 +173,6 @@ def _signals_held() -> Iterator[None]:
     swapped for ones that only note the signal (a thread's signal mask would not do: another
     thread, a compile's or XLA's, takes a signal the main thread blocks). Elsewhere than in the
     main thread nothing is held."""
-
     if threading.current_thread() is not threading.main_thread():
         yield
         return

@@ -5,11 +5,17 @@ Khronos glTF-Validator (bufferView targets, an explicit sampler)."""
 
 from __future__ import annotations
 
+import json
 import math
 import os
+import struct
 from pathlib import Path
 
 import numpy as np
+import trimesh
+from PIL import Image
+from trimesh.visual.material import PBRMaterial
+from trimesh.visual.texture import TextureVisuals
 
 from .atomic import atomic_path
 from .images import srgb_encoded
@@ -30,8 +36,6 @@ _LINEAR, _LINEAR_MIPMAP_LINEAR, _REPEAT = 9729, 9987, 10497
 
 def _pil_image(pixels: np.ndarray):
     """8-bit PIL image from [0, 1] floats, row 0 at the top (glTF: row 0 is v = 0)."""
-    from PIL import Image
-
     codes = np.round(np.clip(np.asarray(pixels, np.float64), 0.0, 1.0) * 255.0).astype(np.uint8)
     if codes.shape[-1] == 1:
         return Image.fromarray(codes[..., 0], mode="L")
@@ -55,9 +59,6 @@ def needs_texture_coordinates(material) -> bool:
 def _glb_with_json(data: bytes, edit) -> bytes:
     """A GLB whose JSON chunk is ``edit(json)``: header, JSON chunk (space-padded to 4 bytes),
     then the other chunks unchanged (glTF 2.0, "GLB File Format Specification")."""
-    import json
-    import struct
-
     magic, version, _ = struct.unpack_from("<4sII", data, 0)
     json_len, json_type = struct.unpack_from("<I4s", data, 12)
     if magic != b"glTF" or json_type != b"JSON":
@@ -135,8 +136,6 @@ def _export_glb(path, mesh, visual, world_up: str, edit=None) -> Path:
     """``mesh``'s vertices, faces and vertex normals with ``visual``, as a GLB at ``path``
     (atomically), upright in glTF's frame (`_set_up_axis`), with bufferView targets and a
     sampler; ``edit`` may rewrite the glTF JSON first (`_glb_with_json`)."""
-    import trimesh
-
     out_mesh = trimesh.Trimesh(
         vertices=np.asarray(mesh.vertices),
         faces=np.asarray(mesh.faces),
@@ -158,9 +157,6 @@ def _export_glb(path, mesh, visual, world_up: str, edit=None) -> Path:
 
 
 def _write_uniform_gltf(path: Path, mesh, material, world_up: str) -> Path:
-    from trimesh.visual.material import PBRMaterial
-    from trimesh.visual.texture import TextureVisuals
-
     base = [float(v) for v in np.clip(map_array(material.base_color).reshape(-1)[:3], 0.0, 1.0)] + [1.0]
     metallic = float(np.clip(map_array(material.metallic).reshape(-1)[0], 0.0, 1.0))
     roughness = float(np.clip(map_array(material.roughness).reshape(-1)[0], 0.0, 1.0))
@@ -202,9 +198,6 @@ def write_gltf(path: str | os.PathLike, mesh, material, world_up: str = "+y") ->
     map, which only a texture can hold, is written with textures and TEXCOORD_0 = (0, 0) on a
     mesh without texture coordinates: a 1 x 1 texture reads the same everywhere.
     """
-    from trimesh.visual.material import PBRMaterial
-    from trimesh.visual.texture import TextureVisuals
-
     if world_up not in WORLD_TO_GLTF_ROTATION:
         raise ValueError(f"write_gltf: world_up must be one of {', '.join(WORLD_TO_GLTF_ROTATION)}, got {world_up!r}")
     if _is_uniform(material):

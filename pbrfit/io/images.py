@@ -180,7 +180,6 @@ def _held_stderr(sink: list) -> Iterator[None]:
     and append it to `sink`: libpng prints "libpng error: ..." itself before OpenImageIO reports
     the failure, which pbrfit words as one line of its own. Where standard error has no file
     descriptor (a test's capture), nothing is held."""
-
     try:
         fd = sys.stderr.fileno()
     except (AttributeError, OSError, ValueError):
@@ -339,11 +338,9 @@ def write_image(
 
 def srgb_encoded(x: np.ndarray) -> np.ndarray:
     """Linear values clipped to [0, 1], sRGB-encoded (numpy: for 8- and 16-bit files)."""
-
     return linear_to_srgb_host(np.clip(np.asarray(x, np.float32), 0.0, 1.0))
 
 
 def srgb_decoded(x: np.ndarray) -> np.ndarray:
     """sRGB-encoded values decoded to linear (numpy)."""
-
     return srgb_to_linear_host(x)

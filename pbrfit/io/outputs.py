@@ -38,7 +38,6 @@ def _heat(err: np.ndarray, scale: float) -> np.ndarray:
 
 def _display(x: np.ndarray, is_srgb: bool) -> np.ndarray:
     """Values to show in an 8-bit PNG: sRGB-encoded, clipped."""
-
     x = np.clip(np.asarray(x, np.float32), 0.0, 1.0)
     return x if is_srgb else linear_to_srgb_host(x)
 
@@ -58,7 +57,6 @@ def contact_sheet(target: np.ndarray, fitted: np.ndarray, mask: np.ndarray, is_s
 def _convergence_plot(path: Path, history: Sequence[dict], size: tuple[int, int] = (520, 320)) -> None:
     """Loss against step on a log axis, drawn with PIL (no plotting library to import: the plot is
     one of a fit's outputs, and a fit's wall time is a feature). Decade grid lines, labelled."""
-
     steps = np.asarray([h["step"] for h in history], np.float64)
     with np.errstate(invalid="ignore"):
         loss = np.log10(np.maximum(np.asarray([h["loss"] for h in history], np.float64), 1e-30))

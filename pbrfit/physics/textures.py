@@ -88,7 +88,6 @@ def resample_map(values, shape: tuple[int, int]):
     h and w, each texel is the mean of its block of the map (a mip level's box filter: a map
     upsampled by repeating texels comes back exactly); otherwise ``jax.image.resize``, linear,
     antialiased (a widened triangle filter) when it shrinks."""
-
     v = np.asarray(values, np.float32)
     (h0, w0), (h, w) = v.shape[:2], tuple(shape)
     if (h0, w0) == (h, w):

@@ -149,7 +149,6 @@ def _file_resolver(tree: dict, folder: Path):
     """A trimesh resolver for the tree's file URIs, which it rewrites to plain file names (glTF
     URIs are percent-encoded and relative to the file, and may lead out of its folder); a
     missing buffer file is named."""
-
     for kind, i, entry, name in gltf_file_uris(tree):
         if kind == "buffers" and not (folder / name).is_file():
             raise ValueError(f"buffer {i}: file {name!r} not found (relative to the glTF file)")
@@ -177,7 +176,6 @@ def prepare_tree(tree: dict) -> None:
     draw. Primitives with TEXCOORD_0 and no material get a default one (`_gltf_default_material`).
     Every material gets a name of its own, so that they can be told apart once trimesh has loaded
     them: an unnamed one its index ("material 3"), a repeated name its index after it."""
-
     read = _EXTENSIONS_READ
     if importlib.util.find_spec("DracoPy") is not None:  # trimesh decodes Draco with it
         read += (DRACO,)
@@ -202,7 +200,6 @@ def prepare_tree(tree: dict) -> None:
 
 
 def load_gltf_scene(path: Path):
-
     data = path.read_bytes()
     if path.suffix.lower() == ".glb":
         version, tree, binary = glb_chunks(data)

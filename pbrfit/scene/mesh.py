@@ -79,7 +79,6 @@ def _flatten(scene, where: str, path: Path) -> list:
     and non-finite transforms raise `CaptureError` (``where``, ``path`` name the file);
     `load_mesh` checks the positions.
     """
-
     parts = []
     for node in scene.graph.nodes_geometry:
         transform, name = scene.graph[node]
@@ -123,7 +122,6 @@ MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
 def _quiet_trimesh():
     """No numpy floating-point warnings and no trimesh log records while a mesh loads: what is
     wrong with a file is said once, by `load_mesh`."""
-
     logger = logging.getLogger("trimesh")
     level = logger.level
     logger.setLevel(logging.CRITICAL + 1)
@@ -280,7 +278,6 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
     triangles or non-finite positions or texture coordinates, or (with ``require_uv``) lacks
     texture coordinates on any of its meshes or has texture coordinates that span no area.
     """
-
     path = Path(path)
     if not path.is_file():
         raise CaptureError(f"{where}: mesh file not found: {path}")
@@ -360,7 +357,6 @@ def load_mesh(path: str | Path, where: str = "mesh", require_uv: bool = True):
 def _warn_shared_uv_space(parts, uvs, where: str, path: Path) -> None:
     """A warning where two of the file's materials lay their texture coordinates over the same
     texture space (`pbrfit.scene.uv_layout.shared_uv_space`): the fit's one set of maps would mix them."""
-
     named = [(str(name), uv, np.asarray(part.faces)) for part, uv in zip(parts, uvs)
              if (name := getattr(getattr(part.visual, "material", None), "name", None))]
     if len({name for name, _, _ in named}) < 2:

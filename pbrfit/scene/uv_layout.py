@@ -60,7 +60,6 @@ def material_coverage(uv: np.ndarray, faces: np.ndarray, grid: int = OVERLAP_GRI
     the uv square repeated as the maps repeat: each triangle is moved by a whole number of
     squares to put its centroid in [0, 1)², and drawn again a square over in each direction
     where it crosses the square's border."""
-
     image = Image.new("1", (grid, grid))
     draw = ImageDraw.Draw(image)
     triangles = np.asarray(uv, np.float64)[np.asarray(faces)[::step]]  # (F, 3, 2)
@@ -76,7 +75,6 @@ def material_coverage(uv: np.ndarray, faces: np.ndarray, grid: int = OVERLAP_GRI
 
 def _interior(cells: np.ndarray) -> np.ndarray:
     """``cells`` less their rim: cells whose eight neighbours (the grid wraps) are in it too."""
-
     padded = np.pad(cells, 1, mode="wrap")
     return ndimage.binary_erosion(padded, np.ones((3, 3), bool))[1:-1, 1:-1]
 

@@ -88,7 +88,6 @@ def truncated_cg():
     at 20,000 unknowns every curvature under 0.24 breaks down, which ended `lm` after 3 of its 20
     steps on the peer preset at 64 × 64 and `gn` after 11. Made on first use, so that lineax is
     imported only by the solvers that need it."""
-
     class TruncatedCG(lx.CG):
         def compute(self, state, vector, options):
             if options.get("preconditioner") is not None or options.get("y0") is not None:
@@ -169,7 +168,6 @@ def for_size(solver, num_parameters: int):
     """`solver` as it runs on `num_parameters` unknowns: an `optx.BFGS` above
     `BFGS_MAX_PARAMETERS` becomes an `optx.LBFGS` with its tolerances (its dense inverse Hessian
     grows as N²); every other solver as it is."""
-
     if type(solver) is optx.BFGS and num_parameters > BFGS_MAX_PARAMETERS:
         return optx.LBFGS(solver.rtol, solver.atol, solver.norm)
     return solver
@@ -188,7 +186,6 @@ def optx_solve(x0, problem: Problem, solver, max_steps: int, progress: Optional[
     evaluation of it (``jax.debug.callback``): optimistix's solvers keep their steps to
     themselves, and an evaluation is what a step of each of them costs (line searches and trust
     regions evaluate rejected points too)."""
-
     k = x0.shape[-1]
     lo, hi = jnp.asarray(lower(k), x0.dtype), jnp.asarray(upper(k), x0.dtype)
     inset = START_MARGIN * (hi - lo)
