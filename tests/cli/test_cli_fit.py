@@ -224,6 +224,7 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
          "--ibl-levels: must be between 2 and 256, got 99999999999999999999"),
         (["--max-steps", "99999999999999999999999"], "--max-steps: must be an integer from 1 to 1000000, got 9999"),
         (["--ibl", "exact"], "argument --ibl: invalid choice: 'exact'"),
+        (["--occlusion", "sometimes"], "argument --occlusion: invalid choice: 'sometimes'"),
         (["--roughness", "0.3", "--roughness-from", "__HELD__"],
          "--roughness-from: --roughness holds roughness at a value too; give one of the two"),
         (["--roughness-from", "__OUT__"], "holds the roughness map of --roughness-from"),
