@@ -173,7 +173,7 @@ def sample_batch(samples: int, points: int) -> int:
 
 
 @functools.partial(jax.jit, static_argnames=("model", "samples", "batch"))
-def _mc(env, n, v, base_color, metallic, roughness, dfg, vis, model, samples, batch, key):
+def _mc(env, n, v, base_color, metallic, roughness, dfg, model, samples, batch, key, vis=None):
     sampler = environment_sampler(env.radiance)
     t, b = tangent_frame(n)
     nv = dot3(n, v)
@@ -259,5 +259,5 @@ def monte_carlo_radiance(env: Environment, n: Float[Array, "P 3"], v: Float[Arra
                          "row per point of (P, 3) normals")
     samples = int(samples)
     batch = sample_batch(samples, int(np.prod(n.shape[:-1])))
-    return _mc(env, n, jnp.asarray(v, n.dtype), base_color, metallic, roughness, dfg, visibility, model, samples,
-               batch, key)
+    return _mc(env, n, jnp.asarray(v, n.dtype), base_color, metallic, roughness, dfg, model, samples, batch, key,
+               visibility)
