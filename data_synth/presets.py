@@ -20,11 +20,18 @@ Presets (`PRESETS`):
   mesh with uv) under a studio environment, 10 hemisphere views, EXR.
 - ``demo``: a sphere on a floor under a procedural sky plus a sun-like point light, textured
   truth in a two-tile atlas, 8 views of 96^2, small noise: synthesizes in a few seconds.
+- ``sphere-floor``, ``torus-floor``: a sphere (or a torus, lying flat) resting on a textured
+  floor under a sky with a sun and no other light, textured truth with binary metallic in a
+  two-tile atlas (floor left, object right), 12 views of 96^2, EXR: the object's shadow on the
+  floor and its own occlusion (the torus's hole, the sphere's underside) are the environment's,
+  for the fit's environment occlusion (`pbrfit.lighting.visibility`); render them with
+  ``ibl="monte_carlo"`` for images with the shadows in.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import Any, Callable, Optional
 
@@ -319,6 +326,37 @@ def _demo(seed: int, **kw) -> Scene:
     )  # fmt: skip
 
 
+def _on_floor(name: str, seed: int, **kw) -> Scene:
+    """``sphere-floor`` and ``torus-floor`` (module docstring)."""
+    p = _common(kw, dict(size=96, views=12, noise=0.0, noise_model="gaussian", supersample=1, texture_size=64,
+                         image_format="exr", distance=4.2, fov_deg=45.0, env_width=256, floor_size=3.2,
+                         sun_elevation_deg=None, sun_azimuth_deg=None))
+    rng = np.random.default_rng(seed)
+    n = p["texture_size"]
+    truth = textures.textured_maps(n, rng, metal="binary", metal_coverage=0.25)
+    if name == "sphere-floor":
+        obj = meshes.uv_sphere(0.6, 64, 32, center=(0.0, 0.6, 0.0))
+    else:
+        minor = 0.3
+        obj = meshes.torus(0.8, minor, 96, 32).translated((0.0, minor, 0.0))
+    inset = 1.0 / n
+    floor = meshes.plane(p["floor_size"], segments=4)
+    mesh = meshes.combine([floor, obj], [(inset, inset, 0.5 - inset, 1 - inset),
+                                         (0.5 + inset, inset, 1 - inset, 1 - inset)])
+    for key, low, high in (("sun_elevation_deg", 30.0, 50.0), ("sun_azimuth_deg", -60.0, 60.0)):
+        if p[key] is None:
+            p[key] = float(rng.uniform(low, high))
+    env = environments.sky(p["env_width"], p["env_width"] // 2, sun_elevation_deg=p["sun_elevation_deg"],
+                           sun_azimuth_deg=p["sun_azimuth_deg"])
+    cams = rigs.hemisphere(p["views"], p["distance"], target=(0.0, 0.3, 0.0), min_elevation_deg=20.0,
+                           max_elevation_deg=65.0, rng=rng)
+    return Scene(
+        name=name, seed=seed, mesh=mesh, truth=truth, cameras=cams, camera_angle_x=math.radians(p["fov_deg"]),
+        width=p["size"], height=p["size"], environment=env, image_format=p["image_format"],
+        supersample=p["supersample"], noise=p["noise"], noise_model=p["noise_model"], params=p,
+    )  # fmt: skip
+
+
 #: name -> (builder(seed, **overrides) -> Scene, one-line description)
 PRESETS: dict[str, tuple[Callable[..., Scene], str]] = {
     "peer-plane": (_peer_plane, "Z-up 2x2 plane, 6 views 128^2, 4 point lights, 64^2 maps, metallic 0 (the peer scene)"),
@@ -327,6 +365,10 @@ PRESETS: dict[str, tuple[Callable[..., Scene], str]] = {
     "spheres-grid": (_spheres_grid, "5x5 metallic x roughness chart of spheres, studio + key light"),
     "mesh-env": (_mesh_env, "torus (or box, or your mesh) under a studio environment, 10 views"),
     "demo": (_demo, "sphere on a floor under a sky and a light, textured truth, 8 views 96^2"),
+    "sphere-floor": (functools.partial(_on_floor, "sphere-floor"),
+                     "sphere resting on a textured floor under a sky with a sun alone, binary metal, 12 views"),
+    "torus-floor": (functools.partial(_on_floor, "torus-floor"),
+                    "torus lying on a textured floor under a sky with a sun alone, binary metal, 12 views"),
 }
 
 

@@ -29,6 +29,7 @@ from ..fitting.stages.selection import uniform_channels
 from ..io.material_files import read_map, read_material
 from ..io.outputs import write_fit_output
 from ..lighting.pixel_ibl import MAX_LEVELS, MAX_SAMPLES, MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
+from ..lighting.visibility import OCCLUSION_MODES
 
 __all__ = ["add_fit", "fit_options", "fit_summary", "default_continuation", "FitProgress", "loss_history", "run_fit"]
 
@@ -77,6 +78,11 @@ def add_fit(sub) -> None:
                    help=f"per_pixel: sample steps per pixel (default {PixelIBLSettings.samples})")
     p.add_argument("--ibl-levels", type=int,
                    help=f"per_pixel: roughness levels tabulated (default {PixelIBLSettings.levels})")
+    p.add_argument("--occlusion", choices=OCCLUSION_MODES, default=OCCLUSION_MODES[0],
+                   help="whether the mesh shadows the environment light on itself (a shadow ray per observed point and "
+                        "direction cell, cast once and cached; both --ibl modes use it): auto (default: on where a "
+                        "probe finds the mesh blocking a meaningful share of the light; a convex mesh casts nothing), "
+                        "on or off; report.json's \"occlusion\" says which and its time")
     p.add_argument("--pixel-samples", default="auto", metavar="{auto,N}",
                    help=f"shade N x N samples per pixel (N from 1 to {MAX_PIXEL_SAMPLES}) and fit their mean: the pixel "
                         "footprint of an antialiased or supersampled capture (1: pixel centres; cost grows as N^2). Default auto: pixel centres for "
@@ -183,7 +189,8 @@ def fit_options(args):
         max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, loss=args.loss, smooth=args.smooth,
         coarse_to_fine=args.coarse_to_fine, search=not args.no_search, uniform_check=not args.no_uniform_check,
         repair=not args.no_repair, noise_level=args.noise_level, devices=devices, ibl=args.ibl,
-        pixel_ibl_settings=pixel_ibl_settings, continuation=continuation, pixel_samples=pixel_samples,
+        pixel_ibl_settings=pixel_ibl_settings, occlusion=args.occlusion, continuation=continuation,
+        pixel_samples=pixel_samples,
         cg_rtol=args.cg_rtol, loss_scale=args.loss_scale, uncertainty_radius=args.uncertainty_radius,
         unconstrained_sigma=args.unconstrained_sigma, model=model_changes(args.model) or None)
     try:  # checked as `pbrfit.fit` checks them, worded with the flags

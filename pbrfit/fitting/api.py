@@ -60,11 +60,14 @@ from .result import FitResult, closed_times, map_rmse
 from .stages.footprint import footprint_choice
 from ..physics.model import Model
 from .noise import estimate_noise_level
-from .observations import Observations, observations_from_capture
-from ..lighting.pixel_ibl import pixel_ibl
+from .observations import Observations, observations_from_capture, row_geometry
+from ..lighting.ibl import OccludedTables
+from ..lighting.pixel_ibl import per_row, pixel_ibl
+from ..lighting.visibility import split_sum_factors
 from ..render.views import capture_environment, capture_ibl, check_environment, environment_is_dark
 from ..render.views import model_for_capture
 from ..scene.capture import Capture, load_capture
+from ..scene.occlusion import cast_visibility, occluding_faces, probe_share
 from .resolution import default_resolution, schedule
 from .solvers.names import DEFAULT_SOLVER, SOLVERS
 from .stages.selection import uniform_channels
@@ -92,6 +95,32 @@ def _ibl_for_capture(capture, model: Model, environment=None):
     if model.ibl is None and not model.multiscatter:
         return None
     return capture_ibl(capture, model=model, environment=environment)
+
+
+def _environment_visibility(capture, env, parts, options: FitOptions, cache_dir):
+    """The environment's visibility from the rows of ``parts`` (observations of ``capture``, in
+    order) as ``options.occlusion`` asks: (`pbrfit.lighting.visibility.Visibility` or None, its
+    direction cells or None, the report's "occlusion" entry). "auto" casts nothing where no face
+    has the mesh above it (`pbrfit.scene.occlusion.occluding_faces`), then probes a few points
+    (`pbrfit.scene.occlusion.probe_share`) and goes on only where the mesh blocks at least
+    ``options.occlusion_settings.auto_share`` of their irradiance."""
+    start = time.perf_counter()
+    settings = options.occlusion_settings
+    entry = dict(mode=options.occlusion, used=False)
+    done = lambda **more: dict(entry, **more, seconds=time.perf_counter() - start)  # noqa: E731
+    if options.occlusion == "off":
+        return None, None, done()
+    if options.occlusion == "auto" and not occluding_faces(capture.mesh).any():
+        return None, None, done(reason="no face has the mesh above it")
+    geometry = [row_geometry(capture, o, cache_dir) for o in parts]
+    points, normals = (np.concatenate([g[k] for g in geometry]) for k in (0, 1))
+    if options.occlusion == "auto":
+        entry["probed_share"] = probe_share(capture.mesh, env, points, normals, settings)
+        if entry["probed_share"] < settings.auto_share:
+            return None, None, done(reason=f"the mesh blocks less than auto_share {settings.auto_share:g} of the "
+                                           "irradiance at the probed points")
+    visibility, cells = cast_visibility(capture.mesh, env, points, normals, settings, cache_dir)
+    return visibility, cells, done(used=True, cells=cells.count, rows=len(points))
 
 
 def fit_observations(obs: Observations, options: Optional[FitOptions] = None, *, model=None,
@@ -165,7 +194,7 @@ def _fit_weighted(obs: Observations, options: FitOptions, inputs: PassInputs) ->
     shared["where"].clear()
     shared["where"]["weighted"] = True  # every step from here on reports it
     second_options = options.replace(coarse_to_fine=False, continuation=None, search=False, repair=False)
-    centre_ibl = kept is centres and inputs.model.ibl == "per_pixel"  # the centres' own integrals
+    centre_ibl = kept is centres and per_row(inputs.ibl)  # the centres' own integrals (or factors)
     second_inputs = PassInputs(model=inputs.model, ibl=inputs.centre_ibl if centre_ibl else inputs.ibl, start=x)
     second, _ = fit_pass(weighted, second_options, second_inputs, shared)
     report = second.report
@@ -237,6 +266,15 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
             lobe integrals by Monte Carlo on a roughness grid, once before the solve, with
             ``pixel_ibl_settings``, cached in ``cache_dir`` like the G-buffers; no split-sum
             error, not with fitted normals). Ignored without an environment.
+        occlusion: whether the mesh blocks the environment's light from its own points
+            (`pbrfit.lighting.visibility`): "on" casts a shadow ray per observed point and
+            direction cell once, before the solve (cached in ``cache_dir``), and both IBL modes
+            use it (the per-pixel integrals per sample direction, the split sum as per-point
+            factors); "off" lets the whole environment reach every point; "auto" (default) is
+            "on" where a probe of a few points finds the mesh blocking at least
+            ``occlusion_settings.auto_share`` of their irradiance (a convex mesh casts nothing).
+            The report's "occlusion" entry says which, why, and the time it took. Ignored
+            without an environment.
         resolution: map size N (or (H, W)); default `default_resolution(capture)`.
         fit: which maps are free, some of "base_color", "metallic", "roughness", "normal" (a
             tangent-space normal map, `pbrfit.fitting.parameters`; needs the mesh's tangents: uv);
@@ -353,20 +391,29 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
         # (no environment at all was refused with the observations)
         raise CaptureError(f"{capture.json_path}: no light reaches the mesh: the environment "
                            f"{capture.environment.file} is black, and every light is off or points away")
-    centre_tables = None
+    centre_tables = visibility = occlusion = None
+    parts = [obs] if centres is None else [centres, obs]
+    rows = np.cumsum([0] + [o.num_rows for o in parts])
+    normals = lambda: np.concatenate([np.asarray(o.normal) for o in parts])  # noqa: E731
+    views = lambda: np.concatenate([np.asarray(o.view) for o in parts])  # noqa: E731
+    if model.ibl is not None:
+        visibility, cells, occlusion = _environment_visibility(capture, env, parts, options, cache_dir)
+    t_ibl = time.perf_counter()
+    both = None
     if model.ibl == "per_pixel":
         report = options.progress
-        parts = [obs] if centres is None else [centres, obs]
-        rows = np.cumsum([0] + [o.num_rows for o in parts])
-        both = pixel_ibl(env, np.concatenate([np.asarray(o.normal) for o in parts]),
-                         np.concatenate([np.asarray(o.view) for o in parts]), model, options.pixel_ibl_settings,
+        both = pixel_ibl(env, normals(), views(), model, options.pixel_ibl_settings,
                          cache_dir=cache_dir, progress=None if report is None else (
-                             lambda done, total: report(dict(stage="ibl", done=done, total=total))))
+                             lambda done, total: report(dict(stage="ibl", done=done, total=total))),
+                         visibility=visibility)
         tables = dataclasses.replace(both, table=both.table[rows[-2]:])
-        if centres is not None:
-            centre_tables = dataclasses.replace(both, table=both.table[: rows[1]])
     else:
         tables = _ibl_for_capture(capture, model, env)
+        if visibility is not None:  # the split sum's occlusion factors, one row per observation row
+            both = OccludedTables(tables, to_device(split_sum_factors(visibility, cells, normals(), views())))
+            tables = dataclasses.replace(both, table=both.table[rows[-2]:])
+    if centres is not None and both is not None:
+        centre_tables = dataclasses.replace(both, table=both.table[: rows[1]])
     t_ibl = time.perf_counter() - t_ibl
     result = fit_observations(obs, options, model=model, ibl=tables, setup_time=time.perf_counter() - t0,
                               centres=centres, centre_ibl=centre_tables, select_footprint=select)
@@ -376,6 +423,7 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
     if model.ibl is not None:
         result.report["ibl"] = dict(mode=model.ibl, seconds=t_ibl, **(
             dataclasses.asdict(options.pixel_ibl_settings) if model.ibl == "per_pixel" else {}))
+        result.report["occlusion"] = occlusion
     return result
 
 

@@ -41,6 +41,7 @@ from .observations import Observations
 from ..physics.material import apply_normal_map
 from .parameters import lower, normal_from_slopes, upper
 from ..render.shade import shade
+from ..lighting.pixel_ibl import per_row
 
 __all__ = ["Problem", "LOSSES", "robust_residual", "shading_normal", "sample_texels", "sample_material", "pixel_residuals", "residuals",
            "objective", "linearize", "by_pixel", "to_rows", "scatter_texels", "laplacian", "prior_degree", "smooth_residuals"]
@@ -122,7 +123,7 @@ def shading_normal(m: Float[Array, "*P K"], normal: Float[Array, "*P 3"], tangen
 
 def _sample_radiance(m, normal, tangent, view, light_l, light_radiance, *lobes, problem: Problem):
     """Linear radiance (3,) of one pixel sample from its sampled (K,) material values (``lobes``:
-    its row of per-pixel IBL integrals, when the model uses them)."""
+    its row of per-pixel IBL integrals or occlusion factors, where the IBL has rows: `per_row`)."""
     ibl = dataclasses.replace(problem.ibl, table=lobes[0][None]) if lobes else problem.ibl
     return shade(
         shading_normal(m, normal, tangent)[None], view[None], light_l[None], light_radiance[None],
@@ -148,7 +149,7 @@ def _sample_args(problem: Problem):
     """Per-row arguments of `_sample_radiance` after the material values."""
     obs = problem.obs
     args = (obs.normal, obs.tangent, obs.view, obs.light_l, obs.light_radiance)
-    return args + ((problem.ibl.table,) if problem.model.ibl == "per_pixel" else ())
+    return args + ((problem.ibl.table,) if per_row(problem.ibl) else ())
 
 
 def _value_args(obs: Observations):

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from typing import Optional, Sequence
 
 import equinox as eqx
@@ -41,7 +42,7 @@ from ..transfer import to_device
 from ..physics.color import linear_to_srgb_host
 
 __all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "observations_from_views", "observations_from_capture",
-           "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout",
+           "row_geometry", "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout",
            "layout_for", "coverage_counts", "neighbour_pairs"]
 
 
@@ -279,6 +280,27 @@ def observations_from_capture(capture, cache_dir=None, views=None, pixel_samples
     if getattr(capture, "environment", None) is None and not np.max(np.asarray(obs.light_radiance), initial=0.0) > 0.0:
         raise CaptureError(f"{name}: no light reaches the mesh: no environment, and every light is off or points away")
     return obs
+
+
+def row_geometry(capture, obs: Observations, cache_dir=None) -> tuple[np.ndarray, np.ndarray]:
+    """(R, 3) float64 surface points and (R, 3) float32 geometric normals (facing the camera) of
+    the rows of `obs`, made from ``capture`` by `observations_from_capture` with the same
+    ``cache_dir``: read from the frames' G-buffers (cached there, else cast again), a row's
+    sample camera found from its place among its pixel's rows (`pixel_offsets`)."""
+    n = math.isqrt(obs.samples)
+    view_index, pixel = np.asarray(obs.view_index), np.asarray(obs.pixel)
+    sample = np.arange(obs.num_rows) % obs.samples
+    points = np.zeros((obs.num_rows, 3))
+    normals = np.zeros((obs.num_rows, 3), np.float32)
+    for s, offset in enumerate(pixel_offsets(n) if n > 1 else [None]):
+        frames = capture.frames if offset is None else [dataclasses.replace(f, camera=sample_camera(f.camera, offset))
+                                                        for f in capture.frames]
+        for k, g in enumerate(capture_gbuffers(dataclasses.replace(capture, frames=frames), cache_dir)):
+            rows = np.flatnonzero((view_index == k) & (sample == s))
+            if len(rows):
+                points[rows] = g.position.reshape(-1, 3)[pixel[rows]]
+                normals[rows] = g.geometric_normal.reshape(-1, 3)[pixel[rows]]
+    return points, normals
 
 
 def texel_layout(obs: Observations, shape: tuple[int, int], wrap: str = "repeat") -> TexelLayout:

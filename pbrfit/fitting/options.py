@@ -15,6 +15,7 @@ import numpy as np
 import optimistix as optx
 
 from ..lighting.pixel_ibl import PixelIBLSettings
+from ..lighting.visibility import OCCLUSION_MODES, OcclusionSettings
 from .passes import COARSE_STEPS, CONTINUATION
 from ..physics.model import Model
 from .noise import NOISE_LEVELS
@@ -249,6 +250,8 @@ class FitOptions:
     # how the images are modelled
     ibl: Optional[str] = None
     pixel_ibl_settings: PixelIBLSettings = PixelIBLSettings()
+    occlusion: str = "auto"
+    occlusion_settings: OcclusionSettings = OcclusionSettings()
     pixel_samples: Union[str, int] = "auto"
     wrap: str = "repeat"
     # where it runs
@@ -274,6 +277,10 @@ class FitOptions:
         check_normals(self.ibl, fit, self.names)
         if not isinstance(self.pixel_ibl_settings, PixelIBLSettings):
             raise ValueError(f"pixel_ibl_settings: expected a PixelIBLSettings, got {self.pixel_ibl_settings!r}")
+        if self.occlusion not in OCCLUSION_MODES:
+            raise ValueError(f"{say('occlusion')} must be one of {', '.join(OCCLUSION_MODES)}, got {self.occlusion!r}")
+        if not isinstance(self.occlusion_settings, OcclusionSettings):
+            raise ValueError(f"occlusion_settings: expected an OcclusionSettings, got {self.occlusion_settings!r}")
         if isinstance(self.model, Mapping):  # fields of the capture's own model to change
             try:
                 Model(**self.model)

@@ -35,6 +35,7 @@ from .objective import Problem
 from ..physics.textures import resample_map, sample_bilinear
 from ..physics.model import Model
 from ..transfer import to_device
+from ..lighting.pixel_ibl import per_row
 
 __all__ = ["fit_pass", "PassInputs", "continuation_scale", "with_smooth", "COARSE_STEPS", "MAX_STEPS", "SEARCH_AFTER",
            "SEARCH_ROUNDS", "CONTINUATION", "SETTLE_STEPS", "RELEASED_STEPS", "PROBE_STEPS"]
@@ -100,7 +101,7 @@ class PassInputs:
     """What a pass fits with besides its `FitOptions`: the shading (``model`` and its ``ibl``
     tables or integrals, those of the capture the observations come from), the same capture's
     observations at pixel centres when ``obs`` holds several samples per pixel (``centres``, and
-    ``centre_ibl``, their integrals where the IBL is per pixel; ``select_footprint``: keep the
+    ``centre_ibl``, their integrals (or occlusion factors) where the IBL has rows (`per_row`); ``select_footprint``: keep the
     footprint that explains the pixels better, `pbrfit.fitting.stages.footprint`), the (T, K)
     texel values to ``start`` from at the final level (no grid start, no coarser levels) and the
     ``setup_time`` spent before the pass, for its report."""
@@ -142,9 +143,8 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
 
     if inputs.select_footprint and (inputs.centres is None or obs.samples == 1):
         raise ValueError("select_footprint needs observations with several samples per pixel and their centres")
-    if (inputs.centres is not None and obs.samples > 1 and inputs.model.ibl == "per_pixel"
-            and inputs.centre_ibl is None):
-        raise ValueError("centres with a per-pixel IBL model need centre_ibl: the centres' own integrals")
+    if inputs.centres is not None and obs.samples > 1 and per_row(inputs.ibl) and inputs.centre_ibl is None:
+        raise ValueError("centres with per-pixel IBL integrals or occlusion factors need centre_ibl: the centres' own")
     mesh = None if options.devices is None else pixel_mesh(options.devices)
     continuation = () if options.continuation is None else tuple(float(w) for w in np.ravel(options.continuation))
     x = None if inputs.start is None else np.asarray(inputs.start, np.float32).reshape(final + (k,))
@@ -208,7 +208,7 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
                 early = dataclasses.replace(problem, obs=inputs.centres, index=lay.index, weight=lay.weight,
                                             free=to_device(centre_free),
                                             pairs=to_device(c_pairs), pair_weight=to_device(c_pw),
-                                            ibl=inputs.centre_ibl if inputs.model.ibl == "per_pixel" else inputs.ibl)
+                                            ibl=inputs.centre_ibl if per_row(inputs.ibl) else inputs.ibl)
                 if mesh is not None:
                     early = shard_problem(early, mesh)
             num_free = int(np.sum(free))

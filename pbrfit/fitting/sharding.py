@@ -55,6 +55,7 @@ from jaxtyping import Array, Float, Int
 
 from .observations import PIXEL_FIELDS, Observations, TexelLayout
 from .objective import Problem
+from ..lighting.pixel_ibl import per_row
 
 __all__ = ["PIXEL_AXIS", "PAD_NORMAL", "PAD_VIEW", "PAD_LIGHT", "padded_size", "pad_observations", "pad_pixel_rows",
            "pad_layout", "pixel_mesh", "pixel_sharding", "shard_problem"]
@@ -165,7 +166,7 @@ def shard_problem(problem: Problem, mesh: Mesh) -> Problem:
     if padded_size(index.shape[0], n * obs.samples) != index.shape[0]:
         index, weight = _padded_texel_rows(index, weight, n * obs.samples)
     changes = dict(obs=obs, index=jax.device_put(index, rows), weight=jax.device_put(weight, rows))
-    if problem.model.ibl == "per_pixel":  # per-pixel integrals go with their pixels (zero for padding)
+    if per_row(problem.ibl):  # per-pixel integrals (or occlusion factors) go with their pixels (zero for padding)
         count = padded_size(problem.ibl.num_pixels, n * obs.samples)
         table = _append(problem.ibl.table, count - problem.ibl.num_pixels, 0.0)
         changes["ibl"] = dataclasses.replace(problem.ibl, table=jax.device_put(table, rows))

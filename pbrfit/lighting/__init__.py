@@ -1,9 +1,10 @@
 """How environment light reaches a point: the environment map (`environment`), the split
 sum's tables and LUT (`brdf_lut`, `ibl`), per-pixel lobe integrals (`lobe_integrals`,
 `pixel_ibl`) and the Monte Carlo reference integrator (`sampling`, `montecarlo`) the others are
-measured against.
+measured against; the mesh's occlusion of the environment reaches all three as a `visibility`
+table (cast by `pbrfit.scene.occlusion`).
 
 May import: `pbrfit.physics`, `pbrfit.io`.
 """
 
-from . import brdf_lut, environment, ibl, lobe_integrals, montecarlo, pixel_ibl, sampling
+from . import brdf_lut, environment, ibl, lobe_integrals, montecarlo, pixel_ibl, sampling, visibility

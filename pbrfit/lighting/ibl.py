@@ -18,6 +18,13 @@ few percent at grazing angles.)
 
 The BRDF tables (scale, bias and A_d) live in `pbrfit.lighting.brdf_lut`; this module re-exports them.
 
+Occlusion: the tables assume every direction of the environment reaches every point. For fixed
+geometry that blocks some, `OccludedTables` carries per-point factors
+(`pbrfit.lighting.visibility.split_sum_factors`): the irradiance term is multiplied by the share
+of the irradiance that arrives, the prefiltered term by the share of the specular lobe's light
+that arrives at the point's roughness; `experiments/occlusion.py` measures how close that comes
+to the occluded per-pixel integrals.
+
 Sources: B. Karis, "Real Shading in Unreal Engine 4", SIGGRAPH 2013; R. Ramamoorthi &
 P. Hanrahan, "An Efficient Representation for Irradiance Environment Maps", SIGGRAPH 2001;
 J. Křivánek & M. Colbert, "Real-time Shading with Filtered Importance Sampling", EGSR 2008;
@@ -45,6 +52,7 @@ from .brdf_lut import _specular_tables, brdf_lut, diffuse_lut, lookup_brdf_lut, 
 from ..physics.model import Model
 from .montecarlo import monte_carlo_radiance
 from .sampling import hammersley, tangent_frame
+from .visibility import factors_at
 
 __all__ = [
     "Environment",
@@ -52,6 +60,7 @@ __all__ = [
     "environment_lookup",
     "IBLSettings",
     "IBLTables",
+    "OccludedTables",
     "build_ibl",
     "brdf_tables",
     "brdf_lut",
@@ -154,6 +163,23 @@ class IBLTables(eqx.Module):
     world_up: str = eqx.field(static=True, default="+y")
     rotation_deg: float = eqx.field(static=True, default=0.0)
     specular_direction: str = eqx.field(static=True, default="reflect")
+
+
+class OccludedTables(eqx.Module):
+    """Split-sum tables with per-point occlusion factors.
+
+    Attributes:
+        tables: the environment's `IBLTables`.
+        table: (P, S) each point's `pbrfit.lighting.visibility.split_sum_factors` (k_d, then
+            k_s on its roughness levels); one row per point, as `pbrfit.lighting.pixel_ibl.PixelIBL`'s.
+    """
+
+    tables: IBLTables
+    table: Float[Array, "P S"]
+
+    @property
+    def num_pixels(self) -> int:
+        return int(self.table.shape[0])
 
 
 # --- irradiance ----------------------------------------------------------------------------------
@@ -353,14 +379,17 @@ def _diffuse_albedo(tables, n_dot_v, roughness, base_color, metallic, f0, model)
 @functools.partial(jax.jit, static_argnames=("model",))
 def shade_ibl(tables: IBLTables, n: Float[Array, "P 3"], v: Float[Array, "P 3"], base_color: Float[Array, "P 3"],
               metallic: Float[Array, "P 1"], roughness: Float[Array, "P 1"], model: Model = Model(),
-              occlusion: Optional[Float[Array, "P 1"]] = None) -> Float[Array, "P 3"]:
+              occlusion: Optional[Float[Array, "P 1"]] = None,
+              factors: Optional[Float[Array, "P S"]] = None) -> Float[Array, "P 3"]:
     """Environment light reflected towards v by the split sum, linear RGB.
 
     diffuse = c_diff E(n)/π A_d(n·v, r) (A_d from `diffuse_lut`, matching the model's diffuse
     weight); specular = L_pre(R, r) (F0 scale + F90 bias), F90 = 1 (with ``fresnel="dielectric"``
     the dielectric part uses the exact-Fresnel albedo table instead), times
-    `brdf.energy_compensation` when ``model.multiscatter``. ``occlusion`` multiplies both. Zero
-    where n·v <= 0, as `brdf.evaluate`. metallic, roughness, occlusion may be (P, 1) or (P,).
+    `brdf.energy_compensation` when ``model.multiscatter``. ``occlusion`` multiplies both;
+    ``factors`` (`OccludedTables.table`) multiply the diffuse term by k_d and the specular term by
+    k_s at each point's roughness. Zero where n·v <= 0, as `brdf.evaluate`. metallic, roughness,
+    occlusion may be (P, 1) or (P,).
     """
     col = lambda x: None if x is None else (x[..., None] if jnp.ndim(x) == jnp.ndim(base_color) - 1 else x)
     metallic, roughness, occlusion = col(jnp.asarray(metallic)), col(jnp.asarray(roughness)), col(occlusion)
@@ -368,6 +397,7 @@ def shade_ibl(tables: IBLTables, n: Float[Array, "P 3"], v: Float[Array, "P 3"],
     nv_raw = dot3(n, v)
     nv = jnp.clip(nv_raw, 0.0, 1.0)
     to_env = lambda d: to_environment_frame(d, tables.world_up, tables.rotation_deg)
+    k_d, k_s = (1.0, 1.0) if factors is None else factors_at(factors, rough)
     f0 = brdf.specular_f0(base_color, metallic, model)
     out = jnp.zeros(jnp.broadcast_shapes(jnp.shape(f0), nv.shape + (3,)), f0.dtype)
     if model.specular:
@@ -384,11 +414,11 @@ def shade_ibl(tables: IBLTables, n: Float[Array, "P 3"], v: Float[Array, "P 3"],
         spec = prefiltered_lookup(tables, to_env(r), rough) * albedo
         if model.multiscatter:
             spec = spec * brdf.energy_compensation(f0, dfg)
-        out = out + spec
+        out = out + spec * k_s
     if model.diffuse != "none":
         c_diff = brdf.diffuse_color(base_color, metallic, model)
         albedo = _diffuse_albedo(tables, nv, rough, base_color, metallic, f0, model)
-        out = out + c_diff * albedo * irradiance_lookup(tables, to_env(n))
+        out = out + c_diff * albedo * irradiance_lookup(tables, to_env(n)) * k_d
     if occlusion is not None:
         out = out * occlusion
     return jnp.where((nv_raw > 0)[..., None], out, 0.0)

@@ -9,6 +9,10 @@ rotation): unbiased, and at 256 samples 1.3% off a 4,096-sample reference where 
 uniforms were 4% off.
 Every level reuses the same points, so the integrals are smooth in roughness, and Lambert's
 lobes, which do not depend on it, are the same number at every level.
+
+With a `pbrfit.lighting.visibility.Visibility` the environment radiance of every sample direction
+is multiplied by the point's visibility V(p, l) of that direction (its direction cell's shadow
+ray and its own horizon), so the integrals are those of an occluded environment.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from ..physics.model import Model
 from .montecarlo import counter_uniforms, environment_pdf, environment_sampler, hash32, sample_environment
 from .sampling import ggx_vndf_pdf, sample_cosine, sample_ggx_vndf, tangent_frame
 from .brdf_lut import lookup_brdf_lut
+from .visibility import visible
 
 __all__ = ["SPECULAR_LOBES", "DIFFUSE_LOBES", "integrate_lobes"]
 
@@ -41,10 +46,11 @@ def _dv(model: Model, nv, nl, nh, rough):
 
 
 @functools.partial(jax.jit, static_argnames=("model", "lobes", "levels", "samples", "batch"))
-def integrate_lobes(env, lut, n, v, first, seed, *, model, lobes, levels, samples, batch):
+def integrate_lobes(env, lut, n, v, first, seed, vis=None, *, model, lobes, levels, samples, batch):
     """(P, levels, len(lobes), 3) lobe integrals I_k(r_j) of `pbrfit.lighting.pixel_ibl` for points with unit normals n and
     view directions v (P, 3): ``samples`` sample steps, ``batch`` at a time; pixel i's sequence is shifted by
-    hashing ``first`` + i with ``seed``. ``lut`` is the split-sum LUT (read only for the dfg lobes)."""
+    hashing ``first`` + i with ``seed``. ``lut`` is the split-sum LUT (read only for the dfg lobes); ``vis``
+    the points' `pbrfit.lighting.visibility.Visibility` (P rows), or None: no occlusion."""
     radiance = env.radiance
     sampler = environment_sampler(radiance)
     dtype = n.dtype
@@ -58,10 +64,14 @@ def integrate_lobes(env, lut, n, v, first, seed, *, model, lobes, levels, sample
     diff = [k for k in lobes if k in DIFFUSE_LOBES]
     burley = "burley" in lobes
 
+    def arriving(rad, l, d):
+        """Radiance ``rad`` of world directions l (environment frame: d) that reaches the points."""
+        return rad if vis is None else rad * visible(vis, l, d)[..., None]
+
     def light(l):
         """Radiance arriving along world directions l and the environment technique's density there."""
         d = to_environment_frame(l, env.world_up, env.rotation_deg)
-        return sample_equirect(radiance, direction_to_uv(d)), environment_pdf(sampler, d)
+        return arriving(sample_equirect(radiance, direction_to_uv(d)), l, d), environment_pdf(sampler, d)
 
     def cosines(l):
         """(n·l, n·h, v·h) for directions l of shape (B, P, [R,] 3)."""
@@ -109,7 +119,7 @@ def integrate_lobes(env, lut, n, v, first, seed, *, model, lobes, levels, sample
         u = _lattice(shift, k * batch + jnp.arange(batch, dtype=jnp.uint32), dtype)   # (B, P, 7)
         d_e, pe_e = sample_environment(sampler, u[..., 0:3])
         l_e = from_environment_frame(d_e, env.world_up, env.rotation_deg)                # (B, P, 3)
-        L_e = sample_equirect(radiance, direction_to_uv(d_e))
+        L_e = arriving(sample_equirect(radiance, direction_to_uv(d_e)), l_e, d_e)
         l_c = to_world(sample_cosine(u[..., 3:5]))
         L_c, pe_c = light(l_c)
         nl_e, nh_e, vh_e = cosines(l_e)

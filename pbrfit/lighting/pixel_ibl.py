@@ -38,7 +38,10 @@ Integration: `pbrfit.lighting.lobe_integrals` (quasi-Monte Carlo, multiple impor
 points at every level, so the integrals are smooth in roughness). Between levels I_k is
 interpolated by a Catmull-Rom spline in r (C¹, so LM's roughness derivatives are continuous).
 
-No occlusion: like the split sum, the environment reaches every point unblocked.
+Occlusion: given the pixels' `pbrfit.lighting.visibility.Visibility` (cast once by
+`pbrfit.scene.occlusion`), every sample direction's radiance is multiplied by V(p, l), so the
+integrals, and the shading, are those of the environment the mesh lets through; without it the
+environment reaches every point unblocked.
 """
 
 from __future__ import annotations
@@ -61,8 +64,10 @@ from .environment import Environment
 from .lobe_integrals import integrate_lobes
 from ..physics.model import Model
 from .montecarlo import default_lut, sample_batch
+from .ibl import OccludedTables
+from .visibility import Visibility, visibility_rows
 
-__all__ = ["PixelIBLSettings", "MIN_LEVELS", "MIN_SAMPLES", "MAX_LEVELS", "MAX_SAMPLES", "PixelIBL", "LOBES", "lobes_for", "pixel_ibl", "interpolate_lobes",
+__all__ = ["per_row", "PixelIBLSettings", "MIN_LEVELS", "MIN_SAMPLES", "MAX_LEVELS", "MAX_SAMPLES", "PixelIBL", "LOBES", "lobes_for", "pixel_ibl", "interpolate_lobes",
            "shade_pixel_ibl", "pixel_dfg"]
 
 #: Every lobe a model can need (see the module docstring).
@@ -129,6 +134,12 @@ class PixelIBL(eqx.Module):
         return int(self.table.shape[1])
 
 
+def per_row(ibl) -> bool:
+    """Whether ``ibl`` holds one row per point (a `PixelIBL`, or `pbrfit.lighting.ibl.OccludedTables`)
+    in its ``table``, which goes with the points wherever they are sliced, padded or sharded."""
+    return isinstance(ibl, (PixelIBL, OccludedTables))
+
+
 def lobes_for(model: Model) -> tuple[str, ...]:
     """The lobes `model` reflects the environment through, in `LOBES` order."""
     need = set()
@@ -154,14 +165,18 @@ def lobes_for(model: Model) -> tuple[str, ...]:
 
 
 #: Bump when the integrals change, so that cached tables of an older release are not read.
-_CACHE_VERSION = "pixel-ibl-1"
+_CACHE_VERSION = "pixel-ibl-2"
 
 
-def _cache_key(env: Environment, n: np.ndarray, v: np.ndarray, model: Model, settings: PixelIBLSettings) -> str:
+def _cache_key(env: Environment, n: np.ndarray, v: np.ndarray, model: Model, settings: PixelIBLSettings,
+               visibility: Optional[Visibility]) -> str:
     h = hashlib.sha256(_CACHE_VERSION.encode())
     h.update(repr((dataclasses.asdict(model.replace(ibl=None)), dataclasses.asdict(settings), env.world_up,
                    float(env.rotation_deg))).encode())
-    for a in (np.asarray(env.radiance, np.float32), n, v):
+    seen = () if visibility is None else tuple(np.asarray(a) for a in (visibility.labels, visibility.bits,
+                                                                      visibility.normal))
+    h.update(b"occluded" if seen else b"open")
+    for a in (np.asarray(env.radiance, np.float32), n, v) + seen:
         h.update(repr(a.shape).encode())
         h.update(np.ascontiguousarray(a).tobytes())
     return h.hexdigest()[:32]
@@ -182,24 +197,30 @@ def _save_cached(path: Path, table: np.ndarray) -> None:
 def pixel_ibl(env: Environment, n: Float[Array, "P 3"], v: Float[Array, "P 3"], model: Model = Model(),
               settings: PixelIBLSettings = PixelIBLSettings(), chunk: Optional[int] = None,
               cache_dir: Optional[os.PathLike] = None,
-              progress: Optional[Callable[[int, int], None]] = None) -> PixelIBL:
-    """The lobe integrals of `lobes_for(model)` for points with unit normals n and view directions v.
+              progress: Optional[Callable[[int, int], None]] = None,
+              visibility: Optional[Visibility] = None) -> PixelIBL:
+    """The lobe integrals of `lobes_for(model)` for points with unit normals n and view directions v,
+    occluded by ``visibility`` (one row per point; None: unoccluded).
 
     Pixels are integrated in chunks of ``chunk`` (default `PIXEL_CHUNK` for the default backend;
     one compilation, the last chunk padded), each pixel with its own quasi-random sequence, so
     the chunking changes only float rounding. With ``cache_dir`` the table is read from / written
     to ``cache_dir/pixel-ibl-<hash>.npy``, the hash covering the environment (radiance and
-    orientation), n, v, the model's lobes and ``settings``. ``progress`` is called with (pixels
-    done, pixels in all) after each chunk.
+    orientation), n, v, the model's lobes, ``settings`` and ``visibility``. ``progress`` is called
+    with (pixels done, pixels in all) after each chunk.
     """
     lobes = lobes_for(model)
     n = np.asarray(n, np.float32)
     v = np.asarray(v, np.float32)
     total = n.shape[0]
+    if visibility is not None and (visibility.num_points != total
+                                   or tuple(visibility.labels.shape) != tuple(env.radiance.shape[:2])):
+        raise ValueError(f"visibility: {visibility.num_points} rows on {tuple(visibility.labels.shape)} cells' texels, "
+                         f"for {total} points under a {tuple(env.radiance.shape[:2])} environment")
     levels, samples = int(settings.levels), int(settings.samples)
     path = None
     if cache_dir is not None:
-        path = Path(cache_dir) / f"pixel-ibl-{_cache_key(env, n, v, model, settings)}.npy"
+        path = Path(cache_dir) / f"pixel-ibl-{_cache_key(env, n, v, model, settings, visibility)}.npy"
         cached = _load_cached(path, (total, levels, len(lobes), 3))
         if cached is not None:
             return PixelIBL(jnp.asarray(cached), lobes)
@@ -217,9 +238,10 @@ def pixel_ibl(env: Environment, n: Float[Array, "P 3"], v: Float[Array, "P 3"], 
         if pad:
             nn = np.concatenate([nn, np.tile(np.float32([0, 0, 1]), (pad, 1))])
             vv = np.concatenate([vv, np.tile(np.float32([0, 0, 1]), (pad, 1))])
+        vis = None if visibility is None else visibility_rows(visibility, start, start + size - pad, pad)
         part = integrate_lobes(env, lut, jnp.asarray(nn), jnp.asarray(vv),
-                          jnp.uint32(start), seed, model=model, lobes=lobes, levels=levels, samples=samples,
-                          batch=batch)
+                               jnp.uint32(start), seed, vis, model=model, lobes=lobes, levels=levels,
+                               samples=samples, batch=batch)
         out.append(np.asarray(part)[: size - pad])
         if progress is not None:
             progress(start + size - pad, total)

@@ -24,9 +24,9 @@ from ..physics.material import Material, apply_normal_map, material_at
 from ..physics.model import Model
 from ..transfer import to_device
 from ..physics.lights import incident
-from ..lighting.pixel_ibl import interpolate_lobes, pixel_dfg, shade_pixel_ibl
+from ..lighting.pixel_ibl import interpolate_lobes, per_row, pixel_dfg, shade_pixel_ibl
 from ..lighting.brdf_lut import lookup_brdf_lut
-from ..lighting.ibl import shade_ibl
+from ..lighting.ibl import OccludedTables, shade_ibl
 
 __all__ = [
     "ViewInputs",
@@ -174,10 +174,14 @@ def shade(
 
     `ibl` is an `pbrfit.lighting.ibl.IBLTables` when ``model.ibl == "split_sum"`` (or with
     ``model.multiscatter``, for the DFG LUT), or the points' `pbrfit.lighting.pixel_ibl.PixelIBL` (one row
-    per point) when ``model.ibl == "per_pixel"``. Occlusion scales indirect (environment) light
-    only. The Monte Carlo integrator is not a shading mode here: it is the reference
-    `pbrfit.lighting.montecarlo.monte_carlo_radiance`.
+    per point) when ``model.ibl == "per_pixel"``; for the split sum it may be
+    `pbrfit.lighting.ibl.OccludedTables` (one row of occlusion factors per point). Occlusion scales
+    indirect (environment) light only. The Monte Carlo integrator is not a shading mode here: it
+    is the reference `pbrfit.lighting.montecarlo.monte_carlo_radiance`.
     """
+    factors = None
+    if isinstance(ibl, OccludedTables):
+        ibl, factors = ibl.tables, ibl.table
     dfg = None
     if model.multiscatter:
         if ibl is None:
@@ -192,7 +196,7 @@ def shade(
         if ibl is None:
             raise ValueError("Model(ibl='split_sum') needs IBL tables; build them with pbrfit.lighting.ibl.build_ibl")
 
-        out = out + shade_ibl(ibl, normal, view, base_color, metallic, roughness, model, occlusion)
+        out = out + shade_ibl(ibl, normal, view, base_color, metallic, roughness, model, occlusion, factors)
     elif model.ibl == "per_pixel":
         if ibl is None:
             raise ValueError("Model(ibl='per_pixel') needs the points' lobe integrals; "
@@ -254,7 +258,7 @@ def radiance_view(
     count = view.num_pixels
     if count == 0:
         return jnp.zeros((0, 3), jnp.float32)
-    per_pixel = model.ibl == "per_pixel" and ibl is not None
+    per_pixel = per_row(ibl)
     pieces = []
     for start in range(0, count, chunk):
         part = _slice(view, start, min(start + chunk, count))

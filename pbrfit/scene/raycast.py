@@ -8,6 +8,9 @@ float64, so where both backends report the same face they give the same distance
 barycentrics; embree's float32 traversal may pick the neighbour across an edge, or miss or add
 a ray that grazes a silhouette.
 
+`any_hit_along` answers a different question, fast and in float64 without embree: which of many
+rays that share one direction (shadow rays towards a distant light) hit anything at all.
+
 Source: T. Möller, B. Trumbore, "Fast, minimum storage ray-triangle intersection", Journal of
 Graphics Tools 2(1), 1997.
 """
@@ -20,7 +23,8 @@ import numpy as np
 import trimesh
 from jaxtyping import Float, Int
 
-__all__ = ["has_embree", "make_first_hit", "cast", "moller_trumbore", "PARALLEL_EPS", "BARYCENTRIC_SLACK", "NORM_FLOOR"]
+__all__ = ["has_embree", "make_first_hit", "cast", "moller_trumbore", "any_hit_along", "PARALLEL_EPS",
+           "BARYCENTRIC_SLACK", "NORM_FLOOR"]
 
 # Ray/triangle determinant floor, relative to |e1||e2||d|: below it the ray runs parallel to
 # the triangle's plane and the hit is treated as a miss (its distance is undefined).
@@ -34,6 +38,12 @@ _NUMPY_BLOCK = 32
 _NUMPY_CHUNK = 1 << 20
 # Vectors shorter than this are treated as zero before normalising (unit-scale quantities).
 NORM_FLOOR = 1e-20
+# `any_hit_along`: origins per pass, origins per cell of its grid on average, (origin, triangle)
+# pairs tested at once (~40 MB per float64 (pairs, 3) array), and the most cells along a side.
+_PARALLEL_CHUNK = 1 << 16
+_PARALLEL_CELL_POINTS = 4
+_PARALLEL_PAIRS = 1 << 21
+_PARALLEL_MAX_CELLS = 1024
 
 has_embree: bool = bool(getattr(trimesh.ray, "has_embree", False))
 
@@ -143,3 +153,92 @@ def cast(first_hit, tri, origins, directions):
     face[idx[~ok]] = -1
     t[idx[ok]], b1[idx[ok]], b2[idx[ok]] = th[ok], b1h[ok], b2h[ok]
     return face, t, b1, b2
+
+
+def _perpendicular(d: np.ndarray) -> np.ndarray:
+    """A unit vector perpendicular to unit ``d`` (crossed with its least-aligned axis)."""
+    axis = np.zeros(3)
+    axis[int(np.argmin(np.abs(d)))] = 1.0
+    e = np.cross(d, axis)
+    return e / np.linalg.norm(e)
+
+
+def _ranges(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For counts c_i: (i repeated c_i times, 0 .. c_i - 1 for each i), concatenated."""
+    owner = np.repeat(np.arange(len(counts)), counts)
+    local = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+    return owner, local
+
+
+def any_hit_along(tri: Float[np.ndarray, "F 3 3"], origins: Float[np.ndarray, "N 3"],
+                  direction: Float[np.ndarray, "3"]) -> np.ndarray:
+    """(N,) bool: whether the ray from each origin along the one ``direction`` hits a triangle at
+    a distance > 0 (float64).
+
+    The rays are parallel, so triangles and origins are projected once onto the plane
+    perpendicular to the direction; the origins are binned on a uniform grid there, and each
+    triangle is tested only against the origins in the cells its projected bounding box
+    covers: inside the projected triangle (barycentrics with `BARYCENTRIC_SLACK`) and behind
+    it (the triangle's depth along the direction at that point beyond the origin's). That is
+    Möller-Trumbore's test for these rays; a triangle seen edge-on (determinant below
+    `PARALLEL_EPS` relative) is missed, as there. Cost: about one test per origin and triangle
+    that overlap in projection, instead of a traversal per ray.
+    """
+    tri = np.asarray(tri, np.float64)
+    origins = np.asarray(origins, np.float64)
+    d = np.asarray(direction, np.float64)
+    d = d / np.linalg.norm(d)
+    e1 = _perpendicular(d)
+    basis = np.stack([e1, np.cross(d, e1)])
+    tri2, trid = tri @ basis.T, tri @ d                                # (F, 3, 2), (F, 3)
+    a, b = tri2[:, 1] - tri2[:, 0], tri2[:, 2] - tri2[:, 0]
+    det = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    scale = np.linalg.norm(tri[:, 1] - tri[:, 0], axis=-1) * np.linalg.norm(tri[:, 2] - tri[:, 0], axis=-1)
+    usable = np.abs(det) > PARALLEL_EPS * scale
+    inv = np.where(usable, 1.0 / np.where(usable, det, 1.0), 0.0)
+    # per triangle, one row: corner 0, the map from (x - corner 0) to (b1, b2), the depth's plane
+    params = np.stack([tri2[:, 0, 0], tri2[:, 0, 1], b[:, 1] * inv, -b[:, 0] * inv, -a[:, 1] * inv, a[:, 0] * inv,
+                       trid[:, 0], trid[:, 1] - trid[:, 0], trid[:, 2] - trid[:, 0]])   # (9, F)
+    tlo, thi, tfar = tri2.min(1), tri2.max(1), trid.max(1)
+    out = np.zeros(len(origins), bool)
+    slack = -BARYCENTRIC_SLACK
+    for s in range(0, len(origins), _PARALLEL_CHUNK):
+        o = origins[s:s + _PARALLEL_CHUNK]
+        o2, od = o @ basis.T, o @ d
+        lo, hi = o2.min(0), o2.max(0)
+        keep = np.flatnonzero(usable & np.all(thi >= lo, 1) & np.all(tlo <= hi, 1) & (tfar > od.min()))
+        if not len(keep):
+            continue
+        extent = np.maximum(hi - lo, NORM_FLOOR)
+        size = max(np.sqrt(extent[0] * extent[1] * _PARALLEL_CELL_POINTS / len(o)),
+                   float(extent.max()) / _PARALLEL_MAX_CELLS)
+        cells = np.clip(np.ceil(extent / size).astype(np.int64), 1, _PARALLEL_MAX_CELLS)
+        to_cell = lambda x: np.floor(np.clip((x - lo) / size, 0, cells - 1)).astype(np.int64)  # noqa: E731
+        oc = to_cell(o2)
+        cell = oc[:, 1] * cells[0] + oc[:, 0]
+        order = np.argsort(cell, kind="stable")
+        points = np.stack([o2[:, 0], o2[:, 1], od])[:, order]           # (3, N) origins in cell order
+        counts = np.bincount(cell, minlength=int(cells[0] * cells[1]))
+        first = np.cumsum(counts) - counts
+        nearest = np.full(len(counts), np.inf)                          # each cell's least origin depth
+        np.minimum.at(nearest, cell, od)
+        c0, c1 = to_cell(tlo[keep]), to_cell(thi[keep])
+        span = c1 - c0 + 1
+        owner, local = _ranges(span[:, 0] * span[:, 1])
+        tc = (c0[owner, 1] + local // span[owner, 0]) * cells[0] + c0[owner, 0] + local % span[owner, 0]
+        tri_of = keep[owner]
+        inside = np.where(tfar[tri_of] > nearest[tc], counts[tc], 0)  # a triangle behind a cell's origins hits none
+        tri_of, tc, inside = tri_of[inside > 0], tc[inside > 0], inside[inside > 0]
+        # (origin, triangle) pairs, a batch of (triangle, cell) entries at a time
+        bounds = np.searchsorted(np.cumsum(inside), np.arange(_PARALLEL_PAIRS, int(inside.sum()), _PARALLEL_PAIRS))
+        for lo_e, hi_e in zip(np.r_[0, bounds], np.r_[bounds, len(tc)]):
+            owner, local = _ranges(inside[lo_e:hi_e])
+            t = params[:, tri_of[lo_e:hi_e][owner]]
+            k = first[tc[lo_e:hi_e]][owner] + local
+            x = points[:, k]
+            qx, qy = x[0] - t[0], x[1] - t[1]
+            b1 = qx * t[2] + qy * t[3]
+            b2 = qx * t[4] + qy * t[5]
+            hit = (b1 >= slack) & (b2 >= slack) & (b1 + b2 <= 1 - slack) & (t[6] + b1 * t[7] + b2 * t[8] > x[2])
+            out[s + order[k[hit]]] = True
+    return out

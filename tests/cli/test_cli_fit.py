@@ -224,6 +224,7 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
          "--ibl-levels: must be between 2 and 256, got 99999999999999999999"),
         (["--max-steps", "99999999999999999999999"], "--max-steps: must be an integer from 1 to 1000000, got 9999"),
         (["--ibl", "exact"], "argument --ibl: invalid choice: 'exact'"),
+        (["--occlusion", "sometimes"], "argument --occlusion: invalid choice: 'sometimes'"),
         (["--roughness", "0.3", "--roughness-from", "__HELD__"],
          "--roughness-from: --roughness holds roughness at a value too; give one of the two"),
         (["--roughness-from", "__OUT__"], "holds the roughness map of --roughness-from"),
@@ -500,6 +501,10 @@ def test_per_pixel_ibl_fit_of_a_monte_carlo_capture(tmp_path, monkeypatch, capsy
     assert report["ibl"]["mode"] == "per_pixel" and report["ibl"]["samples"] == 32 and report["ibl"]["levels"] == 5
     assert report["ibl"]["seconds"] > 0 and len(report["psnr"]) == 3 and all(np.isfinite(report["psnr"]))
     assert len(list((tmp_path / "cache").glob("pixel-ibl-*.npy"))) == 1  # cached with the G-buffers
+    # a sphere alone: the default occlusion="auto" casts no ray
+    occlusion = report["occlusion"]
+    assert occlusion["mode"] == "auto" and not occlusion["used"] and "no face" in occlusion["reason"]
+    assert not list((tmp_path / "cache").glob("visibility-*.npy"))
 
 
 def test_per_pixel_ibl_without_an_environment_warns_and_fits(capture, tmp_path, monkeypatch, capsys):
@@ -733,3 +738,20 @@ def test_a_capture_too_bright_for_float32_is_refused_not_written(capture, tmp_pa
     assert main(["fit", str(hot), "--out", str(out), "--resolution", "8", "--max-steps", "8", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "came out NaN or beyond float32" in err and err.count("\n") == 1 and not out.exists(), err
+
+
+def test_occlusion_of_a_sphere_on_a_floor(tmp_path, monkeypatch):
+    """A sphere on a floor under a sky: "auto" finds the shadows, casts the rays (cached with the
+    G-buffers) and the split sum fits with its occlusion factors."""
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    cap, out = tmp_path / "cap", tmp_path / "out"
+    assert main(["synth", "sphere-floor", "--out", str(cap), "--size", "24", "--views", "3", "--texture-size", "16",
+                 "--quiet"]) == 0
+    assert main(["fit", str(cap), "--out", str(out), "--maps", "none", "--max-steps", "5", "--no-repair",
+                 "--no-uniform-check", "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    occlusion = report["occlusion"]
+    assert occlusion["mode"] == "auto" and occlusion["used"] and occlusion["probed_share"] > 0.01
+    assert occlusion["cells"] > 0 and occlusion["rows"] > 0 and occlusion["seconds"] > 0
+    assert all(np.isfinite(report["psnr"]))
+    assert len(list((tmp_path / "cache").glob("visibility-*.npy"))) == 1
