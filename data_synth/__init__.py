@@ -8,7 +8,9 @@ Procedural pieces, each reproducible from a `numpy.random.Generator`:
 - `meshes`: plane, UV sphere, rounded box, torus with glTF-oriented uv, a user's mesh;
 - `rigs`: orbit, hemisphere and handheld camera rigs (OpenGL camera-to-world);
 - `noise`: supersampling, Gaussian and Poisson-Gaussian noise, 8/16-bit quantisation;
-- `presets`: the scenes (`make_scene`), `writer`: rendering and writing a capture folder.
+- `presets`: the scenes (`make_scene`), `writer`: rendering and writing a capture folder;
+- `mitsuba_render`: a second renderer, Mitsuba 3's path tracer (the ``mitsuba`` extra), with the
+  BRDF and punctual lights as Mitsuba plugins in `mitsuba_plugins`.
 
     from data_synth import make_scene, synthesize
     synthesize(make_scene("plane-flash", seed=0), "captures/plane-flash")

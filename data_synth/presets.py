@@ -41,7 +41,8 @@ from . import environments, meshes, rigs, textures
 from .meshes import MeshData
 from .textures import TruthMaps
 
-__all__ = ["Scene", "Flash", "PRESETS", "IMAGE_FORMATS", "make_scene", "preset_names", "describe_presets"]
+__all__ = ["Scene", "Flash", "PRESETS", "IMAGE_FORMATS", "RENDERERS", "MIN_DEPTH", "INTERREFLECTION_DEPTH",
+           "make_scene", "preset_names", "describe_presets"]
 
 #: Image file types a scene can be written as: (suffix, OpenImageIO pixel type, color space,
 #: quantisation bits (0 = float)).
@@ -50,6 +51,14 @@ IMAGE_FORMATS = {
     "png16": (".png", "uint16", "srgb", 16),
     "png8": (".png", "uint8", "srgb", 8),
 }
+
+#: What renders a scene: pbrfit's own renderer, or Mitsuba 3's path tracer (the ``mitsuba`` extra).
+RENDERERS = ("pbrfit", "mitsuba")
+#: The least ``Scene.max_depth``: the camera's vertex and one towards a light (direct light).
+MIN_DEPTH = 2
+#: ``Scene.max_depth`` of the presets whose mesh is not convex: direct light and light reflected up
+#: to twice between surfaces.
+INTERREFLECTION_DEPTH = 4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,6 +98,13 @@ class Scene:
             (`pbrfit.lighting.montecarlo.monte_carlo_radiance`, ``mc_samples`` steps per pixel sample)
             rather than the split sum: ground truth, as a path tracer would render it.
         mc_samples: see ``model``.
+        renderer: ``"pbrfit"`` (the project's own renderer, as ``model`` says) or ``"mitsuba"`` (Mitsuba 3's
+            path tracer, `data_synth.mitsuba_render`: every shadow, and light between surfaces).
+        max_depth: ``"mitsuba"``: the path tracer's longest path, camera vertex included: 2 is direct
+            light only, 3 and more add light reflected between surfaces. The presets pick 2 for a
+            convex mesh (where nothing else is there to reflect) and `INTERREFLECTION_DEPTH` otherwise.
+        spp: ``"mitsuba"``: samples per pixel; None: as many as bring the noise below
+            `data_synth.mitsuba_render.NOISE_TARGET`.
         params: the preset's parameters, for ``truth/synth.json``.
     """
 
@@ -113,6 +129,9 @@ class Scene:
     noise_model: str = "gaussian"
     model: Any = None
     mc_samples: int = 1024
+    renderer: str = "pbrfit"
+    max_depth: int = MIN_DEPTH
+    spp: Optional[int] = None
     params: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
@@ -133,6 +152,12 @@ class Scene:
             raise ValueError(f"mc_samples must be >= 1, got {self.mc_samples}")
         if int(self.supersample) < 1:
             raise ValueError(f"supersample must be >= 1, got {self.supersample}")
+        if self.renderer not in RENDERERS:
+            raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
+        if int(self.max_depth) < MIN_DEPTH:
+            raise ValueError(f"max_depth must be >= {MIN_DEPTH} (direct light), got {self.max_depth}")
+        if self.spp is not None and int(self.spp) < 1:
+            raise ValueError(f"spp must be >= 1 or None, got {self.spp}")
 
     @property
     def color_space(self) -> str:
@@ -268,7 +293,7 @@ def _spheres_grid(seed: int, **kw) -> Scene:
         name="spheres-grid", seed=seed, mesh=mesh, truth=truth, cameras=cams,
         camera_angle_x=math.radians(p["fov_deg"]), width=p["size"], height=p["size"], lights=(key,),
         environment=env, image_format=p["image_format"], supersample=p["supersample"], noise=p["noise"],
-        noise_model=p["noise_model"], params=p,
+        noise_model=p["noise_model"], max_depth=INTERREFLECTION_DEPTH, params=p,
     )  # fmt: skip
 
 
@@ -277,6 +302,7 @@ def _mesh_env(seed: int, **kw) -> Scene:
                          image_format="exr", shape="torus", mesh=None, distance=4.0, fov_deg=40.0, env_width=256,
                          metal="smooth"))
     rng = np.random.default_rng(seed)
+    depth = MIN_DEPTH if p["mesh"] is None and p["shape"] in ("box", "sphere") else INTERREFLECTION_DEPTH  # convex?
     if p["mesh"] is not None:
         mesh = meshes.load_mesh(p["mesh"], normalize=True)
         p["mesh"] = str(p["mesh"])
@@ -295,7 +321,7 @@ def _mesh_env(seed: int, **kw) -> Scene:
         name="mesh-env", seed=seed, mesh=mesh, truth=truth, cameras=cams,
         camera_angle_x=math.radians(p["fov_deg"]), width=p["size"], height=p["size"], environment=env,
         image_format=p["image_format"], supersample=p["supersample"], noise=p["noise"],
-        noise_model=p["noise_model"], params=p,
+        noise_model=p["noise_model"], max_depth=depth, params=p,
     )  # fmt: skip
 
 
@@ -322,7 +348,8 @@ def _demo(seed: int, **kw) -> Scene:
     return Scene(
         name="demo", seed=seed, mesh=mesh, truth=truth, cameras=cams, camera_angle_x=math.radians(p["fov_deg"]),
         width=p["size"], height=p["size"], lights=(light,), environment=env, image_format=p["image_format"],
-        supersample=p["supersample"], noise=p["noise"], noise_model=p["noise_model"], params=p,
+        supersample=p["supersample"], noise=p["noise"], noise_model=p["noise_model"],
+        max_depth=INTERREFLECTION_DEPTH, params=p,
     )  # fmt: skip
 
 

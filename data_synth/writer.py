@@ -9,7 +9,7 @@ The folder (built under a temporary name and renamed into place, so a failure le
     masks/NNN.png       8-bit, 255 where every supersample of the pixel hits the mesh
     truth/              the maps that rendered the images, in the fit-output layout
                         (base_color.exr/.png, metallic.exr, roughness.exr, metallic_roughness.png),
-                        material.glb, and synth.json (preset, seed, parameters, model, sensor)
+                        material.glb, and synth.json (preset, seed, parameters, model, renderer, sensor)
     contact_sheet.png   every view side by side (sRGB 8-bit)
 
 Rendering uses the project's own path, so a fit sees exactly the geometry that made the images:
@@ -23,6 +23,11 @@ render it). Each view is rendered at ``supersample`` times the size; where the
 mesh is not hit the environment (or black) shows. The radiance is box-filtered down, exposed,
 tone mapped and encoded (`pbrfit.physics.color.encode`); noise is added to those display values and
 only then are they quantised to the file's bit depth.
+
+With ``scene.renderer == "mitsuba"`` the radiance of each view comes from Mitsuba 3's path tracer
+instead (`data_synth.mitsuba_render`, the ``mitsuba`` extra), at the final size with each pixel the
+mean over its area; the masks (from pbrfit's G-buffers at the supersampled size), the encoding,
+the noise and the files are the same.
 """
 
 from __future__ import annotations
@@ -60,6 +65,8 @@ class SynthResult:
         clean: per view, the display values before noise and quantisation.
         masks: per view, (H, W) bool.
         seconds: wall time.
+        renderer: what rendered the radiance, as ``truth/synth.json`` records it (``name``, and for
+            Mitsuba its version, variant, max_depth, samples per pixel and noise level).
     """
 
     path: Path
@@ -68,6 +75,7 @@ class SynthResult:
     clean: list
     masks: list
     seconds: float
+    renderer: dict = dataclasses.field(default_factory=dict)
 
 
 def frame_camera(scene: Scene, c2w: np.ndarray, supersample: int = 1):
@@ -79,7 +87,8 @@ def frame_camera(scene: Scene, c2w: np.ndarray, supersample: int = 1):
     return Camera.from_fov(c2w, scene.camera_angle_x, scene.width * k, scene.height * k)
 
 
-def _frame_lights(scene: Scene, c2w: np.ndarray) -> tuple:
+def frame_lights(scene: Scene, c2w: np.ndarray) -> tuple:
+    """The lights of a frame, in capture order: the global lights, then the flash."""
     from pbrfit.physics.lights import flash_light
 
     lights = tuple(scene.lights)
@@ -90,17 +99,54 @@ def _frame_lights(scene: Scene, c2w: np.ndarray) -> tuple:
 
 
 def render_scene(scene: Scene, mesh, environment=None, ibl=None, progress: Optional[Callable[[str], None]] = None):
-    """Clean display values and masks of every view: ([(H, W, 3) float32], [(H, W) bool]).
+    """Clean display values, masks and the renderer's record of every view:
+    ([(H, W, 3) float32], [(H, W) bool], dict).
 
     `mesh`: a `trimesh.Trimesh` with glTF-oriented uv (as `pbrfit.scene.mesh.load_mesh` returns);
     `environment`: a `pbrfit.lighting.environment.Environment` or None; `ibl`: its split-sum tables when
     ``scene.model.ibl == "split_sum"`` (or ``model.multiscatter``); with ``"monte_carlo"`` the
-    environment light is integrated per pixel sample by the reference (`Scene.mc_samples`).
+    environment light is integrated per pixel sample by the reference (`Scene.mc_samples`). With
+    ``scene.renderer == "mitsuba"`` the radiance comes from Mitsuba's path tracer instead
+    (`data_synth.mitsuba_render.render_views`, which ignores `ibl`); masks and encoding are the same.
     """
+    from pbrfit.physics.color import encode
+
+    if scene.renderer == "mitsuba":
+        from .mitsuba_render import render_views  # the optional extra: imported only when asked for
+
+        masks = [_mask(hit, scene.supersample) for hit in _hits(scene, mesh, progress)]
+        views = render_views(scene, mesh, environment, masks, scene.spp, progress)
+        radiance, record = views.radiance, views.record(scene)
+    else:
+        radiance, masks = _render_pbrfit(scene, mesh, environment, ibl, progress)
+        record = {"name": "pbrfit"}
+    images = [np.asarray(encode(img, float(ev), scene.tonemap, scene.color_space), np.float32)
+              for img, ev in zip(radiance, scene.exposures)]
+    return images, masks, record
+
+
+def _mask(hit: np.ndarray, supersample: int) -> np.ndarray:
+    """(H, W) bool: the pixels all of whose `supersample` x `supersample` samples hit the mesh."""
+    return sensor.box_downsample(np.asarray(hit, np.float32)[..., None], int(supersample))[..., 0] >= 1.0
+
+
+def _hits(scene: Scene, mesh, progress=None) -> list:
+    """Per view, (H k, W k) bool: where the rays through the supersamples' centres hit the mesh."""
+    from pbrfit.scene.gbuffer import compute_gbuffer
+
+    hits = []
+    for i, c2w in enumerate(scene.cameras):
+        hits.append(np.asarray(compute_gbuffer(mesh, frame_camera(scene, c2w, scene.supersample)).hit, bool))
+        if progress:
+            progress(f"geometry {i + 1}/{scene.num_views}")
+    return hits
+
+
+def _render_pbrfit(scene: Scene, mesh, environment=None, ibl=None, progress=None):
+    """pbrfit's own radiance and masks of every view: ([(H, W, 3) float32], [(H, W) bool]); see `render_scene`."""
     import jax
     import jax.numpy as jnp
 
-    from pbrfit.physics.color import encode
     from pbrfit.lighting.environment import environment_lookup
     from pbrfit.scene.gbuffer import compute_gbuffer
     from pbrfit.render.shade import ViewInputs, prepare_view, radiance_view
@@ -111,7 +157,7 @@ def render_scene(scene: Scene, mesh, environment=None, ibl=None, progress: Optio
     views, hits, backgrounds = [], [], []
     for i, c2w in enumerate(scene.cameras):
         camera = frame_camera(scene, c2w, k)
-        lights = _frame_lights(scene, c2w)
+        lights = frame_lights(scene, c2w)
         gbuffer = compute_gbuffer(mesh, camera, lights)
         views.append(prepare_view(gbuffer, lights))
         hits.append(np.asarray(gbuffer.hit, bool))
@@ -143,16 +189,13 @@ def render_scene(scene: Scene, mesh, environment=None, ibl=None, progress: Optio
         progress("shaded")
     out_images, out_masks = [], []
     start = 0
-    for i, (view, hit, bg) in enumerate(zip(views, hits, backgrounds)):
+    for view, hit, bg in zip(views, hits, backgrounds):
         n = view.num_pixels
         img = np.zeros((hk * wk, 3), np.float32) if bg is None else bg.reshape(-1, 3).astype(np.float32)
         img[np.asarray(view.pixel)] = radiance[start : start + n]
         start += n
-        img = sensor.box_downsample(img.reshape(hk, wk, 3), k)
-        coverage = sensor.box_downsample(hit.astype(np.float32)[..., None], k)[..., 0]
-        display = np.asarray(encode(img, float(scene.exposures[i]), scene.tonemap, scene.color_space), np.float32)
-        out_images.append(display)
-        out_masks.append(coverage >= 1.0)
+        out_images.append(sensor.box_downsample(img.reshape(hk, wk, 3), k))
+        out_masks.append(_mask(hit, k))
     return out_images, out_masks
 
 
@@ -240,7 +283,7 @@ def contact_sheet(images, color_space: str, columns: Optional[int] = None, gap: 
     return sheet
 
 
-def _synth_json(scene: Scene, seconds: float) -> dict:
+def _synth_json(scene: Scene, seconds: float, renderer: dict) -> dict:
     def plain(x):
         if isinstance(x, (np.floating, np.integer)):
             return x.item()
@@ -253,9 +296,11 @@ def _synth_json(scene: Scene, seconds: float) -> dict:
         "seed": scene.seed,
         "params": {k: plain(v) for k, v in scene.params.items()},
         "model": scene.model.describe(),
-        "ibl_settings": {"split_sum": "pbrfit.lighting.ibl.IBLSettings() defaults",
-                         "monte_carlo": f"pbrfit.lighting.montecarlo.monte_carlo_radiance, {int(scene.mc_samples)} samples"
-                         }.get(scene.model.ibl),
+        "renderer": renderer,
+        "ibl_settings": None if scene.renderer != "pbrfit" else {
+            "split_sum": "pbrfit.lighting.ibl.IBLSettings() defaults",
+            "monte_carlo": f"pbrfit.lighting.montecarlo.monte_carlo_radiance, {int(scene.mc_samples)} samples"
+        }.get(scene.model.ibl),
         "image_format": scene.image_format,
         "color_space": scene.color_space,
         "tonemap": scene.tonemap,
@@ -296,15 +341,15 @@ def synthesize(
         if scene.environment is not None:
             write_environment(tmp / "env.exr", scene.environment)
             environment = load_environment(tmp / "env.exr", scene.world_up, scene.environment_intensity, 0.0)
-            if scene.model.ibl == "split_sum" or scene.model.multiscatter:
+            if scene.renderer == "pbrfit" and (scene.model.ibl == "split_sum" or scene.model.multiscatter):
                 from pbrfit.lighting.ibl import IBLSettings, build_ibl
 
                 ibl = build_ibl(environment, IBLSettings(), scene.model)
-        elif scene.model.multiscatter:  # punctual lights alone: the energy compensation's tables
+        elif scene.renderer == "pbrfit" and scene.model.multiscatter:  # punctual lights alone: compensation tables
             from pbrfit.lighting.ibl import brdf_tables
 
             ibl = brdf_tables(model=scene.model)
-        clean, masks = render_scene(scene, mesh, environment, ibl, progress)
+        clean, masks, renderer = render_scene(scene, mesh, environment, ibl, progress)
 
         rng = np.random.default_rng([scene.seed, 0x5E5])  # the sensor's own stream
         images = [sensor.quantize(sensor.add_noise(c, scene.noise, rng, scene.noise_model), bits) for c in clean]
@@ -323,5 +368,5 @@ def synthesize(
         if write_contact_sheet:
             write_image(tmp / "contact_sheet.png", contact_sheet(images, color_space), "uint8")
         seconds = time.perf_counter() - t0
-        (truth / "synth.json").write_text(json.dumps(_synth_json(scene, seconds), indent=2) + "\n")
-    return SynthResult(out, scene, images, clean, masks, time.perf_counter() - t0)
+        (truth / "synth.json").write_text(json.dumps(_synth_json(scene, seconds, renderer), indent=2) + "\n")
+    return SynthResult(out, scene, images, clean, masks, time.perf_counter() - t0, renderer)

@@ -78,11 +78,12 @@ def add_fit(sub) -> None:
                    help=f"per_pixel: sample steps per pixel (default {PixelIBLSettings.samples})")
     p.add_argument("--ibl-levels", type=int,
                    help=f"per_pixel: roughness levels tabulated (default {PixelIBLSettings.levels})")
-    p.add_argument("--occlusion", choices=OCCLUSION_MODES, default=OCCLUSION_MODES[0],
+    p.add_argument("--occlusion", choices=OCCLUSION_MODES,
                    help="whether the mesh shadows the environment light on itself (a shadow ray per observed point and "
-                        "direction cell, cast once and cached; both --ibl modes use it): auto (default: on where a "
-                        "probe finds the mesh blocking a meaningful share of the light; a convex mesh casts nothing), "
-                        "on or off; report.json's \"occlusion\" says which and its time")
+                        "direction cell, cast once and cached; both --ibl modes use it): off (default: as pbrfit's "
+                        "own renders, which model no occlusion), auto (on where a probe finds the mesh blocking a "
+                        "meaningful share of the light; a convex mesh casts nothing) or on, for a capture from a path "
+                        "tracer or a camera; report.json's \"occlusion\" says which and its time")
     p.add_argument("--pixel-samples", default="auto", metavar="{auto,N}",
                    help=f"shade N x N samples per pixel (N from 1 to {MAX_PIXEL_SAMPLES}) and fit their mean: the pixel "
                         "footprint of an antialiased or supersampled capture (1: pixel centres; cost grows as N^2). Default auto: pixel centres for "

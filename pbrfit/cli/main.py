@@ -18,8 +18,10 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from data_synth.mitsuba_render import MAX_SPP, NOISE_TARGET
 from data_synth.noise import NOISE_MODELS
-from data_synth.presets import IMAGE_FORMATS, describe_presets, make_scene, preset_names
+from data_synth.presets import (IMAGE_FORMATS, INTERREFLECTION_DEPTH, MIN_DEPTH, RENDERERS, describe_presets,
+                                make_scene, preset_names)
 from data_synth.writer import synthesize
 
 from .demo import run_demo
@@ -164,12 +166,21 @@ def _add_synth(sub) -> None:
                    help="environment light: split_sum (default; pbrfit's renderer) or monte_carlo (the reference "
                         "integrator: ground truth, as a path tracer renders it)")
     p.add_argument("--ibl-samples", type=int, help="monte_carlo: sample steps per pixel sample (default 1024)")
+    p.add_argument("--renderer", choices=RENDERERS, default="pbrfit",
+                   help="pbrfit (default) or mitsuba: Mitsuba 3's path tracer (pip install 'pbrfit[mitsuba]'), "
+                        "with every shadow and, with --max-depth 3 or more, light between surfaces")
+    p.add_argument("--max-depth", type=int, help=f"mitsuba: longest light path, {MIN_DEPTH} = direct light only "
+                                                 f"(default: the preset's, {MIN_DEPTH} for a convex mesh, else "
+                                                 f"{INTERREFLECTION_DEPTH})")
+    p.add_argument("--spp", type=int, help="mitsuba: samples per pixel (default: enough for noise below "
+                                           f"{100 * NOISE_TARGET:g}%%)")
     p.add_argument("--quiet", action="store_true", help="print nothing on success")
 
 
 def _cmd_synth(args) -> int:
     bounds = (("size", 1, MAX_SIZE), ("views", 1, MAX_VIEWS), ("supersample", 1, MAX_SUPERSAMPLE),
-              ("texture_size", 1, MAX_SIZE), ("ibl_samples", 1, MAX_SAMPLES), ("seed", 0, None))
+              ("texture_size", 1, MAX_SIZE), ("ibl_samples", 1, MAX_SAMPLES), ("seed", 0, None),
+              ("max_depth", MIN_DEPTH, None), ("spp", 1, MAX_SPP))
     for name, low, high in bounds:
         value = getattr(args, name)
         if value is not None and value < low:
@@ -185,6 +196,11 @@ def _cmd_synth(args) -> int:
         raise CaptureError("--ibl-samples: only --ibl monte_carlo uses it")
     if args.mesh is not None and args.shape is not None:
         raise CaptureError("--shape: --mesh gives the mesh already; give one of the two")
+    for name in ("max_depth", "spp"):
+        if getattr(args, name) is not None and args.renderer != "mitsuba":
+            raise CaptureError(f"--{name.replace('_', '-')}: only --renderer mitsuba uses it")
+    if args.renderer == "mitsuba" and (args.ibl != "split_sum" or args.ibl_samples is not None):
+        raise CaptureError("--ibl: --renderer mitsuba integrates the environment itself, by path tracing")
     out = Path(args.out)
     check_output_dir(out, "capture")
     overrides = dict(
@@ -198,12 +214,21 @@ def _cmd_synth(args) -> int:
             raise CaptureError(f"--ibl monte_carlo: preset {args.preset} has no environment light to integrate")
         samples = 1024 if args.ibl_samples is None else args.ibl_samples
         scene = scene.replace(model=scene.model.replace(ibl="monte_carlo"), mc_samples=samples)
+    if args.renderer == "mitsuba":
+        from data_synth.mitsuba_render import check_scene, load_mitsuba
+
+        load_mitsuba()  # the extra and its LLVM, before any work
+        scene = scene.replace(renderer="mitsuba", spp=args.spp,
+                              max_depth=scene.max_depth if args.max_depth is None else args.max_depth)
+        check_scene(scene)
     result = synthesize(scene, out)
     if not args.quiet:
         h, w = scene.truth.shape
+        how = "" if args.renderer != "mitsuba" else (f", mitsuba max_depth {scene.max_depth}, {result.renderer['spp']} "
+                                                   f"spp, noise {result.renderer['noise']:.2%}")
         print(
             f"synth {scene.name} (seed {scene.seed}): {scene.num_views} views {scene.width}x{scene.height} "
-            f"{scene.image_format}, maps {w}x{h} -> {out} ({result.seconds:.1f} s)"
+            f"{scene.image_format}, maps {w}x{h}{how} -> {out} ({result.seconds:.1f} s)"
         )
     return EXIT_OK
 

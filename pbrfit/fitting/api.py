@@ -270,9 +270,10 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
             (`pbrfit.lighting.visibility`): "on" casts a shadow ray per observed point and
             direction cell once, before the solve (cached in ``cache_dir``), and both IBL modes
             use it (the per-pixel integrals per sample direction, the split sum as per-point
-            factors); "off" lets the whole environment reach every point; "auto" (default) is
-            "on" where a probe of a few points finds the mesh blocking at least
-            ``occlusion_settings.auto_share`` of their irradiance (a convex mesh casts nothing).
+            factors); "off" (default, as pbrfit's own renders) lets the whole environment reach
+            every point; "auto" is "on" where a probe of a few points finds the mesh blocking at
+            least ``occlusion_settings.auto_share`` of their irradiance (a convex mesh casts
+            nothing): for captures from a path tracer or a camera.
             The report's "occlusion" entry says which, why, and the time it took. Ignored
             without an environment.
         resolution: map size N (or (H, W)); default `default_resolution(capture)`.

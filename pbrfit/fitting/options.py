@@ -250,7 +250,7 @@ class FitOptions:
     # how the images are modelled
     ibl: Optional[str] = None
     pixel_ibl_settings: PixelIBLSettings = PixelIBLSettings()
-    occlusion: str = "auto"
+    occlusion: str = "off"  # pbrfit's own renders (synth, render) model no occlusion yet
     occlusion_settings: OcclusionSettings = OcclusionSettings()
     pixel_samples: Union[str, int] = "auto"
     wrap: str = "repeat"

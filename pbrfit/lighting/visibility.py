@@ -44,9 +44,9 @@ from .environment import Environment, direction_to_uv, dot3, from_environment_fr
 __all__ = ["OCCLUSION_MODES", "OcclusionSettings", "DirectionCells", "direction_cells", "Visibility",
            "visibility_rows", "visible", "SPECULAR_LEVELS", "split_sum_factors", "factors_at"]
 
-#: ``occlusion=``: "auto" (on where the mesh blocks a meaningful share of the environment light,
-#: `OcclusionSettings.auto_share`), "on" or "off"; the first is the default.
-OCCLUSION_MODES = ("auto", "on", "off")
+#: ``occlusion=``: "off", "auto" (on where the mesh blocks a meaningful share of the environment
+#: light, `OcclusionSettings.auto_share`) or "on" (`pbrfit.FitOptions.occlusion` holds the default).
+OCCLUSION_MODES = ("off", "auto", "on")
 #: Roughness levels of the split sum's specular factor (`split_sum_factors`), r_j = j / (levels - 1).
 SPECULAR_LEVELS = 5
 

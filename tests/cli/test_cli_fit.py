@@ -501,9 +501,8 @@ def test_per_pixel_ibl_fit_of_a_monte_carlo_capture(tmp_path, monkeypatch, capsy
     assert report["ibl"]["mode"] == "per_pixel" and report["ibl"]["samples"] == 32 and report["ibl"]["levels"] == 5
     assert report["ibl"]["seconds"] > 0 and len(report["psnr"]) == 3 and all(np.isfinite(report["psnr"]))
     assert len(list((tmp_path / "cache").glob("pixel-ibl-*.npy"))) == 1  # cached with the G-buffers
-    # a sphere alone: the default occlusion="auto" casts no ray
-    occlusion = report["occlusion"]
-    assert occlusion["mode"] == "auto" and not occlusion["used"] and "no face" in occlusion["reason"]
+    # occlusion is off by default, as in the Monte Carlo render: no ray cast
+    assert report["occlusion"]["mode"] == "off" and not report["occlusion"]["used"]
     assert not list((tmp_path / "cache").glob("visibility-*.npy"))
 
 
@@ -745,10 +744,10 @@ def test_occlusion_of_a_sphere_on_a_floor(tmp_path, monkeypatch):
     G-buffers) and the split sum fits with its occlusion factors."""
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
     cap, out = tmp_path / "cap", tmp_path / "out"
-    assert main(["synth", "sphere-floor", "--out", str(cap), "--size", "24", "--views", "3", "--texture-size", "16",
+    assert main(["synth", "sphere-floor", "--out", str(cap), "--size", "16", "--views", "2", "--texture-size", "8",
                  "--quiet"]) == 0
-    assert main(["fit", str(cap), "--out", str(out), "--maps", "none", "--max-steps", "5", "--no-repair",
-                 "--no-uniform-check", "--quiet"]) == 0
+    assert main(["fit", str(cap), "--out", str(out), "--maps", "none", "--max-steps", "2", "--no-repair",
+                 "--no-uniform-check", "--occlusion", "auto", "--quiet"]) == 0
     report = json.loads((out / "report.json").read_text())
     occlusion = report["occlusion"]
     assert occlusion["mode"] == "auto" and occlusion["used"] and occlusion["probed_share"] > 0.01
