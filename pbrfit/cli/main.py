@@ -27,7 +27,7 @@ from data_synth.writer import synthesize
 from .demo import run_demo
 from .fit import add_fit, fit_options, fit_summary, run_fit
 from .model_flag import add_model_argument, model_changes
-from ..checks.gradcheck import print_report, run_checks
+from ..checks import gradcheck
 from ..errors import CaptureError
 from ..fitting.options import MATERIAL_MAPS
 from ..fitting.runner import enable_compilation_cache
@@ -56,8 +56,8 @@ def _add_check_grads(sub) -> None:
 
 
 def _cmd_check_grads(args) -> int:
-    results = run_checks()
-    ok = print_report(results, quiet=args.quiet)
+    results = gradcheck.run_checks()
+    ok = gradcheck.print_report(results, quiet=args.quiet)
     return EXIT_OK if ok else EXIT_FAILED
 
 
