@@ -280,7 +280,7 @@ def test_model_option_fits_a_capture_rendered_with_that_brdf(capture, tmp_path, 
     for name, extra in (("burley", ["--model", "diffuse=burley"]), ("lambert", [])):
         out = tmp_path / f"fit-{name}"
         assert main(["fit", str(burley), "--out", str(out), "--resolution", "8", "--max-steps", "30",
-                     "--quiet", *extra]) == 0
+                     "--no-search", "--no-repair", "--no-uniform-check", "--quiet", *extra]) == 0
         reports[name] = json.loads((out / "report.json").read_text())
     assert reports["burley"]["model"]["diffuse"] == "burley" and reports["lambert"]["model"]["diffuse"] == "lambert"
     assert reports["burley"]["final_loss"] < 1e-3 * reports["lambert"]["final_loss"]
@@ -726,7 +726,8 @@ def test_a_capture_too_bright_for_float32_is_refused_not_written(capture, tmp_pa
 
     with monkeypatch.context() as m:
         m.setattr(pbrfit.fitting.api, "_check_brightness", lambda capture: None)
-        assert main(["fit", str(hot), "--out", str(out), "--resolution", "8", "--max-steps", "8", "--quiet"]) == 2
+        assert main(["fit", str(hot), "--out", str(out), "--resolution", "8", "--max-steps", "8", "--no-search",
+                     "--no-repair", "--no-uniform-check", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "the fit's loss came out NaN or beyond float32" in err and err.count("\n") == 1 and not out.exists(), err
     # a light that bright: the fit comes out NaN, and is refused after it

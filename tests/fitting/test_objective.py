@@ -29,11 +29,13 @@ def test_texels_on_the_boxs_bounds_keep_their_derivative_on_every_pixel():
     np.testing.assert_allclose(m, mixed, atol=1e-6)
     # the Jacobian at the bound against the one a few ulps inside (roughness up, metallic down)
     inside = x.at[:, 4].set(x[:, 4] * (1 + 1e-6)).at[:, 3].set(1 - 1e-6)
-    _, jac, _ = linearize(x, problem)
-    _, jac_in, _ = linearize(inside, problem)
+    # jitted, as the fit runs them (and one compile each, not one per operation)
+    lin = jax.jit(linearize)
+    _, jac, _ = lin(x, problem)
+    _, jac_in, _ = lin(inside, problem)
     for c in (3, 4):
         np.testing.assert_allclose(np.asarray(jac[:, :, c]), np.asarray(jac_in[:, :, c]), rtol=2e-3, atol=1e-6)
     # and through autodiff of the residuals (the optimistix solvers' path): derivative 1 past the projection
-    d = jax.jvp(lambda v: pixel_residuals(v, problem), (x,), (jnp.zeros_like(x).at[:, 4].set(1.0),))[1]
-    d_in = jax.jvp(lambda v: pixel_residuals(v, problem), (inside,), (jnp.zeros_like(x).at[:, 4].set(1.0),))[1]
+    along = jax.jit(lambda v, p: jax.jvp(lambda u: pixel_residuals(u, p), (v,), (jnp.zeros_like(v).at[:, 4].set(1.0),))[1])
+    d, d_in = along(x, problem), along(inside, problem)
     np.testing.assert_allclose(np.asarray(d), np.asarray(d_in), rtol=2e-3, atol=1e-6)
