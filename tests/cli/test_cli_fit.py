@@ -739,19 +739,3 @@ def test_a_capture_too_bright_for_float32_is_refused_not_written(capture, tmp_pa
     err = capsys.readouterr().err
     assert "came out NaN or beyond float32" in err and err.count("\n") == 1 and not out.exists(), err
 
-
-def test_occlusion_of_a_sphere_on_a_floor(tmp_path, monkeypatch):
-    """A sphere on a floor under a sky: "auto" finds the shadows, casts the rays (cached with the
-    G-buffers) and the split sum fits with its occlusion factors."""
-    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
-    cap, out = tmp_path / "cap", tmp_path / "out"
-    assert main(["synth", "sphere-floor", "--out", str(cap), "--size", "16", "--views", "2", "--texture-size", "8",
-                 "--quiet"]) == 0
-    assert main(["fit", str(cap), "--out", str(out), "--maps", "none", "--max-steps", "2", "--no-repair",
-                 "--no-uniform-check", "--occlusion", "auto", "--quiet"]) == 0
-    report = json.loads((out / "report.json").read_text())
-    occlusion = report["occlusion"]
-    assert occlusion["mode"] == "auto" and occlusion["used"] and occlusion["probed_share"] > 0.01
-    assert occlusion["cells"] > 0 and occlusion["rows"] > 0 and occlusion["seconds"] > 0
-    assert all(np.isfinite(report["psnr"]))
-    assert len(list((tmp_path / "cache").glob("visibility-*.npy"))) == 1

@@ -1094,3 +1094,23 @@ def test_residual_variance_under_a_prior_is_the_pixels_alone():
     n_par = res.report["observed_texels"] * len(res.report["fitted"])
     pixels_only = math.sqrt(np.sum(d * d) / (d.size - n_par))
     assert res.report["residual_sigma"] == pytest.approx(pixels_only, rel=1e-3)
+
+
+def test_occlusion_of_a_sphere_on_a_floor(tmp_path):
+    """A sphere on a floor under a sky: "auto" finds the shadows, casts the rays (cached with the
+    G-buffers) and the split sum fits with its occlusion factors (a coarse cell grid: the
+    wiring is the subject, `tests/lighting/test_visibility.py` checks the values)."""
+    from data_synth.presets import make_scene
+    from data_synth.writer import synthesize
+    from pbrfit.lighting.visibility import OcclusionSettings
+    from pbrfit.scene.capture import load_capture
+
+    synthesize(make_scene("sphere-floor", size=16, views=2, texture_size=8), tmp_path / "cap")
+    cache = tmp_path / "cache"
+    res = pbrfit.fit(load_capture(tmp_path / "cap"), maps="none", max_steps=2, repair=False, uniform_check=False,
+                     occlusion="auto", occlusion_settings=OcclusionSettings(rows=4, probe_points=128), cache_dir=cache)
+    occlusion = res.report["occlusion"]
+    assert occlusion["mode"] == "auto" and occlusion["used"] and occlusion["probed_share"] > 0.01
+    assert occlusion["cells"] > 0 and occlusion["rows"] > 0 and occlusion["seconds"] > 0
+    assert all(np.isfinite(res.report["psnr"]))
+    assert len(list(cache.glob("visibility-*.npy"))) == 1
