@@ -60,7 +60,7 @@ def test_fit_with_an_estimated_noise_level(capture, tmp_path, monkeypatch, capsy
                  "--noise", "0.02", "--noise-model", "relative", "--format", "png16", "--quiet"]) == 0
     out = tmp_path / "out"
     assert main(["fit", str(noisy), "--out", str(out), "--resolution", "8", "--max-steps", "8",
-                 "--noise-level", "estimated"]) == 0
+                 "--noise-level", "estimated", "--no-search", "--no-repair", "--no-uniform-check"]) == 0
     report = json.loads((out / "report.json").read_text())
     level = report["noise_level"]
     assert level["mode"] == "estimated" and len(level["sigma"]) == len(level["values"]) >= 1
@@ -88,7 +88,8 @@ def test_fit_with_normals_writes_normal_png(capture, tmp_path, monkeypatch):
     monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
     out = tmp_path / "out"
     assert main(["fit", str(capture), "--out", str(out), "--resolution", "8", "--max-steps", "4",
-                 "--fit", "base_color,roughness,normal", "--metallic", "0", "--quiet"]) == 0
+                 "--fit", "base_color,roughness,normal", "--metallic", "0", "--no-search", "--no-repair",
+                 "--no-uniform-check", "--quiet"]) == 0
     normal, _ = read_image(out / "normal.png")
     assert normal.shape == (8, 8, 3)
     n = normal * 2.0 - 1.0  # tangent space, n * 0.5 + 0.5 in 8 bits
@@ -372,7 +373,8 @@ def test_fit_a_capture_mixing_exr_and_png_frames(tmp_path, monkeypatch):
         write_image(cap / frame["file_path"], np.asarray(linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))), "uint16")
     (cap / "capture.json").write_text(json.dumps(data))
     out = tmp_path / "out"
-    assert main(["fit", str(cap), "--out", str(out), "--resolution", "16", "--quiet"]) == 0
+    assert main(["fit", str(cap), "--out", str(out), "--resolution", "16", "--no-search", "--no-repair",
+                 "--no-uniform-check", "--quiet"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert max(report["truth_rmse"].values()) < 1e-3, report["truth_rmse"]
     # sRGB frames: the default tried 2 x 2 samples too, and kept the centres the images were rendered at

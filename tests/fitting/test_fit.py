@@ -213,7 +213,7 @@ def test_unseen_texels_flagged_and_left_at_prior():
     truth = _checker()
     half = [_views(2, extent=2.0)[k] for k in range(2)]  # the plane covers only the centre of uv
     obs = observations_from_views(half, _images(half, Material(truth.base_color, truth.metallic, truth.roughness)))
-    res = fit_observations(obs, resolution=8, max_steps=5)
+    res = fit_observations(obs, resolution=8, max_steps=5, search=False, repair=False, uniform_check=False)
     unseen = res.coverage == 0
     assert unseen.any() and (~unseen).any()
     assert np.all(np.isinf(res.uncertainty[unseen]))

@@ -57,7 +57,7 @@ def glbs(tmp_path_factory):
     assert main(["synth", "peer-plane", "--out", str(capture), "--size", "16", "--views", "2", "--texture-size", "8",
                  "--quiet"]) == 0
     assert json.loads((capture / "capture.json").read_text())["world_up"] == "+z"
-    assert main(["fit", str(capture), "--out", str(out), "--resolution", "8", "--max-steps", "2", "--no-repair",
+    assert main(["fit", str(capture), "--out", str(out), "--resolution", "8", "--max-steps", "2", "--no-search", "--no-repair",
                  "--no-uniform-check", "--pixel-samples", "1", "--quiet"]) == 0
     return {"synth": capture / "truth" / "material.glb", "fit": out / "material.glb"}
 
