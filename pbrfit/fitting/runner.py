@@ -14,6 +14,7 @@ import concurrent.futures
 import contextlib
 import itertools
 import time
+from pathlib import Path
 from typing import Mapping
 
 import equinox as eqx
@@ -26,7 +27,7 @@ from .normal_matrix import neighbour_blocks, normal_blocks
 from .solvers import structured
 from ..transfer import to_device
 
-__all__ = ["enable_compilation_cache", "Compiler", "Runner", "timed", "timed_rest", "thread_time", "problem_key",
+__all__ = ["enable_compilation_cache", "stamp_cache_entries", "Compiler", "Runner", "timed", "timed_rest", "thread_time", "problem_key",
            "compile_summary", "jitted_normal_blocks", "jitted_neighbour_blocks", "problem_energy"]
 
 #: Compiles shorter than this are not kept on disk (loading costs about as much).
@@ -37,9 +38,23 @@ MIN_CACHED_COMPILE_SECONDS = 0.5
 COMPILATION_CACHE_BYTES = 2 * 1024**3
 
 
+def stamp_cache_entries(folder) -> None:
+    """Give each executable in ``folder`` that has no access time (written by a JAX without
+    eviction, e.g. an earlier pbrfit) one, its file's modification time: a sized cache evicts by
+    them and fails to write beside an entry that lacks one."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return
+    for entry in folder.glob("*-cache"):
+        stamp = entry.with_name(entry.name[: -len("-cache")] + "-atime")
+        if not stamp.exists():
+            stamp.write_bytes(entry.stat().st_mtime_ns.to_bytes(8, "little"))
+
+
 def enable_compilation_cache(folder) -> None:
     """Keep XLA executables in ``folder`` (JAX's persistent compilation cache), shared safely by
     the processes that use it. JAX opens the folder at its first compile and keeps it."""
+    stamp_cache_entries(folder)
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_CACHED_COMPILE_SECONDS)
     jax.config.update("jax_compilation_cache_max_size", COMPILATION_CACHE_BYTES)
