@@ -115,7 +115,7 @@ def _environment_visibility(capture, env, parts, options: FitOptions, cache_dir)
     geometry = [row_geometry(capture, o, cache_dir) for o in parts]
     points, normals = (np.concatenate([g[k] for g in geometry]) for k in (0, 1))
     if options.occlusion == "auto":
-        entry["probed_share"] = probe_share(capture.mesh, env, points, normals, settings)
+        entry["probed_share"] = probe_share(capture.mesh, env, points, normals, settings, cache_dir)
         if entry["probed_share"] < settings.auto_share:
             return None, None, done(reason=f"the mesh blocks less than auto_share {settings.auto_share:g} of the "
                                            "irradiance at the probed points")
@@ -383,7 +383,6 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
     obs = observations_from_capture(capture, cache_dir=cache_dir, views=views, pixel_samples=pixel_samples)
     centres = None if obs.samples == 1 else observations_from_capture(capture, cache_dir=cache_dir, views=views)
     _warn_unused_frames(capture, obs, centres)
-    t_ibl = time.perf_counter()
     lit = bool(np.max(np.asarray(obs.light_radiance), initial=0.0) > 0.0)
     env = None
     if model.ibl is not None or not lit:  # (read once: the tables and the check below share it)
@@ -395,15 +394,15 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
     centre_tables = visibility = occlusion = None
     parts = [obs] if centres is None else [centres, obs]
     rows = np.cumsum([0] + [o.num_rows for o in parts])
-    normals = lambda: np.concatenate([np.asarray(o.normal) for o in parts])  # noqa: E731
-    views = lambda: np.concatenate([np.asarray(o.view) for o in parts])  # noqa: E731
+    row_normals = lambda: np.concatenate([np.asarray(o.normal) for o in parts])  # noqa: E731
+    row_views = lambda: np.concatenate([np.asarray(o.view) for o in parts])  # noqa: E731
     if model.ibl is not None:
         visibility, cells, occlusion = _environment_visibility(capture, env, parts, options, cache_dir)
     t_ibl = time.perf_counter()
     both = None
     if model.ibl == "per_pixel":
         report = options.progress
-        both = pixel_ibl(env, normals(), views(), model, options.pixel_ibl_settings,
+        both = pixel_ibl(env, row_normals(), row_views(), model, options.pixel_ibl_settings,
                          cache_dir=cache_dir, progress=None if report is None else (
                              lambda done, total: report(dict(stage="ibl", done=done, total=total))),
                          visibility=visibility)
@@ -411,7 +410,7 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
     else:
         tables = _ibl_for_capture(capture, model, env)
         if visibility is not None:  # the split sum's occlusion factors, one row per observation row
-            both = OccludedTables(tables, to_device(split_sum_factors(visibility, cells, normals(), views())))
+            both = OccludedTables(tables, to_device(split_sum_factors(visibility, cells, row_normals(), row_views())))
             tables = dataclasses.replace(both, table=both.table[rows[-2]:])
     if centres is not None and both is not None:
         centre_tables = dataclasses.replace(both, table=both.table[: rows[1]])

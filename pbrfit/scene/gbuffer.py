@@ -49,7 +49,7 @@ from jaxtyping import Bool, Float, Int
 from ..io.atomic import write_cache_file
 from .camera import Camera
 from ..errors import CaptureError
-from .raycast import NORM_FLOOR, PARALLEL_EPS, cast, has_embree, make_first_hit
+from .raycast import PARALLEL_EPS, any_perpendicular, cast, has_embree, make_first_hit, normalize
 
 __all__ = [
     "GBuffer",
@@ -71,19 +71,6 @@ SHADOW_OFFSET_REL = 1e-4
 UV_DEGENERATE_REL = 1e-10
 _CACHE_VERSION = "pbrfit-gbuffer/1"
 UV_CONVENTIONS = ("gltf", "trimesh")
-
-
-def _normalize(x: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(x, axis=-1, keepdims=True)
-    return np.where(n > NORM_FLOOR, x / np.maximum(n, NORM_FLOOR), 0.0)
-
-
-def _any_perpendicular(n: Float[np.ndarray, "*b 3"]) -> Float[np.ndarray, "*b 3"]:
-    """A unit vector perpendicular to each unit `n` (crossed with its least-aligned axis)."""
-    axis = np.zeros_like(n)
-    k = np.argmin(np.abs(n), axis=-1)
-    np.put_along_axis(axis, k[..., None], 1.0, axis=-1)
-    return _normalize(np.cross(n, axis))
 
 
 # ------------------------------------------------------------------------------------ gbuffer
@@ -156,21 +143,21 @@ def vertex_tangents(
     det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
     good = np.abs(det) > UV_DEGENERATE_REL * (np.abs(d1[:, 0] * d2[:, 1]) + np.abs(d2[:, 0] * d1[:, 1]))
     dpdu = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) / np.where(good, det, 1.0)[:, None]
-    dpdu = np.where(good[:, None], _normalize(dpdu), 0.0)
+    dpdu = np.where(good[:, None], normalize(dpdu), 0.0)
     w = np.where(good & (det > 0), -1.0, 1.0)
     # corner angles
     angles = np.empty(faces.shape)
     for k in range(3):
-        a = _normalize(tri[:, (k + 1) % 3] - tri[:, k])
-        b = _normalize(tri[:, (k + 2) % 3] - tri[:, k])
+        a = normalize(tri[:, (k + 1) % 3] - tri[:, k])
+        b = normalize(tri[:, (k + 2) % 3] - tri[:, k])
         angles[:, k] = np.arccos(np.clip(np.sum(a * b, -1), -1.0, 1.0))
     acc = np.zeros((2, len(vertices), 3))
     group = (w < 0).astype(np.int64)
     for k in range(3):
         np.add.at(acc, (group, faces[:, k]), dpdu * angles[:, k : k + 1])
-    n = _normalize(np.asarray(normals, np.float64))
+    n = normalize(np.asarray(normals, np.float64))
     acc = acc - n[None] * np.sum(acc * n[None], -1, keepdims=True)
-    return _normalize(acc), w
+    return normalize(acc), w
 
 
 # ------------------------------------------------------------------------------------- cache
@@ -249,12 +236,12 @@ def _visibility(first_hit, tri, start, ng, lights) -> Float[np.ndarray, "P L"]:
     for k, light in enumerate(lights):
         kind, lpos, ldir = _light_geometry(light)
         if kind == "directional":
-            to_light = np.broadcast_to(_normalize(-ldir), start.shape)
+            to_light = np.broadcast_to(normalize(-ldir), start.shape)
             dist = np.full(len(start), np.inf)
         else:
             delta = lpos - start
             dist = np.linalg.norm(delta, axis=-1)
-            to_light = _normalize(delta)
+            to_light = normalize(delta)
         cand = np.nonzero(np.sum(to_light * ng, -1) > 0)[0]  # else the face itself is in the way
         face, t, _, _ = cast(first_hit, tri, start[cand], np.ascontiguousarray(to_light[cand]))
         blocked = (face >= 0) & (t < dist[cand])
@@ -319,15 +306,15 @@ def compute_gbuffer(
         return np.sum(attr[fv] * bary, axis=1)
 
     position = origins[idx] + t[idx, None] * directions[idx]
-    view = _normalize(camera.center - position)
-    ng = _normalize(np.cross(tri[f, 1] - tri[f, 0], tri[f, 2] - tri[f, 0]))
+    view = normalize(camera.center - position)
+    ng = normalize(np.cross(tri[f, 1] - tri[f, 0], tri[f, 2] - tri[f, 0]))
     flip = np.where(np.sum(ng * view, -1) < 0, -1.0, 1.0)[:, None]
-    n = _normalize(interp(normals_v))
+    n = normalize(interp(normals_v))
     n = np.where(np.linalg.norm(n, axis=-1, keepdims=True) > 0.5, n, ng)  # opposite normals cancel
 
     if uv_v is None:
         uv = np.zeros((len(idx), 2))
-        tan, w = _any_perpendicular(n), np.ones(len(idx))
+        tan, w = any_perpendicular(n), np.ones(len(idx))
     else:
         uv = interp(uv_v)
         if tan_v is not None:
@@ -337,9 +324,9 @@ def compute_gbuffer(
             vt, wf = vertex_tangents(mesh.vertices, faces_v, uv_v, normals_v)
             w = wf[f]
             tan = np.sum(vt[(w < 0).astype(np.int64)[:, None], fv] * bary, axis=1)
-        tan = _normalize(tan - n * np.sum(tan * n, -1, keepdims=True))
+        tan = normalize(tan - n * np.sum(tan * n, -1, keepdims=True))
         missing = np.linalg.norm(tan, axis=-1) < 0.5
-        tan[missing] = _any_perpendicular(n[missing])
+        tan[missing] = any_perpendicular(n[missing])
 
     # two-sided: mirror the whole frame where the camera sees the back of the face
     ng, n, tan, w = ng * flip, n * flip, tan * flip, w * flip[:, 0]

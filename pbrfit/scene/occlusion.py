@@ -174,14 +174,19 @@ def occluded_share(bits: np.ndarray, normals: Float[np.ndarray, "P 3"], directio
 
 
 def probe_share(mesh: trimesh.Trimesh, env: Environment, points: Float[np.ndarray, "P 3"],
-                normals: Float[np.ndarray, "P 3"], settings: OcclusionSettings = OcclusionSettings()) -> float:
+                normals: Float[np.ndarray, "P 3"], settings: OcclusionSettings = OcclusionSettings(),
+                cache_dir: Optional[os.PathLike] = None) -> float:
     """`occluded_share` at ``settings.probe_points`` of the points, evenly spread over their order
-    (call it where `occluding_faces` finds some: elsewhere the share is 0 without casting)."""
+    (call it where `occluding_faces` finds some: elsewhere the share is 0 without casting). Where
+    the probe takes every point, its rays are cached in ``cache_dir`` as `cast_visibility`
+    caches them, so the cast that follows reads them back instead of casting them again."""
     if not len(points):
         return 0.0
     pick = np.unique(np.linspace(0, len(points) - 1, min(len(points), settings.probe_points)).round().astype(np.int64))
     cells = direction_cells(env, settings)
-    bits = environment_visibility(mesh, np.asarray(points)[pick], np.asarray(normals)[pick], cells.directions)
+    every = len(pick) == len(points)  # then the probe's rays are the cast's: cached for it
+    bits = environment_visibility(mesh, np.asarray(points)[pick], np.asarray(normals)[pick], cells.directions,
+                                  cache_dir if every else None)
     return occluded_share(bits, np.asarray(normals)[pick], cells.directions, cells.power)
 
 

@@ -23,7 +23,8 @@ import numpy as np
 import trimesh
 from jaxtyping import Float, Int
 
-__all__ = ["has_embree", "make_first_hit", "cast", "moller_trumbore", "any_hit_along", "PARALLEL_EPS",
+__all__ = ["has_embree", "make_first_hit", "cast", "moller_trumbore", "any_hit_along", "normalize", "any_perpendicular",
+           "PARALLEL_EPS",
            "BARYCENTRIC_SLACK", "NORM_FLOOR"]
 
 # Ray/triangle determinant floor, relative to |e1||e2||d|: below it the ray runs parallel to
@@ -155,12 +156,18 @@ def cast(first_hit, tri, origins, directions):
     return face, t, b1, b2
 
 
-def _perpendicular(d: np.ndarray) -> np.ndarray:
-    """A unit vector perpendicular to unit ``d`` (crossed with its least-aligned axis)."""
-    axis = np.zeros(3)
-    axis[int(np.argmin(np.abs(d)))] = 1.0
-    e = np.cross(d, axis)
-    return e / np.linalg.norm(e)
+def normalize(x: Float[np.ndarray, "*b 3"]) -> Float[np.ndarray, "*b 3"]:
+    """``x`` / |x| along the last axis; 0 where |x| is below `NORM_FLOOR`."""
+    n = np.linalg.norm(x, axis=-1, keepdims=True)
+    return np.where(n > NORM_FLOOR, x / np.maximum(n, NORM_FLOOR), 0.0)
+
+
+def any_perpendicular(n: Float[np.ndarray, "*b 3"]) -> Float[np.ndarray, "*b 3"]:
+    """A unit vector perpendicular to each unit `n` (crossed with its least-aligned axis)."""
+    axis = np.zeros_like(n)
+    k = np.argmin(np.abs(n), axis=-1)
+    np.put_along_axis(axis, k[..., None], 1.0, axis=-1)
+    return normalize(np.cross(n, axis))
 
 
 def _ranges(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -188,7 +195,7 @@ def any_hit_along(tri: Float[np.ndarray, "F 3 3"], origins: Float[np.ndarray, "N
     origins = np.asarray(origins, np.float64)
     d = np.asarray(direction, np.float64)
     d = d / np.linalg.norm(d)
-    e1 = _perpendicular(d)
+    e1 = any_perpendicular(d)
     basis = np.stack([e1, np.cross(d, e1)])
     tri2, trid = tri @ basis.T, tri @ d                                # (F, 3, 2), (F, 3)
     a, b = tri2[:, 1] - tri2[:, 0], tri2[:, 2] - tri2[:, 0]
