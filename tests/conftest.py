@@ -9,7 +9,7 @@
   for its commands (`pbrfit.fitting.runner.enable_compilation_cache`, which locks it for the
   workers): a test that builds a new ``jax.jit`` of a function another test (in any worker, or a
   command's subprocess) compiled at the same shapes loads the executable instead of compiling it
-  again (JAX keeps no program with a host callback, such as a solve that reports progress).
+  again.
 """
 
 import atexit

@@ -187,7 +187,9 @@ class Runner:
     (`Compiler`): once per fit, or twice when the start runs on pixel centres
     (`pbrfit.fitting.api.fit_observations`). The structured solver takes its step budget as an
     argument; any other solver is also compiled once per step budget (optimistix's loop length is
-    static)."""
+    static). ``progress(k, E)`` gets the structured solver's E at each step after its solve (so
+    its program holds no host callback and can be cached), another solver's at each evaluation of
+    the objective, as they happen."""
 
     def __init__(self, solver, progress, compiler: Compiler):
         if isinstance(solver, structured.StructuredLM):
@@ -207,7 +209,7 @@ class Runner:
     def _call(self, x0, problem, steps, num_free):
         """(key, fn, args, solver run) of a run."""
         if self.structured:
-            args = (x0, problem, self.solver, to_device(steps, np.int32), self.progress)
+            args = (x0, problem, self.solver, to_device(steps, np.int32))
             return ("structured",) + problem_key(problem), structured.solve, args, self.solver
         opt = for_size(self.solver, num_free)
         key = (type(opt).__name__, steps) + problem_key(problem)
@@ -232,6 +234,9 @@ class Runner:
             s = out[1]
             info = dict(steps=int(s.steps), accepted=int(s.accepted), cg_iterations=int(s.cg_iterations))
             self.linearization = (out[2], out[3])
+            if self.progress is not None:  # the solve kept E at each step (no host callback in it)
+                for k, value in enumerate(np.asarray(s.history)[: info["steps"] + 1]):
+                    self.progress(k, value)
         else:
             info = dict(steps=int(out[1]), result=int(out[2]), method=type(opt).__name__)
             self.linearization = None

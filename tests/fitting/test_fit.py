@@ -194,6 +194,34 @@ def test_maps_recovered_on_small_scene():
     assert np.all(res.coverage > 0)
 
 
+def test_a_second_fit_of_the_same_shapes_compiles_nothing():
+    """A script's second fit of the same shapes and settings runs on the first's programs (JAX
+    keeps them in memory), without lowering any (which even a persistent cache's hit does first),
+    also when it reports progress: the solver keeps its losses in its state and they are reported
+    after each solve, so its program holds no host callback, which would be another at each fit."""
+    truth = _checker()
+    obs = observations_from_views(VIEWS, _images(VIEWS, truth))
+    reported = []
+    first = fit_observations(obs, resolution=8, max_steps=40, progress=reported.append)
+    losses = [entry["loss"] for entry in reported]
+    # every step reported, once: the solve's steps and the stages' (their steps count apart)
+    assert len(losses) >= first.report["steps"] + 1 and losses[-1] == pytest.approx(first.report["final_loss"], rel=1e-3)
+    lowered = []
+    counting = [True]
+
+    def count(event, seconds, **kwargs):
+        if counting[0] and event == "/jax/core/compile/jaxpr_to_mlir_module_duration":
+            lowered.append(seconds)
+
+    jax.monitoring.register_event_duration_secs_listener(count)
+    try:
+        second = fit_observations(obs, resolution=8, max_steps=40, progress=reported.append)
+    finally:
+        counting[0] = False
+    assert lowered == []
+    np.testing.assert_array_equal(np.asarray(second.material.base_color), np.asarray(first.material.base_color))
+
+
 def test_coarse_to_fine_runs_its_levels_and_recovers_the_maps():
     """coarse_to_fine=True runs `schedule`'s levels, a uniform material and then the 8 × 8 maps
     (8 has no level between: 8 / LEVEL_FACTOR is below 4), each with steps of its own in the

@@ -22,7 +22,7 @@ from pbrfit.fitting.objective import linearize, residuals
 from pbrfit.fitting.options import FitOptions
 from pbrfit.fitting.parameters import lower, upper
 from pbrfit.fitting.solvers.names import SOLVERS, is_structured, solver_for, solver_name
-from pbrfit.fitting.solvers.structured import ATOL, CG_RTOL, RTOL, StructuredLM, solve
+from pbrfit.fitting.solvers.structured import ATOL, CG_RTOL, HISTORY, RTOL, StructuredLM, solve
 from test_sharding import _problem, _start
 
 # The hand-written loop this solver replaced (a jitted lax.while_loop), on `_problem` from the
@@ -73,9 +73,8 @@ def test_the_fit_options_hold_optimistix_solvers():
 def test_structured_lm_steps_as_the_loop_it_replaced(start):
     smooth, problem, x0 = start
     (steps, accepted, cg), loss, damping, mean = REFERENCE[smooth]
-    seen = []
     sol = optx.least_squares(lambda x, p: residuals(x, p), StructuredLM(rtol=1e-7, atol=1e-6), x0, args=problem,
-                             options=dict(max_steps=jnp.asarray(30, jnp.int32), progress=lambda k, e: seen.append(int(k))),
+                             options=dict(max_steps=jnp.asarray(30, jnp.int32)),
                              max_steps=None, throw=False)
     jax.block_until_ready(sol.value)
     s = sol.stats
@@ -84,7 +83,11 @@ def test_structured_lm_steps_as_the_loop_it_replaced(start):
     assert float(s["loss"]) == pytest.approx(loss, rel=1e-5) and float(s["damping"]) == pytest.approx(damping, rel=1e-3)
     np.testing.assert_allclose(np.asarray(sol.value, np.float64).mean(0), mean, atol=1e-6)
     assert sol.result == optx.RESULTS.successful
-    assert seen == list(range(steps + 1))  # progress at every step, the start's E first
+    # E after every step, the start's first, never rising (a rejected step keeps E), NaN after the last
+    history = np.asarray(s["history"])
+    assert history.shape == (HISTORY,) and np.all(np.isnan(history[steps + 1:]))
+    assert np.all(np.diff(history[: steps + 1]) <= 0) and history[0] > history[steps]
+    assert history[steps] == pytest.approx(float(s["loss"]), rel=1e-6)
     # the residuals and Jacobians at the returned x are in the final state
     r, jac, e = jax.jit(linearize)(sol.value, problem)
     np.testing.assert_allclose(np.asarray(sol.state.r), np.asarray(r), rtol=1e-5, atol=1e-6)

@@ -23,8 +23,10 @@ Jacobians in one pass) rather than asking optimistix for a Jacobian: it is run a
 ``optx.least_squares(fn, StructuredLM(), x0, args=problem, options=dict(max_steps=n))`` with
 ``args`` the `pbrfit.fitting.objective.Problem` and ``fn(x, problem)`` its residuals
 (`pbrfit.fitting.objective.residuals`, what the solve minimises ½ Σ r² of; `solve` does this). The
-loop is optimistix's `lax.while_loop`: no host round-trips, every array has a fixed shape, and
-pixels and texels can be sharded. The generic optimistix solvers run the same objective through
+loop is optimistix's `lax.while_loop`: no host round-trips (the loss at each step is kept in the
+state, `HISTORY` of them, and reported after the solve, so the compiled program holds no host
+callback and JAX's persistent cache can keep it), every array has a fixed shape, and pixels and
+texels can be sharded. The generic optimistix solvers run the same objective through
 `pbrfit.fitting.solvers.optx`.
 
 Precision: every contraction here passes ``precision=HIGHEST``; JAX's default lets a GPU
@@ -33,10 +35,9 @@ multiply float32 in TF32 (10-bit mantissa), too coarse for the normal equations.
 
 from __future__ import annotations
 
-from typing import Any, Callable, Optional
+from typing import Any, Callable
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import optimistix as optx
 from jax import lax
@@ -47,7 +48,7 @@ from ..objective import Problem, linearize, prior_degree, residuals
 from ..parameters import lower, upper
 
 __all__ = ["StructuredLM", "solve", "pcg", "LMStats", "RTOL", "ATOL", "CG_RTOL", "CG_MAX_STEPS", "DAMPING_FLOOR",
-           "LAMBDA_INIT", "LAMBDA_MAX"]
+           "LAMBDA_INIT", "LAMBDA_MAX", "HISTORY"]
 
 #: Relative stopping tolerance: an accepted step that lowers E by less than ``RTOL · E`` ends the
 #: solve (also the named optimistix solvers' rtol).
@@ -67,6 +68,8 @@ LAMBDA_MAX = 1e10
 CG_RTOL = 1e-3
 #: Conjugate-gradient iterations per step, at most.
 CG_MAX_STEPS = 100
+#: Losses a solve keeps, one per call to `step` (the start's first); later steps run unrecorded.
+HISTORY = 512
 #: The step budget when the options give none: optimistix's ``max_steps`` bounds the solve then.
 _NO_BUDGET = jnp.iinfo(jnp.int32).max
 
@@ -104,13 +107,15 @@ def pcg(matvec: Callable, b, precond: Callable, rtol, max_steps: int):
 
 class LMStats(eqx.Module):
     """What a `StructuredLM` solve did: steps taken (the linearisation at the start not counted),
-    steps accepted, conjugate-gradient iterations, the final E and the final damping λ."""
+    steps accepted, conjugate-gradient iterations, the final E, the final damping λ, and E after
+    each call to `step` (``history[0]`` the start's; `HISTORY` of them, NaN past the last)."""
 
     steps: Array
     accepted: Array
     cg_iterations: Array
     loss: Array
     damping: Array
+    history: Array
 
 
 def _active(x, g, free):
@@ -123,7 +128,8 @@ def _active(x, g, free):
 class _StructuredLMState(eqx.Module):
     """The iterate's residuals r (P, 3), per-row Jacobians (R, 3, K) and E, the damping λ and
     Nielsen's factor ν, the count k of calls to `step` (step 0 only linearises), whether the last
-    step ended the solve, the steps accepted, the CG iterations and the step budget."""
+    step ended the solve, the steps accepted, the CG iterations, the step budget and E after each
+    step (`HISTORY`)."""
 
     r: Array
     jac: Array
@@ -135,6 +141,7 @@ class _StructuredLMState(eqx.Module):
     accepted: Array
     cg: Array
     budget: Array
+    history: Array
 
 
 class StructuredLM(optx.AbstractLeastSquaresSolver):
@@ -148,9 +155,8 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
     moves nothing, or after ``options["max_steps"]`` steps (an int32 array, so that one compiled
     program serves every budget; without it, optimistix's ``max_steps`` bounds the solve, and
     counts the first call to `step`, which only linearises at the start clipped into the box).
-    Each step reports ``options["progress"](k, E)`` on the host when given (step 0: the start's E).
     The final state holds the residuals ``r`` and Jacobians ``jac`` at the returned x, and
-    `postprocess` the stats of `LMStats` (`solve` gathers both).
+    `postprocess` the stats of `LMStats`, E at each step among them (`solve` gathers both).
 
     ``cg_rtol``: the relative residual at which each step's conjugate gradients stop (an array
     too, where one program should serve every tolerance); ``cg_max_steps``: their most iterations.
@@ -172,7 +178,8 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         return _StructuredLMState(
             r=jnp.zeros((args.num_pixels, 3), y.dtype), jac=jnp.zeros((args.index.shape[0], 3, k), y.dtype),
             loss=jnp.asarray(jnp.inf, y.dtype), lam=jnp.asarray(LAMBDA_INIT, y.dtype), nu=jnp.asarray(2.0, y.dtype),
-            k=jnp.asarray(0), done=jnp.asarray(False), accepted=jnp.asarray(0), cg=jnp.asarray(0), budget=budget)
+            k=jnp.asarray(0), done=jnp.asarray(False), accepted=jnp.asarray(0), cg=jnp.asarray(0), budget=budget,
+            history=jnp.full((HISTORY,), jnp.nan, y.dtype))
 
     def step(self, fn, y, args: Problem, options, state: _StructuredLMState, tags):
         del fn, tags
@@ -219,14 +226,12 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         done = ~first & ((accept & small) | (lam_new > LAMBDA_MAX) | (moved == 0))
         lam_new = jnp.where(first, lam, lam_new)
         nu_new = jnp.where(first, nu, nu_new)
-        progress = options.get("progress") if options else None
-        if progress is not None:
-            jax.debug.callback(progress, state.k, jnp.where(accept, loss_new, loss))
+        history = state.history.at[state.k].set(jnp.where(accept, loss_new, loss), mode="drop")
         pick = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
         new_state = _StructuredLMState(
             r=pick(r_new, r), jac=pick(jac_new, jac), loss=pick(loss_new, loss), lam=lam_new, nu=nu_new,
             k=state.k + 1, done=done, accepted=state.accepted + (accept & ~first).astype(jnp.int32),
-            cg=state.cg + iters, budget=state.budget)
+            cg=state.cg + iters, budget=state.budget, history=history)
         return pick(x_new, x), new_state, None
 
     def terminate(self, fn, y, args, options, state: _StructuredLMState, tags):
@@ -236,7 +241,7 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
     def postprocess(self, fn, y, aux, args, options, state: _StructuredLMState, tags, result):
         del fn, args, options, tags, result
         return y, aux, dict(steps=jnp.maximum(state.k - 1, 0), accepted=state.accepted, cg_iterations=state.cg,
-                            loss=state.loss, damping=state.lam)
+                            loss=state.loss, damping=state.lam, history=state.history)
 
 
 def _residuals(x, problem: Problem):
@@ -244,17 +249,16 @@ def _residuals(x, problem: Problem):
 
 
 @eqx.filter_jit
-def solve(x0: Float[Array, "T K"], problem: Problem, solver: StructuredLM = StructuredLM(), max_steps=50,
-          progress: Optional[Callable] = None):
+def solve(x0: Float[Array, "T K"], problem: Problem, solver: StructuredLM = StructuredLM(), max_steps=50):
     """`solver` on `problem` from texel values x0 through `optx.least_squares`, at most
     `max_steps` steps (an int32 array: one compiled program serves every budget; 0 only
-    linearises at x0). ``progress(k, E)`` is called on the host at each step.
+    linearises at x0).
 
     Returns (x, LMStats, residuals (P, 3), per-row Jacobians (R, 3, K); R = P with one sample per
     pixel) at the returned x."""
     sol = optx.least_squares(_residuals, solver, x0, args=problem,
-                             options=dict(max_steps=jnp.asarray(max_steps, jnp.int32), progress=progress),
+                             options=dict(max_steps=jnp.asarray(max_steps, jnp.int32)),
                              max_steps=None, throw=False)
     s = sol.stats
-    stats = LMStats(s["steps"], s["accepted"], s["cg_iterations"], s["loss"], s["damping"])
+    stats = LMStats(s["steps"], s["accepted"], s["cg_iterations"], s["loss"], s["damping"], s["history"])
     return sol.value, stats, sol.state.r, sol.state.jac
