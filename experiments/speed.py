@@ -160,12 +160,13 @@ def machine_rate(size: int = 1024, repeats: int = 5) -> float:
 # --- processes --------------------------------------------------------------------------------
 
 
-def run_timed(cmd: list, cwd=None) -> dict:
-    """Run ``cmd`` to its end: wall seconds from launch to exit, the child's peak resident memory
-    (MiB, ``os.wait4``'s rusage) and its exit status; stdout and stderr kept (text)."""
+def run_timed(cmd: list, env=None) -> dict:
+    """Run ``cmd`` to its end (in ``env``, default this process's): wall seconds from launch to
+    exit, the child's peak resident memory (MiB, ``os.wait4``'s rusage) and its exit status;
+    stdout and stderr kept (text)."""
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
         t = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=out, stderr=err, cwd=cwd)
+        proc = subprocess.Popen(cmd, stdout=out, stderr=err, env=env)
         _, status, usage = os.wait4(proc.pid, 0)
         wall = time.perf_counter() - t
         proc.returncode = os.waitstatus_to_exitcode(status)
@@ -179,7 +180,7 @@ def checked(run: dict, what: str) -> dict:
     """``run``, or a one-line error naming ``what`` and the child's last line of stderr."""
     if run["rc"] != 0:
         last = (run["stderr"].strip().splitlines() or ["(no output)"])[-1]
-        raise SystemExit(f"speed.py: {what} failed (exit {run['rc']}): {last}")
+        raise SystemExit(f"{Path(sys.argv[0]).name}: {what} failed (exit {run['rc']}): {last}")
     return run
 
 
