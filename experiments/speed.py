@@ -38,7 +38,8 @@ optimistic bound (shading is elementwise with divisions, square roots and gather
                                 [--out experiments/results/speed.json]
 
 Writes the JSON (default experiments/results/speed.json) and a chart beside it (speed.png),
-printing a table as it goes. Every fit runs one after another: never two at once, as a shared
+printing a table as it goes; ``--plot-only`` redraws the chart from the JSON. An argument
+string that starts with a dash and holds no space is given with ``=``: ``--extra-args=--no-search``. Every fit runs one after another: never two at once, as a shared
 CPU's timings would mix. The whole default run (five scenes, one rung, one repeat) takes about
 15 minutes on a 2-core CPU.
 """
@@ -341,6 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='named sets of `pbrfit fit` arguments, each timed: default= lean="--no-search --no-repair"')
     p.add_argument("--out", default=str(RESULTS / "speed.json"), help="JSON to write (the chart beside it, .png)")
     p.add_argument("--work", default=None, help="folder for the captures and fits (default: a temporary one)")
+    p.add_argument("--plot-only", action="store_true", help="redraw the chart from the JSON at --out and stop")
     return p
 
 
@@ -423,8 +425,14 @@ def write_json(data: dict, path: Path) -> None:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    pbrfit = pbrfit_command()
     out = Path(args.out)
+    if args.plot_only:
+        if not out.is_file():
+            raise SystemExit(f"speed.py: {out}: no such results file to plot")
+        plot(json.loads(out.read_text()), out.with_suffix(".png"))
+        print(f"wrote {out.with_suffix('.png')}")
+        return 0
+    pbrfit = pbrfit_command()
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="pbrfit-speed-"))
     work.mkdir(parents=True, exist_ok=True)
     rate = machine_rate()
