@@ -40,8 +40,8 @@ optimistic bound (shading is elementwise with divisions, square roots and gather
 Writes the JSON (default experiments/results/speed.json) and a chart beside it (speed.png),
 printing a table as it goes; ``--plot-only`` redraws the chart from the JSON. An argument
 string that starts with a dash and holds no space is given with ``=``: ``--extra-args=--no-search``. Every fit runs one after another: never two at once, as a shared
-CPU's timings would mix. The whole default run (five scenes, one rung, one repeat) takes about
-15 minutes on a 2-core CPU.
+CPU's timings would mix. On a shared 2-core CPU the peer scene and the demo take 7 minutes (one
+rung, one repeat); the five scenes roughly 25.
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
