@@ -315,6 +315,7 @@ def write_image(
     if channels == 4:
         spec.alpha_channel = 3
     spec.attribute("oiio:UnassociatedAlpha", 1)
+    spec.attribute("DateTime", "")  # no time stamp (EXR's capDate): the same pixels, the same bytes
     if dtype in ("uint8", "uint16"):  # the names every OpenImageIO's PNG writer knows
         spec.attribute("oiio:ColorSpace", "Linear" if color_space == "linear" else "sRGB")
     path = Path(path)

@@ -49,6 +49,16 @@ def test_fit_writes_the_spec_output(capture, tmp_path, monkeypatch):
     assert len(list((out / "views").glob("*.png"))) == 3
     plot, _ = read_image(out / "convergence.png")
     assert plot.shape == (320, 520, 3) and plot.min() < 0.5 < plot.max()  # drawn, not blank
+    # deterministic: the same command again writes the same bytes, and the same report but its times
+    again = tmp_path / "again"
+    assert main(["fit", str(capture), "--out", str(again), "--resolution", "8", "--max-steps", "8", "--quiet"]) == 0
+    for name in ("base_color.exr", "metallic.exr", "roughness.exr", "uncertainty.exr", "coverage.exr", "material.glb"):
+        assert (again / name).read_bytes() == (out / name).read_bytes(), name
+    timings = ("wall_time", "times", "stages")
+    other = json.loads((again / "report.json").read_text())
+    assert {k: v for k, v in other.items() if k not in timings} == {k: v for k, v in report.items() if k not in timings}
+    assert [{k: v for k, v in s.items() if k != "seconds"} for s in other["stages"]] == [
+        {k: v for k, v in s.items() if k != "seconds"} for s in report["stages"]]
 
 
 def test_fit_with_an_estimated_noise_level(capture, tmp_path, monkeypatch, capsys):
