@@ -8,21 +8,7 @@ May import: `pbrfit.physics`, `pbrfit.io`, `pbrfit.lighting`, `pbrfit.render`; `
 only at its entry (loading a capture).
 """
 
-from . import (
-    api,
-    initialisation,
-    noise,
-    normal_matrix,
-    objective,
-    observations,
-    options,
-    parameters,
-    passes,
-    resolution,
-    result,
-    runner,
-    sharding,
-    solvers,
-    stages,
-    uncertainty,
-)
+from ..lazy import submodules_on_access
+
+# its modules, imported on first access (`pbrfit.lazy`): importing the room loads none of them
+__getattr__ = submodules_on_access(__name__, __path__)

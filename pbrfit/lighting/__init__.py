@@ -7,4 +7,7 @@ table (cast by `pbrfit.scene.occlusion`).
 May import: `pbrfit.physics`, `pbrfit.io`.
 """
 
-from . import brdf_lut, environment, ibl, lobe_integrals, montecarlo, pixel_ibl, sampling, visibility
+from ..lazy import submodules_on_access
+
+# its modules, imported on first access (`pbrfit.lazy`): importing the room loads none of them
+__getattr__ = submodules_on_access(__name__, __path__)
