@@ -51,7 +51,7 @@ _LAZY = {
     "FitOptions": ("fitting.options", "FitOptions"),
     "StructuredLM": ("fitting.solvers.structured", "StructuredLM"),
     "FitResult": ("fitting.result", "FitResult"),
-    "PixelIBLSettings": ("lighting.pixel_ibl", "PixelIBLSettings"),
+    "PixelIBLSettings": ("lighting.settings", "PixelIBLSettings"),
     "read_material": ("io.material_files", "read_material"),
     "write_material": ("io.material_files", "write_material"),
 }
