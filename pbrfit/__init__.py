@@ -3,13 +3,13 @@
 The rooms are subpackages, each importing only the ones below it: `physics` (the BRDF, colour,
 lights, textures, the material), `io` (files), `lighting` (environment light), `scene` (the
 capture and its fixed geometry), `render`, `fitting` (the options, solvers and stages), `checks`
-(gradient checks) and `cli` (the command). This module only re-exports the public API; all but
-the physics is imported on first use, so `import pbrfit` stays light.
+(gradient checks) and `cli` (the command). This module only re-exports the public API, each
+name imported on first use, so `import pbrfit` loads no JAX (nor does importing a room: see
+`pbrfit.lazy`).
 """
 
 import importlib
 import os
-import pkgutil
 from importlib import metadata
 
 
@@ -31,14 +31,16 @@ def _xla_workarounds() -> None:
 _xla_workarounds()
 
 from .errors import CaptureError  # noqa: E402
-from .physics import brdf, color  # noqa: E402
-from .physics.material import Material  # noqa: E402
-from .physics.model import Model  # noqa: E402
+from .lazy import submodules_on_access  # noqa: E402
 
 __version__ = "0.1.0"
 
 # name -> (module, attribute); resolved on first access so `import pbrfit` stays light.
 _LAZY = {
+    "brdf": ("physics", "brdf"),
+    "color": ("physics", "color"),
+    "Material": ("physics.material", "Material"),
+    "Model": ("physics.model", "Model"),
     "load_capture": ("scene.capture", "load_capture"),
     "Capture": ("scene.capture", "Capture"),
     "Camera": ("scene.camera", "Camera"),
@@ -49,20 +51,18 @@ _LAZY = {
     "FitOptions": ("fitting.options", "FitOptions"),
     "StructuredLM": ("fitting.solvers.structured", "StructuredLM"),
     "FitResult": ("fitting.result", "FitResult"),
-    "PixelIBLSettings": ("lighting.pixel_ibl", "PixelIBLSettings"),
+    "PixelIBLSettings": ("lighting.settings", "PixelIBLSettings"),
     "read_material": ("io.material_files", "read_material"),
     "write_material": ("io.material_files", "write_material"),
 }
 
-__all__ = ["brdf", "color", "CaptureError", "Material", "Model", *_LAZY]
-_SUBMODULES = frozenset(m.name for m in pkgutil.iter_modules(__path__))
+__all__ = ["CaptureError", *_LAZY]
+# the rooms (subpackages), on first access
+_rooms = submodules_on_access(__name__, __path__)
 
 
 def __getattr__(name):
     if name in _LAZY:
         module, attr = _LAZY[name]
         return getattr(importlib.import_module(f".{module}", __name__), attr)
-    # the rooms (subpackages), on first access
-    if name in _SUBMODULES:
-        return importlib.import_module(f".{name}", __name__)
-    raise AttributeError(f"module 'pbrfit' has no attribute {name!r}")
+    return _rooms(name)

@@ -1,7 +1,10 @@
-"""The `pbrfit` command: arguments to options, progress, exit codes (`main`); `pbrfit fit`
-(`fit`), the `--model` flag of fit and render (`model_flag`) and `pbrfit demo` (`demo`).
+"""The `pbrfit` command: parsing, exit codes and the dispatch to a command (`main`); every
+command's flags, their limits and the exit statuses (`parser`); a module per command, each with
+a ``run(args)``: `fit`, `render`, `synth`, `demo`, `check_grads`; the `--model` flag of fit and
+render (`model_flag`) and a command's cache folder (`cache`).
 
-May import every room; nothing imports it. Its modules import what they use at their heads:
-the parser takes the options' defaults from the rooms that own them, so every command, even
-``--help``, loads the fit's stack (JAX, optimistix) before it parses.
+May import every room; nothing imports it. The parser imports no JAX: it takes the options'
+defaults and choices from the rooms' modules free of it (`pbrfit.fitting.defaults`,
+`pbrfit.lighting.settings`, `pbrfit.physics.model`), so ``pbrfit --help`` and a usage error load
+none of the fit's stack; `main` imports a command's module once its arguments are parsed.
 """

@@ -27,7 +27,7 @@ from ..physics.textures import resample_map
 from ..render.views import default_cache_dir
 from ..scene.capture import load_capture
 
-__all__ = ["run_demo", "recovery_table", "CONFIDENT_SIGMA", "DEMO_FOLDERS"]
+__all__ = ["run", "run_demo", "recovery_table", "CONFIDENT_SIGMA", "DEMO_FOLDERS"]
 
 
 #: The demo's "confident" texels: those whose reported standard error is at most this.
@@ -75,6 +75,11 @@ DEMO_FOLDERS = ("capture", "fit")
 #: ... and what a demo killed while writing them leaves (`pbrfit.io.atomic.atomic_dir`'s folders
 #: beside them), which the next demo may find.
 _LEFTOVER = re.compile(r"\.(?:capture|fit)\..+\.(?:tmp|old)")
+
+
+def run(args) -> int:
+    """`pbrfit demo` on its parsed arguments; returns the exit status."""
+    return run_demo(out=args.out, quiet=args.quiet)
 
 
 def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **scene) -> int:

@@ -1,132 +1,59 @@
-"""`pbrfit fit`: its arguments (`add_fit`), their `pbrfit.FitOptions` with every refusal naming
-the flag (`fit_options`), the fit as `pbrfit fit` and `pbrfit demo` run it (`run_fit`: a live
-progress line on a terminal, `FitProgress`; the errors against `truth/` when the capture has
-one; the output folder with the convergence plot of the steps kept, `loss_history`) and the
-summary line it prints (`fit_summary`)."""
+"""`pbrfit fit` (`run`): its arguments' `pbrfit.FitOptions` with every refusal naming the flag
+(`fit_options`; the flags are `pbrfit.cli.parser.add_fit`'s), the fit as `pbrfit fit` and
+`pbrfit demo` run it (`run_fit`: a live progress line on a terminal, `FitProgress`; the errors
+against `truth/` when the capture has one; the output folder with the convergence plot of the
+steps kept, `loss_history`) and the summary line it prints (`fit_summary`)."""
 
 from __future__ import annotations
 
 import math
 import sys
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
 from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
-from .model_flag import add_model_argument, model_changes
+from .cache import cache_dir
+from .model_flag import model_changes
+from .parser import EXIT_OK, default_continuation
 from ..errors import CaptureError
 from ..fitting.api import fit, map_rmse
-from ..fitting.noise import NOISE_LEVELS
-from ..fitting.objective import LOSSES
-from ..fitting.observations import MAX_PIXEL_SAMPLES
-from ..fitting.options import FLOAT32_MAX, IBL_MODES, LOSS_SCALE, MATERIAL_MAPS, FitOptions, OptionNames
-from ..fitting.passes import CONTINUATION, MAX_STEPS
+from ..fitting.defaults import DEFAULT_SOLVER, MATERIAL_MAPS, MAX_PIXEL_SAMPLES
+from ..fitting.options import FLOAT32_MAX, FitOptions, OptionNames
 from ..fitting.runner import compile_summary
-from ..fitting.solvers.names import DEFAULT_SOLVER, SOLVERS
-from ..fitting.solvers.structured import ATOL, CG_RTOL, RTOL
 from ..fitting.stages.selection import uniform_channels
+from ..io.atomic import check_not_inside, check_output_dir
 from ..io.material_files import read_map, read_material
 from ..io.outputs import write_fit_output
-from ..lighting.pixel_ibl import MAX_LEVELS, MAX_SAMPLES, MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
-from ..lighting.visibility import OCCLUSION_MODES
+from ..lighting.settings import MAX_LEVELS, MAX_SAMPLES, MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
+from ..scene.capture import load_capture
 
-__all__ = ["add_fit", "fit_options", "fit_summary", "default_continuation", "FitProgress", "loss_history", "run_fit"]
+__all__ = ["run", "fit_options", "fit_summary", "FitProgress", "loss_history", "run_fit"]
 
 
-def add_fit(sub) -> None:
-    p = sub.add_parser("fit", help="fit base color, metallic and roughness maps to a capture")
-    p.add_argument("capture", help="capture folder, capture.json or NeRF-style transforms.json")
-    p.add_argument("--out", required=True, help="output folder (written whole or not at all; replaces only an earlier fit output)")
-    p.add_argument("--resolution", type=int, help="map size N (N x N); default from the views' texel coverage")
-    p.add_argument("--maps", choices=("texture", "none"), default="texture",
-                   help="'none' fits one uniform material (five numbers)")
-    p.add_argument("--fit",
-                   help="comma-separated maps to fit, some of base_color, metallic, roughness, normal "
-                        "(a tangent-space normal map, written as normal.png); default: the three maps "
-                        "not held by --base-color, --metallic, --roughness or --*-from; a map neither fitted nor "
-                        "held stays at the prior (base color 0.5 grey, metallic 0, roughness 0.5; report.json's "
-                        "\"held\" says what each map was held at)")
-    p.add_argument("--base-color", help="hold base color fixed at R,G,B (linear)")
-    p.add_argument("--metallic", type=float, help="hold metallic fixed at this value")
-    p.add_argument("--roughness", type=float, help="hold roughness fixed at this value (perceptual)")
+def run(args) -> int:
+    """`pbrfit fit` on its parsed arguments; returns the exit status."""
+    options = fit_options(args)
+    out = Path(args.out)
+    check_output_dir(out, "fit")
+    capture = load_capture(args.capture, require_uv=options.maps == "texture" or "normal" in options.fitted)
+    check_not_inside(capture.root, out, "capture being fitted")
     for name in MATERIAL_MAPS:
-        flag = name.replace("_", "-")
-        p.add_argument(f"--{flag}-from", metavar="DIR", help=f"hold {name} fixed at the map in a material folder")
-    p.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER, help=f"default {DEFAULT_SOLVER}")
-    p.add_argument("--max-steps", type=int, help=f"solver steps at the final resolution (default {MAX_STEPS}); the repair's and the "
-                        "uniform check's re-fits come on top")
-    p.add_argument("--rtol", type=float, default=None,
-                   help="relative stopping tolerance: the structured solver stops at an accepted step that lowers the "
-                        f"loss by less than this fraction of it; the optimistix solvers' rtol (default {RTOL:g})")
-    p.add_argument("--atol", type=float, default=None,
-                   help="absolute stopping tolerance: the structured solver also stops at an accepted step that moves "
-                        f"no parameter by more than this; the optimistix solvers' atol (default {ATOL:g})")
-    p.add_argument("--cg-rtol", type=float, default=None, metavar="TOL",
-                   help="structured solver: relative tolerance of each step's conjugate gradients, in (0, 1) "
-                        f"(default {CG_RTOL:g}; 1e-2 solves about a quarter faster, see docs/results.md)")
-    p.add_argument("--loss", choices=LOSSES, default="l2", help="robust loss (default l2: off)")
-    p.add_argument("--loss-scale", type=float, default=None, metavar="S",
-                   help="the robust loss's scale, in image units: residuals past it count less "
-                        f"(default {LOSS_SCALE:g}; huber and cauchy only)")
-    p.add_argument("--smooth", type=float, default=0.0, help="weight of the smoothness prior (default 0: off)")
-    p.add_argument("--coarse-to-fine", action="store_true", help="solve a uniform material and coarser maps first")
-    p.add_argument("--ibl", choices=IBL_MODES, default=IBL_MODES[0],
-                   help="environment light: split_sum (default; the renderer's tables) or per_pixel "
-                        "(each pixel's integrals by Monte Carlo before the solve: no split-sum error, slower setup)")
-    p.add_argument("--ibl-samples", type=int,
-                   help=f"per_pixel: sample steps per pixel (default {PixelIBLSettings.samples})")
-    p.add_argument("--ibl-levels", type=int,
-                   help=f"per_pixel: roughness levels tabulated (default {PixelIBLSettings.levels})")
-    p.add_argument("--occlusion", choices=OCCLUSION_MODES,
-                   help="whether the mesh shadows the environment light on itself (a shadow ray per observed point and "
-                        "direction cell, cast once and cached; both --ibl modes use it): off (default: as pbrfit's "
-                        "own renders, which model no occlusion), auto (on where a probe finds the mesh blocking a "
-                        "meaningful share of the light; a convex mesh casts nothing) or on, for a capture from a path "
-                        "tracer or a camera; report.json's \"occlusion\" says which and its time")
-    p.add_argument("--pixel-samples", default="auto", metavar="{auto,N}",
-                   help=f"shade N x N samples per pixel (N from 1 to {MAX_PIXEL_SAMPLES}) and fit their mean: the pixel "
-                        "footprint of an antialiased or supersampled capture (1: pixel centres; cost grows as N^2). Default auto: pixel centres for "
-                        "linear HDR images; for sRGB or tone-mapped ones, fit both 2 x 2 samples and centres and keep "
-                        "the better match")
-    p.add_argument("--no-search", action="store_true",
-                   help="skip the per-texel re-search of metallic and roughness midway through the solve")
-    p.add_argument("--no-repair", action="store_true",
-                   help="skip the repair after the solve (by default well-seen texels whose pixels fit worse than "
-                        "the noise explains, then those out of line with their neighbours, are started again from "
-                        "their nearest well-fitted neighbour, re-searched and re-solved with their neighbours, each "
-                        "cluster kept where its pixels fit better and the loss falls; report.json's repair says what "
-                        "each pass did)")
-    p.add_argument("--unconstrained-sigma", type=float, default=None, metavar="S",
-                   help="hold at 0.5 (the middle of its range) the roughness of each texel whose standard error "
-                        "exceeds S, and re-fit its base colour: where no highlight reaches a texel the images "
-                        "do not constrain its roughness, and a fitted value is the noise's (default 0.1; inf: hold "
-                        "none; report.json's unconstrained says how many were held)")
-    p.add_argument("--uncertainty-radius", type=int, default=None, metavar="R",
-                   help="uncertainty.exr: each texel's standard error with the (2R+1) x (2R+1) texels around it "
-                        "free as well (0, 1 or 2; default 1; 0: its own block of the normal matrix, the neighbours "
-                        "held, about 10-15%% too small on the peer scene; 2: within 0.1%% of the whole matrix's on a "
-                        "small map, about 4 times the cost; see docs/error-bars.md)")
-    p.add_argument("--noise-level", choices=NOISE_LEVELS, default="uniform",
-                   help="uniform (default): every residual weighs alike (plain least squares, the likeliest fit "
-                        "when the noise does not depend on the value); estimated: the noise level as a function "
-                        "of the value is measured from a first fit's residuals, and a second fit from its maps "
-                        "weighs each residual by the inverse of the level at its value (for shot noise, or noise "
-                        "proportional to the signal; 1.1 to 1.5 times the time; report.json's noise_level gives the "
-                        "level function)")
-    p.add_argument("--no-uniform-check", action="store_true",
-                   help="keep metallic and roughness as maps even where the images support only one value for "
-                        "them (by default a map the images cannot tell apart from one value, by Akaike's criterion, "
-                        "becomes that value; report.json's uniform_check says what each test found)")
-    p.add_argument("--continuation", metavar="W[,W...]",
-                   help="weights of the smoothness prior over the first steps, relative to the data's curvature, "
-                        f"released before the end (default {default_continuation()}; 'none' turns it off)")
-    add_model_argument(p)
-    p.add_argument("--devices", type=int,
-                   help="split the pixels over this many JAX devices (default: one device)")
-    p.add_argument("--cache", help="G-buffer and per-pixel IBL cache folder (default $PBRFIT_CACHE, else $XDG_CACHE_HOME/pbrfit, else ~/.cache/pbrfit)")
-    p.add_argument("--no-cache", action="store_true", help="do not read or write the cache")
-    p.add_argument("--quiet", action="store_true", help="no progress bar and no summary line; warnings and errors still print")
+        folder = getattr(args, f"{name}_from")
+        if folder is not None:
+            check_not_inside(folder, out, f"{name} map of --{name.replace('_', '-')}-from")
+        if name not in options.fitted and name not in options.held and not args.quiet:
+            print(f"pbrfit: note: {name} is neither fitted nor held (--fit, --{name.replace('_', '-')}): "
+                  "it stays at the prior", file=sys.stderr)
+    if args.ibl == "per_pixel" and capture.environment is None:
+        print(f"pbrfit: warning: --ibl per_pixel: {capture.root} has no environment; nothing to integrate",
+              file=sys.stderr)
+    result, errors = run_fit(capture, out, options, cache_dir(args), args.quiet)
+    if not args.quiet:
+        print(f"{fit_summary(result, errors)}; wrote {out}")
+    return EXIT_OK
 
 
 def fit_options(args):
@@ -219,10 +146,6 @@ def _continuation(text: str) -> tuple:
         raise CaptureError(f"--continuation: expected 'none' or comma-separated weights >= 0 within float32, "
                            f"got {text!r}")
     return weights
-
-
-def default_continuation() -> str:
-    return ",".join(str(w) for w in CONTINUATION)
 
 
 def fit_summary(result, errors) -> str:

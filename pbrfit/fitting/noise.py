@@ -43,12 +43,11 @@ import dataclasses
 import numpy as np
 from jaxtyping import Float
 
+from .defaults import NOISE_LEVELS
+
 __all__ = ["NOISE_LEVELS", "NOISE_BINS", "NOISE_FLOOR", "MEDIAN_CHI2", "MIN_BIN_COUNT", "SHAPE_FIT_FLOOR",
            "SHAPE_SCALE_FLOOR", "NoiseLevel", "estimate_noise_level"]
 
-#: How `fit` treats the images' noise: "uniform" (plain least squares) or "estimated" (a second
-#: fit weighted by the first fit's noise level function).
-NOISE_LEVELS = ("uniform", "estimated")
 #: Bins of the noise level function (equal counts of residual components).
 NOISE_BINS = 16
 #: Fewest residual components per bin: fewer bins where the fit has fewer residuals.

@@ -35,6 +35,7 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Float, Int
 
+from .defaults import LOSSES
 from ..physics.color import encode
 from ..physics.model import Model
 from .observations import Observations
@@ -46,8 +47,6 @@ from ..lighting.pixel_ibl import per_row
 __all__ = ["Problem", "LOSSES", "robust_residual", "shading_normal", "sample_texels", "sample_material", "pixel_residuals", "residuals",
            "objective", "linearize", "by_pixel", "to_rows", "scatter_texels", "laplacian", "prior_degree", "smooth_residuals"]
 
-#: Robust losses, as residual transforms r -> r sqrt(ρ(r²)/r²) (so the objective stays a sum of squares).
-LOSSES = ("l2", "huber", "cauchy")
 #: Below this ratio s = r²/c² the robust weights use their series (ρ(s)/s -> 1) to stay finite.
 _ROBUST_SERIES = 1e-6
 

@@ -34,6 +34,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ..errors import CaptureError
+from .defaults import MAX_PIXEL_SAMPLES
 from ..render.shade import ViewInputs
 from ..render.views import capture_gbuffers, capture_views, view_rows
 from ..scene.camera import pixel_offsets, sample_camera
@@ -46,8 +47,6 @@ __all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "observations_from_vie
            "layout_for", "coverage_counts", "neighbour_pairs"]
 
 
-#: Largest n of n × n samples per pixel (`observations_from_capture`): memory and time grow as n².
-MAX_PIXEL_SAMPLES = 4
 #: The per-pixel fields of `Observations` (leading axis: rows, P × samples).
 PIXEL_FIELDS = ("normal", "tangent", "view", "light_l", "light_radiance", "uv", "exposure", "target",
                 "residual_weight", "view_index", "pixel")

@@ -16,7 +16,7 @@ import optimistix as optx
 
 from ..lighting.pixel_ibl import PixelIBLSettings
 from ..lighting.visibility import OCCLUSION_MODES, OcclusionSettings
-from .passes import COARSE_STEPS, CONTINUATION
+from .defaults import COARSE_STEPS, CONTINUATION, IBL_MODES, LOSS_SCALE, MATERIAL_MAPS
 from ..physics.model import Model
 from .noise import NOISE_LEVELS
 from .parameters import FIT_GROUPS, prior
@@ -33,12 +33,6 @@ __all__ = ["FitOptions", "options_from", "OptionNames", "fit_arguments", "held_r
            "check_model", "check_normals", "with_tolerances", "MATERIAL_MAPS", "IBL_MODES", "LOSS_SCALE", "FLOAT32_MAX",
            "MAX_MAP_SIDE", "MAX_SOLVER_STEPS"]
 
-#: What `fit` may integrate a capture's environment light with (``ibl=``); the first is the default.
-IBL_MODES = ("split_sum", "per_pixel")
-#: Default scale of the robust losses, in image units (a few times a typical noise level).
-LOSS_SCALE = 0.05
-#: The material maps a fit can fit or hold (``fit=``, ``fixed=``); "normal" can only be fitted.
-MATERIAL_MAPS = ("base_color", "metallic", "roughness")
 #: The largest finite float32, the solve's precision: the bound of every real-valued option.
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 #: The largest map side an explicit ``resolution`` takes (the default stops at `pbrfit.fitting.resolution.MAX_RESOLUTION`).

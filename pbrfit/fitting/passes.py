@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .defaults import COARSE_STEPS, CONTINUATION, MAX_STEPS
 from .result import FitResult, finish
 from .stages.footprint import centres_explain_better, final_residuals, footprint_energies, samples_side
 from .initialisation import coordinate_search, grid_initialise, parity_classes
@@ -40,18 +41,15 @@ from ..lighting.pixel_ibl import per_row
 __all__ = ["fit_pass", "PassInputs", "continuation_scale", "with_smooth", "COARSE_STEPS", "MAX_STEPS", "SEARCH_AFTER",
            "SEARCH_ROUNDS", "CONTINUATION", "SETTLE_STEPS", "RELEASED_STEPS", "PROBE_STEPS"]
 
-#: Default step limits: per coarse level, and for the final level.
-COARSE_STEPS = 20
-MAX_STEPS = 40
 #: With ``search=True`` the final level runs this many steps, then `coordinate_search`
 #: (`SEARCH_ROUNDS` sweeps of the four parity classes), then the rest of its steps
 #: (experiments/solvers.md).
 SEARCH_AFTER = 15
 SEARCH_ROUNDS = 1
 #: Continuation (graduated smoothing; A. Blake & A. Zisserman, "Visual Reconstruction", MIT
-#: Press 1987, ch. 7): the final level's first `SEARCH_AFTER` steps are split evenly over these
-#: weights of a smoothness prior; after the search, `SETTLE_STEPS` more run under the last
-#: weight (the search moves texels few pixels see into minima of those few pixels), and the
+#: Press 1987, ch. 7): the final level's first `SEARCH_AFTER` steps are split evenly over the
+#: weights `CONTINUATION` of a smoothness prior; after the search, `SETTLE_STEPS` more run under
+#: the last weight (the search moves texels few pixels see into minima of those few pixels), and the
 #: steps after them run on the objective as asked (no prior unless ``smooth`` is set). The prior
 #: pulls texels that few pixels pin down, and patches that the grid start put in a wrong
 #: roughness basin, towards their neighbours' basin; released, each texel settles in the minimum
@@ -62,7 +60,6 @@ SEARCH_ROUNDS = 1
 #: optimistix ones would compile once per phase), and only where at least `RELEASED_STEPS` steps
 #: are left without the prior: with fewer (``max_steps`` under 25) there is no continuation, and
 #: with fewer after the settling steps (under 30) no settling.
-CONTINUATION = (0.0035, 0.00035)
 SETTLE_STEPS = 5
 RELEASED_STEPS = 10
 #: The automatic footprint's early stop: after the centres' last steps, the samples' first

@@ -6,4 +6,7 @@ material folders (`material_files`), glTF export (`gltf_export`) and a fit's out
 May import: `pbrfit.physics` (types, colour encoding), `pbrfit.errors`, `pbrfit.transfer`.
 """
 
-from . import atomic, gltf_export, images, json_fields, lights, material_files, outputs
+from ..lazy import submodules_on_access
+
+# its modules, imported on first access (`pbrfit.lazy`): importing the room loads none of them
+__getattr__ = submodules_on_access(__name__, __path__)

@@ -29,7 +29,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from .atomic import atomic_path
-from ..errors import CaptureError
+from ..errors import CaptureError, first_line
 from ..physics.color import linear_to_srgb_host, srgb_to_linear_host
 
 __all__ = ["ImageInfo", "read_image", "color_channels", "read_image_info", "data_window_mask", "write_image",
@@ -74,11 +74,6 @@ class ImageInfo:
     file_format: str
     associated_alpha: bool = False
     data_window: Optional[tuple[int, int, int, int]] = None
-
-
-def _first_line(message: str) -> str:
-    lines = [ln.strip() for ln in str(message).splitlines() if ln.strip()]
-    return lines[0] if lines else "unknown error"
 
 
 def _unassociated_config():
@@ -207,7 +202,7 @@ def _open_image(path: Path, where: str | None, printed: Optional[list] = None):
     with _held_stderr(printed):
         inp = oiio.ImageInput.open(str(path), _unassociated_config())
     if inp is None:
-        raise CaptureError(f"{prefix}cannot read image {path}: {_first_line(oiio.geterror() or ''.join(printed))}")
+        raise CaptureError(f"{prefix}cannot read image {path}: {first_line(oiio.geterror() or ''.join(printed))}")
     return inp
 
 
@@ -243,9 +238,9 @@ def read_image(path: str | os.PathLike, where: str | None = None) -> tuple[np.nd
         inp.close()
     if pixels is None or not isinstance(pixels, np.ndarray) or pixels.size == 0:
         raise CaptureError(f"{prefix}cannot read image {path}: "
-                           f"{_first_line(error or oiio.geterror() or ''.join(printed))}")
+                           f"{first_line(error or oiio.geterror() or ''.join(printed))}")
     if error:  # pixels, but the decoder hit a fault (a truncated JPEG reads its missing rows as grey)
-        raise CaptureError(f"{prefix}image {path} is damaged: {_first_line(error)}")
+        raise CaptureError(f"{prefix}image {path} is damaged: {first_line(error)}")
     pixels = np.asarray(pixels, dtype=np.float32)
     if pixels.ndim == 2:
         pixels = pixels[:, :, None]
@@ -326,12 +321,12 @@ def write_image(
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
-            raise CaptureError(f"cannot write image {path}: {_first_line(oiio.geterror())}")
+            raise CaptureError(f"cannot write image {path}: {first_line(oiio.geterror())}")
         try:
             if not out.open(str(tmp), spec):
-                raise CaptureError(f"cannot write image {path}: {_first_line(out.geterror())}")
+                raise CaptureError(f"cannot write image {path}: {first_line(out.geterror())}")
             if not out.write_image(data):
-                raise CaptureError(f"cannot write image {path}: {_first_line(out.geterror())}")
+                raise CaptureError(f"cannot write image {path}: {first_line(out.geterror())}")
         finally:
             out.close()
     return path

@@ -59,6 +59,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..physics import brdf
+from .settings import MAX_LEVELS, MAX_SAMPLES, MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
 from ..io.atomic import write_cache_file
 from .environment import Environment
 from .lobe_integrals import integrate_lobes
@@ -76,42 +77,6 @@ LOBES = ("dv", "dv_s", "dv_fd", "lambert", "lambert_s", "lambert_fd", "burley", 
 #: accelerator: bounds memory; a GPU wants large calls (an H100 integrates 69,000 pixels in 0.34 s
 #: in chunks of 16,384, 1.8 s in chunks of 2,048).
 PIXEL_CHUNK = {"cpu": 2048, "accelerator": 16384}
-
-
-#: The fewest roughness levels (a spline needs two nodes) and sample steps `PixelIBLSettings` takes.
-MIN_LEVELS = 2
-MIN_SAMPLES = 1
-#: ... and the most: far beyond any use, and within the int32 counters of the jitted loops
-#: (`pbrfit fit --ibl-levels`, `--ibl-samples`; `pbrfit synth --ibl-samples` for its Monte Carlo
-#: renders).
-MAX_LEVELS = 256
-MAX_SAMPLES = 1 << 20
-
-
-@dataclasses.dataclass(frozen=True)
-class PixelIBLSettings:
-    """Knobs of the per-pixel integrals; defaults chosen by `experiments/ibl_accuracy.py` (17
-    levels: 9 are 2 to 3 times worse at n·v 0.1-0.3, 33 no better) and `experiments/env_fits.py`
-    (512 samples: on sphere-env rendered by the Monte Carlo reference, 128 samples leave a
-    well-observed roughness RMSE of 0.112 where 512 reach 0.069; `experiments/results/env_fits.json`).
-
-    Attributes:
-        levels: roughness grid r_j = j / (levels - 1), j = 0 .. levels - 1.
-        samples: sample steps per pixel (each: one environment, one cosine and, per level, one
-            visible-normal direction); the error of I_k falls roughly as 1/sqrt(samples).
-        seed: seed of each pixel's random shift of its quasi-random sequence.
-    """
-
-    levels: int = 17
-    samples: int = 512
-    seed: int = 0
-
-    def __post_init__(self):
-        if not MIN_LEVELS <= int(self.levels) <= MAX_LEVELS:
-            raise ValueError(f"PixelIBLSettings.levels must be from {MIN_LEVELS} to {MAX_LEVELS}, got {self.levels!r}")
-        if not MIN_SAMPLES <= int(self.samples) <= MAX_SAMPLES:
-            raise ValueError(f"PixelIBLSettings.samples must be from {MIN_SAMPLES} to {MAX_SAMPLES}, "
-                             f"got {self.samples!r}")
 
 
 class PixelIBL(eqx.Module):

@@ -39,14 +39,12 @@ from jaxtyping import Array, Float, Int, UInt8
 
 from ..physics import brdf
 from ..physics.color import luminance
+from .settings import OCCLUSION_MODES
 from .environment import Environment, direction_to_uv, dot3, from_environment_frame, texel_directions, texel_solid_angles
 
 __all__ = ["OCCLUSION_MODES", "OcclusionSettings", "DirectionCells", "direction_cells", "Visibility",
            "visibility_rows", "visible", "SPECULAR_LEVELS", "split_sum_factors", "factors_at"]
 
-#: ``occlusion=``: "off", "auto" (on where the mesh blocks a meaningful share of the environment
-#: light, `OcclusionSettings.auto_share`) or "on" (`pbrfit.FitOptions.occlusion` holds the default).
-OCCLUSION_MODES = ("off", "auto", "on")
 #: Roughness levels of the split sum's specular factor (`split_sum_factors`), r_j = j / (levels - 1).
 SPECULAR_LEVELS = 5
 

@@ -5,4 +5,7 @@ colour (sRGB, exposure, tone maps), punctual lights, texture sampling and the `M
 May import: `pbrfit.errors`, `pbrfit.transfer`, JAX. Never I/O, never a room above it.
 """
 
-from . import brdf, clamps, color, lights, material, model, textures
+from ..lazy import submodules_on_access
+
+# its modules, imported on first access (`pbrfit.lazy`): importing the room loads none of them
+__getattr__ = submodules_on_access(__name__, __path__)

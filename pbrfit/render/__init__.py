@@ -4,4 +4,7 @@ every view of a capture (`views`) and writing renders as a capture folder (`outp
 May import: `pbrfit.physics`, `pbrfit.io`, `pbrfit.lighting`, `pbrfit.scene`.
 """
 
-from . import output, shade, views
+from ..lazy import submodules_on_access
+
+# its modules, imported on first access (`pbrfit.lazy`): importing the room loads none of them
+__getattr__ = submodules_on_access(__name__, __path__)

@@ -6,15 +6,7 @@ from the mesh's points (`occlusion`).
 May import: `pbrfit.physics`, `pbrfit.io`, `pbrfit.lighting`.
 """
 
-from . import (
-    camera,
-    capture,
-    gbuffer,
-    gltf_accessors,
-    gltf_geometry,
-    gltf_read,
-    mesh,
-    occlusion,
-    raycast,
-    uv_layout,
-)
+from ..lazy import submodules_on_access
+
+# its modules, imported on first access (`pbrfit.lazy`): importing the room loads none of them
+__getattr__ = submodules_on_access(__name__, __path__)

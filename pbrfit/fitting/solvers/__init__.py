@@ -4,5 +4,9 @@ same problem (`optx`), and the names a fit can ask for them by (`names`).
 
 May import: the rest of `pbrfit.fitting` below the passes (objective, normal matrix, parameters).
 
-Its modules are imported by `pbrfit.fitting` (through the runner), not here.
+Its modules are imported on first access (`pbrfit.lazy`), not here.
 """
+
+from ...lazy import submodules_on_access
+
+__getattr__ = submodules_on_access(__name__, __path__)

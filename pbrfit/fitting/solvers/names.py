@@ -4,21 +4,18 @@ optimistix solver object: `solver_for` makes one, `solver_name` names one for th
 ``structured`` (the default) is pbrfit's `pbrfit.fitting.solvers.structured.StructuredLM`; the
 others are the optimistix solvers of `pbrfit.fitting.solvers.optx` (``lm``, ``gn``, ``dogleg``,
 ``bfgs``, ``lbfgs``, ``ncg``, ``adam``). Every one starts from the same tolerances,
-`pbrfit.fitting.solvers.structured.RTOL` and `ATOL`.
+`pbrfit.fitting.defaults.RTOL` and `ATOL`; the names are `pbrfit.fitting.defaults.SOLVERS`.
 """
 
 from __future__ import annotations
 
 from typing import Optional
 
-from .optx import OPTX_SOLVERS, make_solver
-from .structured import ATOL, CG_RTOL, RTOL, StructuredLM
+from ..defaults import ATOL, CG_RTOL, DEFAULT_SOLVER, OPTX_SOLVERS, RTOL, SOLVERS
+from .optx import make_solver
+from .structured import StructuredLM
 
 __all__ = ["DEFAULT_SOLVER", "SOLVERS", "solver_for", "solver_name", "is_structured"]
-
-DEFAULT_SOLVER = "structured"
-#: Every solver a fit can run by name: the structured one (the default), then the optimistix ones.
-SOLVERS = (DEFAULT_SOLVER,) + OPTX_SOLVERS
 
 
 def solver_for(name: str, rtol: Optional[float] = None, atol: Optional[float] = None,

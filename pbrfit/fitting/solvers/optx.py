@@ -39,13 +39,13 @@ import optax
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
+from ..defaults import OPTX_SOLVERS
 from ..parameters import from_sine, lower, to_sine, upper
 from ..objective import Problem, residuals
 
 __all__ = ["OPTX_SOLVERS", "BFGS_MAX_PARAMETERS", "ADAM_LEARNING_RATE", "START_MARGIN", "make_solver", "for_size",
            "optx_solve", "truncated_cg"]
 
-OPTX_SOLVERS = ("lm", "gn", "dogleg", "bfgs", "lbfgs", "ncg", "adam")
 #: Above this many unknowns "bfgs" uses L-BFGS: the dense inverse Hessian grows as N².
 BFGS_MAX_PARAMETERS = 4096
 #: Adam's step in the sine storage (radians): 0.02 moves a mid-range value by about 1% per step.

@@ -43,6 +43,7 @@ import optimistix as optx
 from jax import lax
 from jaxtyping import Array, Float
 
+from ..defaults import ATOL, CG_RTOL, RTOL
 from ..normal_matrix import gauss_newton_factors, gn_product, gradient, normal_blocks
 from ..objective import Problem, linearize, prior_degree, residuals
 from ..parameters import lower, upper
@@ -50,12 +51,6 @@ from ..parameters import lower, upper
 __all__ = ["StructuredLM", "solve", "pcg", "LMStats", "RTOL", "ATOL", "CG_RTOL", "CG_MAX_STEPS", "DAMPING_FLOOR",
            "LAMBDA_INIT", "LAMBDA_MAX", "HISTORY"]
 
-#: Relative stopping tolerance: an accepted step that lowers E by less than ``RTOL · E`` ends the
-#: solve (also the named optimistix solvers' rtol).
-RTOL = 1e-6
-#: Absolute stopping tolerance: an accepted step that moves no value by more than this ends the
-#: solve (also the named optimistix solvers' atol).
-ATOL = 1e-5
 #: Relative floor on the damping diagonal, times the mean diagonal of the free channels: keeps the
 #: damped blocks invertible for channels the images barely constrain (roughness without highlights).
 DAMPING_FLOOR = 1e-6
@@ -63,9 +58,6 @@ DAMPING_FLOOR = 1e-6
 LAMBDA_INIT = 1e-3
 #: Damping above this means the model cannot be decreased further from here: stop.
 LAMBDA_MAX = 1e10
-#: Relative residual at which a step's conjugate gradients stop, ||r|| <= CG_RTOL ||g|| (an inexact
-#: Levenberg-Marquardt step; `fit --cg-rtol` trades it for speed, measured in docs/results.md).
-CG_RTOL = 1e-3
 #: Conjugate-gradient iterations per step, at most.
 CG_MAX_STEPS = 100
 #: Losses a solve keeps, one per call to `step` (the start's first); later steps run unrecorded.

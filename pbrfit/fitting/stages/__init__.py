@@ -5,6 +5,10 @@ texels that fit worse than the noise explains or are out of line with their neig
 
 May import: the rest of `pbrfit.fitting` but `api`.
 
-Its modules are imported by `pbrfit.fitting`, not here: the passes and the result import single
-stages, and a stage imports the result.
+Its modules are imported on first access (`pbrfit.lazy`), not here: the passes and the result
+import single stages, and a stage imports the result.
 """
+
+from ...lazy import submodules_on_access
+
+__getattr__ = submodules_on_access(__name__, __path__)
