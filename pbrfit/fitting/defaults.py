@@ -29,11 +29,12 @@ OPTX_SOLVERS = ("lm", "gn", "dogleg", "bfgs", "lbfgs", "ncg", "adam")
 #: Every solver a fit can run by name: the structured one (the default), then the optimistix ones.
 SOLVERS = (DEFAULT_SOLVER,) + OPTX_SOLVERS
 
-#: Relative stopping tolerance: an accepted step that lowers E by less than ``RTOL · E`` ends the
-#: solve (also the named optimistix solvers' rtol).
+#: Relative stopping tolerance: an accepted step that lowers E by less than ``RTOL · E``, or any
+#: step whose predicted and actual changes of E are both within it, ends the solve (also the
+#: named optimistix solvers' rtol).
 RTOL = 1e-6
-#: Absolute stopping tolerance: an accepted step that moves no value by more than this ends the
-#: solve (also the named optimistix solvers' atol).
+#: Absolute stopping tolerance: a step that moves no value by more than this ends the solve (also
+#: the named optimistix solvers' atol).
 ATOL = 1e-5
 #: Relative residual at which a step's conjugate gradients stop, ||r|| <= CG_RTOL ||g|| (an inexact
 #: Levenberg-Marquardt step; `fit --cg-rtol` trades it for speed, measured in docs/results.md).

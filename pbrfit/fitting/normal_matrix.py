@@ -24,7 +24,8 @@ from jaxtyping import Array, Float
 
 from .objective import Problem, by_pixel, laplacian, sample_texels, scatter_texels, to_rows
 
-__all__ = ["normal_blocks", "neighbour_blocks", "NEIGHBOUR_OFFSETS", "gradient", "gauss_newton_factors", "gn_product"]
+__all__ = ["normal_blocks", "neighbour_blocks", "NEIGHBOUR_OFFSETS", "gradient", "gauss_newton_factors", "gn_product",
+           "spd_block_inverse"]
 
 
 def normal_blocks(jac: Float[Array, "R 3 K"], problem: Problem) -> Float[Array, "T K K"]:
@@ -149,3 +150,27 @@ def gn_product(gp, v, problem: Problem):
         jv = jnp.einsum("psci,psi->pc", jac, by_pixel(mv, problem), precision=lax.Precision.HIGHEST)
         y = jnp.einsum("psci,pc->psi", jac, jv, precision=lax.Precision.HIGHEST).reshape(mv.shape)
     return scatter_texels(problem.weight[:, :, None] * y[:, None, :], problem) + problem.smooth * laplacian(v, problem)
+
+
+def spd_block_inverse(m: Float[Array, "T K K"]) -> Float[Array, "T K K"]:
+    """The inverses of symmetric positive definite K × K blocks (the block-Jacobi
+    preconditioners), by Gauss-Jordan elimination without pivoting on [S | I] → [I | S⁻¹], K
+    steps of elementwise arithmetic over all T blocks at once, where S = D^-½ M D^-½ is M
+    scaled to a unit diagonal (D = diag M) and M⁻¹ = D^-½ S⁻¹ D^-½.
+
+    Without pivoting each pivot is a Schur complement of S, positive for SPD S, so elimination
+    never divides by zero (G. H. Golub and C. F. Van Loan, Matrix Computations, 4th ed., §4.2);
+    the scaling takes out the channels' different units (colour against roughness), which
+    otherwise cost float32 digits. Plain XLA operations, not LAPACK: ``jnp.linalg.inv`` calls a
+    LAPACK kernel that spreads a batch over the CPU's thread pool and waits for it, and with the
+    pixels sharded over several CPU devices every device's kernel waited on the pool the others
+    held (a fit over 4 forced host devices hung at the solver's first step)."""
+    k = m.shape[-1]
+    scale = lax.rsqrt(jnp.diagonal(m, axis1=-2, axis2=-1))
+    s = m * scale[..., :, None] * scale[..., None, :]
+    a = jnp.concatenate([s, jnp.broadcast_to(jnp.eye(k, dtype=m.dtype), m.shape)], axis=-1)
+    for i in range(k):
+        row = a[..., i, :] / a[..., i, i, None]
+        a = a - a[..., :, i, None] * row[..., None, :]
+        a = a.at[..., i, :].set(row)
+    return a[..., k:] * scale[..., :, None] * scale[..., None, :]

@@ -315,10 +315,7 @@ def _multi_device_report() -> dict:
 
 
 def test_structured_lm_sharded_over_four_cpu_devices():
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    flags = [f for f in env.get("XLA_FLAGS", "").split() if not f.startswith("--xla_force_host_platform_device_count")]
-    env["XLA_FLAGS"] = " ".join(flags + [f"--xla_force_host_platform_device_count={DEVICES}"])
-    proc = subprocess.run([sys.executable, __file__], env=env, capture_output=True, text=True, timeout=600)
+    proc = subprocess.run([sys.executable, __file__], env=_four_device_env(), capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-4000:]
     rep = json.loads(proc.stdout.strip().splitlines()[-1])
     assert rep["devices"] == DEVICES
@@ -351,6 +348,31 @@ def test_structured_lm_sharded_over_four_cpu_devices():
     # grown over the steps (2.4e-4 on one host, under 1e-4 on another, with the same code)
     assert rep["pixel_ibl_map_diff"] <= 1e-3, rep
     np.testing.assert_allclose(rep["pixel_ibl_loss"][1], rep["pixel_ibl_loss"][0], rtol=1e-4)
+
+
+def _four_device_env() -> dict:
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    flags = [f for f in env.get("XLA_FLAGS", "").split() if not f.startswith("--xla_force_host_platform_device_count")]
+    env["XLA_FLAGS"] = " ".join(flags + [f"--xla_force_host_platform_device_count={DEVICES}"])
+    return env
+
+
+def test_the_fit_command_over_four_cpu_devices_finishes(tmp_path):
+    """The whole `pbrfit fit --devices 4` on the peer layout with 64² images and 64² maps. It hung
+    at the solver's first step: the block-Jacobi inverses went through LAPACK
+    (``jnp.linalg.inv``), whose batched kernel waits on the CPU thread pool that the other
+    devices' kernels held (`pbrfit.fitting.normal_matrix.spd_block_inverse` replaced it)."""
+    from pbrfit.cli.main import main
+
+    cap, out = tmp_path / "cap", tmp_path / "out"
+    assert main(["synth", "peer-plane", "--out", str(cap), "--size", "64", "--quiet"]) == 0
+    command = [sys.executable, "-m", "pbrfit.cli.main", "fit", str(cap), "--out", str(out), "--resolution", "64",
+               "--devices", str(DEVICES), "--quiet", "--no-search", "--no-repair", "--no-uniform-check"]
+    proc = subprocess.run(command, env=_four_device_env(), capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    report = json.loads((out / "report.json").read_text())
+    assert len(report["devices"]) == DEVICES, report["devices"]
+    assert max(report["truth_rmse"].values()) < 0.01, report["truth_rmse"]
 
 
 if __name__ == "__main__":

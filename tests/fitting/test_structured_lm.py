@@ -25,14 +25,14 @@ from pbrfit.fitting.solvers.names import SOLVERS, is_structured, solver_for, sol
 from pbrfit.fitting.solvers.structured import ATOL, CG_RTOL, HISTORY, RTOL, StructuredLM, solve
 from test_sharding import _problem, _start
 
-# The hand-written loop this solver replaced (a jitted lax.while_loop), on `_problem` from the
-# grid start with rtol 1e-7 and atol 1e-6, 30 steps at most: (steps, accepted, CG iterations),
-# E, λ and the mean of each channel of x (CPU, float32). With the prior (smooth 1e-3) three steps
-# are accepted, then eight are refused until λ passes LAMBDA_MAX; without it the fifth accepted
-# step is small enough to stop.
+# The solver on `_problem` from the grid start with rtol 1e-7 and atol 1e-6, 30 steps at most:
+# (steps, accepted, CG iterations), E, λ and the mean of each channel of x (CPU, float32). Both
+# reach E's float32 floor at the third step and stop at the first step, accepted or refused, whose
+# predicted and actual gains are both within rtol · E (before that test, the refused steps went on
+# until λ passed LAMBDA_MAX: 11 steps with the prior, 3 accepted).
 REFERENCE = {
-    1e-3: ((11, 3, 115), 0.14778105914592743, 2545166.0, (0.57315881, 0.46256701, 0.55512854, 0.0, 0.48584193)),
-    0.0: ((5, 5, 62), 0.14532418549060822, 4.115227056900039e-06, (0.5731611, 0.46256968, 0.55513157, 0.0, 0.48588595)),
+    1e-3: ((5, 4, 62), 0.14778104424476624, 2.4691360522410832e-05, (0.57315885, 0.46256703, 0.55512856, 0.0, 0.48584283)),
+    0.0: ((4, 3, 48), 0.1453242152929306, 7.40740797482431e-05, (0.57316106, 0.46256966, 0.55513156, 0.0, 0.48588503)),
 }
 
 

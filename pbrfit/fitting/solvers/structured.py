@@ -44,7 +44,7 @@ from jax import lax
 from jaxtyping import Array, Float
 
 from ..defaults import ATOL, CG_RTOL, RTOL
-from ..normal_matrix import gauss_newton_factors, gn_product, gradient, normal_blocks
+from ..normal_matrix import gauss_newton_factors, gn_product, gradient, normal_blocks, spd_block_inverse
 from ..objective import Problem, linearize, prior_degree, residuals
 from ..parameters import lower, upper
 
@@ -142,9 +142,11 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
     (its residuals, `pbrfit.fitting.objective.residuals`) is not called, as `step` linearises the
     problem itself.
 
-    Stops at an accepted step that lowers E by less than ``rtol · E`` or moves no value by more
-    than `atol` (in `norm`, the max norm by default), when λ passes `LAMBDA_MAX`, at a step that
-    moves nothing, or after ``options["max_steps"]`` steps (an int32 array, so that one compiled
+    Stops at an accepted step that lowers E by less than ``rtol · E``, at a step, accepted or
+    not, whose predicted and actual changes of E are both within ``rtol · E`` (MINPACK's ftol
+    test: J. J. Moré, B. S. Garbow, K. E. Hillstrom, "User guide for MINPACK-1", ANL-80-74, 1980)
+    or that moves no value by more than `atol` (in `norm`, the max norm by default), when λ
+    passes `LAMBDA_MAX`, or after ``options["max_steps"]`` steps (an int32 array, so that one compiled
     program serves every budget; without it, optimistix's ``max_steps`` bounds the solve, and
     counts the first call to `step`, which only linearises at the start clipped into the box).
     The final state holds the residuals ``r`` and Jacobians ``jac`` at the returned x, and
@@ -191,7 +193,7 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         damp = diag + DAMPING_FLOOR * mean_diag
         outer = a[:, :, None] * a[:, None, :]
         m_blocks = outer * (blocks + lam * damp[:, :, None] * eye) + (1.0 - a)[:, :, None] * eye
-        m_inv = jnp.linalg.inv(m_blocks)
+        m_inv = spd_block_inverse(m_blocks)
 
         def matvec(v):
             av = a * v
@@ -214,8 +216,12 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         lam_new = jnp.where(accept, lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), lam * nu)
         nu_new = jnp.where(accept, 2.0, 2.0 * nu)
         moved = self.norm(step)
-        small = (actual <= self.rtol * loss) | (moved <= self.atol)
-        done = ~first & ((accept & small) | (lam_new > LAMBDA_MAX) | (moved == 0))
+        # a step, accepted or not, whose predicted and actual changes of E are both within rtol · E
+        # ends the solve (MINPACK's ftol test): E is at its float32 floor, where λ would otherwise
+        # grow over rejected steps until the step is within atol
+        tol = self.rtol * loss
+        floor = (predicted <= tol) & (jnp.abs(actual) <= tol)
+        done = ~first & ((accept & (actual <= tol)) | floor | (moved <= self.atol) | (lam_new > LAMBDA_MAX))
         lam_new = jnp.where(first, lam, lam_new)
         nu_new = jnp.where(first, nu, nu_new)
         history = state.history.at[state.k].set(jnp.where(accept, loss_new, loss), mode="drop")

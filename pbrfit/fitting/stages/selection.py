@@ -62,7 +62,7 @@ from ..parameters import lower, upper
 from ..runner import jitted_normal_blocks, problem_energy
 from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ..objective import Problem
-from ..normal_matrix import gauss_newton_factors, gn_product, gradient, normal_blocks
+from ..normal_matrix import gauss_newton_factors, gn_product, gradient, normal_blocks, spd_block_inverse
 from ..solvers.structured import pcg
 from ...transfer import to_device
 from ..uncertainty import block_standard_errors, residual_variance
@@ -128,7 +128,7 @@ def profile_hessian(r: Float[Array, "P 3"], jac: Float[Array, "R 3 K"], x: Float
              + PRECONDITIONER_FLOOR * jnp.sum(diag * free) / jnp.maximum(jnp.sum(free), 1.0))
     eye = jnp.eye(k, dtype=blocks.dtype)
     m = free[:, :, None] * free[:, None, :] * (blocks + ridge[:, None, None] * eye) + (1.0 - free)[:, :, None] * eye
-    m_inv = jnp.linalg.inv(m)
+    m_inv = spd_block_inverse(m)
 
     def matvec(v):
         return free * gn_product(gp, free * v, problem)
