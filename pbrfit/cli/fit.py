@@ -10,6 +10,7 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import jax
 import numpy as np
@@ -115,12 +116,14 @@ def fit_options(args):
     options = dict(
         fit=args.fit, fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
         max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, loss=args.loss, smooth=args.smooth,
-        coarse_to_fine=args.coarse_to_fine, search=not args.no_search, uniform_check=not args.no_uniform_check,
-        repair=not args.no_repair, noise_level=args.noise_level, devices=devices, ibl=args.ibl,
-        pixel_ibl_settings=pixel_ibl_settings, occlusion=args.occlusion, continuation=continuation,
+        coarse_to_fine=args.coarse_to_fine, search=_off(args.no_search), uniform_check=_off(args.no_uniform_check),
+        repair=_off(args.no_repair), noise_level=args.noise_level, devices=devices, ibl=args.ibl,
+        pixel_ibl_settings=pixel_ibl_settings, occlusion=args.occlusion,
+        continuation=None if args.continuation is None else continuation,
         pixel_samples=pixel_samples,
         cg_rtol=args.cg_rtol, loss_scale=args.loss_scale, uncertainty_radius=args.uncertainty_radius,
-        unconstrained_sigma=args.unconstrained_sigma, model=model_changes(args.model) or None)
+        unconstrained_sigma=args.unconstrained_sigma, model=model_changes(args.model) or None, quality=args.quality)
+    # an option left out is the --quality rung's, else its default
     try:  # checked as `pbrfit.fit` checks them, worded with the flags
         return FitOptions(**{k: v for k, v in options.items() if v is not None or k in _NONE_IS_A_VALUE},
                           names=OptionNames(flags=True, held_by=held_by))
@@ -129,8 +132,13 @@ def fit_options(args):
 
 
 #: The options whose value None means something (not "the default"): the map size from the
-#: views, the solver's own step count, every map not held, one device, the capture's model.
-_NONE_IS_A_VALUE = ("resolution", "max_steps", "fit", "devices", "model")
+#: views, every map not held, one device, the capture's model.
+_NONE_IS_A_VALUE = ("resolution", "fit", "devices", "model")
+
+
+def _off(flag: bool) -> Optional[bool]:
+    """A stage a ``--no-...`` flag turns off: False where given, else left to the rung."""
+    return False if flag else None
 
 
 def _continuation(text: str) -> tuple:

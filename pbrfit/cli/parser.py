@@ -18,7 +18,7 @@ from data_synth.presets import IMAGE_FORMATS, INTERREFLECTION_DEPTH, MIN_DEPTH, 
 
 from .model_flag import add_model_argument
 from ..fitting.defaults import (ATOL, CG_RTOL, CONTINUATION, DEFAULT_SOLVER, IBL_MODES, LOSS_SCALE, LOSSES,
-                                MATERIAL_MAPS, MAX_PIXEL_SAMPLES, MAX_STEPS, NOISE_LEVELS, RTOL, SOLVERS)
+                                MATERIAL_MAPS, MAX_PIXEL_SAMPLES, MAX_STEPS, NOISE_LEVELS, QUALITY, RTOL, SOLVERS)
 from ..lighting.settings import OCCLUSION_MODES, PixelIBLSettings
 
 __all__ = ["build_parser", "add_fit", "default_continuation", "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "MAX_SIZE",
@@ -151,6 +151,10 @@ def add_fit(sub) -> None:
     for name in MATERIAL_MAPS:
         flag = name.replace("_", "-")
         p.add_argument(f"--{flag}-from", metavar="DIR", help=f"hold {name} fixed at the map in a material folder")
+    p.add_argument("--quality", choices=tuple(QUALITY), default="default",
+                   help="the speed ladder: draft previews in a fraction of the time (no search, repair, uniform check "
+                        "or continuation; looser conjugate gradients), best solves to tighter tolerances; flags given "
+                        "with it win (default: default; docs/options.md)")
     p.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER, help=f"default {DEFAULT_SOLVER}")
     p.add_argument("--max-steps", type=int, help=f"solver steps at the final resolution (default {MAX_STEPS}); the repair's and the "
                         "uniform check's re-fits come on top")

@@ -360,10 +360,13 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
             the time the fit waited for compiles, ``times["compile_background"]`` what was
             compiled meanwhile). Off: every compile runs where it is first needed.
         progress: called with {stage: "ibl", done, total} (pixels) while per-pixel IBL integrals
-            are computed, then with {level, resolution, step, loss} after each step (``check``:
-            the channel, during the uniform check's re-fits; an optimistix
-            solver's: at each evaluation of the objective, one per step; a host callback; leave
-            None for a solve with no host round-trips).
+            are computed, then with {level, resolution, step, loss} for each step (``check``:
+            the channel, during the uniform check's re-fits): the structured solver's after each
+            solve (it keeps the losses in its state, so its program holds no host callback); an
+            optimistix solver's at each evaluation of the objective, one per step, by a host
+            callback.
+        quality: the speed ladder's rung (`pbrfit.fitting.defaults.QUALITY`: "draft",
+            "default", "best"), which sets the options it names that are not given.
     """
     t0 = time.perf_counter()
     options = options_from(options, overrides)  # checked at once, before the capture is read

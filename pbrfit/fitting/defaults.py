@@ -4,7 +4,7 @@ modules that use them import them from here (and re-export them where they were 
 
 __all__ = ["MATERIAL_MAPS", "IBL_MODES", "LOSSES", "LOSS_SCALE", "NOISE_LEVELS", "MAX_PIXEL_SAMPLES",
            "DEFAULT_SOLVER", "OPTX_SOLVERS", "SOLVERS", "RTOL", "ATOL", "CG_RTOL", "COARSE_STEPS", "MAX_STEPS",
-           "CONTINUATION"]
+           "CONTINUATION", "QUALITY", "STRUCTURED_ONLY"]
 
 #: The material maps a fit can fit or hold (``fit=``, ``fixed=``); "normal" can only be fitted.
 MATERIAL_MAPS = ("base_color", "metallic", "roughness")
@@ -47,3 +47,16 @@ MAX_STEPS = 40
 #: to the data's mean curvature per texel at the start (`pbrfit.fitting.passes` says how they are
 #: used; `experiments/solvers.md` has the numbers that chose them).
 CONTINUATION = (0.0035, 0.00035)
+
+#: The options only the structured solver reads (a rung of `QUALITY` leaves them to another).
+STRUCTURED_ONLY = ("cg_rtol", "continuation")
+#: The speed ladder (``quality=``, ``--quality``): per rung, the options it sets where they are
+#: left at their defaults. "draft" previews in a fraction of the default's time (no search,
+#: repair, uniform check or continuation; each step's conjugate gradients to 0.1); "best" runs
+#: the solve to tighter tolerances and a larger step budget. `experiments/speed.md` measures each.
+QUALITY = {
+    "draft": dict(search=False, repair=False, uniform_check=False, continuation=None, cg_rtol=0.1),
+    "default": {},
+    "best": dict(cg_rtol=1e-4, rtol=1e-8, max_steps=4 * MAX_STEPS),
+}
+

@@ -6,6 +6,7 @@ or the command line (`OptionNames`)."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import Any, Callable, Mapping, Optional, Sequence, Union
 
@@ -16,7 +17,7 @@ import optimistix as optx
 
 from ..lighting.pixel_ibl import PixelIBLSettings
 from ..lighting.visibility import OCCLUSION_MODES, OcclusionSettings
-from .defaults import COARSE_STEPS, CONTINUATION, IBL_MODES, LOSS_SCALE, MATERIAL_MAPS
+from .defaults import COARSE_STEPS, CONTINUATION, IBL_MODES, LOSS_SCALE, MATERIAL_MAPS, QUALITY, STRUCTURED_ONLY
 from ..physics.model import Model
 from .noise import NOISE_LEVELS
 from .parameters import FIT_GROUPS, prior
@@ -253,11 +254,15 @@ class FitOptions:
     background_compile: bool = True
     cache_dir: Any = None
     progress: Optional[Callable[[dict], Any]] = None
+    # the speed ladder: a rung of `QUALITY`, whose settings fill the options not given
+    quality: str = "default"
     #: how refusals name the options (not an option: left out of comparisons)
     names: OptionNames = dataclasses.field(default=OptionNames(), compare=False, repr=False)
 
     def __post_init__(self):
         say = self.names.option
+        if self.quality not in QUALITY:
+            raise ValueError(f"{say('quality')} must be one of {', '.join(QUALITY)}, got {self.quality!r}")
         if self.ibl not in (None,) + IBL_MODES:
             raise ValueError(f"{say('ibl')} must be one of {', '.join(IBL_MODES)}, got {self.ibl!r}")
         fit, fixed = fit_arguments(self.fit, self.fixed, self.names)
@@ -327,6 +332,25 @@ def with_tolerances(solver, rtol=None, atol=None, cg_rtol=None):
         if value is not None and (name != "cg_rtol" or isinstance(solver, StructuredLM)):
             solver = eqx.tree_at(lambda s: getattr(s, name), solver, float(value))
     return solver
+
+
+def _with_quality(generated_init):
+    """`FitOptions`' ``__init__``: ``quality``'s rung of `QUALITY` sets the options it names that
+    are not given (those only the structured solver reads, where it runs); then the dataclass's
+    own ``__init__``. `dataclasses.replace` gives every field, so a copy keeps its values."""
+
+    @functools.wraps(generated_init)
+    def __init__(self, **options):
+        structured = is_structured(options.get("solver", DEFAULT_SOLVER))
+        for name, value in QUALITY.get(options.get("quality", "default"), {}).items():
+            if name not in options and (structured or name not in STRUCTURED_ONLY):
+                options[name] = value
+        generated_init(self, **options)
+
+    return __init__
+
+
+FitOptions.__init__ = _with_quality(FitOptions.__init__)
 
 
 def options_from(options: Optional[FitOptions], overrides: Mapping[str, Any]) -> FitOptions:

@@ -298,6 +298,7 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
     result.report["stages"] = stages
     result.report["steps"] += sum(s["steps"] for s in stages)
     # when each level stops (`pbrfit.fitting.api.fit_observations`), and the robust loss's scale
+    result.report["quality"] = options.quality
     result.report["stopping"] = dict(max_steps=int(max_steps), coarse_steps=int(options.coarse_steps),
                                      rtol=float(options.solver.rtol), atol=float(options.solver.atol))
     if options.loss != "l2":

@@ -751,3 +751,45 @@ def test_a_capture_too_bright_for_float32_is_refused_not_written(capture, tmp_pa
     err = capsys.readouterr().err
     assert "came out NaN or beyond float32" in err and err.count("\n") == 1 and not out.exists(), err
 
+
+
+def test_quality_rungs_set_the_options_not_given():
+    """--quality draft|default|best (`pbrfit.fitting.defaults.QUALITY`) fills the options the
+    command line leaves out; a flag given with it wins, and a rung leaves what only the
+    structured solver reads to it."""
+    from pbrfit.cli.main import build_parser
+    from pbrfit.cli.fit import fit_options
+    from pbrfit.fitting.defaults import QUALITY
+
+    def options(*extra):
+        return fit_options(build_parser().parse_args(["fit", "CAP", "--out", "OUT", *extra]))
+
+    def rung(o):
+        return {name: getattr(o, name) for name in {**QUALITY["draft"], **QUALITY["best"]}}
+
+    assert rung(options()) == rung(options("--quality", "default")) == rung(FitOptions())
+    draft = options("--quality", "draft")
+    assert draft.quality == "draft" and rung(draft) == rung(FitOptions(quality="draft"))
+    assert {name: getattr(draft, name) for name in QUALITY["draft"]} == QUALITY["draft"]
+    assert draft.solver.cg_rtol == QUALITY["draft"]["cg_rtol"] and draft.continuation is None
+    assert options("--quality", "draft", "--cg-rtol", "0.01").cg_rtol == 0.01
+    assert options("--quality", "draft", "--continuation", "0.01").continuation == (0.01,)
+    best = options("--quality", "best")
+    assert (best.max_steps, best.solver.rtol) == (QUALITY["best"]["max_steps"], QUALITY["best"]["rtol"])
+    assert options("--quality", "best", "--max-steps", "7").max_steps == 7
+    lm = options("--quality", "draft", "--solver", "lm")
+    assert lm.search is False and lm.cg_rtol is None and lm.continuation == FitOptions().continuation
+    # the Python API: keywords given win, a copy keeps its values, an unknown rung is refused
+    assert FitOptions(quality="draft", search=True).search is True
+    assert FitOptions(quality="draft").replace(max_steps=5).search is False
+    with pytest.raises(ValueError, match="quality must be one of draft, default, best"):
+        FitOptions(quality="fast")
+
+
+def test_a_draft_fit_runs_no_stage_and_says_so(capture, tmp_path, monkeypatch):
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "out"
+    assert main(["fit", str(capture), "--out", str(out), "--resolution", "8", "--quality", "draft", "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["quality"] == "draft" and report["cg_rtol"] == 0.1 and report["continuation"] is None
+    assert [s["ran"] for s in report["stages"]] == [False, False, True], report["stages"]
