@@ -236,7 +236,7 @@ def maps_sheet(material, uncertainty: np.ndarray, coverage: np.ndarray, truth=No
     normal = getattr(material, "normal", None)
     if normal is not None:
         n = np.asarray(normal, np.float32)
-        row = [("normal: fit", n * 0.5 + 0.5), ("normal: sigma in report.json", None)]
+        row = [("normal: fit", n * 0.5 + 0.5), ("normal: sigma (its median: report.json)", None)]
         t = None if truth is None else getattr(truth, "normal", None)
         if t is not None and np.asarray(t).shape == n.shape:
             t = np.asarray(t, np.float32)

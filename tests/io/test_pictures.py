@@ -136,3 +136,23 @@ def test_write_fit_output_pictures_with_and_without_truth(tmp_path):
     np.testing.assert_array_equal(a[:, bar_x:], b[:, bar_x:])
     with pytest.raises(ValueError, match="truth base_color is \\(2, 2\\), the fit \\(4, 4\\)"):
         maps_sheet(fit, sigma, coverage, _material(2, 2))
+
+
+def test_maps_sheet_normal_row_angle_to_truth():
+    """With normals fitted, a fourth row: the normal, and against a true normal the angle between
+    them, on the shared bar read as a fraction of 90 degrees."""
+    tilt = np.radians(4.5)  # half the bar: 0.05 of 90 degrees
+    up = np.zeros((4, 4, 3), np.float32)
+    up[..., 2] = 1.0
+    tilted = np.zeros_like(up)
+    tilted[..., 0], tilted[..., 2] = np.sin(tilt), np.cos(tilt)
+    base = _material()
+    fit = Material(base.base_color, base.metallic, base.roughness, normal=up)
+    truth = Material(base.base_color, base.metallic, base.roughness, normal=tilted)
+    sheet = maps_sheet(fit, np.full((4, 4, 5), 0.01, np.float32), np.ones((4, 4)), truth)
+    panel = (256, 256)
+    assert sheet.shape[0] >= 4 * (panel[0] + _LABEL)
+    np.testing.assert_array_equal(_panel(sheet, 3, 0, panel)[0, 0], _rgb8(np.array([0.5, 0.5, 1.0])))
+    np.testing.assert_allclose(_panel(sheet, 3, 3, panel)[0, 0].astype(int), _rgb8(colormap(np.array(0.5))), atol=1)
+    without = maps_sheet(fit, np.full((4, 4, 5), 0.01, np.float32), np.ones((4, 4)))
+    assert without.shape[0] >= 4 * (panel[0] + _LABEL) and without.shape[1] < sheet.shape[1]
