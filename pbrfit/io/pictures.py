@@ -147,7 +147,7 @@ def _compose(rows: Sequence[Sequence[Optional[tuple[str, np.ndarray]]]], bar: tu
     grid_w = _PAD + columns * (cell_w + _PAD)
     grid_h = len(rows) * (_LABEL + cell_h + _PAD)
     notes_w = max((round(font.getlength(n)) + 2 * _PAD for n in notes), default=0)
-    width = max(grid_w + _BAR + _BAR_TEXT + _PAD, notes_w)
+    width = max(grid_w + max(_BAR + _BAR_TEXT, round(font.getlength(bar[1]))) + _PAD, notes_w)
     height = _PAD + grid_h + len(notes) * _LINE + _PAD
     image = Image.new("RGB", (width, height), "white")
     draw = ImageDraw.Draw(image)
@@ -189,7 +189,8 @@ def contact_sheet(target: np.ndarray, fitted: np.ndarray, mask: np.ndarray, is_s
     exposure = "" if is_srgb else f"; target and fit shown with {peak:.3g} as white"
     notes = [f"{lead}|error| = mean over R, G, B of |fit - target|, in {units}{exposure}",
              "one error scale for every view of this fit; grey: outside the mask (not fitted)"]
-    return _compose([[("target", shown(t)), ("fit", shown(f)), ("|fit - target|", heat)]], (scale, "|error|"), notes)
+    bar = (scale, "|error|, display value" if is_srgb else "|error|, radiance")
+    return _compose([[("target", shown(t)), ("fit", shown(f)), ("|fit - target|", heat)]], bar, notes)
 
 
 def _seen(values: np.ndarray, coverage: np.ndarray) -> np.ndarray:
