@@ -60,13 +60,18 @@ def recovery_table(fitted, truth, sigma, coverage) -> list[dict]:
 
 
 def _table(rows: list[dict], observed: int) -> str:
-    head = (f"{'map':<12}{'RMSE, all':>11}{'RMSE, σ ≤ ' + format(CONFIDENT_SIGMA, 'g'):>18}{'median σ':>10}"
-            f"{'|err| ≤ 2σ':>12}")
+    """The recovery table: first the texels the fit is sure of (σ at most `CONFIDENT_SIGMA`), how
+    many they are and their RMSE, then the RMSE over every observed texel, the median σ and the
+    calibration column."""
+    sure = f"σ ≤ {CONFIDENT_SIGMA:g}"
+    head = f"{'map':<12}{'sure texels':>12}{'RMSE, ' + sure:>16}{'RMSE, all':>11}{'median σ':>10}{'|err| ≤ 2σ':>12}"
     lines = [head]
     for r in rows:
-        sure = f"{r['rmse_confident']:.4f} ({r['confident']})"
-        lines.append(f"{r['map']:<12}{r['rmse']:>11.4f}{sure:>18}{r['median_sigma']:>10.4f}{r['within_2sigma']:>11.0%}")
-    lines.append(f"RMSE over the {observed} observed texels; in brackets, how many of them the fit is sure of.")
+        sure_rmse = f"{r['rmse_confident']:.4f}" if r["confident"] else "-"  # no texel to measure
+        lines.append(f"{r['map']:<12}{r['confident']:>12}{sure_rmse:>16}{r['rmse']:>11.4f}"
+                     f"{r['median_sigma']:>10.4f}{r['within_2sigma']:>11.0%}")
+    lines.append(f"sure texels: observed, with {sure}; RMSE, all: over all {observed} observed texels, "
+                 "the unsure ones included.")
     return "\n".join(lines)
 
 
@@ -118,5 +123,5 @@ def run_demo(out: str = "pbrfit-demo", quiet: bool = False, seed: int = 0, **sce
         f"({compile_summary(r['times'])}), total {time.perf_counter() - start:.1f} s; "
         f"{int(seen.sum())} of {seen.size} texels observed"
     )
-    say(f"wrote {out / 'fit'} (maps, uncertainty.exr, material.glb, report.json, views/)")
+    say(f"wrote {out / 'fit'} (maps, uncertainty.exr, material.glb, report.json; pictures: maps.png, views/)")
     return 0

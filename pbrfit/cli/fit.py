@@ -29,6 +29,7 @@ from ..io.atomic import check_not_inside, check_output_dir
 from ..io.material_files import read_map, read_material
 from ..io.outputs import write_fit_output
 from ..lighting.settings import MAX_LEVELS, MAX_SAMPLES, MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
+from ..physics.textures import resample_map
 from ..scene.capture import load_capture
 
 __all__ = ["run", "fit_options", "fit_summary", "FitProgress", "loss_history", "run_fit"]
@@ -284,6 +285,13 @@ def run_fit(capture, out, options, cache_dir=None, quiet: bool = False):
     write_fit_output(
         out, capture, result.material, np.asarray(result.uncertainty)[..., :5], result.coverage, result.report,
         targets=list(zip(result.targets, result.masks)), renders=result.images, history=history,
-        write_normal=normals,
+        write_normal=normals, truth=None if truth is None else _at_resolution(truth, result.material.resolution),
     )
     return result, errors
+
+
+def _at_resolution(truth, shape):
+    """The true maps resampled to the fitted resolution (`resample_map`, as `map_rmse` compares
+    them), for maps.png; the normal as it is."""
+    maps = {name: resample_map(getattr(truth, name), shape) for name in ("base_color", "metallic", "roughness")}
+    return type(truth)(**maps, normal=truth.normal)

@@ -1,7 +1,8 @@
 """The fit output folder (capture spec, "The fit output"), written whole or not at all.
 
 maps (EXR + PNG), ``uncertainty.exr``, ``coverage.exr``, ``material.glb``, ``report.json``, a
-contact sheet per view (target | fitted render | error heat map) under ``views/`` and
+contact sheet per view (target | fitted render | |error|) under ``views/``, ``maps.png`` (the
+maps, their σ and, with the truth, the truth and the error; `pbrfit.io.pictures`) and
 ``convergence.png``.
 """
 
@@ -16,42 +17,18 @@ from typing import Sequence
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from ..physics.color import linear_to_srgb_host
 from .atomic import atomic_dir
 from .gltf_export import write_gltf
-from .images import write_image
 from .material_files import write_material
+from .images import write_image
+from .pictures import contact_sheet, display_peak, error_scale, maps_sheet
 
-__all__ = ["UNCERTAINTY_CHANNELS", "contact_sheet", "write_fit_output"]
+__all__ = ["UNCERTAINTY_CHANNELS", "write_fit_output"]
 
 #: Channel names of uncertainty.exr, in the spec's order (base R, G, B, metallic, roughness).
 #: OpenEXR stores channels sorted by name and OpenImageIO reads R, G, B first and then the rest
 #: by name, so these names come back in this order; layered names ("base_color.R") would not.
 UNCERTAINTY_CHANNELS = ("R", "G", "B", "metallic", "roughness")
-
-
-def _heat(err: np.ndarray, scale: float) -> np.ndarray:
-    """Map |error| in [0, scale] to a black-red-yellow-white ramp."""
-    x = np.clip(err / max(scale, 1e-12), 0.0, 1.0)
-    return np.stack([np.clip(3 * x, 0, 1), np.clip(3 * x - 1, 0, 1), np.clip(3 * x - 2, 0, 1)], -1)
-
-
-def _display(x: np.ndarray, is_srgb: bool) -> np.ndarray:
-    """Values to show in an 8-bit PNG: sRGB-encoded, clipped."""
-    x = np.clip(np.asarray(x, np.float32), 0.0, 1.0)
-    return x if is_srgb else linear_to_srgb_host(x)
-
-
-def contact_sheet(target: np.ndarray, fitted: np.ndarray, mask: np.ndarray, is_srgb: bool) -> np.ndarray:
-    """(H, 3W, 3) image: target | fitted render | |error| heat map (white = the 99th percentile)."""
-    err = np.abs(np.asarray(fitted, np.float64) - np.asarray(target, np.float64)).mean(-1)
-    err = np.where(mask, err, 0.0)
-    scale = float(np.percentile(err[mask], 99)) if np.any(mask) else 1.0
-    if not is_srgb:
-        peak = float(np.percentile(np.asarray(target)[mask], 99)) if np.any(mask) else 1.0
-        target = np.asarray(target) / max(peak, 1e-6)
-        fitted = np.asarray(fitted) / max(peak, 1e-6)
-    return np.concatenate([_display(target, is_srgb), _display(fitted, is_srgb), _heat(err, scale)], axis=1)
 
 
 def _convergence_plot(path: Path, history: Sequence[dict], size: tuple[int, int] = (520, 320)) -> None:
@@ -124,11 +101,13 @@ def write_fit_output(
     renders: Sequence[np.ndarray] = (),
     history: Sequence[dict] = (),
     write_normal: bool = False,
+    truth=None,
 ) -> Path:
     """Write a fit's output folder at `out_dir` atomically (built under a temporary name).
 
     targets: per view (image as the file holds it, mask); renders: per view the fitted render in
-    the same space. Both optional (no contact sheets without them).
+    the same space. Both optional (no contact sheets without them). truth: the true `Material` at
+    the fitted resolution, or None; with it ``maps.png`` shows the truth and the error too.
     """
 
     out_dir = Path(out_dir)
@@ -144,12 +123,16 @@ def write_fit_output(
         write_image(tmp / "uncertainty.exr", uncertainty, "float", channel_names=UNCERTAINTY_CHANNELS)
         write_image(tmp / "coverage.exr", coverage[..., None] if coverage.ndim == 2 else coverage, "float")
         write_gltf(tmp / "material.glb", capture.mesh, material, capture.world_up)
+        Image.fromarray(maps_sheet(material, uncertainty, coverage, truth)).save(tmp / "maps.png")
         if targets and renders:
             (tmp / "views").mkdir()
+            masks = [mask for _, mask in targets]
+            scale = error_scale([t for t, _ in targets], renders, masks)
+            peak = display_peak([t for t, _ in targets], masks)
             for k, ((target, mask), fitted) in enumerate(zip(targets, renders)):
                 is_srgb = capture.frames[k].color_space == "srgb"
-                sheet = contact_sheet(target, fitted, mask, is_srgb)
-                write_image(tmp / "views" / f"{k:03d}.png", sheet.astype(np.float32), "uint8")
+                sheet = contact_sheet(target, fitted, mask, is_srgb, scale, peak, title=f"view {k:03d}")
+                Image.fromarray(sheet).save(tmp / "views" / f"{k:03d}.png")
         if history:
             _convergence_plot(tmp / "convergence.png", history)
         (tmp / "report.json").write_text(json.dumps(_json_safe(report), indent=2) + "\n")

@@ -5,7 +5,7 @@ import json
 import jax.numpy as jnp
 import numpy as np
 
-from pbrfit.cli.demo import CONFIDENT_SIGMA, recovery_table, run_demo
+from pbrfit.cli.demo import CONFIDENT_SIGMA, _table, recovery_table, run_demo
 from pbrfit.physics.material import Material
 
 
@@ -17,7 +17,7 @@ def test_demo_runs_end_to_end(tmp_path, monkeypatch, capsys):
     for name in ("base_color", "metallic", "roughness", "RMSE, all", "|err| ≤ 2σ", "observed texels"):
         assert name in text, name
     assert (out / "capture" / "capture.json").is_file() and (out / "capture" / "truth").is_dir()
-    for name in ("base_color.exr", "uncertainty.exr", "material.glb", "report.json"):
+    for name in ("base_color.exr", "uncertainty.exr", "material.glb", "report.json", "maps.png", "views/000.png"):
         assert (out / "fit" / name).is_file(), name
     report = json.loads((out / "fit" / "report.json").read_text())
     assert set(report["truth_rmse"]) == {"base_color", "metallic", "roughness"}
@@ -49,6 +49,18 @@ def test_recovery_table_counts_and_calibration():
     b = {r["map"]: r for r in recovery_table(off, truth, sigma, coverage)}["base_color"]
     assert b["within_2sigma"] == 6 / 9  # the exact texel's 3 channels and the 0.3 texel's 3, of 9
     np.testing.assert_allclose(b["median_sigma"], 0.2, rtol=1e-6)  # six channels at 0.2, three at 0.01
+
+
+def test_recovery_table_leads_with_the_sure_texels():
+    rows = [dict(map="base_color", rmse=0.0123, confident=812, rmse_confident=0.0061, median_sigma=0.011,
+                 within_2sigma=0.94),
+            dict(map="roughness", rmse=0.08, confident=0, rmse_confident=float("nan"), median_sigma=0.2,
+                 within_2sigma=0.9)]
+    head, base, rough, note = _table(rows, 1000).splitlines()
+    assert head.index("sure texels") < head.index(f"RMSE, σ ≤ {CONFIDENT_SIGMA:g}") < head.index("RMSE, all")
+    assert base.split() == ["base_color", "812", "0.0061", "0.0123", "0.0110", "94%"]
+    assert rough.split() == ["roughness", "0", "-", "0.0800", "0.2000", "90%"]  # none sure: no RMSE to give
+    assert "RMSE, all: over all 1000 observed texels" in note
 
 
 def test_demo_refuses_to_replace_folders_it_did_not_write(tmp_path, capsys):
