@@ -108,12 +108,7 @@ def fit_options(args):
     pixel_ibl_settings = PixelIBLSettings(
         levels=PixelIBLSettings.levels if args.ibl_levels is None else args.ibl_levels,
         samples=PixelIBLSettings.samples if args.ibl_samples is None else args.ibl_samples)
-    devices = None
-    if args.devices is not None:
-        available = jax.devices()
-        if not 1 <= args.devices <= len(available):
-            raise CaptureError(f"--devices: expected 1 to {len(available)} (the devices JAX sees), got {args.devices}")
-        devices = available[: args.devices] if args.devices > 1 else None
+    devices = fit_devices(args.devices)
     options = dict(
         fit=args.fit, fixed=fixed, maps=args.maps, resolution=args.resolution, solver=args.solver,
         max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, loss=args.loss, smooth=args.smooth,
@@ -135,6 +130,19 @@ def fit_options(args):
 #: The options whose value None means something (not "the default"): the map size from the
 #: views, every map not held, one device, the capture's model.
 _NONE_IS_A_VALUE = ("resolution", "fit", "devices", "model")
+
+
+def fit_devices(text: str) -> Optional[list]:
+    """--devices: "auto" (every local device of an accelerator backend; on the CPU one device,
+    as several host devices share the same cores) or a count from 1 to the devices JAX sees;
+    None for one device."""
+    available = jax.local_devices()
+    if text == "auto":
+        return available if jax.default_backend() != "cpu" and len(available) > 1 else None
+    count = int(text) if text.isascii() and text.isdigit() else 0
+    if not 1 <= count <= len(available):
+        raise CaptureError(f"--devices: expected auto or 1 to {len(available)} (the devices JAX sees), got {text}")
+    return available[:count] if count > 1 else None
 
 
 def _off(flag: bool) -> Optional[bool]:

@@ -224,8 +224,9 @@ def add_fit(sub) -> None:
                    help="weights of the smoothness prior over the first steps, relative to the data's curvature, "
                         f"released before the end (default {default_continuation()}; 'none' turns it off)")
     add_model_argument(p)
-    p.add_argument("--devices", type=int,
-                   help="split the pixels over this many JAX devices (default: one device)")
+    p.add_argument("--devices", default="auto", metavar="N|auto",
+                   help="split the pixels over this many JAX devices (default auto: every local device of an "
+                        "accelerator, one CPU device)")
     p.add_argument("--cache", help="G-buffer and per-pixel IBL cache folder (default $PBRFIT_CACHE, else $XDG_CACHE_HOME/pbrfit, else ~/.cache/pbrfit)")
     p.add_argument("--no-cache", action="store_true", help="do not read or write the cache")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary line; warnings and errors still print")

@@ -198,6 +198,7 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--roughness-from", __file__], f"--roughness-from: {__file__}: is a file, not a material folder"),
         (["--devices", "99"], "(the devices JAX sees), got 99"),
         (["--devices", "0"], "(the devices JAX sees), got 0"),
+        (["--devices", "two"], "expected auto or 1 to"),
         (["--smooth", "nan"], "--smooth: must be a finite number >= 0, got nan"),
         (["--continuation", "abc"], "--continuation: expected 'none' or comma-separated weights >= 0 within float32, got 'abc'"),
         (["--fit", ""], "--fit: nothing to fit (it names no map)"),
@@ -751,6 +752,12 @@ def test_a_capture_too_bright_for_float32_is_refused_not_written(capture, tmp_pa
     err = capsys.readouterr().err
     assert "came out NaN or beyond float32" in err and err.count("\n") == 1 and not out.exists(), err
 
+
+
+def test_devices_auto_is_one_device_on_the_cpu():
+    from pbrfit.cli.fit import fit_devices
+
+    assert fit_devices("auto") is None and fit_devices("1") is None  # one device: no mesh
 
 
 def test_quality_rungs_set_the_options_not_given():

@@ -202,7 +202,7 @@ def test_a_second_fit_of_the_same_shapes_compiles_nothing():
     truth = _checker()
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
     reported = []
-    first = fit_observations(obs, resolution=8, max_steps=40, progress=reported.append)
+    first = fit_observations(obs, resolution=8, max_steps=16, progress=reported.append)
     losses = [entry["loss"] for entry in reported]
     # every step reported, once: the solve's steps and the stages' (their steps count apart)
     assert len(losses) >= first.report["steps"] + 1 and losses[-1] == pytest.approx(first.report["final_loss"], rel=1e-3)
@@ -215,7 +215,7 @@ def test_a_second_fit_of_the_same_shapes_compiles_nothing():
 
     jax.monitoring.register_event_duration_secs_listener(count)
     try:
-        second = fit_observations(obs, resolution=8, max_steps=40, progress=reported.append)
+        second = fit_observations(obs, resolution=8, max_steps=16, progress=reported.append)
     finally:
         counting[0] = False
     assert lowered == []

@@ -203,7 +203,9 @@ def _multi_device_report() -> dict:
     from pbrfit.fitting.initialisation import coordinate_search, grid_initialise, parity_classes
     from pbrfit.fitting.solvers.structured import StructuredLM, solve
 
-    out = dict(devices=len(jax.devices()))
+    from pbrfit.cli.fit import fit_devices
+
+    out = dict(devices=len(jax.devices()), auto_devices=fit_devices("auto"))
     problem, _ = _problem()
     mesh = pixel_mesh()
     sharded = shard_problem(problem, mesh)
@@ -319,6 +321,7 @@ def test_structured_lm_sharded_over_four_cpu_devices():
     assert proc.returncode == 0, proc.stderr[-4000:]
     rep = json.loads(proc.stdout.strip().splitlines()[-1])
     assert rep["devices"] == DEVICES
+    assert rep["auto_devices"] is None  # --devices auto: one device on the CPU, however many host devices
     assert rep["pixels"] == padded_size(PIXELS, DEVICES) == 1004
     assert rep["spec"] == rep["want_spec"]
     assert rep["shard_rows"] == [251] * DEVICES and rep["light_shard_rows"] == [251] * DEVICES
