@@ -113,18 +113,38 @@ def _end_on_signal(signum, frame):
     for number in _ENDING_SIGNALS:  # a second signal meanwhile changes nothing
         signal.signal(number, signal.SIG_IGN)
     abandon_writes(_FINISH_WRITE_S)
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            if stream.isatty():  # a progress line (rich) hides the cursor until it stops
-                stream.write("\x1b[?25h")
-            stream.flush()
-        except (OSError, ValueError):  # a reader gone, a stream closed
-            pass
+    _silence_stdout()
+    try:
+        sys.stderr.flush()
+    except (OSError, ValueError):  # a reader gone, a stream closed
+        pass
     try:
         os.write(2, f"pbrfit: {_ENDING_SIGNALS[signum]}\n".encode())
     except OSError:
         pass
     os._exit(_SIGNAL_STATUS_BASE + signum)
+
+
+#: On a terminal: show the cursor (a live progress line hides it until it stops) and clear the line.
+_TERMINAL_RESET = "\x1b[?25h\r\x1b[2K"
+
+
+def _silence_stdout() -> None:
+    """Flush stdout (on a terminal, reset after a progress line: `_TERMINAL_RESET`), then point it
+    at the null device, so that nothing the worker or a progress line's refresh thread writes
+    meanwhile comes after the command's last line."""
+    try:
+        if sys.stdout.isatty():
+            sys.stdout.write(_TERMINAL_RESET)
+        sys.stdout.flush()
+    except (OSError, ValueError):  # a reader gone, a stream closed
+        pass
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, 1)
+        os.close(null)
+    except OSError:
+        pass
 
 
 def _in_worker(command, args):
