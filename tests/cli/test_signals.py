@@ -12,6 +12,7 @@ step, the output's temporary folder appears. Linux only (``/proc``, ``pty``).
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -34,6 +35,8 @@ MARKER_WAIT_S = 120.0
 INTO_COMPILE_S = 1.0
 #: How often the markers are polled.
 POLL_S = 0.002
+#: Runs to stop the fit while it writes its output (some tens of milliseconds), before giving up.
+FREEZE_TRIES = 3
 
 
 @pytest.fixture(scope="module")
@@ -141,13 +144,20 @@ MOMENTS = {
 def test_sigterm_ends_a_fit_at_once_leaving_nothing(capture, shared_cache, tmp_path, moment):
     which, marker, freeze = MOMENTS[moment]
     cache = tmp_path / "cache" if which == "fresh" else shared_cache
-    fit = Fit(capture, tmp_path / "out", cache)
-    fit.wait_for(fit.handles_sigterm, "SIGTERM handler")
-    fit.wait_for(marker(fit), moment)
-    if freeze:
+    for _ in range(FREEZE_TRIES):
+        fit = Fit(capture, tmp_path / "out", cache)
+        fit.wait_for(fit.handles_sigterm, "SIGTERM handler")
+        fit.wait_for(marker(fit), moment)
+        if not freeze:
+            break
         os.kill(fit.proc.pid, signal.SIGSTOP)
-        assert not (tmp_path / "out").exists()  # stopped before the output is renamed into place
-    elif moment == "compiling":
+        if not (tmp_path / "out").exists():  # stopped before the output was renamed into place
+            break
+        fit.end(signal.SIGCONT)  # this machine was too slow to stop it in time: let it finish, and again
+        shutil.rmtree(tmp_path / "out")
+    else:
+        pytest.fail(f"the fit never stopped while {moment} ({FREEZE_TRIES} tries)")
+    if moment == "compiling":
         time.sleep(INTO_COMPILE_S)
     took = fit.end(signal.SIGTERM, frozen=freeze)
     assert fit.proc.returncode == 143, fit.text
