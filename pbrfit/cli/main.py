@@ -5,6 +5,11 @@ Each subcommand is a thin layer over the Python API, in a module of its own (`fi
 parsed: the parser (`pbrfit.cli.parser`) loads no JAX, so ``--help`` and a usage error answer at
 once. Bad input ends the command with one line on stderr, ``pbrfit: error: <what and where>``,
 and exit status 2; nothing is half written.
+
+On its own command line (the console script, ``python -m pbrfit.cli.main``) the command runs in a
+worker thread while the main thread waits, free to take signals: SIGINT and SIGTERM end the
+process within a moment, even while XLA computes or compiles, with exit status 130 or 143 and
+every temporary output removed (`_end_on_signal`).
 """
 
 from __future__ import annotations
@@ -14,12 +19,13 @@ import importlib
 import os
 import signal
 import sys
+import threading
 import warnings
 from typing import Optional, Sequence
 
 from .parser import EXIT_USAGE, build_parser
 from ..errors import CaptureError, first_line
-from ..io.atomic import REFUSED_ERRNOS
+from ..io.atomic import REFUSED_ERRNOS, abandon_writes
 
 __all__ = ["main", "build_parser"]
 
@@ -86,8 +92,109 @@ def _raise_terminated(signum, frame):
     raise _Terminated()
 
 
+#: The signals that end a command, and the word its last line says.
+_ENDING_SIGNALS = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated"}
+#: A shell's exit status for a command a signal ended: this plus the signal's number (130, 143).
+_SIGNAL_STATUS_BASE = 128
+#: How long a signal waits for a rename into place, or for a compilation-cache entry being written,
+#: to finish (each takes milliseconds; the process ends within 2 s of the signal).
+_FINISH_WRITE_S = 0.5
+#: How often the main thread wakes while it waits for the command's worker: a signal that reached
+#: another thread (XLA's) runs its handler at the next wake.
+_WAKE_S = 0.05
+
+
+def _end_on_signal(signum, frame):
+    """SIGINT or SIGTERM while the command runs in its worker thread: remove every temporary the
+    atomic writers have made and not renamed into place (`pbrfit.io.atomic.abandon_writes`, which
+    waits for a rename under way and keeps any later one from happening), say so in one line and
+    end the process with status 128 + the signal's number (130, 143). ``os._exit``: the worker
+    may be inside XLA, which can be neither interrupted nor joined."""
+    for number in _ENDING_SIGNALS:  # a second signal meanwhile changes nothing
+        signal.signal(number, signal.SIG_IGN)
+    abandon_writes(_FINISH_WRITE_S)
+    _silence_stdout()
+    try:
+        sys.stderr.flush()
+    except (OSError, ValueError):  # a reader gone, a stream closed
+        pass
+    try:
+        os.write(2, f"pbrfit: {_ENDING_SIGNALS[signum]}\n".encode())
+    except OSError:
+        pass
+    os._exit(_SIGNAL_STATUS_BASE + signum)
+
+
+#: On a terminal: show the cursor (a live progress line hides it until it stops) and clear the line.
+_TERMINAL_RESET = "\x1b[?25h\r\x1b[2K"
+
+
+def _silence_stdout() -> None:
+    """Flush stdout (on a terminal, reset after a progress line: `_TERMINAL_RESET`), then point it
+    at the null device, so that nothing the worker or a progress line's refresh thread writes
+    meanwhile comes after the command's last line."""
+    try:
+        if sys.stdout.isatty():
+            sys.stdout.write(_TERMINAL_RESET)
+        sys.stdout.flush()
+    except (OSError, ValueError):  # a reader gone, a stream closed
+        pass
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, 1)
+        os.close(null)
+    except OSError:
+        pass
+
+
+def _in_worker(command, args):
+    """``command(args)`` in a daemon thread while this (the main) thread waits for it, so that the
+    signal handlers run at once; its result, or its exception raised here."""
+    outcome = {}
+
+    def work():
+        try:
+            outcome["status"] = command(args)
+        except BaseException as err:  # raised again in the main thread, where main() reports it
+            outcome["error"] = err
+
+    worker = threading.Thread(target=work, name="pbrfit-command", daemon=True)
+    worker.start()
+    while worker.is_alive():
+        worker.join(_WAKE_S)
+    if "error" in outcome:
+        raise outcome.pop("error")
+    return outcome["status"]
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    """Entry point of the `pbrfit` console script; returns the exit status."""
+    """Entry point of the `pbrfit` console script; returns the exit status.
+
+    Without ``argv`` (the process's own command line) and in the main thread, the command runs in
+    a worker thread and SIGINT or SIGTERM ends the process at once (`_end_on_signal`, exit status
+    130 or 143); with ``argv`` (the command called from Python) it runs in the caller's thread and
+    a signal unwinds it (Ctrl-C's KeyboardInterrupt, SIGTERM alike), main() returning 130 or 143.
+    Either way no output is left half written."""
+    detached = argv is None and threading.current_thread() is threading.main_thread()
+    # a `kill` (SIGTERM) unwinds like Ctrl-C, so that half-written outputs are removed; installed
+    # first, so that a signal while the arguments are read ends the command alike
+    handlers = {signal.SIGINT: _end_on_signal, signal.SIGTERM: _end_on_signal} if detached else \
+        {signal.SIGTERM: _raise_terminated}
+    previous = {}
+    try:
+        for number, handler in handlers.items():
+            previous[number] = signal.signal(number, handler)
+    except ValueError:  # not the main thread: signals stay as they are
+        pass
+    try:
+        return _main(argv, detached)
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, signal.SIG_DFL if handler is None else handler)
+
+
+def _main(argv: Optional[Sequence[str]], detached: bool) -> int:
+    """`main` once its signal handlers are set."""
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -96,16 +203,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.command is None:
         print(f"pbrfit: error: expected a command, one of {', '.join(_COMMANDS)} (see pbrfit --help)", file=sys.stderr)
         return EXIT_USAGE
-    # a `kill` (SIGTERM) unwinds like Ctrl-C, so that half-written outputs are removed
-    try:
-        previous = signal.signal(signal.SIGTERM, _raise_terminated)
-        installed = True
-    except ValueError:  # not the main thread: signals stay as they are
-        previous, installed = None, False
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning
-            status = _COMMANDS[args.command](args)
+            command = _COMMANDS[args.command]
+            status = _in_worker(command, args) if detached else command(args)
             sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's last flush
             return status
     except BrokenPipeError:
@@ -134,14 +236,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"pbrfit: error: out of memory: {first_line(str(err))}; {hint}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
-        print("pbrfit: interrupted", file=sys.stderr)
-        return 130
+        print(f"pbrfit: {_ENDING_SIGNALS[signal.SIGINT]}", file=sys.stderr)
+        return _SIGNAL_STATUS_BASE + signal.SIGINT
     except _Terminated:
-        print("pbrfit: terminated", file=sys.stderr)
-        return 143
-    finally:
-        if installed:
-            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+        print(f"pbrfit: {_ENDING_SIGNALS[signal.SIGTERM]}", file=sys.stderr)
+        return _SIGNAL_STATUS_BASE + signal.SIGTERM
 
 
 if __name__ == "__main__":  # pragma: no cover

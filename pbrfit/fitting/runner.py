@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Mapping
 
 import equinox as eqx
+import filelock
 import jax
 import numpy as np
 
@@ -25,6 +26,7 @@ from .solvers.optx import for_size, optx_solve
 from .objective import Problem, objective
 from .normal_matrix import neighbour_blocks, normal_blocks
 from .solvers import structured
+from ..io.atomic import hold_on_abandon
 from ..transfer import to_device
 
 __all__ = ["enable_compilation_cache", "stamp_cache_entries", "Compiler", "Runner", "timed", "timed_rest", "thread_time", "problem_key",
@@ -36,6 +38,11 @@ MIN_CACHED_COMPILE_SECONDS = 0.5
 #: also makes JAX lock the folder (``filelock``) for each read and write, so processes that share
 #: it (two fits at once, a test suite's workers) never read an executable another is writing.
 COMPILATION_CACHE_BYTES = 2 * 1024**3
+#: The file in the cache folder that JAX locks around each read and write of an entry
+#: (``jax._src.lru_cache.LRUCache``). JAX writes an entry in place, not under a temporary name, so a
+#: process ended by a signal takes this lock before it ends (`pbrfit.io.atomic.abandon_writes`):
+#: it never ends halfway through an executable, which later runs would read as a corrupt entry.
+JAX_CACHE_LOCK_FILE = ".lockfile"
 
 
 def stamp_cache_entries(folder) -> None:
@@ -53,8 +60,10 @@ def stamp_cache_entries(folder) -> None:
 
 def enable_compilation_cache(folder) -> None:
     """Keep XLA executables in ``folder`` (JAX's persistent compilation cache), shared safely by
-    the processes that use it. JAX opens the folder at its first compile and keeps it."""
+    the processes that use it. JAX opens the folder at its first compile and keeps it. A process
+    ended by a signal waits for an entry being written (`JAX_CACHE_LOCK_FILE`)."""
     stamp_cache_entries(folder)
+    hold_on_abandon("compilation cache", filelock.FileLock(str(Path(folder) / JAX_CACHE_LOCK_FILE)))
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_CACHED_COMPILE_SECONDS)
     jax.config.update("jax_compilation_cache_max_size", COMPILATION_CACHE_BYTES)

@@ -1,7 +1,8 @@
 """Atomic writes and output folders: a file or a folder is written under a temporary name beside
 its place and renamed into place (`atomic_path`, `atomic_dir`), so it appears whole or not at
 all; an output folder replaces only an earlier output of the same kind (`check_output_dir`,
-`OUTPUT_MARKER`); cache files that cannot be written only warn (`write_cache_file`)."""
+`OUTPUT_MARKER`); cache files that cannot be written only warn (`write_cache_file`). A process
+ended by a signal removes every temporary not yet renamed into place (`abandon_writes`)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from typing import BinaryIO, Callable, Iterator, Optional
 from ..errors import CaptureError, listed
 
 __all__ = ["atomic_path", "atomic_dir", "check_output_dir", "check_not_inside", "output_path", "write_cache_file",
-           "CacheWarning", "OUTPUT_MARKER", "OUTPUT_KINDS", "REFUSED_ERRNOS"]
+           "abandon_writes", "hold_on_abandon", "CacheWarning", "OUTPUT_MARKER", "OUTPUT_KINDS", "REFUSED_ERRNOS"]
 
 
 def _process_umask() -> int:
@@ -36,6 +37,61 @@ _UMASK = _process_umask()
 _FILE_MODE = 0o666 & ~_UMASK
 _DIR_MODE = 0o777 & ~_UMASK
 
+#: Every temporary file and folder the writers below have made and neither renamed into place nor
+#: removed (insertion-ordered), for `abandon_writes`.
+_TEMPORARIES: dict = {}
+#: Held while a temporary is made and registered, and around each rename into place with its
+#: unregistering; `abandon_writes` takes it and keeps it, so that no temporary is made and no output
+#: appears after it (a rename between its cleanup and the process's end would leave a half output).
+_RENAMING = threading.Lock()
+#: Locks of other writers (JAX's compilation cache) that `abandon_writes` takes and keeps too, so
+#: that the process does not end halfway through one of their files; by name (`hold_on_abandon`).
+_HELD_ON_ABANDON: dict = {}
+#: How many times `abandon_writes` removes a folder another thread may still be writing into.
+_REMOVE_TRIES = 20
+
+
+def _register(path: Path) -> None:
+    """Note a temporary (made under `_RENAMING`) for `abandon_writes`."""
+    _TEMPORARIES[path] = None
+
+
+def _discard(path: Path) -> None:
+    """Remove a temporary file or folder, if still there, and forget it."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        with contextlib.suppress(OSError):
+            path.unlink()
+    _TEMPORARIES.pop(path, None)
+
+
+def hold_on_abandon(name: str, lock) -> None:
+    """Have `abandon_writes` take ``lock`` too (anything with ``acquire(timeout=seconds)``, such as
+    a ``threading.Lock`` or a ``filelock.FileLock``) and keep it; ``name`` replaces an earlier lock
+    of that name."""
+    _HELD_ON_ABANDON[name] = lock
+
+
+def abandon_writes(timeout: float) -> list[Path]:
+    """For a process about to end at once (a signal): wait at most ``timeout`` seconds for each
+    rename under way and each `hold_on_abandon` lock, keep them all, and remove every temporary
+    the writers here have made and not renamed into place; return those. No output appears
+    afterwards: a writer that reaches its rename waits for ever, so the process must end next
+    (``os._exit``). A folder another thread is still writing into is removed again until it is gone."""
+    _RENAMING.acquire(timeout=timeout)
+    for lock in list(_HELD_ON_ABANDON.values()):
+        with contextlib.suppress(Exception):  # not taken in time (or gone): the process ends anyway
+            lock.acquire(timeout=timeout)
+    removed = list(_TEMPORARIES)
+    for path in reversed(removed):
+        for _ in range(_REMOVE_TRIES):
+            _discard(path)
+            if not os.path.lexists(path):
+                break
+    _TEMPORARIES.clear()
+    return removed
+
 
 @contextlib.contextmanager
 def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
@@ -47,16 +103,19 @@ def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
     """
     final = Path(final)
     final.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=f".tmp{final.suffix}", dir=final.parent)
+    with _RENAMING:
+        fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=f".tmp{final.suffix}", dir=final.parent)
+        tmp_path = Path(tmp)
+        _register(tmp_path)
     os.close(fd)
-    tmp_path = Path(tmp)
     try:
         yield tmp_path
         os.chmod(tmp_path, _FILE_MODE)
-        os.replace(tmp_path, final)
+        with _RENAMING:
+            os.replace(tmp_path, final)
+            _TEMPORARIES.pop(tmp_path, None)
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp_path.unlink()
+        _discard(tmp_path)
         raise
 
 
@@ -221,7 +280,9 @@ def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optio
         check_output_dir(final_dir, kind)
     try:
         final_dir.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".tmp", dir=final_dir.parent))
+        with _RENAMING:
+            tmp = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".tmp", dir=final_dir.parent))
+            _register(tmp)
     except OSError as err:
         raise CaptureError(f"{final_dir}: cannot create the output folder: {err.strerror or err}") from None
     try:
@@ -230,31 +291,37 @@ def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optio
             (tmp / OUTPUT_MARKER).write_text("\n".join([kind] + sorted(_relative_files(tmp))) + "\n")
         os.chmod(tmp, _DIR_MODE)
         if final_dir.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".old", dir=final_dir.parent))
+            with _RENAMING:
+                old = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".old", dir=final_dir.parent))
+                _register(old)
             try:
-                with _signals_held():  # Ctrl-C or a kill between the two renames would lose both folders
+                # Ctrl-C or a kill between the two renames would lose both folders
+                with _signals_held(), _RENAMING:
                     os.replace(final_dir, old / "d")
                     try:
                         os.replace(tmp, final_dir)
                     except BaseException:
                         os.replace(old / "d", final_dir)  # the earlier output goes back
                         raise
+                    _TEMPORARIES.pop(tmp, None)
             finally:
-                shutil.rmtree(old, ignore_errors=True)
+                _discard(old)
         else:
-            os.replace(tmp, final_dir)
+            with _RENAMING:
+                os.replace(tmp, final_dir)
+                _TEMPORARIES.pop(tmp, None)
     except OSError as err:  # a full disk, say: named as it would have been in the output
-        shutil.rmtree(tmp, ignore_errors=True)
+        _discard(tmp)
         name = str(err.filename or "")
         if err.errno not in REFUSED_ERRNOS or (name and not name.startswith(str(tmp))):
             raise
         raise CaptureError(f"{final_dir}{name[len(str(tmp)):]}: cannot write: {err.strerror or err}; "
                            "nothing was written") from None
     except CaptureError as err:  # a file of the output named by its temporary path: named as in the output
-        shutil.rmtree(tmp, ignore_errors=True)
+        _discard(tmp)
         if str(tmp) not in str(err):
             raise
         raise CaptureError(str(err).replace(str(tmp), str(final_dir))) from None
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        _discard(tmp)
         raise

@@ -167,6 +167,66 @@ def test_signals_are_held_while_an_output_is_swapped_in():
         signal.signal(signal.SIGTERM, previous)
 
 
+
+#: A process whose writer thread is halfway through an output folder (an earlier one in place, a
+#: cache file and a file of the output written) when the main thread abandons the writes, with
+#: another writer's lock (`hold_on_abandon`) held for a while by a third thread.
+_ABANDONED_PROCESS = """
+import json, os, sys, threading, time
+from pathlib import Path
+from pbrfit.io.atomic import abandon_writes, atomic_dir, atomic_path, hold_on_abandon
+
+root = Path(sys.argv[1])
+with atomic_dir(root / "out") as d:
+    (d / "old.txt").write_text("earlier output")
+inside, go_on, renamed = threading.Event(), threading.Event(), threading.Event()
+other_writer = threading.Lock()
+hold_on_abandon("other writer", other_writer)
+
+def write():
+    with atomic_dir(root / "out") as d:
+        (d / "new.txt").write_text("new output")
+        with atomic_path(root / "cache.bin") as tmp:
+            tmp.write_bytes(b"half")
+            inside.set()
+            go_on.wait()
+    renamed.set()
+
+def hold_other_writer():
+    with other_writer:
+        inside.wait()
+        time.sleep(0.3)
+
+threading.Thread(target=hold_other_writer, daemon=True).start()
+threading.Thread(target=write, daemon=True).start()
+inside.wait()
+start = time.monotonic()
+removed = abandon_writes(timeout=5)
+waited = time.monotonic() - start
+go_on.set()  # the writer reaches its renames, which wait for ever
+time.sleep(0.3)
+print(json.dumps(dict(removed=len(removed), waited=waited, renamed=renamed.is_set(), held=other_writer.locked(),
+                      left=sorted(os.listdir(root)), out=sorted(os.listdir(root / "out")))))
+sys.stdout.flush()
+os._exit(0)
+"""
+
+
+def test_abandoned_writes_leave_no_temporary_and_rename_nothing(tmp_path):
+    """`abandon_writes` (what a signal does before the process ends) removes the temporaries of
+    a writer in another thread (the output folder's, a cache file's), waits for another writer's
+    lock and keeps it, and no rename happens after it: the earlier output stays, whole."""
+    import json
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _ABANDONED_PROCESS, str(tmp_path)], capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 0, done.stderr
+    got = json.loads(done.stdout)
+    assert got["removed"] == 2 and got["left"] == ["out"] and got["out"] == ["old.txt"]
+    assert not got["renamed"] and got["held"] and got["waited"] >= 0.2
+
 # --- images -------------------------------------------------------------------------------------
 def test_single_channel_2d_round_trip_guards_oiio_bug(tmp_path):
     # OpenImageIO garbles a 2-D array passed to write_image; write_image must pass (H, W, 1).
