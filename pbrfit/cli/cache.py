@@ -27,9 +27,10 @@ def cache_dir(args):
 
 def enable_compilation_cache(args) -> None:
     """Keep XLA compilations on disk beside the G-buffer cache, so a second run of a command
-    skips part of its compile time (off with --no-cache or PBRFIT_NO_COMPILE_CACHE=1). JAX keeps
-    no program with a host callback, so the solver's loop, which reports each step, compiles on
-    every run (a small fit: 5.6 s of compile waited for, then 2.9 s on the second run)."""
+    loads its programs instead of compiling them (off with --no-cache or
+    PBRFIT_NO_COMPILE_CACHE=1); the solver's among them, as it reports its steps after each solve,
+    not by a host callback, which JAX would not keep."""
+
     if getattr(args, "no_cache", False) or os.environ.get("PBRFIT_NO_COMPILE_CACHE"):
         return
 

@@ -23,7 +23,7 @@ from ..fitting.parameters import FIT_GROUPS
 from ..fitting.runner import compile_summary
 from ..io.atomic import check_output_dir
 from ..io.material_files import read_material
-from ..physics.textures import resample_map
+from ..fitting.result import truth_at
 from ..render.views import default_cache_dir
 from ..scene.capture import load_capture
 
@@ -40,9 +40,8 @@ def recovery_table(fitted, truth, sigma, coverage) -> list[dict]:
     whose standard error is at most `CONFIDENT_SIGMA`; the median σ; and the fraction of texel
     channels whose error is within 2σ (≈ 95% when the uncertainty is honest)."""
     x = np.concatenate([np.asarray(fitted.base_color), np.asarray(fitted.metallic), np.asarray(fitted.roughness)], -1)
+    truth = truth_at(truth, fitted.resolution)  # resampled as `pbrfit.fitting.result.map_rmse` does
     t = np.concatenate([np.asarray(truth.base_color), np.asarray(truth.metallic), np.asarray(truth.roughness)], -1)
-    if t.shape != x.shape:  # truth at another resolution: resampled as `pbrfit.fitting.api.map_rmse` does
-        t = resample_map(t, x.shape[:2])
     sig = np.asarray(sigma)
     seen = np.asarray(coverage) > 0
     rows = []

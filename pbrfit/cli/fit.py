@@ -21,6 +21,7 @@ from .model_flag import model_changes
 from .parser import EXIT_OK, default_continuation
 from ..errors import CaptureError
 from ..fitting.api import fit, map_rmse
+from ..fitting.result import truth_at
 from ..fitting.defaults import DEFAULT_SOLVER, MATERIAL_MAPS, MAX_PIXEL_SAMPLES
 from ..fitting.options import FLOAT32_MAX, FitOptions, OptionNames
 from ..fitting.runner import compile_summary
@@ -29,7 +30,6 @@ from ..io.atomic import check_not_inside, check_output_dir
 from ..io.material_files import read_map, read_material
 from ..io.outputs import write_fit_output
 from ..lighting.settings import MAX_LEVELS, MAX_SAMPLES, MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
-from ..physics.textures import resample_map
 from ..scene.capture import load_capture
 
 __all__ = ["run", "fit_options", "fit_summary", "FitProgress", "loss_history", "run_fit"]
@@ -293,13 +293,7 @@ def run_fit(capture, out, options, cache_dir=None, quiet: bool = False):
     write_fit_output(
         out, capture, result.material, np.asarray(result.uncertainty)[..., :5], result.coverage, result.report,
         targets=list(zip(result.targets, result.masks)), renders=result.images, history=history,
-        write_normal=normals, truth=None if truth is None else _at_resolution(truth, result.material.resolution),
+        write_normal=normals, truth=None if truth is None else truth_at(truth, result.material.resolution),
     )
     return result, errors
 
-
-def _at_resolution(truth, shape):
-    """The true maps resampled to the fitted resolution (`resample_map`, as `map_rmse` compares
-    them), for maps.png; the normal as it is."""
-    maps = {name: resample_map(getattr(truth, name), shape) for name in ("base_color", "metallic", "roughness")}
-    return type(truth)(**maps, normal=truth.normal)

@@ -67,13 +67,19 @@ def _stdout_closed() -> bool:
         pass
     except (OSError, ValueError):
         return False
+    _point_at_null(sys.stdout.fileno)
+    return True
+
+
+def _point_at_null(descriptor) -> None:
+    """Point the file descriptor ``descriptor()`` gives at the null device (nothing where it
+    cannot: stdout is no file descriptor, or the system refuses)."""
     try:
         null = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(null, sys.stdout.fileno())
+        os.dup2(null, descriptor())
         os.close(null)
-    except (OSError, ValueError):  # stdout is no file descriptor
+    except (OSError, ValueError):
         pass
-    return True
 
 
 def _printable(text: str) -> str:
@@ -139,12 +145,7 @@ def _silence_stdout() -> None:
         sys.stdout.flush()
     except (OSError, ValueError):  # a reader gone, a stream closed
         pass
-    try:
-        null = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(null, 1)
-        os.close(null)
-    except OSError:
-        pass
+    _point_at_null(lambda: 1)
 
 
 def _in_worker(command, args):

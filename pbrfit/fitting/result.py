@@ -23,7 +23,7 @@ from ..physics.textures import resample_map
 from ..transfer import to_device
 from .uncertainty import WINDOW_RADIUS, residual_variance, window_radii, window_standard_errors
 
-__all__ = ["FitResult", "closed_times", "finish", "map_rmse", "texel_standard_errors"]
+__all__ = ["FitResult", "closed_times", "finish", "map_rmse", "texel_standard_errors", "truth_at"]
 
 
 @dataclasses.dataclass
@@ -199,6 +199,14 @@ def finish(obs, state, x, model, options, history, times, t_start):
     return FitResult(material, sigma, coverage, report, images, targets, masks)
 
 
+def truth_at(truth: Material, shape: tuple[int, int]) -> Material:
+    """The true base colour, metallic and roughness maps at a fitted resolution, as a held map is
+    resampled (`pbrfit.physics.textures.resample_map`: block means for whole factors, else
+    linear); the normal map as it is."""
+    maps = {name: resample_map(getattr(truth, name), shape) for name in ("base_color", "metallic", "roughness")}
+    return dataclasses.replace(truth, **maps)
+
+
 def map_rmse(truth: Material, result, coverage: Optional[np.ndarray] = None) -> dict:
     """Per-map RMSE of a fitted material (or `FitResult`) against the truth, over observed texels.
 
@@ -209,12 +217,11 @@ def map_rmse(truth: Material, result, coverage: Optional[np.ndarray] = None) -> 
     if coverage is None and isinstance(result, FitResult):
         coverage = result.coverage
     shape = material.resolution
+    truth = truth_at(truth, shape)
     out = {}
     for name in ("base_color", "metallic", "roughness"):
         t = np.asarray(getattr(truth, name), np.float32)
         f = np.asarray(getattr(material, name), np.float32)
-        if t.shape[:2] != shape:
-            t = resample_map(t, shape)
         seen = np.ones(shape, bool) if coverage is None else np.asarray(coverage) > 0
         err = (f - t)[seen]
         out[name] = float(np.sqrt(np.mean(err ** 2))) if err.size else float("nan")

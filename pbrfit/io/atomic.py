@@ -51,9 +51,20 @@ _HELD_ON_ABANDON: dict = {}
 _REMOVE_TRIES = 20
 
 
-def _register(path: Path) -> None:
-    """Note a temporary (made under `_RENAMING`) for `abandon_writes`."""
-    _TEMPORARIES[path] = None
+def _new_temporary(make: Callable[[], str]) -> Path:
+    """A temporary made by ``make`` (``tempfile.mkstemp``'s or ``mkdtemp``'s call) and noted for
+    `abandon_writes`, under `_RENAMING`."""
+    with _RENAMING:
+        path = Path(make())
+        _TEMPORARIES[path] = None
+    return path
+
+
+def _into_place(tmp: Path, final: Path) -> None:
+    """Rename a temporary into place and forget it, under `_RENAMING`."""
+    with _RENAMING:
+        os.replace(tmp, final)
+        _TEMPORARIES.pop(tmp, None)
 
 
 def _discard(path: Path) -> None:
@@ -103,17 +114,16 @@ def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
     """
     final = Path(final)
     final.parent.mkdir(parents=True, exist_ok=True)
-    with _RENAMING:
+    def make() -> str:
         fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=f".tmp{final.suffix}", dir=final.parent)
-        tmp_path = Path(tmp)
-        _register(tmp_path)
-    os.close(fd)
+        os.close(fd)
+        return tmp
+
+    tmp_path = _new_temporary(make)
     try:
         yield tmp_path
         os.chmod(tmp_path, _FILE_MODE)
-        with _RENAMING:
-            os.replace(tmp_path, final)
-            _TEMPORARIES.pop(tmp_path, None)
+        _into_place(tmp_path, final)
     except BaseException:
         _discard(tmp_path)
         raise
@@ -280,9 +290,8 @@ def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optio
         check_output_dir(final_dir, kind)
     try:
         final_dir.parent.mkdir(parents=True, exist_ok=True)
-        with _RENAMING:
-            tmp = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".tmp", dir=final_dir.parent))
-            _register(tmp)
+        tmp = _new_temporary(lambda: tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".tmp",
+                                                       dir=final_dir.parent))
     except OSError as err:
         raise CaptureError(f"{final_dir}: cannot create the output folder: {err.strerror or err}") from None
     try:
@@ -291,9 +300,8 @@ def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optio
             (tmp / OUTPUT_MARKER).write_text("\n".join([kind] + sorted(_relative_files(tmp))) + "\n")
         os.chmod(tmp, _DIR_MODE)
         if final_dir.exists():
-            with _RENAMING:
-                old = Path(tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".old", dir=final_dir.parent))
-                _register(old)
+            old = _new_temporary(lambda: tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".old",
+                                                          dir=final_dir.parent))
             try:
                 # Ctrl-C or a kill between the two renames would lose both folders
                 with _signals_held(), _RENAMING:
@@ -307,9 +315,7 @@ def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optio
             finally:
                 _discard(old)
         else:
-            with _RENAMING:
-                os.replace(tmp, final_dir)
-                _TEMPORARIES.pop(tmp, None)
+            _into_place(tmp, final_dir)
     except OSError as err:  # a full disk, say: named as it would have been in the output
         _discard(tmp)
         name = str(err.filename or "")
