@@ -433,7 +433,13 @@ def run(args) -> dict:
                       c["three"][f"{last}.f32"][..., :3], c["mask"])]  # fmt: skip
         revision = c["three"]["revision"]
     picture(pictures, RESULTS / "viewer_check.png")
-    params = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+    def shown(v):  # paths inside the repository as relative ones
+        if not isinstance(v, Path):
+            return v
+        v = v.resolve()
+        return str(v.relative_to(ROOT)) if ROOT in v.parents else str(v)
+
+    params = {k: shown(v) for k, v in vars(args).items()}
     return dict(three_revision=revision, chromium=chromium_version(), params=params, rel_floor=REL_FLOOR,
                 scenes=out)
 
