@@ -25,6 +25,7 @@ from .resolution import LEVEL_FACTOR
 from .objective import LOSSES
 from .solvers.names import DEFAULT_SOLVER, SOLVERS, is_structured, solver_for, solver_name
 from .solvers.structured import CG_RTOL, StructuredLM
+from .checkpoint import Checkpoint
 from .stages.unconstrained import UNCONSTRAINED_SIGMA
 from .uncertainty import MAX_UNCERTAINTY_RADIUS, WINDOW_RADIUS
 from .observations import MAX_PIXEL_SAMPLES

@@ -33,10 +33,12 @@ from ..transfer import to_device
 __all__ = ["enable_compilation_cache", "stamp_cache_entries", "Compiler", "Runner", "timed", "timed_rest", "thread_time", "problem_key",
            "compile_summary", "jitted_normal_blocks", "jitted_neighbour_blocks", "problem_energy"]
 
-#: With a checkpoint, the structured solver's first part of a run takes this many steps; the
-#: next ones about `pbrfit.fitting.checkpoint.CHECKPOINT_SECONDS` each, at the speed the last one
-#: ran (where a run is cut into parts does not change its steps: `structured.LMCarry`).
-FIRST_PART_STEPS = 8
+#: With a checkpoint, the structured solver's runs go in parts of about
+#: `pbrfit.fitting.checkpoint.CHECKPOINT_SECONDS`, at the speed the last part ran, and of at least
+#: this many steps (the fit's first part, before the speed is known, too): each part after the
+#: first linearises once more, about half a step's time (peer-plane, 32 x 32 maps), so the parts
+#: cost at most about 5 % more (where a run is cut does not change its steps: `structured.LMCarry`).
+MIN_PART_STEPS = 10
 #: Compiles shorter than this are not kept on disk (loading costs about as much).
 MIN_CACHED_COMPILE_SECONDS = 0.5
 #: The persistent compilation cache's size: the oldest executables are evicted beyond it. A size
@@ -221,6 +223,7 @@ class Runner:
         self._reported = []
         self._lazy = None  # (x, problem, num_free) of a replayed run, linearised when asked
         self._linearization = None
+        self._step_seconds = None  # a structured step's seconds, as the last part of a run took
         self._start = structured.LMCarry.start() if self.structured else None
         # an optimistix solver reports each evaluation of the objective, numbered here from 0 in
         # every run (one lambda per runner: the compiled solve keeps the one it was traced with)
@@ -298,13 +301,20 @@ class Runner:
             self.checkpoint.record(number, ident, x, info, self._reported)
         return x, info
 
+    def _part_steps(self) -> int:
+        """Steps in a part of a structured run: about the checkpoint's seconds, at the speed of the
+        last part, and at least `MIN_PART_STEPS`."""
+        if self._step_seconds is None:
+            return MIN_PART_STEPS
+        return max(MIN_PART_STEPS, int(self.checkpoint.seconds / max(self._step_seconds, 1e-9)))
+
     def _structured(self, x, problem, steps, num_free, number, ident):
         """The structured solver's run: at once, or with a checkpoint in parts of about its
-        ``seconds`` each (the first of `FIRST_PART_STEPS`), the state kept after each (from the
-        checkpoint's partial run where it holds this one)."""
+        ``seconds`` each (`_part_steps`), the state kept after each (from the checkpoint's partial
+        run where it holds this one)."""
         carry, done, part = None, 0, steps
-        if self.checkpoint is not None:
-            part = min(steps, FIRST_PART_STEPS)
+        if self.checkpoint is not None:  # parts of about its seconds at the speed of the last part
+            part = self._part_steps()
             kept = self.checkpoint.partial_run(number, ident)
             if kept is not None:  # what it had reported, again, and on from there
                 x, arrays = kept
@@ -314,7 +324,7 @@ class Runner:
                     self._report(k, value)
         x = to_device(x, np.float32)
         while True:
-            t0 = time.perf_counter()
+            solving = self.clock["solve"]
             key, fn, args, _ = self._call(x, problem, min(steps, done + part), num_free, carry)
             out = self._timed_run(key, fn, args)
             s = out[1]
@@ -323,11 +333,12 @@ class Runner:
             first = 0 if carry is None else before + 1
             for k in range(first, min(done + 1, len(history))):
                 self._report(k, history[k])
+            if done > before:
+                self._step_seconds = (self.clock["solve"] - solving) / (done - before)
             if bool(s.stopped) or done >= steps:
                 break
             x, carry = out[0], structured.LMCarry.after(s)
-            took = time.perf_counter() - t0
-            part = max(1, int(self.checkpoint.seconds * (done - before) / max(took, 1e-9)))
+            part = self._part_steps()
             self.checkpoint.save_partial(number, ident, x, done, {
                 name: getattr(carry, name) for name in ("lam", "nu", "k", "accepted", "cg", "history")})
         self._linearization = (out[2], out[3])
