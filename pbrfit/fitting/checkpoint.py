@@ -167,9 +167,12 @@ class Checkpoint:
             return None
         with np.load(self.folder / "partial.npz") as data:
             arrays = {name: data[name] for name in data.files}
-        self.steps_replayed += int(self.partial["steps"])
-        self.resumed_from["step"] = int(self.partial["steps"])
         self.partial = None
+        if int(arrays.pop("number")) != number:  # (a later save, of another run, than the index names)
+            return None
+        steps = int(arrays["k"]) - 1  # (the file's own: a later save than the index's, after such a kill)
+        self.steps_replayed += steps
+        self.resumed_from["step"] = steps
         return arrays.pop("x"), arrays
 
     def _end_replay(self, number: int, where: Mapping) -> None:
@@ -209,7 +212,7 @@ class Checkpoint:
             return
         self.folder.mkdir(parents=True, exist_ok=True)
         with atomic_path(self.folder / "partial.npz") as tmp, open(tmp, "wb") as f:
-            np.savez(f, x=np.asarray(x), **{k: np.asarray(v) for k, v in carry.items()})
+            np.savez(f, x=np.asarray(x), number=np.asarray(number), **{k: np.asarray(v) for k, v in carry.items()})
         self._write_index(dict(number=number, id=ident, steps=int(steps)))
 
     def _write_index(self, partial: Optional[dict]) -> None:
