@@ -6,6 +6,7 @@ steps kept, `loss_history`) and the summary line it prints (`fit_summary`)."""
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 import time
@@ -19,7 +20,9 @@ from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from .cache import cache_dir
 from .model_flag import model_changes
 from .parser import EXIT_OK, default_continuation
+from .. import __version__
 from ..errors import CaptureError
+from ..fitting.checkpoint import Checkpoint, checkpoint_folder, folder_digests
 from ..fitting.api import fit, map_rmse
 from ..fitting.result import truth_at
 from ..fitting.defaults import DEFAULT_SOLVER, MATERIAL_MAPS, MAX_PIXEL_SAMPLES
@@ -40,6 +43,8 @@ def run(args) -> int:
     options = fit_options(args)
     out = Path(args.out)
     check_output_dir(out, "fit")
+    checkpoint = Checkpoint(checkpoint_folder(out), fit_fingerprint(args), resume=args.resume)
+    options = options.replace(checkpoint=checkpoint)
     capture = load_capture(args.capture, require_uv=options.maps == "texture" or "normal" in options.fitted)
     check_not_inside(capture.root, out, "capture being fitted")
     for name in MATERIAL_MAPS:
@@ -53,9 +58,33 @@ def run(args) -> int:
         print(f"pbrfit: warning: --ibl per_pixel: {capture.root} has no environment; nothing to integrate",
               file=sys.stderr)
     result, errors = run_fit(capture, out, options, cache_dir(args), args.quiet)
+    checkpoint.remove()
     if not args.quiet:
         print(f"{fit_summary(result, errors)}; wrote {out}")
     return EXIT_OK
+
+
+#: The arguments of `pbrfit fit` that do not change what it computes (left out of `fit_fingerprint`).
+_NOT_FITTED = ("command", "out", "quiet", "resume", "cache", "no_cache")
+
+
+def fit_fingerprint(args) -> dict:
+    """What a checkpoint of this fit must match to be resumed (`pbrfit.fitting.checkpoint.Checkpoint`):
+    pbrfit's version, every flag that changes the fit, and the bytes of the capture's files and of
+    the material folders of ``--...-from``."""
+    out = Path(args.out)
+    options = {f"--{name.replace('_', '-')}": value for name, value in sorted(vars(args).items())
+               if name not in _NOT_FITTED and not callable(value)}
+    capture = Path(args.capture)
+    folders = [("capture", capture if capture.is_dir() else capture.parent)]
+    folders += [(f"--{name.replace('_', '-')}-from", getattr(args, f"{name}_from")) for name in MATERIAL_MAPS
+                if getattr(args, f"{name}_from") is not None]
+    files = {}
+    for label, folder in folders:
+        if Path(folder).exists():  # (one that does not is refused, named, where it is read)
+            for rel, digest in folder_digests(folder, skip=(out, checkpoint_folder(out))).items():
+                files[f"{label} {rel}"] = digest
+    return {"pbrfit": __version__, "options": json.loads(json.dumps(options, default=str)), "files": files}
 
 
 def fit_options(args):

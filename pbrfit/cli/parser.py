@@ -230,6 +230,11 @@ def add_fit(sub) -> None:
     p.add_argument("--cache", help="G-buffer and per-pixel IBL cache folder (default $PBRFIT_CACHE, else $XDG_CACHE_HOME/pbrfit, else ~/.cache/pbrfit)")
     p.add_argument("--no-cache", action="store_true", help="do not read or write the cache")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary line; warnings and errors still print")
+    p.add_argument("--resume", action="store_true",
+                   help="go on from the checkpoint an interrupted fit to the same --out left beside it "
+                        "(OUT.pbrfit-checkpoint, kept every few seconds of solving, removed once the output is "
+                        "written): the same maps as a fit never interrupted; none there: start afresh; one of "
+                        "another capture or other options is refused (report.json's resumed says where it went on)")
 
 
 def default_continuation() -> str:

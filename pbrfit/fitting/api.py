@@ -159,6 +159,7 @@ def fit_observations(obs: Observations, options: Optional[FitOptions] = None, *,
     else:
         result = _fit_weighted(obs, options, inputs)
     result.report["iterations"] = result.report["steps"]  # the capture spec's word for them
+    result.report["resumed"] = None if options.checkpoint is None else options.checkpoint.resumed()
     # what the caller held (before the model's own: a model without the metal lobe holds metallic 0)
     result.report["held"] = held_report([f for f in options.fitted if model.metallic or f != "metallic"], options.held)
     return result
@@ -365,6 +366,12 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
             solve (it keeps the losses in its state, so its program holds no host callback); an
             optimistix solver's at each evaluation of the objective, one per step, by a host
             callback.
+        checkpoint: a `pbrfit.fitting.checkpoint.Checkpoint`: each solver run is journaled in its
+            folder, and the structured solver's state kept every few seconds, so that a fit
+            interrupted (even killed) and run again with the same checkpoint (``resume=True``)
+            replays what it had solved and goes on from there, to the same maps; the report's
+            "resumed" entry says what was replayed and where the fit went on (None: started
+            afresh). Default None: none kept.
         quality: the speed ladder's rung (`pbrfit.fitting.defaults.QUALITY`: "draft",
             "default", "best"), which sets the options it names that are not given.
     """

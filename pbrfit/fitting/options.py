@@ -25,6 +25,7 @@ from .resolution import LEVEL_FACTOR
 from .objective import LOSSES
 from .solvers.names import DEFAULT_SOLVER, SOLVERS, is_structured, solver_for, solver_name
 from .solvers.structured import CG_RTOL, StructuredLM
+from .checkpoint import Checkpoint
 from .stages.unconstrained import UNCONSTRAINED_SIGMA
 from .uncertainty import MAX_UNCERTAINTY_RADIUS, WINDOW_RADIUS
 from .observations import MAX_PIXEL_SAMPLES
@@ -254,6 +255,7 @@ class FitOptions:
     background_compile: bool = True
     cache_dir: Any = None
     progress: Optional[Callable[[dict], Any]] = None
+    checkpoint: Any = None
     # the speed ladder: a rung of `QUALITY`, whose settings fill the options not given
     quality: str = "default"
     #: how refusals name the options (not an option: left out of comparisons)
@@ -278,6 +280,8 @@ class FitOptions:
             raise ValueError(f"pixel_ibl_settings: expected a PixelIBLSettings, got {self.pixel_ibl_settings!r}")
         if self.occlusion not in OCCLUSION_MODES:
             raise ValueError(f"{say('occlusion')} must be one of {', '.join(OCCLUSION_MODES)}, got {self.occlusion!r}")
+        if self.checkpoint is not None and not isinstance(self.checkpoint, Checkpoint):
+            raise ValueError(f"checkpoint: expected a pbrfit.fitting.checkpoint.Checkpoint or None, got {self.checkpoint!r}")
         if not isinstance(self.occlusion_settings, OcclusionSettings):
             raise ValueError(f"occlusion_settings: expected an OcclusionSettings, got {self.occlusion_settings!r}")
         if isinstance(self.model, Mapping):  # fields of the capture's own model to change

@@ -154,7 +154,7 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
         cb = None if options.progress is None else (
             lambda step, value: options.progress(dict(where, step=int(step), loss=float(value))))
         compiler = Compiler(dict(compile=0.0, solve=0.0), options.background_compile)
-        shared.update(where=where, runner=Runner(options.solver, cb, compiler))
+        shared.update(where=where, runner=Runner(options.solver, cb, compiler, options.checkpoint, where))
     # (an executable keeps the callback it was compiled with: a later pass reports through the
     # same one, so it tells that callback where it is through the same `where`)
     where, runner = shared["where"], shared["runner"]

@@ -26,12 +26,19 @@ from .solvers.optx import for_size, optx_solve
 from .objective import Problem, objective
 from .normal_matrix import neighbour_blocks, normal_blocks
 from .solvers import structured
+from .checkpoint import call_id
 from ..io.atomic import hold_on_abandon
 from ..transfer import to_device
 
 __all__ = ["enable_compilation_cache", "stamp_cache_entries", "Compiler", "Runner", "timed", "timed_rest", "thread_time", "problem_key",
            "compile_summary", "jitted_normal_blocks", "jitted_neighbour_blocks", "problem_energy"]
 
+#: With a checkpoint, the structured solver's runs go in parts of about
+#: `pbrfit.fitting.checkpoint.CHECKPOINT_SECONDS`, at the speed the last part ran, and of at least
+#: this many steps (the fit's first part, before the speed is known, too): each part after the
+#: first linearises once more, about half a step's time (peer-plane, 32 x 32 maps), so the parts
+#: cost at most about 5 % more (where a run is cut does not change its steps: `structured.LMCarry`).
+MIN_PART_STEPS = 10
 #: Compiles shorter than this are not kept on disk (loading costs about as much).
 MIN_CACHED_COMPILE_SECONDS = 0.5
 #: The persistent compilation cache's size: the oldest executables are evicted beyond it. A size
@@ -198,31 +205,67 @@ class Runner:
     argument; any other solver is also compiled once per step budget (optimistix's loop length is
     static). ``progress(k, E)`` gets the structured solver's E at each step after its solve (so
     its program holds no host callback and can be cached), another solver's at each evaluation of
-    the objective, as they happen."""
+    the objective, as they happen.
 
-    def __init__(self, solver, progress, compiler: Compiler):
+    With a ``checkpoint`` (`pbrfit.fitting.checkpoint.Checkpoint`) each run is journaled, a run the
+    checkpoint holds is replayed, not solved, and the structured solver runs in parts of about
+    ``checkpoint.seconds`` (`pbrfit.fitting.solvers.structured.LMCarry`: the same steps, bit for bit),
+    its state kept after a part; ``where`` (the progress callback's) says where a resumed fit went on."""
+
+    def __init__(self, solver, progress, compiler: Compiler, checkpoint=None, where=None):
         if isinstance(solver, structured.StructuredLM):
             # cg_rtol as an array: one executable serves every tolerance
             solver = eqx.tree_at(lambda s: s.cg_rtol, solver, to_device(solver.cg_rtol, np.float32))
         self.solver, self.progress, self.compiler = solver, progress, compiler
+        self.checkpoint, self.where = checkpoint, {} if where is None else where
         self.clock = compiler.clock
+        self.runs = 0  # solver runs so far (the checkpoint's numbering)
+        self._reported = []
+        self._lazy = None  # (x, problem, num_free) of a replayed run, linearised when asked
+        self._linearization = None
+        self._step_seconds = None  # a structured step's seconds, as the last part of a run took
+        self._start = structured.LMCarry.start() if self.structured else None
         # an optimistix solver reports each evaluation of the objective, numbered here from 0 in
         # every run (one lambda per runner: the compiled solve keeps the one it was traced with)
         self.evaluations = itertools.count()
-        self.tick = None if progress is None else (lambda value: progress(next(self.evaluations), value))
+        self.tick = None if progress is None else (lambda value: self._report(next(self.evaluations), value))
 
     @property
     def structured(self) -> bool:
         return isinstance(self.solver, structured.StructuredLM)
 
-    def _call(self, x0, problem, steps, num_free):
+    @property
+    def linearization(self):
+        """(residuals, per-row Jacobians) at the last run's x (the structured solver's; None for
+        another): a replayed run's are the solver's step 0 at its x, the same numbers."""
+        if self._lazy is not None:
+            x, problem, num_free = self._lazy
+            self._lazy = None
+            key, fn, args, _ = self._call(to_device(x, np.float32), problem, 0, num_free)
+            out = self._timed_run(key, fn, args)
+            self._linearization = (out[2], out[3])
+        return self._linearization
+
+    def _report(self, k, value) -> None:
+        self._reported.append((k, value))
+        if self.progress is not None:
+            self.progress(k, value)
+
+    def _call(self, x0, problem, steps, num_free, carry=None):
         """(key, fn, args, solver run) of a run."""
         if self.structured:
-            args = (x0, problem, self.solver, to_device(steps, np.int32))
+            args = (x0, problem, self.solver, to_device(steps, np.int32), self._start if carry is None else carry)
             return ("structured",) + problem_key(problem), structured.solve, args, self.solver
         opt = for_size(self.solver, num_free)
         key = (type(opt).__name__, steps) + problem_key(problem)
         return key, optx_solve, (x0, problem, opt, steps, self.tick), opt
+
+    def _timed_run(self, key, fn, args):
+        compiled = self.compiler.get(key, fn, *args)
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(compiled(*args))
+        self.clock["solve"] += time.perf_counter() - t0
+        return out
 
     def prefetch(self, x0, problem, num_free) -> None:
         """Start compiling the structured solver for `problem` in the background (its step
@@ -233,23 +276,73 @@ class Runner:
 
     def __call__(self, x0, problem, steps, num_free):
         self.evaluations = itertools.count()
-        key, fn, args, opt = self._call(x0, problem, steps, num_free)
-        compiled = self.compiler.get(key, fn, *args)
-        t0 = time.perf_counter()
-        out = compiled(*args)
-        x = np.asarray(jax.block_until_ready(out[0]))
-        self.clock["solve"] += time.perf_counter() - t0
+        self._reported = []
+        number, self.runs = self.runs, self.runs + 1
+        ident = None
+        if self.checkpoint is not None:
+            ident = call_id(number, x0, problem, steps)
+            replayed = self.checkpoint.replay(number, ident, self.where)
+            if replayed is not None:
+                x, info, reported = replayed
+                for k, value in reported:
+                    self._report(k, value)
+                self._lazy, self._linearization = ((x, problem, num_free) if self.structured else None), None
+                return x, info
+        self._lazy = None
         if self.structured:
-            s = out[1]
-            info = dict(steps=int(s.steps), accepted=int(s.accepted), cg_iterations=int(s.cg_iterations))
-            self.linearization = (out[2], out[3])
-            if self.progress is not None:  # the solve kept E at each step (no host callback in it)
-                for k, value in enumerate(np.asarray(s.history)[: info["steps"] + 1]):
-                    self.progress(k, value)
+            x, info = self._structured(x0, problem, steps, num_free, number, ident)
         else:
+            key, fn, args, opt = self._call(x0, problem, steps, num_free)
+            out = self._timed_run(key, fn, args)
+            x = np.asarray(out[0])
             info = dict(steps=int(out[1]), result=int(out[2]), method=type(opt).__name__)
-            self.linearization = None
+            self._linearization = None
+        if self.checkpoint is not None:
+            self.checkpoint.record(number, ident, x, info, self._reported)
         return x, info
+
+    def _part_steps(self) -> int:
+        """Steps in a part of a structured run: about the checkpoint's seconds, at the speed of the
+        last part, and at least `MIN_PART_STEPS`."""
+        if self._step_seconds is None:
+            return MIN_PART_STEPS
+        return max(MIN_PART_STEPS, int(self.checkpoint.seconds / max(self._step_seconds, 1e-9)))
+
+    def _structured(self, x, problem, steps, num_free, number, ident):
+        """The structured solver's run: at once, or with a checkpoint in parts of about its
+        ``seconds`` each (`_part_steps`), the state kept after each (from the checkpoint's partial
+        run where it holds this one)."""
+        carry, done, part = None, 0, steps
+        if self.checkpoint is not None:  # parts of about its seconds at the speed of the last part
+            part = self._part_steps()
+            kept = self.checkpoint.partial_run(number, ident)
+            if kept is not None:  # what it had reported, again, and on from there
+                x, arrays = kept
+                carry = structured.LMCarry(**{name: to_device(v) for name, v in arrays.items()})
+                done = int(arrays["k"]) - 1
+                for k, value in enumerate(np.asarray(arrays["history"])[: done + 1]):
+                    self._report(k, value)
+        x = to_device(x, np.float32)
+        while True:
+            solving = self.clock["solve"]
+            key, fn, args, _ = self._call(x, problem, min(steps, done + part), num_free, carry)
+            out = self._timed_run(key, fn, args)
+            s = out[1]
+            before, done = done, int(s.steps)
+            history = np.asarray(s.history)
+            first = 0 if carry is None else before + 1
+            for k in range(first, min(done + 1, len(history))):
+                self._report(k, history[k])
+            if done > before:
+                self._step_seconds = (self.clock["solve"] - solving) / (done - before)
+            if bool(s.stopped) or done >= steps:
+                break
+            x, carry = out[0], structured.LMCarry.after(s)
+            part = self._part_steps()
+            self.checkpoint.save_partial(number, ident, x, done, {
+                name: getattr(carry, name) for name in ("lam", "nu", "k", "accepted", "cg", "history")})
+        self._linearization = (out[2], out[3])
+        return np.asarray(out[0]), dict(steps=done, accepted=int(s.accepted), cg_iterations=int(s.cg_iterations))
 
     def jacobian(self, x, problem, num_free):
         """Per-pixel Jacobians (P, 3, K) at x: the structured solver's step 0, which only

@@ -22,7 +22,7 @@ from pbrfit.fitting.objective import linearize, residuals
 from pbrfit.fitting.options import FitOptions
 from pbrfit.fitting.parameters import lower, upper
 from pbrfit.fitting.solvers.names import SOLVERS, is_structured, solver_for, solver_name
-from pbrfit.fitting.solvers.structured import ATOL, CG_RTOL, HISTORY, RTOL, StructuredLM, solve
+from pbrfit.fitting.solvers.structured import ATOL, CG_RTOL, HISTORY, RTOL, LMCarry, StructuredLM, solve
 from test_sharding import _problem, _start
 
 # The solver on `_problem` from the grid start with rtol 1e-7 and atol 1e-6, 30 steps at most:
@@ -109,6 +109,31 @@ def test_one_program_serves_every_step_budget(start):
     assert int(stats2.steps) == 2 and float(stats2.loss) < float(stats.loss)
     _, stats30, *_ = compiled(x0, problem, solver, jnp.asarray(30, jnp.int32))
     assert int(stats30.steps) == REFERENCE[smooth][0][0]
+
+
+@pytest.mark.parametrize("steps", [30, 3])
+def test_a_solve_run_in_parts_takes_the_steps_of_one_run_bit_for_bit(start, steps):
+    """A solve cut into parts of 1, 2, 3, ... steps, each going on from the last one's x and
+    `LMCarry` (what a checkpoint keeps): the same x, counts, damping and losses as one run to the
+    same budget, to the bit, and the same residuals and Jacobians at the end (the next part's
+    first call only linearises again). A stopping test ends the solve in 30 steps (`REFERENCE`),
+    the budget in 3."""
+    _, problem, x0 = start
+    solver = StructuredLM(rtol=1e-7, atol=1e-6)
+    budget = jnp.asarray(steps, jnp.int32)
+    compiled = solve.lower(x0, problem, solver, budget, LMCarry.start()).compile()
+    whole = compiled(x0, problem, solver, budget, LMCarry.start())
+    x, carry, done, part, parts = x0, LMCarry.start(), 0, 1, 0
+    while True:
+        out = compiled(x, problem, solver, jnp.asarray(min(steps, done + part), jnp.int32), carry)
+        done, parts, part = int(out[1].steps), parts + 1, part + 1
+        if bool(out[1].stopped) or done >= steps:
+            break
+        x, carry = out[0], LMCarry.after(out[1])
+    assert parts > 1 and int(whole[1].steps) == done
+    assert bool(whole[1].stopped) == (steps == 30)
+    for a, b in zip(jax.tree_util.tree_leaves(whole), jax.tree_util.tree_leaves(out)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def test_without_a_budget_optimistix_max_steps_bounds_the_solve(start):

@@ -48,7 +48,7 @@ from ..normal_matrix import gauss_newton_factors, gn_product, gradient, normal_b
 from ..objective import Problem, linearize, prior_degree, residuals
 from ..parameters import lower, upper
 
-__all__ = ["StructuredLM", "solve", "pcg", "LMStats", "RTOL", "ATOL", "CG_RTOL", "CG_MAX_STEPS", "DAMPING_FLOOR",
+__all__ = ["StructuredLM", "solve", "pcg", "LMStats", "LMCarry", "RTOL", "ATOL", "CG_RTOL", "CG_MAX_STEPS", "DAMPING_FLOOR",
            "LAMBDA_INIT", "LAMBDA_MAX", "HISTORY"]
 
 #: Relative floor on the damping diagonal, times the mean diagonal of the free channels: keeps the
@@ -100,7 +100,9 @@ def pcg(matvec: Callable, b, precond: Callable, rtol, max_steps: int):
 class LMStats(eqx.Module):
     """What a `StructuredLM` solve did: steps taken (the linearisation at the start not counted),
     steps accepted, conjugate-gradient iterations, the final E, the final damping λ, and E after
-    each call to `step` (``history[0]`` the start's; `HISTORY` of them, NaN past the last)."""
+    each call to `step` (``history[0]`` the start's; `HISTORY` of them, NaN past the last); and
+    what goes on to a later run of the same solve (`LMCarry.after`): Nielsen's factor ν, the calls
+    to `step` and whether a stopping test ended it (not the step budget)."""
 
     steps: Array
     accepted: Array
@@ -108,6 +110,37 @@ class LMStats(eqx.Module):
     loss: Array
     damping: Array
     history: Array
+    nu: Array
+    calls: Array
+    stopped: Array
+
+
+class LMCarry(eqx.Module):
+    """What one run of a solve hands the next (`solve`'s ``carry``), so that a solve run in parts,
+    each to a step budget of its own, takes the very steps of one run to the last budget: the
+    damping λ, Nielsen's factor ν, the calls to `step` k, the steps accepted, the CG iterations and
+    E after each step. The residuals and Jacobians are not carried: the next run's first call to
+    `step` linearises at its start again (the same function of the same x), and takes no step."""
+
+    lam: Array
+    nu: Array
+    k: Array
+    accepted: Array
+    cg: Array
+    history: Array
+
+    @staticmethod
+    def start(dtype=jnp.float32) -> "LMCarry":
+        """A solve's start (what `StructuredLM.init` makes without a carry)."""
+        zero = jnp.asarray(0, jnp.int32)
+        return LMCarry(lam=jnp.asarray(LAMBDA_INIT, dtype), nu=jnp.asarray(2.0, dtype), k=zero, accepted=zero, cg=zero,
+                       history=jnp.full((HISTORY,), jnp.nan, dtype))
+
+    @staticmethod
+    def after(stats: LMStats) -> "LMCarry":
+        """Where a solve that returned ``stats`` stands."""
+        return LMCarry(lam=stats.damping, nu=stats.nu, k=stats.calls, accepted=stats.accepted,
+                       cg=stats.cg_iterations, history=stats.history)
 
 
 def _active(x, g, free):
@@ -120,8 +153,8 @@ def _active(x, g, free):
 class _StructuredLMState(eqx.Module):
     """The iterate's residuals r (P, 3), per-row Jacobians (R, 3, K) and E, the damping λ and
     Nielsen's factor ν, the count k of calls to `step` (step 0 only linearises), whether the last
-    step ended the solve, the steps accepted, the CG iterations, the step budget and E after each
-    step (`HISTORY`)."""
+    step ended the solve, the steps accepted, the CG iterations, the step budget, E after each
+    step (`HISTORY`) and whether the next call to `step` only linearises (the first of a run)."""
 
     r: Array
     jac: Array
@@ -134,6 +167,7 @@ class _StructuredLMState(eqx.Module):
     cg: Array
     budget: Array
     history: Array
+    fresh: Array
 
 
 class StructuredLM(optx.AbstractLeastSquaresSolver):
@@ -154,6 +188,10 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
 
     ``cg_rtol``: the relative residual at which each step's conjugate gradients stop (an array
     too, where one program should serve every tolerance); ``cg_max_steps``: their most iterations.
+
+    ``options["carry"]``, an `LMCarry`, goes on from where an earlier run of the same solve
+    stopped (its x is the start): the run's first call to `step` linearises there and takes no
+    step, and the budget still counts the steps from the solve's start.
     """
 
     rtol: float = RTOL
@@ -167,13 +205,17 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         # The first step only linearises at the start (no step is taken: every channel inactive),
         # so the linearisation is traced once, inside the loop.
         k = y.shape[-1]
-        budget = options.get("max_steps") if options else None
+        options = options or {}
+        budget = options.get("max_steps")
         budget = jnp.asarray(_NO_BUDGET if budget is None else budget, jnp.int32)
+        carry = options.get("carry")
+        carry = LMCarry.start(y.dtype) if carry is None else carry
         return _StructuredLMState(
             r=jnp.zeros((args.num_pixels, 3), y.dtype), jac=jnp.zeros((args.index.shape[0], 3, k), y.dtype),
-            loss=jnp.asarray(jnp.inf, y.dtype), lam=jnp.asarray(LAMBDA_INIT, y.dtype), nu=jnp.asarray(2.0, y.dtype),
-            k=jnp.asarray(0), done=jnp.asarray(False), accepted=jnp.asarray(0), cg=jnp.asarray(0), budget=budget,
-            history=jnp.full((HISTORY,), jnp.nan, y.dtype))
+            loss=jnp.asarray(jnp.inf, y.dtype), lam=jnp.asarray(carry.lam, y.dtype), nu=jnp.asarray(carry.nu, y.dtype),
+            k=jnp.asarray(carry.k, jnp.int32), done=jnp.asarray(False),
+            accepted=jnp.asarray(carry.accepted, jnp.int32), cg=jnp.asarray(carry.cg, jnp.int32), budget=budget, history=jnp.asarray(carry.history, y.dtype),
+            fresh=jnp.asarray(True))
 
     def step(self, fn, y, args: Problem, options, state: _StructuredLMState, tags):
         del fn, tags
@@ -183,7 +225,10 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         eye = jnp.eye(k, dtype=x.dtype)
         degree = prior_degree(problem)
         r, jac, loss, lam, nu = state.r, state.jac, state.loss, state.lam, state.nu
-        first = state.k == 0
+        # the first call of a run only linearises at its start: the solve's start (k = 0), or
+        # where an earlier run of it stopped (k > 0: then it counts no call and keeps no E)
+        first = state.fresh
+        again = first & (state.k > 0)
         gp = gauss_newton_factors(jac, problem)
         g = gradient(r, jac, x, problem)
         blocks = normal_blocks(jac, problem) + problem.smooth * degree[:, None, None] * eye
@@ -224,12 +269,14 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         done = ~first & ((accept & (actual <= tol)) | floor | (moved <= self.atol) | (lam_new > LAMBDA_MAX))
         lam_new = jnp.where(first, lam, lam_new)
         nu_new = jnp.where(first, nu, nu_new)
-        history = state.history.at[state.k].set(jnp.where(accept, loss_new, loss), mode="drop")
+        history = jnp.where(again, state.history,
+                            state.history.at[state.k].set(jnp.where(accept, loss_new, loss), mode="drop"))
         pick = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
         new_state = _StructuredLMState(
             r=pick(r_new, r), jac=pick(jac_new, jac), loss=pick(loss_new, loss), lam=lam_new, nu=nu_new,
-            k=state.k + 1, done=done, accepted=state.accepted + (accept & ~first).astype(jnp.int32),
-            cg=state.cg + iters, budget=state.budget, history=history)
+            k=state.k + (~again).astype(state.k.dtype), done=done,
+            accepted=state.accepted + (accept & ~first).astype(jnp.int32), cg=state.cg + iters, budget=state.budget,
+            history=history, fresh=jnp.asarray(False))
         return pick(x_new, x), new_state, None
 
     def terminate(self, fn, y, args, options, state: _StructuredLMState, tags):
@@ -239,7 +286,8 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
     def postprocess(self, fn, y, aux, args, options, state: _StructuredLMState, tags, result):
         del fn, args, options, tags, result
         return y, aux, dict(steps=jnp.maximum(state.k - 1, 0), accepted=state.accepted, cg_iterations=state.cg,
-                            loss=state.loss, damping=state.lam, history=state.history)
+                            loss=state.loss, damping=state.lam, history=state.history, nu=state.nu, calls=state.k,
+                            stopped=state.done)
 
 
 def _residuals(x, problem: Problem):
@@ -247,16 +295,20 @@ def _residuals(x, problem: Problem):
 
 
 @eqx.filter_jit
-def solve(x0: Float[Array, "T K"], problem: Problem, solver: StructuredLM = StructuredLM(), max_steps=50):
+def solve(x0: Float[Array, "T K"], problem: Problem, solver: StructuredLM = StructuredLM(), max_steps=50,
+          carry: LMCarry | None = None):
     """`solver` on `problem` from texel values x0 through `optx.least_squares`, at most
     `max_steps` steps (an int32 array: one compiled program serves every budget; 0 only
-    linearises at x0).
+    linearises at x0). ``carry``: go on from an earlier run that stopped at x0 and returned
+    stats s (``LMCarry.after(s)``; its budget counts from that solve's start): the steps are
+    those one run to the last budget takes, bit for bit.
 
     Returns (x, LMStats, residuals (P, 3), per-row Jacobians (R, 3, K); R = P with one sample per
     pixel) at the returned x."""
     sol = optx.least_squares(_residuals, solver, x0, args=problem,
-                             options=dict(max_steps=jnp.asarray(max_steps, jnp.int32)),
+                             options=dict(max_steps=jnp.asarray(max_steps, jnp.int32), carry=carry),
                              max_steps=None, throw=False)
     s = sol.stats
-    stats = LMStats(s["steps"], s["accepted"], s["cg_iterations"], s["loss"], s["damping"], s["history"])
+    stats = LMStats(s["steps"], s["accepted"], s["cg_iterations"], s["loss"], s["damping"], s["history"], s["nu"],
+                    s["calls"], s["stopped"])
     return sol.value, stats, sol.state.r, sol.state.jac
