@@ -335,7 +335,9 @@ class Runner:
                 self._report(k, history[k])
             if done > before:
                 self._step_seconds = (self.clock["solve"] - solving) / (done - before)
-            if bool(s.stopped) or done >= steps:
+            # ended: a stopping test, the budget, or a part that took no step (a start the solver
+            # cannot leave, e.g. a NaN loss: every later part would take none either)
+            if bool(s.stopped) or done >= steps or done <= before:
                 break
             x, carry = out[0], structured.LMCarry.after(s)
             part = self._part_steps()
