@@ -48,8 +48,8 @@ from ..normal_matrix import gauss_newton_factors, gn_product, gradient, normal_b
 from ..objective import Problem, linearize, prior_degree, residuals
 from ..parameters import lower, upper
 
-__all__ = ["StructuredLM", "solve", "pcg", "LMStats", "LMCarry", "RTOL", "ATOL", "CG_RTOL", "CG_MAX_STEPS", "DAMPING_FLOOR",
-           "LAMBDA_INIT", "LAMBDA_MAX", "HISTORY"]
+__all__ = ["StructuredLM", "solve", "pcg", "LMStats", "LMCarry", "RTOL", "ATOL", "CG_RTOL", "CG_MAX_STEPS",
+           "DAMPING_FLOOR", "LAMBDA_INIT", "LAMBDA_MAX", "HISTORY"]
 
 #: Relative floor on the damping diagonal, times the mean diagonal of the free channels: keeps the
 #: damped blocks invertible for channels the images barely constrain (roughness without highlights).
@@ -214,8 +214,8 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
             r=jnp.zeros((args.num_pixels, 3), y.dtype), jac=jnp.zeros((args.index.shape[0], 3, k), y.dtype),
             loss=jnp.asarray(jnp.inf, y.dtype), lam=jnp.asarray(carry.lam, y.dtype), nu=jnp.asarray(carry.nu, y.dtype),
             k=jnp.asarray(carry.k, jnp.int32), done=jnp.asarray(False),
-            accepted=jnp.asarray(carry.accepted, jnp.int32), cg=jnp.asarray(carry.cg, jnp.int32), budget=budget, history=jnp.asarray(carry.history, y.dtype),
-            fresh=jnp.asarray(True))
+            accepted=jnp.asarray(carry.accepted, jnp.int32), cg=jnp.asarray(carry.cg, jnp.int32), budget=budget,
+            history=jnp.asarray(carry.history, y.dtype), fresh=jnp.asarray(True))
 
     def step(self, fn, y, args: Problem, options, state: _StructuredLMState, tags):
         del fn, tags
