@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import contextlib
+import dataclasses
 import itertools
 import time
 from pathlib import Path
@@ -342,7 +343,7 @@ class Runner:
             x, carry = out[0], structured.LMCarry.after(s)
             part = self._part_steps()
             self.checkpoint.save_partial(number, ident, x, done, {
-                name: getattr(carry, name) for name in ("lam", "nu", "k", "accepted", "cg", "history")})
+                field.name: getattr(carry, field.name) for field in dataclasses.fields(carry)})
         self._linearization = (out[2], out[3])
         return np.asarray(out[0]), dict(steps=done, accepted=int(s.accepted), cg_iterations=int(s.cg_iterations))
 
