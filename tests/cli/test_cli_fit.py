@@ -341,13 +341,15 @@ def test_fit_missing_capture_exits_2(tmp_path, capsys):
     assert not out.exists()
 
 
-def test_a_truncated_png_is_one_line_of_error(tmp_path):
+def test_a_truncated_png_is_one_line_of_error(tmp_path, capfd, monkeypatch):
     """libpng prints its own "libpng error: ..." to the process's standard error before
-    OpenImageIO fails: the command's error stays one line (its own, naming the file)."""
-    import os
-    import subprocess
+    OpenImageIO fails: the command's error stays one line (its own, naming the file). Standard
+    error is file descriptor 2 here, as in a command (``capfd`` reads the descriptor)."""
+    import io
     import sys
 
+    monkeypatch.setattr(sys, "stderr", io.TextIOWrapper(open(2, "wb", buffering=0, closefd=False), write_through=True))
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
     cap = tmp_path / "cap"
     assert main(["synth", "peer-plane", "--out", str(cap), "--size", "16", "--views", "1", "--texture-size", "4",
                  "--format", "png8", "--quiet"]) == 0
@@ -355,13 +357,10 @@ def test_a_truncated_png_is_one_line_of_error(tmp_path):
     data = frame.read_bytes()
     frame.write_bytes(data[: len(data) // 2])
     out = tmp_path / "out"
-    env = dict(os.environ, PBRFIT_CACHE=str(tmp_path / "cache"))
-    proc = subprocess.run([sys.executable, "-c", "import sys; from pbrfit.cli.main import main; sys.exit(main())",
-                           "fit", str(cap), "--out", str(out), "--quiet"],
-                          capture_output=True, text=True, env=env, timeout=300)
-    assert proc.returncode == 2, proc.stderr
-    err = proc.stderr.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("pbrfit: error: ") and str(frame) in err[0], proc.stderr
+    capfd.readouterr()
+    assert main(["fit", str(cap), "--out", str(out), "--quiet"]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pbrfit: error: ") and str(frame) in err[0], err
     assert not out.exists()
 
 
