@@ -233,14 +233,15 @@ def test_uniform_fit_on_ground_truth_images_beats_the_split_sum():
 
     views = _env_views()
     truth = dict(base=np.float32([0.75, 0.45, 0.2]), metal=1.0, rough=0.3)
+    normal, view = (jnp.concatenate([getattr(vi, name) for vi in views]) for name in ("normal", "view"))
+    m = normal.shape[0]  # every view's pixels in one call (one compile; the same values at any batch)
+    rad = np.asarray(monte_carlo_radiance(ZUP_SKY, normal, view, np.tile(truth["base"], (m, 1)),
+                                          np.full((m, 1), truth["metal"], np.float32),
+                                          np.full((m, 1), truth["rough"], np.float32), samples=4096))
     images = []
-    for vi in views:
-        m = vi.num_pixels
-        rad = monte_carlo_radiance(ZUP_SKY, vi.normal, vi.view, np.tile(truth["base"], (m, 1)),
-                                   np.full((m, 1), truth["metal"], np.float32), np.full((m, 1), truth["rough"], np.float32),
-                                   samples=4096)
+    for vi, part in zip(views, np.split(rad, np.cumsum([vi.num_pixels for vi in views])[:-1])):
         img = np.zeros((vi.shape[0] * vi.shape[1], 3), np.float32)
-        img[np.asarray(vi.pixel)] = np.asarray(rad)
+        img[np.asarray(vi.pixel)] = part
         images.append(img.reshape(vi.shape + (3,)))
     obs = observations_from_views(views, images)
     errors = {}
