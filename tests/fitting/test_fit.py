@@ -192,6 +192,11 @@ def test_maps_recovered_on_small_scene():
     err = map_rmse(truth, res)
     assert err["base_color"] < 0.01 and err["roughness"] < 0.03 and err["metallic"] < 0.02, err
     assert np.all(res.coverage > 0)
+    # noiseless and exact: the outlier pass flags the checker's edges, but no cluster's pixels
+    # misfit by its evidence threshold, so none could be kept, and it takes no step
+    (outliers,) = res.report["repair"]["passes"]
+    assert outliers["kind"] == "outliers" and outliers["flagged"] > 0, outliers
+    assert outliers["steps"] == 0 and outliers["skipped"] and not outliers["kept"], outliers
 
 
 def test_a_second_fit_of_the_same_shapes_compiles_nothing():

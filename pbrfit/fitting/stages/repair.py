@@ -447,6 +447,17 @@ def run_repair(runner, compiler, problem: Problem, xs, linearization, shape, see
             return False
         moving = np.zeros(problem.num_texels, bool)
         moving[:t] = repair_region(flagged, trusted, tuple(shape))
+        dof = np.sum(free > 0, axis=1)
+        if margin > 0:  # a cluster is kept only where its pixels' Σ ||r||² falls by more than its
+            # threshold, so not where Σ ||r||² is below that already: such a pass is not run
+            r = linearization[0]
+            _, clusters, possible = improved_clusters(moving, r, np.zeros_like(r), index, weight, problem.samples,
+                                                      margin, spread, dof)
+            if not possible:
+                entry.update(moved=0, clusters=clusters, clusters_kept=0, texels_kept=0, energy_before=energy,
+                             energy_after=energy, steps=0, kept=False,
+                             skipped="no cluster's pixels misfit by more than the evidence threshold")
+                return False
         region = dataclasses.replace(problem, free=jax.device_put(free * moving[:, None], problem.free.sharding))
         y = fill_from_nearest(xs, flagged, trusted, tuple(shape), free)
         where["repair"] = len(passes)
@@ -455,7 +466,7 @@ def run_repair(runner, compiler, problem: Problem, xs, linearization, shape, see
         # residuals and pixel Jacobians do not depend on which texels move: the full problem's
         after = runner.linearization
         better, clusters, improved = improved_clusters(moving, linearization[0], after[0], index, weight,
-                                                       problem.samples, margin, spread, np.sum(free > 0, axis=1))
+                                                       problem.samples, margin, spread, dof)
         z = np.asarray(y, np.float32)
         if improved and not np.array_equal(better, moving):
             # the other clusters back where they were, linearised there (step 0, still tagged "repair")
