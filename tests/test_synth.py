@@ -405,6 +405,25 @@ def test_monte_carlo_environment_matches_the_per_pixel_integrals(tmp_path):
     assert np.median(rel) < 0.03 and abs(np.sum(rad - target)) < 0.01 * np.sum(target), (np.median(rel), np.sum(rad - target) / np.sum(target))
 
 
+def test_mitsuba_masks_hold_only_pixels_wholly_on_the_mesh(tmp_path):
+    """A Mitsuba pixel is the mean over its area: its mask holds the pixels all of whose 4 x 4
+    samples hit the mesh, not those whose centre alone does (a sky-mixed silhouette pixel), and
+    more samples per side find no masked pixel off the mesh."""
+    from pbrfit.scene.gbuffer import compute_gbuffer
+    from pbrfit.scene.mesh import load_mesh
+
+    scene = presets.make_scene("sphere-env", 0, size=8, views=1, texture_size=4).replace(renderer="mitsuba")
+    meshes.write_glb(tmp_path / "m.glb", scene.mesh)
+    mesh = load_mesh(tmp_path / "m.glb")
+    (mask,) = writer.mitsuba_masks(scene, mesh)
+    centre = np.asarray(compute_gbuffer(mesh, writer.frame_camera(scene, scene.cameras[0])).hit, bool)
+    fine = noise.box_downsample(np.asarray(compute_gbuffer(mesh, writer.frame_camera(scene, scene.cameras[0], 8)).hit,
+                                           np.float32)[..., None], 8)[..., 0]
+    assert mask.any() and not np.any(mask & ~centre) and np.sum(centre & ~mask) >= 4
+    assert np.all(fine[mask] > 0.95)  # a silhouette can cut a pixel between the 4 x 4 samples, by a sliver
+    assert np.sum((fine < 1) & mask) < np.sum((fine < 1) & centre)
+
+
 def test_texture_top_row_is_the_far_edge_seen_from_above(tmp_path):
     """End to end: texel row 0 (v = 0) lies at z = -1 of the +y plane, at the top of a camera
     looking straight down with -Z up in its image."""
