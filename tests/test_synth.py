@@ -281,6 +281,14 @@ def test_presets_are_seeded(name):
         assert not np.array_equal(a.truth.base_color, c.truth.base_color)
 
 
+@pytest.mark.parametrize("name", ["sphere-floor", "torus-floor", "demo", "mesh-env"])
+def test_presets_whose_mesh_is_not_convex_render_light_between_surfaces(name):
+    """As ``--max-depth`` says: a preset's Mitsuba depth is 2 for a convex mesh, else
+    `presets.INTERREFLECTION_DEPTH` (an object on a floor lights the floor, and the floor the object)."""
+    assert presets.make_scene(name, seed=0, views=1, size=8).max_depth == presets.INTERREFLECTION_DEPTH
+    assert presets.make_scene("sphere-env", seed=0, views=1, size=8).max_depth == presets.MIN_DEPTH
+
+
 def test_unknown_preset_or_parameter_is_a_capture_error():
     from pbrfit.errors import CaptureError
 
