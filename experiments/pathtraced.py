@@ -109,7 +109,7 @@ def fit_row(capture, truth, out: Path, options: dict, texture_size: int, cache: 
               for r in recovery_table(result.material, truth, sigma, result.coverage)},
         sure_sigma=CONFIDENT_SIGMA, observed=int(np.sum(np.asarray(result.coverage) > 0)),
         **_metrics(truth, result.material, result.coverage, sigma),
-        relight=relight.score(out),
+        relight=relight.score(out, keep=out.with_name(out.name + "-relight.npz")),
         wall_s=report["wall_time"], occlusion=report.get("occlusion"), ibl=report.get("ibl"),
         final_loss=report["final_loss"], psnr_fit=float(np.mean(report["psnr"])),
     )

@@ -15,8 +15,10 @@ Scores (`scores`), over the pixels whose centre sees the mesh at a texel the fit
   images are clipped at it and divided by it; PSNR = -10 log10(mean squared difference), pooled
   over the views' pixels;
 - ``raw``: the fitted render as it is; ``scaled``: after the per-channel scale s_c = Σ p r / Σ p²
-  (least squares of the prediction p to the reference r, over the scored pixels of every view, on
-  the unclipped HDR values), as nvdiffrec and NeRFactor report relighting;
+  (least squares of the prediction p to the reference r, both clipped and divided by the peak,
+  over the scored pixels of every view; the scaled prediction clipped again), as nvdiffrec and
+  NeRFactor report relighting (a scale fitted to the unclipped values would serve the few
+  highlights above the peak and lower the PSNR of the rest);
 - per class: ``dielectric`` and ``metal`` are the pixels whose centre sees a texel (the texel the
   centre's uv falls in) of truth metallic < 0.5 and >= 0.5 (the presets' metallic is binary);
   ``all`` is every scored pixel.
@@ -143,20 +145,21 @@ def pixel_classes(texels: list, metallic: np.ndarray, observed: np.ndarray) -> l
 def scores(reference, prediction, classes) -> dict:
     """PSNR of `prediction` against `reference` (`data_synth.mitsuba_render.MitsubaViews`) over the
     pixels of `classes` (`pixel_classes`), raw and scaled, per class; see the module docstring."""
-    ref, pred = [np.asarray(r, np.float64) for r in reference.radiance], [np.asarray(p, np.float64) for p in prediction.radiance]
     keep = [c >= 0 for c in classes]
+    peaks = [np.percentile(r[k], CLIP_PERCENTILE) for r, k in zip(reference.radiance, keep)]
+    clip = lambda x, peak: np.minimum(np.asarray(x, np.float64), peak) / peak  # noqa: E731
+    ref = [clip(r, peak) for r, peak in zip(reference.radiance, peaks)]
+    pred = [clip(p, peak) for p, peak in zip(prediction.radiance, peaks)]
     r_all = np.concatenate([r[k] for r, k in zip(ref, keep)])
     p_all = np.concatenate([p[k] for p, k in zip(pred, keep)])
     scale = np.sum(p_all * r_all, 0) / np.maximum(np.sum(p_all * p_all, 0), 1e-30)
-    peaks = [np.percentile(r[k], CLIP_PERCENTILE) for r, k in zip(ref, keep)]
     out = dict(scale=scale.tolist(), clip_percentile=CLIP_PERCENTILE)
     for name, want in (("all", (0, 1)), ("dielectric", (0,)), ("metal", (1,))):
         sq = {"raw": [], "scaled": [], "noise": []}
         for r, p, se_r, se_p, c, peak in zip(ref, pred, reference.stderr, prediction.stderr, classes, peaks):
             m = np.isin(c, want)
-            rc = np.minimum(r[m], peak) / peak
-            sq["raw"].append((np.minimum(p[m], peak) / peak - rc) ** 2)
-            sq["scaled"].append((np.minimum(p[m] * scale, peak) / peak - rc) ** 2)
+            sq["raw"].append((p[m] - r[m]) ** 2)
+            sq["scaled"].append((np.minimum(p[m] * scale, 1.0) - r[m]) ** 2)
             sq["noise"].append((np.square(se_r[m], dtype=np.float64) + np.square(se_p[m], dtype=np.float64)) / peak**2)
         pixels = int(sum(len(s) for s in sq["raw"]))
         db = {k: float(-10.0 * np.log10(np.mean(np.concatenate(v)))) if pixels else float("nan") for k, v in sq.items()}
@@ -186,8 +189,9 @@ class Relighting:
         truth = render_views(scene, capture.mesh, env, [x[..., 0] >= 0 for x in texels], spp)
         return cls(scene, env, capture.mesh, texels, truth, truth.spp, time.perf_counter() - t)
 
-    def score(self, fit_dir) -> dict:
-        """Render the material of the fit output folder `fit_dir` and score it (`scores`)."""
+    def score(self, fit_dir, keep=None) -> dict:
+        """Render the material of the fit output folder `fit_dir` and score it (`scores`); `keep`: a
+        ``.npz`` file to write both renders and the pixels' classes to."""
         from data_synth.mitsuba_render import render_views
         from pbrfit.io.images import read_image
         from pbrfit.io.material_files import read_material
@@ -200,6 +204,9 @@ class Relighting:
         pred = render_views(with_maps(self.scene, material, self.scene.seed + 1), self.mesh, self.environment,
                             [c >= 0 for c in classes], self.spp)
         out = scores(self.truth, pred, classes)
+        if keep is not None:
+            np.savez_compressed(keep, truth=np.stack(self.truth.radiance), truth_se=np.stack(self.truth.stderr),
+                                fit=np.stack(pred.radiance), fit_se=np.stack(pred.stderr), classes=np.stack(classes))
         hit = sum(int(np.sum(x[..., 0] >= 0)) for x in self.texels)
         out.update(render_s=time.perf_counter() - t, unobserved_share=1.0 - out["all"]["pixels"] / max(hit, 1),
                    noise=dict(truth=self.truth.noise, fit=pred.noise))
