@@ -24,7 +24,11 @@ and with occlusion (max_depth 4), and what occlusion changes.
     python experiments/pathtraced.py [--scenes sphere-floor torus-floor] [--depths 2 4] [--size 48] [--views 12]
                                      [--texture-size 32] [--spp 16384] [--noise 0.01] [--extras] [--work DIR]
 
-Writes experiments/results/pathtraced.json (after every fit) and pathtraced.png.
+Then ``--centres --work DIR`` adds the probe of the pixel footprint (`run_centres`): the first
+scene's max_depth 2 capture rendered at pixel centres.
+
+Writes experiments/results/pathtraced.json (after every fit) and pathtraced.png; ``--tables``
+prints the tables of experiments/pathtraced.md from the JSON.
 """
 
 from __future__ import annotations
@@ -64,13 +68,43 @@ SEED = 0
 
 def synthesize_capture(name: str, depth: int, out: Path, args) -> dict:
     """Render the capture with Mitsuba (no noise yet); what ``truth/synth.json`` says of the renderer."""
-    from data_synth.presets import make_scene
     from data_synth.writer import synthesize
 
-    scene = make_scene(name, SEED, size=args.size, views=args.views, texture_size=args.texture_size, noise=0.0)
+    scene = make_scene_for(name, args)
     result = synthesize(scene.replace(renderer="mitsuba", max_depth=depth, spp=args.spp), out,
                         write_contact_sheet=False)
     return dict(result.renderer, seconds=result.seconds)
+
+
+def centre_sampled_capture(name: str, depth: int, like: Path, out: Path, args) -> dict:
+    """The capture `like` with each pixel's value at its centre instead of its area's mean: Mitsuba
+    renders 3 x 3 sub-pixels per pixel (``--centre-spp`` each) and the middle one, whose centre is the
+    pixel's, is kept (a ninth of the pixel's area). The masks and everything else are `like`'s."""
+    import shutil
+
+    from pbrfit.io.images import write_image
+    from pbrfit.scene.capture import load_capture
+
+    fine = out.with_name(out.name + "-3x")
+    scene = make_scene_for(name, args, size=3 * args.size)
+    from data_synth.writer import synthesize
+
+    result = synthesize(scene.replace(renderer="mitsuba", max_depth=depth, spp=args.centre_spp), fine,
+                        write_contact_sheet=False)
+    shutil.copytree(like, out)
+    capture = load_capture(out)
+    for frame, image in zip(capture.frames, result.clean):
+        write_image(capture.root / capture.raw["frames"][frame.index]["file_path"],
+                    np.ascontiguousarray(image[1::3, 1::3]), "float")
+    shutil.rmtree(fine)
+    return dict(result.renderer, seconds=result.seconds)
+
+
+def make_scene_for(name: str, args, **changes):
+    from data_synth.presets import make_scene
+
+    sizes = dict(size=args.size, views=args.views, texture_size=args.texture_size, noise=0.0)
+    return make_scene(name, SEED, **dict(sizes, **changes))
 
 
 def add_noise(capture_dir: Path, relative: float, seed) -> dict:
@@ -156,54 +190,74 @@ def _slug(config: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in config)
 
 
-def run(args) -> None:
-    import jax
-
+def _fit(results: dict, args, name: str, depth: int, config: str, options: dict, relight, capture: str = "") -> None:
+    """Fit the capture ``WORK/NAME-dDEPTH[-CAPTURE]`` with `options`, add its row to `results`, save them."""
     from pbrfit.io.material_files import read_material
     from pbrfit.scene.capture import load_capture
 
-    work = args.work or Path(tempfile.mkdtemp(prefix="pathtraced-"))
-    work.mkdir(parents=True, exist_ok=True)
-    cache = work / "cache"
+    cap_dir = args.work / "-".join(filter(None, (f"{name}-d{depth}", capture)))
+    row = fit_row(load_capture(cap_dir), read_material(cap_dir / "truth"), cap_dir.with_name(f"{cap_dir.name}-{_slug(config)}"),
+                  options, args.texture_size, args.work / "cache", relight)
+    results["fits"].append(dict(scene=name, max_depth=depth, config=config, capture=capture or "pixel area", **row))
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "pathtraced.json").write_text(json.dumps(results, indent=1))
+    print(f"  {name} d{depth} {config:22s} {_line(row)}", flush=True)
+
+
+def _capture(results: dict, args, name: str, depth: int, make) -> Path:
+    """Make a capture with ``make(out)`` (its renderer's record), add the noise, record both."""
+    suffix = "" if make is None else "-centres"
+    cap_dir = args.work / f"{name}-d{depth}{suffix}"
+    t = time.perf_counter()
+    renderer = make(cap_dir) if make is not None else synthesize_capture(name, depth, cap_dir, args)
+    noise = add_noise(cap_dir, args.noise, [SEED, depth, len(name)])
+    results["captures"][cap_dir.name] = dict(renderer=renderer, noise=noise, seconds=time.perf_counter() - t)
+    print(f"{cap_dir.name}: {renderer['spp']} spp, Mitsuba noise {renderer['noise']:.2%}, added std {noise['std']:.4g} "
+          f"({time.perf_counter() - t:.0f} s)", flush=True)
+    return cap_dir
+
+
+def run(args) -> None:
+    import jax
+
+    from pbrfit.scene.capture import load_capture
+
+    args.work = args.work or Path(tempfile.mkdtemp(prefix="pathtraced-"))
+    args.work.mkdir(parents=True, exist_ok=True)
     results = dict(description=__doc__.splitlines()[0], size=args.size, views=args.views,
                    texture_size=args.texture_size, spp=args.spp, noise=args.noise, seed=SEED,
                    configs=dict(CONFIGS, **(EXTRAS if args.extras else {})), captures={}, fits=[],
                    devices=[str(d) for d in jax.devices()], machine=machine())
-    args.out.mkdir(parents=True, exist_ok=True)
-    save = lambda: (args.out / "pathtraced.json").write_text(json.dumps(results, indent=1))  # noqa: E731
-
-    def fit(name, depth, config, options):
-        cap_dir = work / f"{name}-d{depth}"
-        row = fit_row(load_capture(cap_dir), read_material(cap_dir / "truth"), work / f"{name}-d{depth}-{_slug(config)}",
-                      options, args.texture_size, cache, relights[name])
-        results["fits"].append(dict(scene=name, max_depth=depth, config=config, **row))
-        save()
-        print(f"  {name} d{depth} {config:22s} {_line(row)}", flush=True)
-
     relights = {}
     for name in args.scenes:
         for depth in args.depths:
-            cap_dir = work / f"{name}-d{depth}"
-            t = time.perf_counter()
-            renderer = synthesize_capture(name, depth, cap_dir, args)
-            noise = add_noise(cap_dir, args.noise, [SEED, depth, len(name)])
-            capture = load_capture(cap_dir)
+            cap_dir = _capture(results, args, name, depth, None)
             if name not in relights:  # the relighting's scene and truth render: one per scene
-                relights[name] = Relighting.prepare(capture, args.relight_views, args.relight_size, args.relight_spp)
+                relights[name] = Relighting.prepare(load_capture(cap_dir), args.relight_views, args.relight_size,
+                                                    args.relight_spp)
                 results.setdefault("relight", {})[name] = relights[name].describe()
-            results["captures"][f"{name}-d{depth}"] = dict(renderer=renderer, noise=noise,
-                                                           seconds=time.perf_counter() - t)
-            print(f"{name} max_depth {depth}: {renderer['spp']} spp, Mitsuba noise {renderer['noise']:.2%}, "
-                  f"added std {noise['std']:.4g} ({time.perf_counter() - t:.0f} s)", flush=True)
             for config, options in CONFIGS.items():
-                fit(name, depth, config, options)
-    if 4 in args.depths and {"per_pixel", "per_pixel + occlusion"} <= set(CONFIGS):
-        picture(work, args.scenes, 4, args.out / "pathtraced.png")
+                _fit(results, args, name, depth, config, options, relights[name])
+    if 4 in args.depths:
+        picture(args.work, args.scenes, 4, args.out / "pathtraced.png")
     for config, options in (EXTRAS.items() if args.extras else ()):
         for name in args.scenes:
-            fit(name, max(args.depths), config, options)
-    save()
-    print(f"wrote {args.out / 'pathtraced.json'} (work folder {work})")
+            _fit(results, args, name, max(args.depths), config, options, relights[name])
+    print(f"wrote {args.out / 'pathtraced.json'} (work folder {args.work})")
+
+
+def run_centres(args) -> None:
+    """``--centres``: on an earlier run's work folder, the first scene's shallowest capture rendered
+    at pixel centres (`centre_sampled_capture`), with the same noise, fitted per-pixel with occlusion."""
+    from pbrfit.scene.capture import load_capture
+
+    results = json.loads((args.out / "pathtraced.json").read_text())
+    name, depth = args.scenes[0], min(args.depths)
+    like = args.work / f"{name}-d{depth}"
+    cap_dir = _capture(results, args, name, depth, lambda out: centre_sampled_capture(name, depth, like, out, args))
+    relight = Relighting.prepare(load_capture(cap_dir), args.relight_views, args.relight_size, args.relight_spp)
+    config = "per_pixel + occlusion"
+    _fit(results, args, name, depth, config, CONFIGS[config], relight, capture="centres")
 
 
 def _three(values: dict, fmt: str) -> str:
@@ -215,6 +269,22 @@ def _line(row: dict) -> str:
     return (f"sure {_three({k: v['rmse'] for k, v in row['sure'].items()}, '.3f')}  all {_three(row['rmse'], '.3f')}  "
             f"2σ {_three(row['within_2sigma'], '.0%')}  relight {r['all']['raw_db']:.1f}/{r['all']['scaled_db']:.1f} dB "
             f"(diel {r['dielectric']['scaled_db']:.1f}, metal {r['metal']['scaled_db']:.1f})  {row['wall_s']:.0f} s")
+
+
+def tables(results: dict) -> str:
+    """The markdown tables of experiments/pathtraced.md, from pathtraced.json."""
+    head = ("| scene | depth | fit | RMSE sure (texels) | RMSE all observed | within 2σ | relight raw / scaled dB "
+            "| dielectric / metal dB (scaled) | wall s |\n|---|---|---|---|---|---|---|---|---|")
+    lines = [head]
+    for f in results["fits"]:
+        sure = " / ".join(f"{f['sure'][k]['rmse']:.3f} ({f['sure'][k]['texels']})"
+                          for k in ("base_color", "metallic", "roughness"))
+        r = f["relight"]
+        config = f["config"] + (", pixel-centre capture" if f.get("capture") == "centres" else "")
+        lines.append(f"| {f['scene']} | {f['max_depth']} | {config} | {sure} | {_three(f['rmse'], '.3f')} | "
+                     f"{_three(f['within_2sigma'], '.0%')} | {r['all']['raw_db']:.1f} / {r['all']['scaled_db']:.1f} | "
+                     f"{r['dielectric']['scaled_db']:.1f} / {r['metal']['scaled_db']:.1f} | {f['wall_s']:.0f} |")
+    return "\n".join(lines)
 
 
 def main(argv=None):
@@ -230,9 +300,20 @@ def main(argv=None):
     ap.add_argument("--relight-size", type=int, default=64)
     ap.add_argument("--relight-spp", type=int, default=4096)
     ap.add_argument("--extras", action="store_true", help="also fit the deepest captures with EXTRAS")
+    ap.add_argument("--centres", action="store_true", help="the pixel-centre probe (run_centres) on an earlier run's --work")
+    ap.add_argument("--centre-spp", type=int, default=4096, help="--centres: Mitsuba samples per sub-pixel")
+    ap.add_argument("--tables", action="store_true", help="print the markdown tables from pathtraced.json and stop")
     ap.add_argument("--work", type=Path, help="where the captures and fits are kept (default: a new temporary folder)")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
-    run(ap.parse_args(argv))
+    args = ap.parse_args(argv)
+    if args.tables:
+        print(tables(json.loads((args.out / "pathtraced.json").read_text())))
+    elif args.centres:
+        if args.work is None:
+            ap.error("--centres needs the --work folder of an earlier run")
+        run_centres(args)
+    else:
+        run(args)
 
 
 if __name__ == "__main__":
