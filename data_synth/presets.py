@@ -380,7 +380,8 @@ def _on_floor(name: str, seed: int, **kw) -> Scene:
     return Scene(
         name=name, seed=seed, mesh=mesh, truth=truth, cameras=cams, camera_angle_x=math.radians(p["fov_deg"]),
         width=p["size"], height=p["size"], environment=env, image_format=p["image_format"],
-        supersample=p["supersample"], noise=p["noise"], noise_model=p["noise_model"], params=p,
+        supersample=p["supersample"], noise=p["noise"], noise_model=p["noise_model"],
+        max_depth=INTERREFLECTION_DEPTH, params=p,
     )  # fmt: skip
 
 

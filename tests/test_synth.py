@@ -281,6 +281,14 @@ def test_presets_are_seeded(name):
         assert not np.array_equal(a.truth.base_color, c.truth.base_color)
 
 
+@pytest.mark.parametrize("name", ["sphere-floor", "torus-floor", "demo", "mesh-env"])
+def test_presets_whose_mesh_is_not_convex_render_light_between_surfaces(name):
+    """As ``--max-depth`` says: a preset's Mitsuba depth is 2 for a convex mesh, else
+    `presets.INTERREFLECTION_DEPTH` (an object on a floor lights the floor, and the floor the object)."""
+    assert presets.make_scene(name, seed=0, views=1, size=8).max_depth == presets.INTERREFLECTION_DEPTH
+    assert presets.make_scene("sphere-env", seed=0, views=1, size=8).max_depth == presets.MIN_DEPTH
+
+
 def test_unknown_preset_or_parameter_is_a_capture_error():
     from pbrfit.errors import CaptureError
 
@@ -403,6 +411,25 @@ def test_monte_carlo_environment_matches_the_per_pixel_integrals(tmp_path):
     target = np.asarray(obs.target)
     rel = np.abs(rad - target).sum(1) / np.maximum(target.sum(1), 1e-3)  # (pixels facing away: both 0)
     assert np.median(rel) < 0.03 and abs(np.sum(rad - target)) < 0.01 * np.sum(target), (np.median(rel), np.sum(rad - target) / np.sum(target))
+
+
+def test_mitsuba_masks_hold_only_pixels_wholly_on_the_mesh(tmp_path):
+    """A Mitsuba pixel is the mean over its area: its mask holds the pixels all of whose 4 x 4
+    samples hit the mesh, not those whose centre alone does (a sky-mixed silhouette pixel), and
+    more samples per side find no masked pixel off the mesh."""
+    from pbrfit.scene.gbuffer import compute_gbuffer
+    from pbrfit.scene.mesh import load_mesh
+
+    scene = presets.make_scene("sphere-env", 0, size=8, views=1, texture_size=4).replace(renderer="mitsuba")
+    meshes.write_glb(tmp_path / "m.glb", scene.mesh)
+    mesh = load_mesh(tmp_path / "m.glb")
+    (mask,) = writer.mitsuba_masks(scene, mesh)
+    centre = np.asarray(compute_gbuffer(mesh, writer.frame_camera(scene, scene.cameras[0])).hit, bool)
+    fine = noise.box_downsample(np.asarray(compute_gbuffer(mesh, writer.frame_camera(scene, scene.cameras[0], 8)).hit,
+                                           np.float32)[..., None], 8)[..., 0]
+    assert mask.any() and not np.any(mask & ~centre) and np.sum(centre & ~mask) >= 4
+    assert np.all(fine[mask] > 0.95)  # a silhouette can cut a pixel between the 4 x 4 samples, by a sliver
+    assert np.sum((fine < 1) & mask) < np.sum((fine < 1) & centre)
 
 
 def test_texture_top_row_is_the_far_edge_seen_from_above(tmp_path):
