@@ -472,17 +472,17 @@ def test_every_solver_runs(solver):
 
 def test_optx_solvers_move_a_channel_started_on_its_bound():
     """The prior holds metallic at 0, where the sine storage's derivative vanishes: the start is
-    moved `START_MARGIN` inside, so the solvers find the metal. Measured in 10 steps: gn 0.998
-    and lm 0.67 (both stayed at exactly 0; gn and dogleg stopped after one step). With metallic
+    moved `START_MARGIN` inside (in `optx_solve`, whatever the solver), so the solvers find the
+    metal. Measured in 10 steps: gn 0.998 and lm 0.67 (both stayed at exactly 0; gn and dogleg
+    stopped after one step); lm is checked. With metallic
     free, a dielectric's normal equations need more than `CG_MAX_STEPS` CG steps in float32,
     which ended gn and dogleg at their first step; their CG is truncated there
     (`truncated_cg`), and in 10 steps dogleg is exact and gn halves its base colour error."""
     truth = Material.uniform((0.9, 0.7, 0.3), 1.0, 0.35)
     obs = observations_from_views(VIEWS[:2], _images(VIEWS[:2], truth))
-    for solver, least in (("gn", 0.9), ("lm", 0.5)):
-        res = fit_observations(obs, maps="none", solver=solver, max_steps=10, init="prior", search=False,
-                               repair=False, uniform_check=False)
-        assert float(res.material.metallic[0, 0, 0]) > least, (solver, res.material.metallic)
+    res = fit_observations(obs, maps="none", solver="lm", max_steps=10, init="prior", search=False,
+                           repair=False, uniform_check=False)
+    assert float(res.material.metallic[0, 0, 0]) > 0.5, res.material.metallic
     dielectric = Material.uniform((0.6, 0.35, 0.2), 0.0, 0.35)
     obs = observations_from_views(VIEWS[:2], _images(VIEWS[:2], dielectric))
     # measured: base RMSE 0.08 and 4e-5 (the prior 0.202), loss 3.97 and 2e-7 (17.89 at the
