@@ -82,13 +82,12 @@ def centre_sampled_capture(name: str, depth: int, like: Path, out: Path, args) -
     pixel's, is kept (a ninth of the pixel's area). The masks and everything else are `like`'s."""
     import shutil
 
+    from data_synth.writer import synthesize
     from pbrfit.io.images import write_image
     from pbrfit.scene.capture import load_capture
 
     fine = out.with_name(out.name + "-3x")
     scene = make_scene_for(name, args, size=3 * args.size)
-    from data_synth.writer import synthesize
-
     result = synthesize(scene.replace(renderer="mitsuba", max_depth=depth, spp=args.centre_spp), fine,
                         write_contact_sheet=False)
     shutil.copytree(like, out)

@@ -77,7 +77,6 @@ def novel_scene(capture, views: int, size: int, max_depth: int, seed: int):
     from data_synth import environments, rigs
     from data_synth.meshes import MeshData
     from data_synth.presets import Scene
-    from data_synth.textures import TruthMaps
     from pbrfit.io.material_files import read_material
     from pbrfit.lighting.environment import Environment
     from pbrfit.physics.lights import point_light
@@ -92,22 +91,24 @@ def novel_scene(capture, views: int, size: int, max_depth: int, seed: int):
     cameras = rigs.hemisphere(views, distance, target, up, *ELEVATIONS, rng=np.random.default_rng(seed),
                               azimuth_offset_deg=AZIMUTH_OFFSET)
     radiance = environments.studio()
-    truth = read_material(capture.truth_dir)
     scene = Scene(name="relight", seed=seed, mesh=MeshData(mesh.vertices, mesh.faces, mesh.vertex_normals,
                                                            np.asarray(mesh.visual.uv)[:, :2]),
-                  truth=TruthMaps(*(np.asarray(getattr(truth, k), np.float32)
-                                    for k in ("base_color", "metallic", "roughness"))),
-                  cameras=cameras, camera_angle_x=fov, width=size, height=size, lights=lights,
-                  environment=radiance, world_up=up, renderer="mitsuba", max_depth=max_depth)
+                  truth=truth_maps(read_material(capture.truth_dir)), cameras=cameras, camera_angle_x=fov,
+                  width=size, height=size, lights=lights, environment=radiance, world_up=up, renderer="mitsuba",
+                  max_depth=max_depth)
     return scene, Environment(jnp.asarray(radiance), up)
+
+
+def truth_maps(material):
+    """A `pbrfit.physics.material.Material`'s maps as the `data_synth.textures.TruthMaps` a scene renders."""
+    from data_synth.textures import TruthMaps
+
+    return TruthMaps(*(np.asarray(getattr(material, k), np.float32) for k in ("base_color", "metallic", "roughness")))
 
 
 def with_maps(scene, material, seed: int):
     """`scene` holding `material`'s maps (a `pbrfit.physics.material.Material`), its renders seeded by `seed`."""
-    from data_synth.textures import TruthMaps
-
-    return scene.replace(truth=TruthMaps(*(np.asarray(getattr(material, k), np.float32)
-                                           for k in ("base_color", "metallic", "roughness"))), seed=seed)
+    return scene.replace(truth=truth_maps(material), seed=seed)
 
 
 def pixel_texels(scene, mesh) -> list:
