@@ -145,6 +145,7 @@ def fit_row(capture, truth, out: Path, options: dict, texture_size: int, cache: 
         relight=relight.score(out, keep=out.with_name(out.name + "-relight.npz")),
         wall_s=report["wall_time"], occlusion=report.get("occlusion"), ibl=report.get("ibl"),
         final_loss=report["final_loss"], psnr_fit=float(np.mean(report["psnr"])),
+        pixel_samples=report.get("pixel_samples", 1), footprint=report.get("footprint"),
     )
 
 
@@ -201,6 +202,28 @@ def _fit(results: dict, args, name: str, depth: int, config: str, options: dict,
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "pathtraced.json").write_text(json.dumps(results, indent=1))
     print(f"  {name} d{depth} {config:22s} {_line(row)}", flush=True)
+
+
+def run_refit(args) -> None:
+    """``--refit CONFIG ...``: fit an earlier run's captures (``--work``, the ``--scenes`` at the
+    ``--depths``) again with those `CONFIGS` (the code as it is now), each row replacing the
+    earlier row of its scene, depth and config in pathtraced.json."""
+    from pbrfit.scene.capture import load_capture
+
+    results = json.loads((args.out / "pathtraced.json").read_text())
+    for name in args.scenes:
+        relight = None
+        for depth in args.depths:
+            cap_dir = args.work / f"{name}-d{depth}"
+            relight = relight or Relighting.prepare(load_capture(cap_dir), args.relight_views, args.relight_size,
+                                                    args.relight_spp)
+            for config in args.refit:
+                same = [i for i, f in enumerate(results["fits"]) if (f["scene"], f["max_depth"], f["config"],
+                        f.get("capture", "pixel area")) == (name, depth, config, "pixel area")]
+                _fit(results, args, name, depth, config, CONFIGS[config], relight)
+                if same:  # in the earlier row's place
+                    results["fits"][same[0]] = results["fits"].pop()
+                    (args.out / "pathtraced.json").write_text(json.dumps(results, indent=1))
 
 
 def _capture(results: dict, args, name: str, depth: int, make) -> Path:
@@ -301,6 +324,8 @@ def main(argv=None):
     ap.add_argument("--extras", action="store_true", help="also fit the deepest captures with EXTRAS")
     ap.add_argument("--centres", action="store_true", help="the pixel-centre probe (run_centres) on an earlier run's --work")
     ap.add_argument("--centre-spp", type=int, default=4096, help="--centres: Mitsuba samples per sub-pixel")
+    ap.add_argument("--refit", nargs="+", choices=list(CONFIGS), metavar="CONFIG",
+                    help="fit an earlier run's captures (--work) again with these CONFIGS (run_refit)")
     ap.add_argument("--tables", action="store_true", help="print the markdown tables from pathtraced.json and stop")
     ap.add_argument("--work", type=Path, help="where the captures and fits are kept (default: a new temporary folder)")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
@@ -311,6 +336,10 @@ def main(argv=None):
         if args.work is None:
             ap.error("--centres needs the --work folder of an earlier run")
         run_centres(args)
+    elif args.refit:
+        if args.work is None:
+            ap.error("--refit needs the --work folder of an earlier run")
+        run_refit(args)
     else:
         run(args)
 

@@ -203,7 +203,7 @@ def fit_summary(result, errors) -> str:
     n, foot = r.get("pixel_samples", 1), r.get("footprint")
     if foot is not None and "skipped" in foot:  # auto, on a capture too large to try the samples
         parts[0] += ", pixel centres (auto: 2x2 samples skipped, too many pixels)"
-    elif foot is not None:  # auto: which footprint explained the images, and by how much
+    elif foot is not None and "energies" in foot:  # auto, both: which explained the images, and by how much
         other = next(k for k in foot["energies"] if int(k) != foot["selected"])
         where = "pixel centres" if n == 1 else f"{n}x{n} samples per pixel"
         parts[0] += (f", {where} (auto: data loss {foot['energies'][str(foot['selected'])]:.3e} against "

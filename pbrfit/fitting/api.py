@@ -24,7 +24,9 @@ held at the prior's 0.5, its base colour re-fitted (`pbrfit.fitting.stages.uncon
 
 A pixel's footprint: a display-referred capture (sRGB, tone mapped) is fitted both at pixel
 centres and with 2 × 2 samples per pixel, and the fit whose images match better is kept
-(``pixel_samples="auto"``, `footprint_choice`); linear images are fitted at pixel centres.
+(``pixel_samples="auto"``, `footprint_choice`); linear images are fitted at pixel centres, and
+both ways only where the centres' residuals follow the blur of a box footprint
+(`pbrfit.fitting.stages.footprint.footprint_evidence`).
 
 The images' noise: plain least squares by default (``noise_level="uniform"``); with
 ``noise_level="estimated"`` a second fit weighs each residual by the inverse of the noise
@@ -57,7 +59,8 @@ from ..errors import CaptureError, listed
 from .options import IBL_MODES, FitOptions, check_model, check_normals, held_report, options_from
 from .passes import PassInputs, fit_pass
 from .result import FitResult, closed_times, map_rmse
-from .stages.footprint import footprint_choice
+from .stages.footprint import (AUTO_PIXEL_SAMPLES, box_plausible, footprint_choice, footprint_evidence,
+                               probes_footprint)
 from ..physics.model import Model
 from .noise import estimate_noise_level
 from .observations import Observations, observations_from_capture, row_geometry
@@ -257,7 +260,10 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
             supersampled capture (1: pixel centres). The grid start, the continuation's first
             steps and the search run on pixel centres, the settling and released steps on the
             samples (`fit_observations`). ``"auto"`` (default, `footprint_choice`): pixel
-            centres for linear HDR images (and with precomputed ``views``); for display-referred
+            centres with precomputed ``views``; for linear HDR images pixel centres, then both
+            ways as below only where the centres' residuals show a box's blur
+            (`pbrfit.fitting.stages.footprint.footprint_evidence`, the report's
+            "footprint" "evidence"); for display-referred
             ones (sRGB, tone mapped) the last steps run both ways, at centres and with 2 × 2
             samples (these stop after `pbrfit.fitting.passes.PROBE_STEPS` when they do not yet match better), and the
             fit whose images match better is kept (the report's "footprint" entry gives both
@@ -389,6 +395,27 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
     check_normals(model.ibl, options.fitted)
     _check_brightness(capture)
     pixel_samples, select, skipped = footprint_choice(capture, options.pixel_samples, views)
+    result = _fit_footprint(capture, options, model, views, pixel_samples, select, t0)
+    if skipped is not None:
+        result.report["footprint"] = dict(selected=1, skipped=skipped)
+    elif probes_footprint(capture, options.pixel_samples, views):
+        evidence = footprint_evidence(result.images, result.targets, result.masks)
+        if box_plausible(evidence):  # both footprints, the centres' fit spent on the test
+            probe = result.report["wall_time"]
+            result = _fit_footprint(capture, options, model, views, AUTO_PIXEL_SAMPLES, True, time.perf_counter())
+            times = result.report["times"]
+            result.report["wall_time"] += probe
+            result.report["times"] = dict(times, footprint_probe=probe)
+            result.report["footprint"]["evidence"] = evidence
+        else:
+            result.report["footprint"] = dict(selected=1, evidence=evidence)
+    return result
+
+
+def _fit_footprint(capture, options: FitOptions, model: Model, views, pixel_samples: int, select: bool,
+                   t0: float) -> FitResult:
+    """`fit` with ``pixel_samples`` samples per pixel (``select``: and pixel centres, keeping the
+    footprint that explains the images better), its setup timed from ``t0``."""
     cache_dir = options.cache_dir
     obs = observations_from_capture(capture, cache_dir=cache_dir, views=views, pixel_samples=pixel_samples)
     centres = None if obs.samples == 1 else observations_from_capture(capture, cache_dir=cache_dir, views=views)
@@ -428,8 +455,6 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
     result = fit_observations(obs, options, model=model, ibl=tables, setup_time=time.perf_counter() - t0,
                               centres=centres, centre_ibl=centre_tables, select_footprint=select)
     _check_finite(result, capture)
-    if skipped is not None:
-        result.report["footprint"] = dict(selected=1, skipped=skipped)
     if model.ibl is not None:
         result.report["ibl"] = dict(mode=model.ibl, seconds=t_ibl, **(
             dataclasses.asdict(options.pixel_ibl_settings) if model.ibl == "per_pixel" else {}))

@@ -58,7 +58,9 @@ def closed_times(times: dict, wall: float) -> dict:
     """A fit's time split, closed: ``times`` (setup: reading the capture, casting rays and building
     the environment's tables (the report's "ibl" entry gives their part); compile:
     waiting for compiles; solve: solver steps; init, search: the grid start and the coordinate
-    search; repair, uniform_check: those stages' own work; post: the outputs' arrays) with
+    search; repair, uniform_check: those stages' own work; post: the outputs' arrays;
+    footprint_probe: the pixel-centre fit whose residuals showed a box footprint, before the fit
+    of both, `pbrfit.fitting.api.fit`) with
     "other", the rest of ``wall`` (host-side work between stages: each level's problem), so that
     the entries sum to the wall time. "compile_background", compiles overlapped with the fit's
     own work in another thread, is apart from the sum."""

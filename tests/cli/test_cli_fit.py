@@ -507,7 +507,7 @@ def test_per_pixel_ibl_fit_of_a_monte_carlo_capture(tmp_path, monkeypatch, capsy
     synth = json.loads((cap / "truth" / "synth.json").read_text())
     assert synth["model"]["ibl"] == "monte_carlo" and "64 samples" in synth["ibl_settings"]
     assert main(["fit", str(cap), "--out", str(out), "--maps", "none", "--ibl", "per_pixel", "--ibl-samples", "32",
-                 "--ibl-levels", "5", "--quiet"]) == 0
+                 "--ibl-levels", "5", "--pixel-samples", "1", "--quiet"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["model"]["ibl"] == "per_pixel"
     assert report["ibl"]["mode"] == "per_pixel" and report["ibl"]["samples"] == 32 and report["ibl"]["levels"] == 5

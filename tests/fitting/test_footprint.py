@@ -367,7 +367,7 @@ def test_select_footprint_needs_samples_and_centres(capture):
 def test_footprint_choice_by_image_kind(capture):
     """``"auto"`` tries 2 × 2 samples for display-referred images only; an integer is taken as
     given; precomputed views hold centres."""
-    from pbrfit.fitting.stages.footprint import AUTO_PIXEL_SAMPLES, footprint_choice
+    from pbrfit.fitting.stages.footprint import AUTO_PIXEL_SAMPLES, footprint_choice, probes_footprint
 
     linear = dataclasses.replace(capture, frames=[dataclasses.replace(f, color_space="linear") for f in capture.frames],
                                  color_space="linear")
@@ -375,6 +375,9 @@ def test_footprint_choice_by_image_kind(capture):
     assert footprint_choice(linear) == (1, False, None)
     assert footprint_choice(dataclasses.replace(linear, tonemap="reinhard")) == (AUTO_PIXEL_SAMPLES, True, None)
     assert footprint_choice(capture, views=[object()]) == (1, False, None)
+    # linear images: a centre fit, tested for a box footprint (`probes_footprint`) unless asked otherwise
+    assert probes_footprint(linear) and not probes_footprint(capture) and not probes_footprint(linear, 1)
+    assert not probes_footprint(linear, views=[object()])
     assert footprint_choice(capture, 3) == (3, False, None) and footprint_choice(linear, 1) == (1, False, None)
     with pytest.raises(ValueError, match="auto"):
         footprint_choice(capture, "many")
@@ -396,3 +399,55 @@ def test_auto_footprint_skips_the_samples_on_a_large_capture(capture, capture_di
     assert f"{pixels:,} image pixels > AUTO_MAX_PIXELS" in res.report["footprint"]["skipped"]
     monkeypatch.setattr(fit_module, "AUTO_MAX_PIXELS", pixels)
     assert fit_module.footprint_choice(capture) == (fit_module.AUTO_PIXEL_SAMPLES, True, None)
+
+
+def _smooth_views(n: int = 24, k: int = 4):
+    """A smooth image at pixel centres and the box average of each pixel (k × k sub-pixel samples)."""
+    def f(y, x):
+        return 0.5 + 0.4 * np.sin(0.35 * x + 0.2 * y) * np.cos(0.3 * y)
+
+    centre = (np.arange(n) + 0.5)[:, None], (np.arange(n) + 0.5)[None, :]
+    sub = (np.arange(n * k) + 0.5) / k
+    box = f(sub[:, None], sub[None, :]).reshape(n, k, n, k).mean(axis=(1, 3))
+    return np.repeat(f(*centre)[..., None], 3, -1), np.repeat(box[..., None], 3, -1)
+
+
+def test_footprint_evidence_sees_a_box_average():
+    """The centres' residuals follow the render's Laplacian / 24 with slope about 1 where the images
+    are box averages, and scatter about 0 where they hold the centres plus noise; all-zero
+    residuals are no evidence at all."""
+    from pbrfit.fitting.stages.footprint import BOX_SLOPE, box_plausible, footprint_evidence
+
+    render, box = _smooth_views()
+    mask = np.ones(render.shape[:2], bool)
+    mask[:3] = False  # pixels outside the mask (and their neighbours) are not read
+    on_box = footprint_evidence([render], [box], [mask])
+    assert 0.8 < on_box["slope"] < 1.2 and box_plausible(on_box), on_box
+    assert on_box["values"] == 3 * (render.shape[0] - 5) * (render.shape[1] - 2)
+    noisy = render + np.random.default_rng(0).normal(0.0, 1e-3, render.shape)
+    on_centres = footprint_evidence([render], [noisy], [mask])
+    assert abs(on_centres["slope"]) < BOX_SLOPE and not box_plausible(on_centres), on_centres
+    exact = footprint_evidence([render], [render], [mask])
+    assert exact["slope"] == 0.0 and exact["z"] == 0.0 and not box_plausible(exact)
+
+
+def test_auto_footprint_tests_linear_images_before_fitting_both(tmp_path):
+    """Linear EXR images: ``"auto"`` fits pixel centres, then both footprints only where the
+    centres' residuals show a box's blur: on a 2 × 2 supersampled capture it keeps the samples
+    (the centres' fit counted as "footprint_probe" time), on one rendered at centres it keeps the
+    centres' fit without fitting the samples at all."""
+    from data_synth.presets import make_scene
+    from data_synth.writer import synthesize
+
+    for name, ss in (("box", 2), ("centres", 1)):
+        synthesize(make_scene("plane-flash", seed=3, size=32, views=4, texture_size=MAP[0], noise=0.0,
+                              image_format="exr", supersample=ss), tmp_path / name)
+    box = fit(load_capture(tmp_path / "box"), resolution=MAP[0]).report
+    foot = box["footprint"]
+    assert foot["selected"] == 2 and box["pixel_samples"] == 2 and foot["evidence"]["slope"] > 0.1, foot
+    assert foot["energies"]["2"] < 0.01 * foot["energies"]["1"]
+    assert box["times"]["footprint_probe"] > 0.0
+    centres = fit(load_capture(tmp_path / "centres"), resolution=MAP[0]).report
+    foot = centres["footprint"]
+    assert foot["selected"] == 1 and centres["pixel_samples"] == 1 and "energies" not in foot, foot
+    assert abs(foot["evidence"]["slope"]) < 0.1 and "footprint_probe" not in centres["times"]

@@ -1,10 +1,11 @@
 """Pixel footprints: which model of a pixel's footprint a fit uses, and how two are compared.
 
 A pixel of a display-referred image (sRGB, tone mapped) is usually the mean of the radiance over
-its area (an antialiased render, a photograph), a linear HDR one often its centre's. `fit`
-shades n × n samples per pixel where asked (`pbrfit.fitting.observations`); with
-``pixel_samples="auto"`` it fits display-referred images both ways and keeps the footprint whose
-images match better (`footprint_choice`, `footprint_energies`).
+its area (an antialiased render, a photograph), a linear HDR one either. `fit` shades n × n
+samples per pixel where asked (`pbrfit.fitting.observations`); with ``pixel_samples="auto"`` it
+fits display-referred images both ways and keeps the footprint whose images match better
+(`footprint_choice`, `footprint_energies`), and fits linear images at pixel centres, then both ways
+only where those centres' residuals show the box's blur (`footprint_evidence`, `box_plausible`).
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ from ..objective import Problem, pixel_residuals
 from ...transfer import to_device
 
 __all__ = ["footprint_choice", "footprint_energies", "centres_explain_better", "samples_side", "final_residuals",
-           "AUTO_PIXEL_SAMPLES", "AUTO_MAX_PIXELS"]
+           "probes_footprint", "footprint_evidence", "box_plausible", "AUTO_PIXEL_SAMPLES", "AUTO_MAX_PIXELS",
+           "BOX_SLOPE", "BOX_Z"]
 
 #: Samples per pixel side that ``pixel_samples="auto"`` tries on display-referred images
 #: (`footprint_choice`): 2 × 2 is exact for 2 × 2 supersampled renders and close to finer box
@@ -30,6 +32,18 @@ AUTO_PIXEL_SAMPLES = 2
 #: the samples take four times the rows, so about four times the memory and three times the time
 #: of pixel centres; beyond it a fit asks for them with ``pixel_samples=2``.
 AUTO_MAX_PIXELS = 2_000_000
+#: A centre fit of linear images shows a box footprint (`box_plausible`) where its residuals grow
+#: with its render's Laplacian / 24 by at least this slope (1 for a pure box average that the maps
+#: cannot absorb) ...
+BOX_SLOPE = 0.1
+#: ... and the slope is this many standard errors from 0. Measured slopes (`footprint_evidence`,
+#: docs/footprint.md): 2 × 2 supersampled and Mitsuba's box-filtered captures 0.22 to 1.26;
+#: captures rendered at pixel centres -0.006 to 0.001 (pbrfit's own renders) and 0.06 (Mitsuba's,
+#: whose light the model misses in places); but also 1.8 to 2.7 where the model is far from the
+#: renderer's (a Monte Carlo render fitted with the split sum, or with one uniform material): its
+#: misfit of sharp highlights grows with the Laplacian too. There the fit of both footprints costs
+#: time and keeps the one that matches better.
+BOX_Z = 3.0
 
 
 def display_referred(capture) -> bool:
@@ -47,8 +61,8 @@ def footprint_choice(capture, pixel_samples="auto", views=None) -> tuple[int, bo
     """(n, select, skipped) for `fit`'s ``pixel_samples``: an integer n is taken as given;
     ``"auto"`` gives (`AUTO_PIXEL_SAMPLES`, True) for display-referred images (any frame in
     sRGB, or a tone map), which are photographs or finished renders and so usually pixel
-    averages, and (1, False) for linear HDR images, where the cost (about three times the run
-    time) is not paid unless asked for, although antialiased HDR renders average pixels too; for
+    averages, and (1, False) for linear HDR images, whose centre fit `fit` then tests for a box
+    footprint before paying for the samples (`probes_footprint`, `footprint_evidence`); for
     precomputed `views`, which hold pixel centres; and for display-referred captures of more than
     `AUTO_MAX_PIXELS` pixels, for which `skipped` says so (else None). select says to fit both
     footprints and keep the one that explains the images better (`pbrfit.fitting.api.fit_observations`)."""
@@ -64,6 +78,59 @@ def footprint_choice(capture, pixel_samples="auto", views=None) -> tuple[int, bo
         return 1, False, (f"{pixels:,} image pixels > AUTO_MAX_PIXELS ({AUTO_MAX_PIXELS:,}): pixel centres only; "
                           f"--pixel-samples 2 fits the footprint")
     return AUTO_PIXEL_SAMPLES, True, None
+
+
+def probes_footprint(capture, pixel_samples="auto", views=None) -> bool:
+    """Whether ``pixel_samples="auto"`` tests a pixel-centre fit of `capture` for a box footprint
+    (`footprint_evidence`): linear images read from files (not precomputed `views`), of at most
+    `AUTO_MAX_PIXELS` pixels."""
+    return (pixel_samples == "auto" and views is None and not display_referred(capture)
+            and image_pixels(capture) <= AUTO_MAX_PIXELS)
+
+
+def _laplacian_rows(image: np.ndarray, mask: np.ndarray):
+    """(rows of Δ image / 24, the mask of pixels whose 4 neighbours are in `mask` too): the 5-point
+    Laplacian, pixel spacing 1, at the pixels where every tap is fitted."""
+    inner = np.zeros_like(mask)
+    inner[1:-1, 1:-1] = (mask[1:-1, 1:-1] & mask[:-2, 1:-1] & mask[2:, 1:-1] & mask[1:-1, :-2] & mask[1:-1, 2:])
+    lap = np.zeros_like(image)
+    lap[1:-1, 1:-1] = (image[:-2, 1:-1] + image[2:, 1:-1] + image[1:-1, :-2] + image[1:-1, 2:]
+                       - 4.0 * image[1:-1, 1:-1])
+    return lap[inner] / 24.0, inner
+
+
+def footprint_evidence(images, targets, masks) -> dict:
+    """How strongly a pixel-centre fit's residuals show a box footprint: per view the fitted
+    render R (H, W, 3), the image I and the fitted pixels' mask. A pixel's box average of a
+    smooth f is f + (f_xx + f_yy) / 24 + O(h⁴) (pixel size h = 1), so where the images are box
+    averages the centres' residuals r = I - R follow Δ R / 24 (the 5-point Laplacian, at pixels
+    whose 4 neighbours are fitted), with slope 1 where the maps cannot absorb the blur, and
+    scatter about 0 where the images hold pixel centres. Returns the least-squares slope
+    β = Σ r ΔR/24 / Σ (ΔR/24)², its z = β sqrt(Σ (ΔR/24)²) / σ (σ the residuals' scale by their
+    median absolute deviation; 0 where they are all 0) and the pixel values used."""
+    num = den = 0.0
+    parts = []
+    for image, target, mask in zip(images, targets, masks):
+        image, target = np.asarray(image, np.float64), np.asarray(target, np.float64)
+        lap, inner = _laplacian_rows(image, np.asarray(mask, bool))
+        r = (target - image)[inner]
+        num += float(np.sum(r * lap))
+        den += float(np.sum(lap * lap))
+        parts.append(r.ravel())
+    r = np.concatenate(parts) if parts else np.zeros(0)
+    if den <= 0.0 or r.size == 0:
+        return dict(slope=0.0, z=0.0, values=int(r.size))
+    beta = num / den
+    sigma = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    z = beta * math.sqrt(den) / sigma if sigma > 0.0 else 0.0
+    return dict(slope=float(beta), z=float(z), values=int(r.size))
+
+
+def box_plausible(evidence: dict) -> bool:
+    """Whether `footprint_evidence` shows a box footprint: slope ≥ `BOX_SLOPE` at z ≥ `BOX_Z`. A
+    false call costs time, not accuracy: the fit of both footprints keeps the one whose images
+    match better."""
+    return evidence["slope"] >= BOX_SLOPE and evidence["z"] >= BOX_Z
 
 
 def centres_explain_better(energies) -> bool:
