@@ -46,6 +46,11 @@ def test_fit_writes_the_spec_output(capture, tmp_path, monkeypatch):
     assert set(report["truth_rmse"]) == {"base_color", "metallic", "roughness"}
     # a noiseless capture of the fit's own model: fitted exactly (measured: RMSE 1e-8 to 8e-8, PSNR 156 dB)
     assert max(report["truth_rmse"].values()) < 1e-4 and min(report["psnr"]) > 80.0, report
+    # linear images rendered at pixel centres: the footprint test finds no box's blur, and the
+    # centres' fit is kept without fitting the samples
+    foot = report["footprint"]
+    assert foot["selected"] == 1 and report["pixel_samples"] == 1 and "energies" not in foot, foot
+    assert abs(foot["evidence"]["slope"]) < 0.1 and "footprint_probe" not in report["times"]
     assert len(list((out / "views").glob("*.png"))) == 3
     plot, _ = read_image(out / "convergence.png")
     assert plot.shape == (320, 520, 3) and plot.min() < 0.5 < plot.max()  # drawn, not blank
