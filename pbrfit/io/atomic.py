@@ -51,18 +51,27 @@ _HELD_ON_ABANDON: dict = {}
 _REMOVE_TRIES = 20
 
 
+@contextlib.contextmanager
+def _renaming():
+    """`_RENAMING`, with SIGINT and SIGTERM held back until it is released (`_signals_held`): their
+    handler (`abandon_writes`) runs in the main thread and would wait for the lock that thread
+    holds, and a temporary made but not yet noted would be left behind."""
+    with _signals_held(), _RENAMING:
+        yield
+
+
 def _new_temporary(make: Callable[[], str]) -> Path:
     """A temporary made by ``make`` (``tempfile.mkstemp``'s or ``mkdtemp``'s call) and noted for
-    `abandon_writes`, under `_RENAMING`."""
-    with _RENAMING:
+    `abandon_writes`, under `_RENAMING` (`_renaming`)."""
+    with _renaming():
         path = Path(make())
         _TEMPORARIES[path] = None
     return path
 
 
 def _into_place(tmp: Path, final: Path) -> None:
-    """Rename a temporary into place and forget it, under `_RENAMING`."""
-    with _RENAMING:
+    """Rename a temporary into place and forget it, under `_RENAMING` (`_renaming`)."""
+    with _renaming():
         os.replace(tmp, final)
         _TEMPORARIES.pop(tmp, None)
 
