@@ -22,8 +22,8 @@ sizes (equal slopes: linear growth).
                                 [--gpu-memory] [--out experiments/results/scale.json]
 
 The JSON is written again after each size, so a run stopped part way keeps the sizes done. Fits
-run one after another, never two at once. On the shared 2-core CPU 128, 256 and 512 take about
-an hour together, 512 most of it.
+run one after another, never two at once. On the shared 2-core CPU 128, 256 and 512 took 80
+minutes together, 512 65 of them (experiments/speed.md, "Scale").
 """
 
 from __future__ import annotations
