@@ -313,7 +313,7 @@ def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optio
                                                           dir=final_dir.parent))
             try:
                 # Ctrl-C or a kill between the two renames would lose both folders
-                with _signals_held(), _RENAMING:
+                with _renaming():
                     os.replace(final_dir, old / "d")
                     try:
                         os.replace(tmp, final_dir)
