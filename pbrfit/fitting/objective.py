@@ -28,6 +28,7 @@ multiply float32 in TF32 (10-bit mantissa), too coarse for the normal equations.
 from __future__ import annotations
 
 import dataclasses
+from typing import Optional
 
 import equinox as eqx
 import jax
@@ -64,6 +65,10 @@ class Problem(eqx.Module):
         ibl: the environment's split-sum tables (``model.ibl == "split_sum"``), the pixels'
             `pbrfit.lighting.pixel_ibl.PixelIBL` (``"per_pixel"``, one row per pixel), or None.
         model, loss: static configuration.
+        grid: (2,) int32, the (H, W) of the map the first H W texels form (flat t = i W + j), where
+            every pixel's taps lie in one cell of it (`pbrfit.fitting.stencil.cells_fit`) and the
+            prior's pairs are grid neighbours: the structured solver then holds the Gauss-Newton
+            matrix by stencil (`pbrfit.fitting.stencil`); None: its products go through the pixels.
     """
 
     obs: Observations
@@ -77,6 +82,7 @@ class Problem(eqx.Module):
     ibl: object = None
     model: Model = eqx.field(static=True, default=Model())
     loss: str = eqx.field(static=True, default="l2")
+    grid: Optional[Int[Array, "2"]] = None
 
     @property
     def num_texels(self) -> int:
