@@ -1,5 +1,5 @@
 """The Gauss-Newton matrix by stencil (`pbrfit.fitting.stencil`) against the product through the
-pixels (`pbrfit.fitting.normal_matrix.gn_product`).
+pixels (`pbrfit.fitting.normal_matrix.gn_product`), and the structured solver with either.
 
 The problems are `test_sharding`'s (a plane under two lights, random uv), on small maps of both
 wrap modes, some narrower than the stencil, with the smoothness prior on, at pixel centres and
@@ -14,11 +14,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from pbrfit.fitting.initialisation import grid_initialise
 from pbrfit.fitting.normal_matrix import gauss_newton_factors, gn_product
 from pbrfit.fitting.objective import linearize
 from pbrfit.fitting.observations import PIXEL_FIELDS, neighbour_pairs, texel_layout
+from pbrfit.fitting.solvers.structured import LMCarry, StructuredLM, solve
 from pbrfit.fitting.stencil import cell_side, cells_fit, stencil, stencil_blocks, stencil_product
-from test_sharding import _problem
+from test_sharding import _problem, _start
 
 
 def _sampled(obs, spread: float):
@@ -88,3 +90,22 @@ def test_cells_fit_only_footprints_narrower_than_a_cell():
     for spread, fits in ((0.2, True), (2.5, False)):  # in texels of an 8 x 8 map
         obs = _sampled(problem.obs, spread / 8)
         assert cells_fit(texel_layout(obs, (8, 8)).index, 4, (8, 8)) == fits
+
+
+def test_the_solver_by_stencil_takes_the_steps_through_the_pixels():
+    """StructuredLM on one problem (the prior on) with and without its grid, in float64: the same
+    steps, accepted steps and CG iterations, and E after each step to 1e-8 (the observations are
+    float32). (In float32 the solutions agree to its rounding, but at E's float32 floor whether a
+    step lowers E is rounding too: with rtol 1e-7, 10 steps against 5.)"""
+    problem, _ = _problem(smooth=1e-3)
+    on_grid = dataclasses.replace(problem, grid=jnp.asarray((4, 4), jnp.int32))
+    x0 = grid_initialise(_start(problem), problem)
+    with jax.enable_x64(True):
+        x64 = x0.astype(jnp.float64)
+        runs = [solve(x64, p, StructuredLM(rtol=1e-12, atol=1e-12), 8, LMCarry.start(jnp.float64)) for p in
+                (problem, on_grid)]
+    counts = [(int(s.steps), int(s.accepted), int(s.cg_iterations)) for _, s, *_ in runs]
+    assert counts[0] == counts[1] and counts[0][0] >= 5, counts
+    history = [np.asarray(s.history)[: counts[0][0] + 1] for _, s, *_ in runs]
+    np.testing.assert_allclose(history[1], history[0], rtol=1e-8)
+    np.testing.assert_allclose(np.asarray(runs[1][0]), np.asarray(runs[0][0]), atol=1e-7)
