@@ -189,7 +189,7 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
             pairs, pw = _neighbour_weights(shape, seen, e_final, prior_on)
             problem = Problem(obs, layout.index, layout.weight, to_device(free), to_device(pairs), to_device(pw),
                               to_device(options.smooth, np.float32), to_device(options.loss_scale, np.float32),
-                              inputs.ibl, inputs.model, options.loss, _grid(layout, obs.samples))
+                              inputs.ibl, inputs.model, options.loss, **_on_grid(layout, obs.samples))
             if mesh is not None:
                 problem = shard_problem(problem, mesh)
             early = problem  # the start, the continuation's steps and the search
@@ -207,7 +207,7 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
                                             free=to_device(centre_free),
                                             pairs=to_device(c_pairs), pair_weight=to_device(c_pw),
                                             ibl=inputs.centre_ibl if per_row(inputs.ibl) else inputs.ibl,
-                                            grid=_grid(lay, inputs.centres.samples))
+                                            **_on_grid(lay, inputs.centres.samples))
                 if mesh is not None:
                     early = shard_problem(early, mesh)
             num_free = int(np.sum(free))
@@ -313,12 +313,12 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
     return result, np.asarray(xs, np.float32)[:t_final]
 
 
-def _grid(layout, samples: int):
-    """The (H, W) of ``layout``'s map as a `Problem`'s ``grid`` where each pixel's taps (`samples`
-    rows a pixel) lie in one cell of it (`cells_fit`: always at pixel centres), so that the
-    structured solver holds its normal matrix by stencil; else None."""
+def _on_grid(layout, samples: int) -> dict:
+    """A `Problem`'s ``grid`` and ``stencil`` for ``layout`` (`samples` rows a pixel): the (H, W)
+    of its map, and whether each pixel's taps lie in one cell of it (`cells_fit`: always at pixel
+    centres), so that the structured solver holds its normal matrix by stencil."""
     shape = tuple(int(n) for n in layout.shape)
-    return to_device(np.asarray(shape, np.int32)) if cells_fit(layout.index, samples, shape) else None
+    return dict(grid=to_device(np.asarray(shape, np.int32)), stencil=cells_fit(layout.index, samples, shape))
 
 
 def _neighbour_weights(shape, seen, size: int, on: bool):

@@ -42,7 +42,8 @@ def _on_map(problem, shape, wrap, samples=1, texels=None):
     return dataclasses.replace(problem, obs=obs, index=layout.index, weight=layout.weight,
                                free=jnp.ones((t, 5), jnp.float32), pairs=jnp.asarray(pairs),
                                pair_weight=jnp.asarray(np.random.default_rng(1).uniform(0.5, 1.5, len(pairs)), jnp.float32),
-                               smooth=jnp.asarray(0.3, jnp.float32), grid=jnp.asarray(shape, jnp.int32)), layout
+                               smooth=jnp.asarray(0.3, jnp.float32), grid=jnp.asarray(shape, jnp.int32),
+                               stencil=True), layout
 
 
 @jax.jit
@@ -98,7 +99,7 @@ def test_the_solver_by_stencil_takes_the_steps_through_the_pixels():
     float32). (In float32 the solutions agree to its rounding, but at E's float32 floor whether a
     step lowers E is rounding too: with rtol 1e-7, 10 steps against 5.)"""
     problem, _ = _problem(smooth=1e-3)
-    on_grid = dataclasses.replace(problem, grid=jnp.asarray((4, 4), jnp.int32))
+    on_grid = dataclasses.replace(problem, grid=jnp.asarray((4, 4), jnp.int32), stencil=True)
     x0 = grid_initialise(_start(problem), problem)
     with jax.enable_x64(True):
         x64 = x0.astype(jnp.float64)

@@ -14,8 +14,8 @@ IMM-REP-1999-05). This is a projected Levenberg-Marquardt method (as in e.g. C. 
 "Levenberg-Marquardt methods with strong local convergence properties for solving nonlinear
 equations with convex constraints", 2004).
 
-The products: where the problem has a ``grid`` (`pbrfit.fitting.stencil`: each pixel's taps in
-one cell of the map, always at pixel centres), each step assembles JᵀJ + smooth L by stencil once
+The products: where the problem says so (``Problem.stencil``: each pixel's taps in one cell of
+the map, always at pixel centres; `pbrfit.fitting.stencil`), each step assembles JᵀJ + smooth L by stencil once
 (`pbrfit.fitting.stencil.stencil_blocks`, its diagonal blocks the preconditioner's) and masks and
 damps the blocks, and each CG iteration is a gather of every texel's neighbours and their K × K
 products, whatever the number of pixels (on the peer scene at 64 × 64, an iteration took 0.9 ms
@@ -165,7 +165,8 @@ class _StructuredLMState(eqx.Module):
     Nielsen's factor ν, the count k of calls to `step` (step 0 only linearises), whether the last
     step ended the solve, the steps accepted, the CG iterations, the step budget, E after each
     step (`HISTORY`), whether the next call to `step` only linearises (the first of a run), and
-    the problem's `pbrfit.fitting.stencil.Stencil` where it has a grid (else None)."""
+    the problem's `pbrfit.fitting.stencil.Stencil` where the solver holds the Gauss-Newton matrix
+    by stencil (``Problem.stencil``; else None)."""
 
     r: Array
     jac: Array
@@ -228,7 +229,7 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
             k=jnp.asarray(carry.k, jnp.int32), done=jnp.asarray(False),
             accepted=jnp.asarray(carry.accepted, jnp.int32), cg=jnp.asarray(carry.cg, jnp.int32), budget=budget,
             history=jnp.asarray(carry.history, y.dtype), fresh=jnp.asarray(True),
-            stencil=None if args.grid is None else stencil(args))
+            stencil=stencil(args) if args.stencil else None)
 
     def step(self, fn, y, args: Problem, options, state: _StructuredLMState, tags):
         del fn, tags
