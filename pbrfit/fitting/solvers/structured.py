@@ -243,43 +243,52 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         first = state.fresh
         again = first & (state.k > 0)
         st = state.stencil
-        if st is None:  # products through the pixels
-            gp = gauss_newton_factors(jac, problem)
-            blocks = normal_blocks(jac, problem) + problem.smooth * prior_degree(problem)[:, None, None] * eye
 
-            def product(v):
-                return gn_product(gp, v, problem)
-        else:  # JᵀJ + smooth L by stencil, assembled once for the step's products
-            full = stencil_blocks(jac, problem, st)
-            blocks = full[:, st.centre]
+        def take_step():
+            if st is None:  # products through the pixels
+                gp = gauss_newton_factors(jac, problem)
+                blocks = normal_blocks(jac, problem) + problem.smooth * prior_degree(problem)[:, None, None] * eye
 
-            def product(v):
-                return stencil_product(full, st.neighbours, v)
-        g = gradient(r, jac, x, problem)
-        a = _active(x, g, problem.free) * ~first
-        diag = jnp.diagonal(blocks, axis1=1, axis2=2)
-        mean_diag = jnp.sum(diag * problem.free) / jnp.maximum(jnp.sum(problem.free), 1.0)
-        damp = diag + DAMPING_FLOOR * mean_diag
-        outer = a[:, :, None] * a[:, None, :]
-        m_blocks = outer * (blocks + lam * damp[:, :, None] * eye) + (1.0 - a)[:, :, None] * eye
-        m_inv = spd_block_inverse(m_blocks)
-        if st is None:
-            def matvec(v):
-                av = a * v
-                return a * (product(av) + lam * damp * av) + (1.0 - a) * v
-        else:  # the same operator by stencil: its blocks masked to the active channels, M's on the diagonal
-            masked = (a[:, None, :, None] * full * a[st.neighbours][:, :, None, :]).at[:, st.centre].set(m_blocks)
+                def product(v):
+                    return gn_product(gp, v, problem)
+            else:  # JᵀJ + smooth L by stencil, assembled once for the step's products
+                full = stencil_blocks(jac, problem, st)
+                blocks = full[:, st.centre]
 
-            def matvec(v):
-                return stencil_product(masked, st.neighbours, v)
+                def product(v):
+                    return stencil_product(full, st.neighbours, v)
+            g = gradient(r, jac, x, problem)
+            a = _active(x, g, problem.free)
+            diag = jnp.diagonal(blocks, axis1=1, axis2=2)
+            mean_diag = jnp.sum(diag * problem.free) / jnp.maximum(jnp.sum(problem.free), 1.0)
+            damp = diag + DAMPING_FLOOR * mean_diag
+            outer = a[:, :, None] * a[:, None, :]
+            m_blocks = outer * (blocks + lam * damp[:, :, None] * eye) + (1.0 - a)[:, :, None] * eye
+            m_inv = spd_block_inverse(m_blocks)
+            if st is None:
+                def matvec(v):
+                    av = a * v
+                    return a * (product(av) + lam * damp * av) + (1.0 - a) * v
+            else:  # the same operator by stencil: its blocks masked to the active channels, M's on the diagonal
+                masked = (a[:, None, :, None] * full * a[st.neighbours][:, :, None, :]).at[:, st.centre].set(m_blocks)
 
-        def precond(v):
-            return jnp.einsum("tij,tj->ti", m_inv, v, precision=lax.Precision.HIGHEST)
+                def matvec(v):
+                    return stencil_product(masked, st.neighbours, v)
 
-        delta, iters = pcg(matvec, -a * g, precond, self.cg_rtol, self.cg_max_steps)
-        x_new = jnp.clip(x + a * delta, lo, hi)
+            def precond(v):
+                return jnp.einsum("tij,tj->ti", m_inv, v, precision=lax.Precision.HIGHEST)
+
+            delta, iters = pcg(matvec, -a * g, precond, self.cg_rtol, self.cg_max_steps)
+            x_new = jnp.clip(x + a * delta, lo, hi)
+            step = x_new - x
+            predicted = -(_vdot(g, step) + 0.5 * _vdot(step, product(step)))
+            return x_new, predicted, jnp.asarray(iters, jnp.int32)
+
+        def stay():  # the first call: every channel inactive, no products (x clipped into the box)
+            return jnp.clip(x, lo, hi), jnp.zeros((), x.dtype), jnp.asarray(0, jnp.int32)
+
+        x_new, predicted, iters = lax.cond(first, stay, take_step)
         step = x_new - x
-        predicted = -(_vdot(g, step) + 0.5 * _vdot(step, product(step)))
         r_new, jac_new, loss_new = linearize(x_new, problem)
         actual = jnp.where(first, 0.0, loss - loss_new)
         # step 0 only linearises at the start: kept even where the loss is not finite (an
