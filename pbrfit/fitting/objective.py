@@ -46,7 +46,8 @@ from ..render.shade import shade
 from ..lighting.pixel_ibl import per_row
 
 __all__ = ["Problem", "LOSSES", "robust_residual", "shading_normal", "sample_texels", "sample_material", "pixel_residuals", "residuals",
-           "objective", "linearize", "by_pixel", "to_rows", "scatter_texels", "cell_corners", "laplacian", "prior_degree", "smooth_residuals"]
+           "objective", "linearize", "by_pixel", "to_rows", "scatter_texels", "cell_corners", "laplacian",
+           "prior_degree", "smooth_residuals"]
 
 #: Below this ratio s = r²/c² the robust weights use their series (ρ(s)/s -> 1) to stay finite.
 _ROBUST_SERIES = 1e-6

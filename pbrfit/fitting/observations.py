@@ -45,8 +45,8 @@ from ..physics.textures import bilinear_weights
 from ..transfer import to_device
 from ..physics.color import linear_to_srgb_host
 
-__all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "CELL_CORNERS", "observations_from_views", "observations_from_capture",
-           "row_geometry", "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout",
+__all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "CELL_CORNERS", "observations_from_views",
+           "observations_from_capture", "row_geometry", "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout",
            "layout_for", "coverage_counts", "neighbour_pairs"]
 
 

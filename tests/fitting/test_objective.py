@@ -9,7 +9,8 @@ import pytest
 
 from pbrfit.physics.material import Material
 from pbrfit.physics.textures import sample_bilinear
-from pbrfit.fitting.objective import linearize, pixel_residuals, sample_material, sample_texels, scatter_texels
+from pbrfit.fitting.objective import (linearize, pixel_residuals, sample_material, sample_texels,
+                                      scatter_texels)
 from pbrfit.fitting.observations import CELL_CORNERS, texel_layout
 from pbrfit.fitting.parameters import LOWER, UPPER
 
@@ -17,8 +18,8 @@ from test_fit import _stack, _texel_problem
 from test_sharding import _problem
 
 
-@pytest.mark.parametrize("shape, wrap, texels", [((5, 3), "repeat", None), ((4, 6), "clamp", 30), ((1, 4), "clamp", None),
-                                                 ((2, 1), "repeat", None)])
+@pytest.mark.parametrize("shape, wrap, texels", [((5, 3), "repeat", None), ((4, 6), "clamp", 30),
+                                                 ((1, 4), "clamp", None), ((2, 1), "repeat", None)])
 def test_rows_read_and_write_texels_by_cells(shape, wrap, texels):
     """A layout's taps are the corners of their cells, in order (clamped edges: weights summed on
     the corner read), its samples the textures' bilinear ones, and with a grid, `sample_texels`

@@ -41,7 +41,8 @@ def _on_map(problem, shape, wrap, samples=1, texels=None):
     pairs = neighbour_pairs(shape)
     return dataclasses.replace(problem, obs=obs, index=layout.index, weight=layout.weight,
                                free=jnp.ones((t, 5), jnp.float32), pairs=jnp.asarray(pairs),
-                               pair_weight=jnp.asarray(np.random.default_rng(1).uniform(0.5, 1.5, len(pairs)), jnp.float32),
+                               pair_weight=jnp.asarray(np.random.default_rng(1).uniform(0.5, 1.5, len(pairs)),
+                                                       jnp.float32),
                                smooth=jnp.asarray(0.3, jnp.float32), grid=jnp.asarray(shape, jnp.int32),
                                stencil=True), layout
 
