@@ -9,6 +9,8 @@ per sample; the products go through the pixel's residual space (JᵀJ v = Σ_s J
 m_ps'(v)), and the diagonal blocks sum, per pixel, the Jacobians of all its taps that read the
 same texel before squaring (`normal_blocks`), so they stay exact where samples share texels.
 `neighbour_blocks` gives the blocks between neighbouring texels (`pbrfit.fitting.uncertainty`).
+`pbrfit.fitting.stencil` holds the whole matrix by blocks, for products that do not go through
+the pixels.
 
 Precision: every contraction here passes ``precision=HIGHEST``; JAX's default lets a GPU
 multiply float32 in TF32 (10-bit mantissa), too coarse for the normal equations.

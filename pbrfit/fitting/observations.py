@@ -18,7 +18,9 @@ its value (`pbrfit.fitting.objective`). A pixel is usable only where every sampl
 
 A `TexelLayout` says which texels each pixel reads at one map resolution: the four bilinear
 texels and weights of `pbrfit.physics.textures.bilinear_weights` (the exact sparsity of the problem),
-or a single texel of weight 1 for a uniform material.
+or a single texel of weight 1 for a uniform material. The four are the corners of the 2 × 2 *cell*
+of the map that the sample falls in, always in one order (`CELL_CORNERS`), so that the texels
+a row reads follow from its first one and the map's shape (`pbrfit.fitting.objective.sample_texels`).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import math
 from typing import Optional, Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
@@ -42,8 +45,8 @@ from ..physics.textures import bilinear_weights
 from ..transfer import to_device
 from ..physics.color import linear_to_srgb_host
 
-__all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "observations_from_views", "observations_from_capture",
-           "row_geometry", "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout",
+__all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "CELL_CORNERS", "observations_from_views",
+           "observations_from_capture", "row_geometry", "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout",
            "layout_for", "coverage_counts", "neighbour_pairs"]
 
 
@@ -302,14 +305,37 @@ def row_geometry(capture, obs: Observations, cache_dir=None) -> tuple[np.ndarray
     return points, normals
 
 
+#: The (di, dj) of a cell's corners from its first texel, in the order of a row's four taps (a
+#: bilinear sample's: `pbrfit.physics.textures.bilinear_weights`).
+CELL_CORNERS = ((0, 0), (0, 1), (1, 0), (1, 1))
+
+
+@functools.partial(jax.jit, static_argnames="shape")
+def _as_cells(index, weight, shape: tuple[int, int]):
+    """Bilinear taps as the corners of their cell, in `CELL_CORNERS` order, wrapped: a clamped
+    sample at an edge reads one row (or column) twice, and its weights there add up on the cell's
+    first row, the second getting weight 0 (elsewhere, and on a repeated map, the taps are the
+    corners already)."""
+    h, w = shape
+    row, col = index // w, index % w
+    second = 2 * (jnp.mod(row - row[:, :1], h) != 0) + (jnp.mod(col - col[:, :1], w) != 0)
+    merged = jnp.sum(weight[..., None] * (second[..., None] == jnp.arange(4)), axis=1)
+    corners = [jnp.mod(row[:, 0] + di, h) * w + jnp.mod(col[:, 0] + dj, w) for di, dj in CELL_CORNERS]
+    return jnp.stack(corners, axis=1), merged
+
+
 def texel_layout(obs: Observations, shape: tuple[int, int], wrap: str = "repeat") -> TexelLayout:
-    """The four bilinear texels (and weights) each pixel (sample row) reads from (H, W) maps."""
-    index, weight = bilinear_weights(obs.uv, tuple(shape), wrap)
-    return TexelLayout(index.astype(jnp.int32), weight.astype(jnp.float32), tuple(int(s) for s in shape))
+    """The four bilinear texels (and weights) each pixel (sample row) reads from (H, W) maps: the
+    corners of its cell, in `CELL_CORNERS` order."""
+    shape = tuple(int(s) for s in shape)
+    index, weight = bilinear_weights(obs.uv, shape, wrap)
+    index, weight = _as_cells(index.astype(jnp.int32), weight.astype(jnp.float32), shape)
+    return TexelLayout(index, weight, shape)
 
 
 def uniform_layout(obs: Observations) -> TexelLayout:
-    """Every pixel reads the one texel of a uniform material."""
+    """Every pixel reads the one texel of a uniform material (all four corners of the 1 × 1
+    map's cell)."""
     p = obs.num_rows
     index = jnp.zeros((p, 4), jnp.int32)
     weight = jnp.zeros((p, 4), jnp.float32).at[:, 0].set(1.0)

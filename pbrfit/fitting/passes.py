@@ -33,6 +33,7 @@ from .stages.pipeline import STAGES, StageState, run_stages
 from .stages.selection import SELECTABLE
 from .sharding import pixel_mesh, shard_problem
 from .objective import Problem
+from .stencil import cells_fit
 from ..physics.textures import resample_map, sample_bilinear
 from ..physics.model import Model
 from ..transfer import to_device
@@ -188,7 +189,7 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
             pairs, pw = _neighbour_weights(shape, seen, e_final, prior_on)
             problem = Problem(obs, layout.index, layout.weight, to_device(free), to_device(pairs), to_device(pw),
                               to_device(options.smooth, np.float32), to_device(options.loss_scale, np.float32),
-                              inputs.ibl, inputs.model, options.loss)
+                              inputs.ibl, inputs.model, options.loss, **_on_grid(layout, obs.samples))
             if mesh is not None:
                 problem = shard_problem(problem, mesh)
             early = problem  # the start, the continuation's steps and the search
@@ -205,7 +206,8 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
                 early = dataclasses.replace(problem, obs=inputs.centres, index=lay.index, weight=lay.weight,
                                             free=to_device(centre_free),
                                             pairs=to_device(c_pairs), pair_weight=to_device(c_pw),
-                                            ibl=inputs.centre_ibl if per_row(inputs.ibl) else inputs.ibl)
+                                            ibl=inputs.centre_ibl if per_row(inputs.ibl) else inputs.ibl,
+                                            **_on_grid(lay, inputs.centres.samples))
                 if mesh is not None:
                     early = shard_problem(early, mesh)
             num_free = int(np.sum(free))
@@ -309,6 +311,14 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
     if footprint is not None:
         result.report["footprint"] = footprint
     return result, np.asarray(xs, np.float32)[:t_final]
+
+
+def _on_grid(layout, samples: int) -> dict:
+    """A `Problem`'s ``grid`` and ``stencil`` for ``layout`` (`samples` rows a pixel): the (H, W)
+    of its map, and whether each pixel's taps lie in one cell of it (`cells_fit`: always at pixel
+    centres), so that the structured solver holds its normal matrix by stencil."""
+    shape = tuple(int(n) for n in layout.shape)
+    return dict(grid=to_device(np.asarray(shape, np.int32)), stencil=cells_fit(layout.index, samples, shape))
 
 
 def _neighbour_weights(shape, seen, size: int, on: bool):

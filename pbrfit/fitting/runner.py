@@ -157,8 +157,10 @@ def compile_summary(times: Mapping[str, float]) -> str:
 
 
 def problem_key(problem: Problem) -> tuple:
-    """What an executable over `problem` is specialised to: rows per pixel and the shapes."""
-    return (problem.obs.samples, tuple(problem.index.shape), tuple(problem.free.shape), tuple(problem.pairs.shape))
+    """What an executable over `problem` is specialised to: rows per pixel, the shapes, whether it
+    has a ``grid`` and whether the structured solver's products go by stencil."""
+    return (problem.obs.samples, tuple(problem.index.shape), tuple(problem.free.shape), tuple(problem.pairs.shape),
+            problem.grid is not None, problem.stencil)
 
 
 def search_key(shape, problem: Problem) -> tuple:

@@ -462,12 +462,17 @@ def test_every_solver_runs(solver):
     losses = [entry["loss"] for entry in seen if "loss" in entry]
     assert len(losses) == res.report["steps"] and np.all(np.isfinite(losses)), seen
     assert losses[0] == pytest.approx(17.8896, rel=1e-4)
-    # from the prior's 0.5, the three steps of every solver with a damping, a trust region or a
-    # line search move base colour towards the truth (measured: RMSE 0.011 (lm) to 0.175 (adam),
-    # against the prior's 0.202); gn's undamped first steps overshoot (metallic to 0.99, RMSE
-    # 0.24): its ten steps are checked in `test_optx_solvers_move_a_channel_started_on_its_bound`
+    # from the prior's 0.5, the three steps of every solver with a damping or a line search move
+    # base colour towards the truth (measured: RMSE 0.011 (lm) to 0.175 (adam), against the
+    # prior's 0.202); gn's undamped first steps overshoot (metallic to 0.99, RMSE 0.24), and so do
+    # dogleg's trial steps, which its trust region refuses: in float64 its three steps stay at the
+    # prior, and in float32 the rounding of the Jacobian's transpose decides whether the third is
+    # taken (images scaled by 1 ± 1e-6 sent its first trial to E = 34, 75 or 46). Their ten steps
+    # are checked in `test_optx_solvers_move_a_channel_started_on_its_bound`.
     rmse = float(np.sqrt(np.mean((np.asarray(res.material.base_color) - [0.6, 0.35, 0.2]) ** 2)))
-    assert solver == "gn" or rmse < 0.19, rmse
+    assert solver in ("gn", "dogleg") or rmse < 0.19, rmse
+    if solver == "dogleg":  # a trust region never takes a step that raises E
+        assert res.report["final_loss"] <= losses[0] * (1 + 1e-6)
 
 
 def test_optx_solvers_move_a_channel_started_on_its_bound():

@@ -14,6 +14,16 @@ IMM-REP-1999-05). This is a projected Levenberg-Marquardt method (as in e.g. C. 
 "Levenberg-Marquardt methods with strong local convergence properties for solving nonlinear
 equations with convex constraints", 2004).
 
+The products: where the problem says so (``Problem.stencil``: each pixel's taps in one cell of
+the map, always at pixel centres; `pbrfit.fitting.stencil`), each step assembles JᵀJ + smooth L
+by stencil once (`pbrfit.fitting.stencil.stencil_blocks`, its diagonal blocks the
+preconditioner's) and masks and damps the blocks, and each CG iteration is a gather of every
+texel's neighbours and their K × K products, whatever the number of pixels (on the peer scene at
+64 × 64, 60k pixels: an iteration 0.5 ms against 3.2 ms through the pixels, a step about 30 ms
+against 90 on a 2-core CPU, where the linearisation and the assembly now take 9 ms each).
+Without one, each product goes through the pixels (`pbrfit.fitting.normal_matrix.gn_product`: a
+gather, a K × K product and a scatter per pixel row).
+
 Why its own step: optimistix's LM and Gauss-Newton take a lineax solver for the step, but they
 do not support bounds (the active set and the projection live between the linear solve and the
 acceptance test), and lineax's CG has no preconditioner hook for the block diagonal assembled from
@@ -45,6 +55,7 @@ from jaxtyping import Array, Float
 
 from ..defaults import ATOL, CG_RTOL, RTOL
 from ..normal_matrix import gauss_newton_factors, gn_product, gradient, normal_blocks, spd_block_inverse
+from ..stencil import stencil, stencil_blocks, stencil_product
 from ..objective import Problem, linearize, prior_degree, residuals
 from ..parameters import lower, upper
 
@@ -154,7 +165,9 @@ class _StructuredLMState(eqx.Module):
     """The iterate's residuals r (P, 3), per-row Jacobians (R, 3, K) and E, the damping λ and
     Nielsen's factor ν, the count k of calls to `step` (step 0 only linearises), whether the last
     step ended the solve, the steps accepted, the CG iterations, the step budget, E after each
-    step (`HISTORY`) and whether the next call to `step` only linearises (the first of a run)."""
+    step (`HISTORY`), whether the next call to `step` only linearises (the first of a run), and
+    the problem's `pbrfit.fitting.stencil.Stencil` where the solver holds the Gauss-Newton matrix
+    by stencil (``Problem.stencil``; else None)."""
 
     r: Array
     jac: Array
@@ -168,6 +181,7 @@ class _StructuredLMState(eqx.Module):
     budget: Array
     history: Array
     fresh: Array
+    stencil: Any = None
 
 
 class StructuredLM(optx.AbstractLeastSquaresSolver):
@@ -215,7 +229,8 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
             loss=jnp.asarray(jnp.inf, y.dtype), lam=jnp.asarray(carry.lam, y.dtype), nu=jnp.asarray(carry.nu, y.dtype),
             k=jnp.asarray(carry.k, jnp.int32), done=jnp.asarray(False),
             accepted=jnp.asarray(carry.accepted, jnp.int32), cg=jnp.asarray(carry.cg, jnp.int32), budget=budget,
-            history=jnp.asarray(carry.history, y.dtype), fresh=jnp.asarray(True))
+            history=jnp.asarray(carry.history, y.dtype), fresh=jnp.asarray(True),
+            stencil=stencil(args) if args.stencil else None)
 
     def step(self, fn, y, args: Problem, options, state: _StructuredLMState, tags):
         del fn, tags
@@ -223,34 +238,58 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         k = x.shape[-1]
         lo, hi = jnp.asarray(lower(k), x.dtype), jnp.asarray(upper(k), x.dtype)
         eye = jnp.eye(k, dtype=x.dtype)
-        degree = prior_degree(problem)
         r, jac, loss, lam, nu = state.r, state.jac, state.loss, state.lam, state.nu
         # the first call of a run only linearises at its start: the solve's start (k = 0), or
         # where an earlier run of it stopped (k > 0: then it counts no call and keeps no E)
         first = state.fresh
         again = first & (state.k > 0)
-        gp = gauss_newton_factors(jac, problem)
-        g = gradient(r, jac, x, problem)
-        blocks = normal_blocks(jac, problem) + problem.smooth * degree[:, None, None] * eye
-        a = _active(x, g, problem.free) * ~first
-        diag = jnp.diagonal(blocks, axis1=1, axis2=2)
-        mean_diag = jnp.sum(diag * problem.free) / jnp.maximum(jnp.sum(problem.free), 1.0)
-        damp = diag + DAMPING_FLOOR * mean_diag
-        outer = a[:, :, None] * a[:, None, :]
-        m_blocks = outer * (blocks + lam * damp[:, :, None] * eye) + (1.0 - a)[:, :, None] * eye
-        m_inv = spd_block_inverse(m_blocks)
+        st = state.stencil
 
-        def matvec(v):
-            av = a * v
-            return a * (gn_product(gp, av, problem) + lam * damp * av) + (1.0 - a) * v
+        def take_step():
+            if st is None:  # products through the pixels
+                gp = gauss_newton_factors(jac, problem)
+                blocks = normal_blocks(jac, problem) + problem.smooth * prior_degree(problem)[:, None, None] * eye
 
-        def precond(v):
-            return jnp.einsum("tij,tj->ti", m_inv, v, precision=lax.Precision.HIGHEST)
+                def product(v):
+                    return gn_product(gp, v, problem)
+            else:  # JᵀJ + smooth L by stencil, assembled once for the step's products
+                full = stencil_blocks(jac, problem, st)
+                blocks = full[:, st.centre]
 
-        delta, iters = pcg(matvec, -a * g, precond, self.cg_rtol, self.cg_max_steps)
-        x_new = jnp.clip(x + a * delta, lo, hi)
+                def product(v):
+                    return stencil_product(full, st.neighbours, v)
+            g = gradient(r, jac, x, problem)
+            a = _active(x, g, problem.free)
+            diag = jnp.diagonal(blocks, axis1=1, axis2=2)
+            mean_diag = jnp.sum(diag * problem.free) / jnp.maximum(jnp.sum(problem.free), 1.0)
+            damp = diag + DAMPING_FLOOR * mean_diag
+            outer = a[:, :, None] * a[:, None, :]
+            m_blocks = outer * (blocks + lam * damp[:, :, None] * eye) + (1.0 - a)[:, :, None] * eye
+            m_inv = spd_block_inverse(m_blocks)
+            if st is None:
+                def matvec(v):
+                    av = a * v
+                    return a * (product(av) + lam * damp * av) + (1.0 - a) * v
+            else:  # the same operator by stencil: its blocks masked to the active channels, M's on the diagonal
+                masked = (a[:, None, :, None] * full * a[st.neighbours][:, :, None, :]).at[:, st.centre].set(m_blocks)
+
+                def matvec(v):
+                    return stencil_product(masked, st.neighbours, v)
+
+            def precond(v):
+                return jnp.einsum("tij,tj->ti", m_inv, v, precision=lax.Precision.HIGHEST)
+
+            delta, iters = pcg(matvec, -a * g, precond, self.cg_rtol, self.cg_max_steps)
+            x_new = jnp.clip(x + a * delta, lo, hi)
+            step = x_new - x
+            predicted = -(_vdot(g, step) + 0.5 * _vdot(step, product(step)))
+            return x_new, predicted, jnp.asarray(iters, jnp.int32)
+
+        def stay():  # the first call: every channel inactive, no products (x clipped into the box)
+            return jnp.clip(x, lo, hi), jnp.zeros((), x.dtype), jnp.asarray(0, jnp.int32)
+
+        x_new, predicted, iters = lax.cond(first, stay, take_step)
         step = x_new - x
-        predicted = -(_vdot(g, step) + 0.5 * _vdot(step, gn_product(gp, step, problem)))
         r_new, jac_new, loss_new = linearize(x_new, problem)
         actual = jnp.where(first, 0.0, loss - loss_new)
         # step 0 only linearises at the start: kept even where the loss is not finite (an
@@ -276,7 +315,7 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
             r=pick(r_new, r), jac=pick(jac_new, jac), loss=pick(loss_new, loss), lam=lam_new, nu=nu_new,
             k=state.k + (~again).astype(state.k.dtype), done=done,
             accepted=state.accepted + (accept & ~first).astype(jnp.int32), cg=state.cg + iters, budget=state.budget,
-            history=history, fresh=jnp.asarray(False))
+            history=history, fresh=jnp.asarray(False), stencil=st)
         return pick(x_new, x), new_state, None
 
     def terminate(self, fn, y, args, options, state: _StructuredLMState, tags):
