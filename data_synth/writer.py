@@ -19,7 +19,8 @@ the mesh is read back from ``mesh.glb`` with `pbrfit.scene.mesh.load_mesh`, the 
 (with each frame's lights in capture order: global lights, then the flash), and shading from
 `pbrfit.render.shade.radiance_view` (with ``scene.model.ibl == "monte_carlo"``, the environment's share
 comes from `pbrfit.lighting.montecarlo.monte_carlo_radiance` instead: ground truth, as a path tracer would
-render it). Each view is rendered at ``supersample`` times the size; where the
+render direct light, the mesh's shadows of the environment on itself included, on the direction
+cells a fit's occlusion is cast on, `_reference_visibility`). Each view is rendered at ``supersample`` times the size; where the
 mesh is not hit the environment (or black) shows. The radiance is box-filtered down, exposed,
 tone mapped and encoded (`pbrfit.physics.color.encode`); noise is added to those display values and
 only then are they quantised to the file's bit depth.
@@ -168,13 +169,16 @@ def _render_pbrfit(scene: Scene, mesh, environment=None, ibl=None, progress=None
     k = int(scene.supersample)
     hk, wk = scene.height * k, scene.width * k
     material = scene.truth.to_material()
-    views, hits, backgrounds = [], [], []
+    views, hits, backgrounds, surface = [], [], [], []
     for i, c2w in enumerate(scene.cameras):
         camera = frame_camera(scene, c2w, k)
         lights = frame_lights(scene, c2w)
         gbuffer = compute_gbuffer(mesh, camera, lights)
         views.append(prepare_view(gbuffer, lights))
-        hits.append(np.asarray(gbuffer.hit, bool))
+        hit = np.asarray(gbuffer.hit, bool)
+        hits.append(hit)
+        if scene.model.ibl == "monte_carlo":  # the points and their faces' normals, as prepare_view orders them
+            surface.append((np.asarray(gbuffer.position)[hit], np.asarray(gbuffer.geometric_normal)[hit]))
         if environment is not None:
             _, dirs = camera.rays()
             backgrounds.append(np.asarray(environment_lookup(environment, jnp.asarray(dirs, jnp.float32))))
@@ -194,8 +198,9 @@ def _render_pbrfit(scene: Scene, mesh, environment=None, ibl=None, progress=None
         batch = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], size - total, axis=0)]), batch)
     if scene.model.ibl == "monte_carlo":  # punctual light as usual, the environment by the reference integrator
         radiance = radiance_view(batch, material, scene.model.replace(ibl=None), ibl, chunk=SHADE_CHUNK)
+        visibility = _reference_visibility(mesh, environment, surface, progress)
         radiance = np.asarray(radiance, np.float32) + _monte_carlo_environment(
-            batch, material, scene.model, environment, int(scene.mc_samples), progress)
+            batch, material, scene.model, environment, int(scene.mc_samples), progress, visibility)
         radiance = radiance[:total]
     else:
         radiance = np.asarray(radiance_view(batch, material, scene.model, ibl, chunk=SHADE_CHUNK), np.float32)[:total]
@@ -213,14 +218,35 @@ def _render_pbrfit(scene: Scene, mesh, environment=None, ibl=None, progress=None
     return out_images, out_masks
 
 
-def _monte_carlo_environment(batch, material, model, environment, samples: int, progress=None) -> np.ndarray:
+def _reference_visibility(mesh, environment, surface, progress=None):
+    """The environment's visibility from every view's hit points, ``surface`` [(points (P, 3),
+    geometric normals (P, 3))] in the batch's order, for the Monte Carlo reference: the mesh's
+    shadows of the environment on itself, a shadow ray per point and direction cell
+    (`pbrfit.scene.occlusion.cast_visibility`, the cells a fit's occlusion is cast on), or None
+    where no face has the mesh above it (a convex mesh: nothing to cast)."""
+    from pbrfit.scene.occlusion import cast_visibility, occluding_faces
+
+    if not occluding_faces(mesh).any():
+        return None
+    points, normals = (np.concatenate([part[i] for part in surface]) for i in (0, 1))
+    visibility, _ = cast_visibility(mesh, environment, points, normals)
+    if progress:
+        progress(f"environment visibility of {len(points)} points")
+    return visibility
+
+
+def _monte_carlo_environment(batch, material, model, environment, samples: int, progress=None,
+                             visibility=None) -> np.ndarray:
     """(P, 3) environment light reflected at the batch's points by the Monte Carlo reference, in
     chunks of `SHADE_CHUNK` points (each chunk seeded by its first point's index, each point with
-    its own stream within it: reproducible, and independent from point to point)."""
+    its own stream within it: reproducible, and independent from point to point); ``visibility``:
+    the first rows' `pbrfit.lighting.visibility.Visibility` (`_reference_visibility`; rows past
+    it, the batch's padding, see everything), or None: no occlusion."""
     import jax
     import jax.numpy as jnp
 
     from pbrfit.lighting.montecarlo import monte_carlo_radiance
+    from pbrfit.lighting.visibility import visibility_rows
     from pbrfit.render.shade import shading_inputs
 
     out = []
@@ -231,8 +257,12 @@ def _monte_carlo_environment(batch, material, model, environment, samples: int, 
         if n < SHADE_CHUNK and total > SHADE_CHUNK:  # pad the tail: one compilation
             view = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], SHADE_CHUNK - n, 0)]), view)
         normal, base_color, metallic, roughness, occlusion, _ = shading_inputs(view, material)  # as radiance_view
+        rows = None
+        if visibility is not None:
+            stop = min(start + len(normal), visibility.num_points)
+            rows = visibility_rows(visibility, min(start, stop), stop, len(normal) - (stop - min(start, stop)))
         rad = monte_carlo_radiance(environment, normal, view.view, base_color, metallic, roughness, model,
-                                   samples=samples, key=jax.random.PRNGKey(start))
+                                   samples=samples, key=jax.random.PRNGKey(start), visibility=rows)
         if occlusion is not None:  # occlusion scales environment light (`pbrfit.render.shade.shade`)
             rad = rad * occlusion
         out.append(np.asarray(rad, np.float32)[:n])

@@ -6,8 +6,9 @@ Mitsuba's path tracer (`data_synth.mitsuba_render`, a fixed sample count) and gi
 of std ``--noise`` times the mean linear pixel value over the mesh (every view's masked pixels
 pooled; `add_noise`): not ``pbrfit synth --noise``, whose std is absolute (at a display value of 1).
 Each capture is fitted (`pbrfit.cli.fit.run_fit`, the maps at the truth's size) with `CONFIGS`:
-the default (what plain ``pbrfit fit`` picks: the split sum, occlusion off), the split sum with
-occlusion, the per-pixel integrals, and the per-pixel integrals with occlusion. Per fit:
+the default (what plain ``pbrfit fit`` picks: ``--ibl auto``, the split sum, then per-pixel integrals
+with occlusion auto where its residuals show light it cannot model, `pbrfit.fitting.stages.ibl`),
+the split sum with occlusion, the per-pixel integrals without and with occlusion. Per fit:
 
 - per map, the RMSE over the texels the fit is sure of (σ ≤ `pbrfit.cli.demo.CONFIDENT_SIGMA` in
   every channel of the map, as ``pbrfit demo`` counts them: `recovery_table`), over all observed
@@ -52,7 +53,7 @@ from solvers import _metrics, machine  # noqa: E402
 CONFIGS = {
     "default": {},
     "split_sum + occlusion": dict(ibl="split_sum", occlusion="on"),
-    "per_pixel": dict(ibl="per_pixel"),
+    "per_pixel": dict(ibl="per_pixel", occlusion="off"),
     "per_pixel + occlusion": dict(ibl="per_pixel", occlusion="on"),
 }
 #: Probes of the largest remaining error, on the max_depth 4 captures after every `CONFIGS` fit

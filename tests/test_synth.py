@@ -7,6 +7,7 @@ import struct
 
 import numpy as np
 import pytest
+import trimesh
 
 from data_synth import environments, meshes, noise, rigs, textures
 
@@ -411,6 +412,26 @@ def test_monte_carlo_environment_matches_the_per_pixel_integrals(tmp_path):
     target = np.asarray(obs.target)
     rel = np.abs(rad - target).sum(1) / np.maximum(target.sum(1), 1e-3)  # (pixels facing away: both 0)
     assert np.median(rel) < 0.03 and abs(np.sum(rad - target)) < 0.01 * np.sum(target), (np.median(rel), np.sum(rad - target) / np.sum(target))
+
+
+def test_monte_carlo_reference_casts_the_mesh_shadows_of_the_environment(tmp_path, monkeypatch):
+    """The Monte Carlo reference renders a sphere on a floor with the sphere's shadow: darker
+    than the same render with every direction open, on the floor about the sphere alone; a
+    convex mesh casts nothing (`writer._reference_visibility`)."""
+    from pbrfit.io.images import read_image
+    import pbrfit.scene.occlusion as occlusion
+
+    scene = presets.make_scene("sphere-floor", 0, size=16, views=2, texture_size=8, noise=0.0)
+    scene = scene.replace(model=scene.model.replace(ibl="monte_carlo"), mc_samples=64)
+    writer.synthesize(scene, tmp_path / "shadowed")
+    monkeypatch.setattr(occlusion, "occluding_faces", lambda mesh: np.zeros(1, bool))  # nothing above any face
+    writer.synthesize(scene, tmp_path / "open")
+    shadowed, open_ = (np.asarray(read_image(tmp_path / name / "images" / "000.exr")[0])[..., :3] for name in
+                       ("shadowed", "open"))
+    darker = shadowed.sum(-1) < 0.95 * open_.sum(-1)
+    assert 0.05 < darker.mean() < 0.6 and np.all(shadowed.sum(-1) <= open_.sum(-1) * 1.0001 + 1e-6)
+    monkeypatch.undo()
+    assert writer._reference_visibility(trimesh.creation.icosphere(), None, []) is None
 
 
 def test_mitsuba_masks_hold_only_pixels_wholly_on_the_mesh(tmp_path):

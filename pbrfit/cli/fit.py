@@ -123,8 +123,9 @@ def fit_options(args):
     if args.loss_scale is not None and args.loss == "l2":
         raise CaptureError("--loss-scale: only a robust loss uses it (--loss huber or cauchy)")
     for name in ("ibl_samples", "ibl_levels"):
-        if getattr(args, name) is not None and args.ibl != "per_pixel":
-            raise CaptureError(f"--{name.replace('_', '-')}: only --ibl per_pixel uses it")
+        if getattr(args, name) is not None and args.ibl == "split_sum":
+            raise CaptureError(f"--{name.replace('_', '-')}: only per-pixel integrals use it (--ibl per_pixel, "
+                               "or auto where it chooses them)")
     pixel_samples = args.pixel_samples
     if pixel_samples != "auto":
         if not (pixel_samples.isascii() and pixel_samples.isdigit() and 1 <= int(pixel_samples) <= MAX_PIXEL_SAMPLES):
@@ -210,6 +211,11 @@ def fit_summary(result, errors) -> str:
                      f"{foot['energies'][other]:.3e} {'at centres' if other == '1' else f'with {other}x{other}'})")
     elif n > 1:
         parts[0] += f", {n}x{n} samples per pixel"
+    choice = (r.get("ibl") or {}).get("choice")
+    if choice is not None and choice["tried"]:  # auto: the split sum's residuals showed light it cannot model
+        parts[0] += (f", {r['ibl']['mode'].replace('_', '-')} IBL (auto: residual sigma "
+                     f"{choice['residual_sigma']['per_pixel']:.3g} per-pixel against "
+                     f"{choice['residual_sigma']['split_sum']:.3g} split-sum)")
     if r.get("unseen_texels"):  # no view sees them: left at the prior, σ +inf (coverage.exr 0)
         parts[0] += f", {r['unseen_texels']} of {h * w} texels unseen (not fitted: coverage 0)"
     uniform = [f"{name} {r['uniform_check'][name]['value']:.4g}" for name in uniform_channels(r)]

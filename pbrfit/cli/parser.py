@@ -174,18 +174,21 @@ def add_fit(sub) -> None:
     p.add_argument("--smooth", type=float, default=0.0, help="weight of the smoothness prior (default 0: off)")
     p.add_argument("--coarse-to-fine", action="store_true", help="solve a uniform material and coarser maps first")
     p.add_argument("--ibl", choices=IBL_MODES, default=IBL_MODES[0],
-                   help="environment light: split_sum (default; the renderer's tables) or per_pixel "
-                        "(each pixel's integrals by Monte Carlo before the solve: no split-sum error, slower setup)")
+                   help="environment light: split_sum (the renderer's tables), per_pixel (each pixel's integrals by "
+                        "Monte Carlo before the solve: no split-sum error, slower setup) or auto (default: the split "
+                        "sum, and per-pixel integrals too where its residuals show light it cannot model, as from a "
+                        "path tracer or a camera; the better fit is kept)")
     p.add_argument("--ibl-samples", type=int,
-                   help=f"per_pixel: sample steps per pixel (default {PixelIBLSettings.samples})")
+                   help=f"per-pixel integrals: sample steps per pixel (default {PixelIBLSettings.samples})")
     p.add_argument("--ibl-levels", type=int,
-                   help=f"per_pixel: roughness levels tabulated (default {PixelIBLSettings.levels})")
+                   help=f"per-pixel integrals: roughness levels tabulated (default {PixelIBLSettings.levels})")
     p.add_argument("--occlusion", choices=OCCLUSION_MODES,
                    help="whether the mesh shadows the environment light on itself (a shadow ray per observed point and "
-                        "direction cell, cast once and cached; both --ibl modes use it): off (default: as pbrfit's "
-                        "own renders, which model no occlusion), auto (on where a probe finds the mesh blocking a "
-                        "meaningful share of the light; a convex mesh casts nothing) or on, for a capture from a path "
-                        "tracer or a camera; report.json's \"occlusion\" says which and its time")
+                        "direction cell, cast once and cached): off, auto (on where a probe finds the mesh blocking a "
+                        "meaningful share of the light; a convex mesh casts nothing) or on. Default: auto with "
+                        "per-pixel integrals (a path tracer's or a camera's light), off with the split sum (pbrfit's "
+                        "own split-sum renders cast no shadows of the environment); report.json's \"occlusion\" says "
+                        "which and its time")
     p.add_argument("--pixel-samples", default="auto", metavar="{auto,N}",
                    help=f"shade N x N samples per pixel (N from 1 to {MAX_PIXEL_SAMPLES}) and fit their mean: the pixel "
                         "footprint of an antialiased or supersampled capture (1: pixel centres; cost grows as N^2). Default auto: for "

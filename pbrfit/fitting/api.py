@@ -28,6 +28,10 @@ centres and with 2 × 2 samples per pixel, and the fit whose images match better
 both ways only where the centres' residuals follow the blur of a box footprint
 (`pbrfit.fitting.stages.footprint.footprint_evidence`).
 
+The environment's light: the split sum, and per-pixel integrals with the mesh's occlusion where
+the split sum's residuals show light it cannot model (``ibl="auto"``, `pbrfit.fitting.stages.ibl`);
+that choice comes first, and the footprint's test runs on the light model kept.
+
 The images' noise: plain least squares by default (``noise_level="uniform"``); with
 ``noise_level="estimated"`` a second fit weighs each residual by the inverse of the noise
 level the first fit's residuals show at its value (`pbrfit.fitting.noise`): for shot noise, or noise
@@ -56,7 +60,7 @@ from typing import Mapping, Optional
 import numpy as np
 
 from ..errors import CaptureError, listed
-from .options import IBL_MODES, FitOptions, check_model, check_normals, held_report, options_from
+from .options import IBL_MODES, FitOptions, check_model, check_normals, held_report, occlusion_mode, options_from
 from .passes import PassInputs, fit_pass
 from .result import FitResult, closed_times, map_rmse
 from .stages.footprint import (AUTO_PIXEL_SAMPLES, box_plausible, footprint_choice, footprint_evidence,
@@ -73,6 +77,7 @@ from ..scene.capture import Capture, load_capture
 from ..scene.occlusion import cast_visibility, occluding_faces, probe_share
 from .resolution import default_resolution, schedule
 from .solvers.names import DEFAULT_SOLVER, SOLVERS
+from .stages.ibl import misfit_evidence, per_pixel_explains_better, split_sum_misfits
 from .stages.selection import uniform_channels
 from ..transfer import to_device
 
@@ -100,24 +105,26 @@ def _ibl_for_capture(capture, model: Model, environment=None):
     return capture_ibl(capture, model=model, environment=environment)
 
 
-def _environment_visibility(capture, env, parts, options: FitOptions, cache_dir):
+def _environment_visibility(capture, env, parts, options: FitOptions, model: Model, cache_dir):
     """The environment's visibility from the rows of ``parts`` (observations of ``capture``, in
-    order) as ``options.occlusion`` asks: (`pbrfit.lighting.visibility.Visibility` or None, its
-    direction cells or None, the report's "occlusion" entry). "auto" casts nothing where no face
-    has the mesh above it (`pbrfit.scene.occlusion.occluding_faces`), then probes a few points
-    (`pbrfit.scene.occlusion.probe_share`) and goes on only where the mesh blocks at least
+    order) as ``options.occlusion`` asks, or by default as ``model``'s light model needs
+    (`pbrfit.fitting.options.occlusion_mode`): (`pbrfit.lighting.visibility.Visibility` or None,
+    its direction cells or None, the report's "occlusion" entry). "auto" casts nothing where no
+    face has the mesh above it (`pbrfit.scene.occlusion.occluding_faces`), then probes a few
+    points (`pbrfit.scene.occlusion.probe_share`) and goes on only where the mesh blocks at least
     ``options.occlusion_settings.auto_share`` of their irradiance."""
     start = time.perf_counter()
     settings = options.occlusion_settings
-    entry = dict(mode=options.occlusion, used=False)
+    mode = occlusion_mode(options.occlusion, model.ibl)
+    entry = dict(mode=mode, used=False)
     done = lambda **more: dict(entry, **more, seconds=time.perf_counter() - start)  # noqa: E731
-    if options.occlusion == "off":
+    if mode == "off":
         return None, None, done()
-    if options.occlusion == "auto" and not occluding_faces(capture.mesh).any():
+    if mode == "auto" and not occluding_faces(capture.mesh).any():
         return None, None, done(reason="no face has the mesh above it")
     geometry = [row_geometry(capture, o, cache_dir) for o in parts]
     points, normals = (np.concatenate([g[k] for g in geometry]) for k in (0, 1))
-    if options.occlusion == "auto":
+    if mode == "auto":
         entry["probed_share"] = probe_share(capture.mesh, env, points, normals, settings, cache_dir)
         if entry["probed_share"] < settings.auto_share:
             return None, None, done(reason=f"the mesh blocks less than auto_share {settings.auto_share:g} of the "
@@ -268,19 +275,28 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
             samples (these stop after `pbrfit.fitting.passes.PROBE_STEPS` when they do not yet match better), and the
             fit whose images match better is kept (the report's "footprint" entry gives both
             energies, and each fit's step count, the shared start's included).
-        ibl: how the capture's environment light is integrated, ``"split_sum"`` (default: Karis
-            2013, the renderer's tables) or ``"per_pixel"`` (`pbrfit.lighting.pixel_ibl`: each pixel's
-            lobe integrals by Monte Carlo on a roughness grid, once before the solve, with
+        ibl: how the capture's environment light is integrated: ``"split_sum"`` (Karis 2013, the
+            renderer's tables), ``"per_pixel"`` (`pbrfit.lighting.pixel_ibl`: each pixel's lobe
+            integrals by Monte Carlo on a roughness grid, once before the solve, with
             ``pixel_ibl_settings``, cached in ``cache_dir`` like the G-buffers; no split-sum
-            error, not with fitted normals). Ignored without an environment.
+            error, not with fitted normals) or ``"auto"`` (default, `pbrfit.fitting.stages.ibl`):
+            the split sum, then, where that fit's residuals are shared by neighbouring pixels
+            beyond what noise shows (light the split sum cannot model: a path tracer's, a
+            camera's), the same fit with per-pixel integrals, keeping the one whose residual σ is
+            lower (the report's "ibl" "choice" gives the evidence and both σ; the fit not kept
+            counts as ``times["ibl_probe"]``). "auto" keeps a `Model` the caller gave, and the
+            split sum where normals are fitted. Ignored without an environment.
         occlusion: whether the mesh blocks the environment's light from its own points
             (`pbrfit.lighting.visibility`): "on" casts a shadow ray per observed point and
             direction cell once, before the solve (cached in ``cache_dir``), and both IBL modes
             use it (the per-pixel integrals per sample direction, the split sum as per-point
-            factors); "off" (default, as pbrfit's own renders) lets the whole environment reach
-            every point; "auto" is "on" where a probe of a few points finds the mesh blocking at
-            least ``occlusion_settings.auto_share`` of their irradiance (a convex mesh casts
-            nothing): for captures from a path tracer or a camera.
+            factors); "off" lets the whole environment reach every point; "auto" is "on" where a
+            probe of a few points finds the mesh blocking at least
+            ``occlusion_settings.auto_share`` of their irradiance (a convex mesh casts nothing).
+            Default None: by the light model (`pbrfit.fitting.options.occlusion_mode`), "auto"
+            with per-pixel integrals (the light of a path tracer, a camera or pbrfit's Monte Carlo
+            reference, which the mesh shadows), "off" with the split sum (the model of pbrfit's
+            own split-sum renders, which cast no shadows of the environment).
             The report's "occlusion" entry says which, why, and the time it took. Ignored
             without an environment.
         resolution: map size N (or (H, W)); default `default_resolution(capture)`.
@@ -390,25 +406,65 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
                          f"got {type(capture).__name__}")
     model = fit_model(capture, options)
     check_environment(model, capture)
-    if options.ibl is not None and model.ibl is not None:
+    if options.ibl != "auto" and model.ibl is not None:
         model = model.replace(ibl=options.ibl)
     check_normals(model.ibl, options.fitted)
     _check_brightness(capture)
     pixel_samples, select, skipped = footprint_choice(capture, options.pixel_samples, views)
     result = _fit_footprint(capture, options, model, views, pixel_samples, select, t0)
+    choice = None
+    if _chooses_ibl(options, model):
+        evidence = misfit_evidence(result.images, result.targets, result.masks)
+        choice = dict(evidence=evidence, tried=split_sum_misfits(evidence))
+        if choice["tried"]:  # the same fit with per-pixel integrals; the likelier model is kept
+            other = _fit_footprint(capture, options, model.replace(ibl="per_pixel"), views, pixel_samples, select,
+                                   time.perf_counter())
+            choice["residual_sigma"] = dict(split_sum=result.report["residual_sigma"],
+                                            per_pixel=other.report["residual_sigma"])
+            if per_pixel_explains_better(result.report, other.report):
+                model, result, other = model.replace(ibl="per_pixel"), other, result
+            result = _spent_before(result, other, "ibl_probe")
     if skipped is not None:
         result.report["footprint"] = dict(selected=1, skipped=skipped)
     elif probes_footprint(capture, options.pixel_samples, views):
         evidence = footprint_evidence(result.images, result.targets, result.masks)
         if box_plausible(evidence):  # both footprints, the centres' fit spent on the test
-            probe = result.report["wall_time"]
+            probe = result
             result = _fit_footprint(capture, options, model, views, AUTO_PIXEL_SAMPLES, True, time.perf_counter())
-            times = result.report["times"]
-            result.report["wall_time"] += probe
-            result.report["times"] = dict(times, footprint_probe=probe)
+            result = _spent_before(result, probe, "footprint_probe")
             result.report["footprint"]["evidence"] = evidence
         else:
             result.report["footprint"] = dict(selected=1, evidence=evidence)
+    if choice is not None:
+        result.report["ibl"]["choice"] = choice
+    return result
+
+
+def _chooses_ibl(options: FitOptions, model: Model) -> bool:
+    """Whether ``options.ibl`` "auto" chooses the model of the environment light
+    (`pbrfit.fitting.stages.ibl`): where the capture has an environment the split sum shades, the
+    model is the capture's (not one the caller gave, nor one whose ``ibl`` they set) and normals
+    are not fitted (per-pixel integrals hold them fixed)."""
+    given = isinstance(options.model, Model) or (isinstance(options.model, Mapping) and "ibl" in options.model)
+    return (options.ibl == "auto" and model.ibl == "split_sum" and not given
+            and "normal" not in options.fitted)
+
+
+#: The report's times of fits a fit ran before the one it kept (`_spent_before`).
+_PROBE_TIMES = ("ibl_probe", "footprint_probe")
+
+
+def _spent_before(result: FitResult, earlier: FitResult, name: str) -> FitResult:
+    """``result`` with the wall time of ``earlier``, a fit of the same capture run for a test or
+    a choice and not kept, added: to its wall time, and to its times as ``name`` (what ``earlier``
+    itself counted under `_PROBE_TIMES` keeps its name)."""
+    before = earlier.report["times"]
+    carried = {k: float(before[k]) for k in _PROBE_TIMES if k in before}
+    times = dict(result.report["times"])
+    for k, v in dict(carried, **{name: earlier.report["wall_time"] - sum(carried.values())}).items():
+        times[k] = times.get(k, 0.0) + v
+    result.report["times"] = times
+    result.report["wall_time"] += earlier.report["wall_time"]
     return result
 
 
@@ -434,7 +490,7 @@ def _fit_footprint(capture, options: FitOptions, model: Model, views, pixel_samp
     row_normals = lambda: np.concatenate([np.asarray(o.normal) for o in parts])  # noqa: E731
     row_views = lambda: np.concatenate([np.asarray(o.view) for o in parts])  # noqa: E731
     if model.ibl is not None:
-        visibility, cells, occlusion = _environment_visibility(capture, env, parts, options, cache_dir)
+        visibility, cells, occlusion = _environment_visibility(capture, env, parts, options, model, cache_dir)
     t_ibl = time.perf_counter()
     both = None
     if model.ibl == "per_pixel":

@@ -8,8 +8,10 @@ __all__ = ["MATERIAL_MAPS", "IBL_MODES", "LOSSES", "LOSS_SCALE", "NOISE_LEVELS",
 
 #: The material maps a fit can fit or hold (``fit=``, ``fixed=``); "normal" can only be fitted.
 MATERIAL_MAPS = ("base_color", "metallic", "roughness")
-#: What `fit` may integrate a capture's environment light with (``ibl=``); the first is the default.
-IBL_MODES = ("split_sum", "per_pixel")
+#: What `fit` may integrate a capture's environment light with (``ibl=``); the first is the default
+#: ("auto": the split sum, and per-pixel integrals where its fit's residuals show light it cannot
+#: model, `pbrfit.fitting.stages.ibl`).
+IBL_MODES = ("auto", "split_sum", "per_pixel")
 #: Robust losses, as residual transforms r -> r sqrt(ρ(r²)/r²) (so the objective stays a sum of
 #: squares; `pbrfit.fitting.objective.robust_residual`).
 LOSSES = ("l2", "huber", "cauchy")

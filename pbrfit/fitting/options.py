@@ -32,7 +32,7 @@ from .observations import MAX_PIXEL_SAMPLES
 from ..physics.textures import WRAPS
 
 __all__ = ["FitOptions", "options_from", "OptionNames", "fit_arguments", "held_report", "check_options", "check_kinds", "check_names",
-           "check_model", "check_normals", "with_tolerances", "MATERIAL_MAPS", "IBL_MODES", "LOSS_SCALE", "FLOAT32_MAX",
+           "check_model", "check_normals", "occlusion_mode", "with_tolerances", "MATERIAL_MAPS", "IBL_MODES", "LOSS_SCALE", "FLOAT32_MAX",
            "MAX_MAP_SIDE", "MAX_SOLVER_STEPS"]
 
 #: The largest finite float32, the solve's precision: the bound of every real-valued option.
@@ -244,9 +244,9 @@ class FitOptions:
     unconstrained_sigma: float = UNCONSTRAINED_SIGMA
     uncertainty_radius: int = WINDOW_RADIUS
     # how the images are modelled
-    ibl: Optional[str] = None
+    ibl: str = IBL_MODES[0]
     pixel_ibl_settings: PixelIBLSettings = PixelIBLSettings()
-    occlusion: str = "off"  # pbrfit's own renders (synth, render) model no occlusion yet
+    occlusion: Optional[str] = None  # None: by the light model (`occlusion_mode`)
     occlusion_settings: OcclusionSettings = OcclusionSettings()
     pixel_samples: Union[str, int] = "auto"
     wrap: str = "repeat"
@@ -265,7 +265,7 @@ class FitOptions:
         say = self.names.option
         if self.quality not in QUALITY:
             raise ValueError(f"{say('quality')} must be one of {', '.join(QUALITY)}, got {self.quality!r}")
-        if self.ibl not in (None,) + IBL_MODES:
+        if self.ibl not in IBL_MODES:
             raise ValueError(f"{say('ibl')} must be one of {', '.join(IBL_MODES)}, got {self.ibl!r}")
         fit, fixed = fit_arguments(self.fit, self.fixed, self.names)
         object.__setattr__(self, "_fitted", fit)
@@ -278,7 +278,7 @@ class FitOptions:
         check_normals(self.ibl, fit, self.names)
         if not isinstance(self.pixel_ibl_settings, PixelIBLSettings):
             raise ValueError(f"pixel_ibl_settings: expected a PixelIBLSettings, got {self.pixel_ibl_settings!r}")
-        if self.occlusion not in OCCLUSION_MODES:
+        if self.occlusion is not None and self.occlusion not in OCCLUSION_MODES:
             raise ValueError(f"{say('occlusion')} must be one of {', '.join(OCCLUSION_MODES)}, got {self.occlusion!r}")
         if self.checkpoint is not None and not isinstance(self.checkpoint, Checkpoint):
             raise ValueError(f"checkpoint: expected a pbrfit.fitting.checkpoint.Checkpoint or None, got {self.checkpoint!r}")
@@ -392,6 +392,17 @@ def held_report(fit: Sequence[str], fixed: Optional[Mapping]) -> dict:
             v = [float(c) for c in np.ravel(value)]
             out[name] = dict(source="value", value=v if len(v) > 1 else v[0])
     return out
+
+
+def occlusion_mode(occlusion: Optional[str], ibl: Optional[str]) -> str:
+    """The occlusion a fit models (``occlusion``: the option; ``ibl``: the model's light model):
+    as asked, else by the light model: "auto" with per-pixel integrals, the physical model, for
+    captures from a path tracer, a camera or pbrfit's Monte Carlo reference, whose light the mesh
+    shadows; "off" with the split sum, the model of pbrfit's own split-sum renders, which cast
+    no shadows of the environment."""
+    if occlusion is not None:
+        return occlusion
+    return "auto" if ibl == "per_pixel" else "off"
 
 
 def check_normals(ibl: Optional[str], fit: Sequence[str], names: OptionNames = OptionNames()) -> None:

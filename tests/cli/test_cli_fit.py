@@ -246,14 +246,13 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
          "--roughness-from: --roughness holds roughness at a value too; give one of the two"),
         (["--roughness-from", "__OUT__"], "holds the roughness map of --roughness-from"),
         (["--continuation", "0.01", "--solver", "lm"], "--continuation: only the structured solver uses it, not --solver lm"),
-        (["--ibl-samples", "64"], "--ibl-samples: only --ibl per_pixel uses it"),
-        (["--ibl-levels", "5"], "--ibl-levels: only --ibl per_pixel uses it"),
+        (["--ibl-samples", "64", "--ibl", "split_sum"], "--ibl-samples: only per-pixel integrals use it (--ibl per_pixel, or auto where it chooses them)"),
+        (["--ibl-levels", "5", "--ibl", "split_sum"], "--ibl-levels: only per-pixel integrals use it (--ibl per_pixel, or auto where it chooses them)"),
         (["--maps", "none", "--resolution", "8"], "--resolution: --maps none fits one uniform material"),
         (["--maps", "none", "--smooth", "0.1"], "--smooth: --maps none fits one uniform material"),
         (["--maps", "none", "--coarse-to-fine"], "--coarse-to-fine: --maps none fits one uniform material"),
         (["--maps", "none", "--continuation", "0.1"], "--continuation: --maps none fits one uniform material"),
-        (["--ibl-levels", "9", "--ibl", "split_sum"], "--ibl-levels: only --ibl per_pixel uses it"),
-        (["--ibl-samples", "512"], "--ibl-samples: only --ibl per_pixel uses it"),
+        (["--ibl-levels", "9", "--ibl", "split_sum"], "--ibl-levels: only per-pixel integrals use it (--ibl per_pixel, or auto where it chooses them)"),
         (["--model", "diffuse=burly"], "--model: unknown Model.diffuse 'burly'; expected one of 'lambert', 'burley'"),
         (["--model", "burley"], "--model: expected KEY=VALUE pairs separated by commas, got 'burley'"),
         (["--model", "shine=1"], "--model: unknown field 'shine'; expected one of distribution, geometry"),
@@ -518,8 +517,9 @@ def test_per_pixel_ibl_fit_of_a_monte_carlo_capture(tmp_path, monkeypatch, capsy
     assert report["ibl"]["mode"] == "per_pixel" and report["ibl"]["samples"] == 32 and report["ibl"]["levels"] == 5
     assert report["ibl"]["seconds"] > 0 and len(report["psnr"]) == 3 and all(np.isfinite(report["psnr"]))
     assert len(list((tmp_path / "cache").glob("pixel-ibl-*.npy"))) == 1  # cached with the G-buffers
-    # occlusion is off by default, as in the Monte Carlo render: no ray cast
-    assert report["occlusion"]["mode"] == "off" and not report["occlusion"]["used"]
+    # occlusion is auto by default with per-pixel integrals; a lone sphere casts no shadow on itself
+    assert report["occlusion"]["mode"] == "auto" and not report["occlusion"]["used"]
+    assert report["occlusion"]["reason"] == "no face has the mesh above it"
     assert not list((tmp_path / "cache").glob("visibility-*.npy"))
 
 

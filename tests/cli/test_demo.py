@@ -25,6 +25,8 @@ def test_demo_runs_end_to_end(tmp_path, monkeypatch, capsys):
     rmse = report["truth_rmse"]
     assert rmse["base_color"] < 0.15 and rmse["metallic"] < 0.35 and rmse["roughness"] < 0.3, rmse
     assert min(report["psnr"]) > 33.0, report["psnr"]
+    # a split-sum render: the split sum's residuals are noise, and no per-pixel fit is tried
+    assert report["ibl"]["mode"] == "split_sum" and not report["ibl"]["choice"]["tried"], report["ibl"]
 
 
 def test_recovery_table_counts_and_calibration():

@@ -1146,7 +1146,7 @@ def test_occlusion_of_a_sphere_on_a_floor(tmp_path):
     synthesize(make_scene("sphere-floor", size=16, views=2, texture_size=8), tmp_path / "cap")
     cache = tmp_path / "cache"
     res = pbrfit.fit(load_capture(tmp_path / "cap"), maps="none", max_steps=2, repair=False, uniform_check=False,
-                     occlusion="auto", occlusion_settings=OcclusionSettings(rows=4, probe_points=128), cache_dir=cache)
+                     ibl="split_sum", occlusion="auto", occlusion_settings=OcclusionSettings(rows=4, probe_points=128), cache_dir=cache)
     occlusion = res.report["occlusion"]
     assert occlusion["mode"] == "auto" and occlusion["used"] and occlusion["probed_share"] > 0.01
     assert occlusion["cells"] > 0 and occlusion["rows"] > 0 and occlusion["seconds"] > 0

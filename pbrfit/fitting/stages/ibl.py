@@ -1,0 +1,86 @@
+"""Which model of the environment light a capture needs: the split sum or per-pixel integrals.
+
+The split sum (`pbrfit.lighting.ibl`) is the model of pbrfit's own renders and costs nothing
+before the solve; against a path tracer it is 2-3% off under smooth light and tens of percent
+off under a sun, where rough metals and grazing views see a lobe it does not model (docs/ibl.md).
+Per-pixel integrals (`pbrfit.lighting.pixel_ibl`) integrate each pixel's own lobe, with the
+mesh's occlusion of the environment where it has any, at the price of a Monte Carlo integration
+per pixel before the solve. ``fit(..., ibl="auto")`` (the default) fits with the split sum first
+and tests that fit's residuals for what noise never shows and the split sum's error does:
+structure shared by neighbouring pixels.
+
+Over every pair of horizontally or vertically neighbouring fitted pixels, per colour channel,
+with residuals r = I - R (image minus the fitted render):
+
+    c = mean(r_a r_b),    s = mean((r_a² + r_b²) / 2),    ρ = c / s,
+
+ρ the residuals' neighbour correlation (noise: about 0, a little below since the maps absorb
+some of it; a lighting model's error changes slowly over the surface and is shared). The
+*structured share* √max(c, 0) / mean|I| is the RMS of the part neighbours share, relative to
+the images' mean value, and z = ρ √pairs tests ρ against white noise. Where the share is at
+least `MISFIT_SHARE` at z ≥ `MISFIT_Z`, the fit runs again with per-pixel integrals, and the
+one whose residual σ is lower is kept (`per_pixel_explains_better`): a false call costs time,
+not accuracy.
+
+Measured on split-sum fits at pixel centres (`experiments/pathtraced.md`, "The default's choice
+of light model"):
+
+| capture | ρ | share |
+| --- | --- | --- |
+| pbrfit's split-sum renders, 1% noise (demo, sphere-floor) | −0.018, −0.015 | 0 |
+| pbrfit's noiseless split-sum render (sphere-env) | 0.40 | 0.0009 |
+| pbrfit's 2 × 2 supersampled render (the footprint's own misfit) | 0.09 | 0.013 |
+| Mitsuba, sphere / torus on a floor under sun and sky, depth 4 | 0.85 / 0.73 | 0.29 / 0.34 |
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["MISFIT_SHARE", "MISFIT_Z", "misfit_evidence", "split_sum_misfits", "per_pixel_explains_better"]
+
+#: Least structured share (`misfit_evidence`) that sends a fit to per-pixel integrals: above the
+#: footprint's own misfit (0.013), far below a path tracer's under a sun (0.29-0.34).
+MISFIT_SHARE = 0.05
+#: Least z of the neighbour correlation that does.
+MISFIT_Z = 3.0
+
+
+def misfit_evidence(images, targets, masks) -> dict:
+    """How much of a fit's residuals neighbouring pixels share (module docstring): per view the
+    fitted render R (H, W, 3), the image I and the fitted pixels' mask (H, W). Returns the
+    neighbour correlation ``rho``, its ``z``, the structured ``share`` and the ``pairs`` used
+    (0 of each where no two neighbours were fitted)."""
+    num = den = level = 0.0
+    pairs = values = 0
+    for image, target, mask in zip(images, targets, masks):
+        image, target = np.asarray(image, np.float64), np.asarray(target, np.float64)
+        mask = np.asarray(mask, bool)
+        r = target - image
+        level += float(np.sum(np.abs(target[mask])))
+        values += 3 * int(np.sum(mask))
+        for a, b, both in ((r[:, :-1], r[:, 1:], mask[:, :-1] & mask[:, 1:]),
+                           (r[:-1], r[1:], mask[:-1] & mask[1:])):
+            num += float(np.sum(a[both] * b[both]))
+            den += float(np.sum(a[both] ** 2 + b[both] ** 2)) / 2
+            pairs += 3 * int(np.sum(both))
+    if pairs == 0 or den <= 0.0 or level <= 0.0:
+        return dict(rho=0.0, z=0.0, share=0.0, pairs=pairs)
+    rho = num / den
+    share = math.sqrt(max(num / pairs, 0.0)) / (level / values)
+    return dict(rho=float(rho), z=float(rho * math.sqrt(pairs)), share=float(share), pairs=pairs)
+
+
+def split_sum_misfits(evidence: dict) -> bool:
+    """Whether `misfit_evidence` of a split-sum fit shows light the split sum cannot model: a
+    structured share of at least `MISFIT_SHARE` at z ≥ `MISFIT_Z`."""
+    return evidence["share"] >= MISFIT_SHARE and evidence["z"] >= MISFIT_Z
+
+
+def per_pixel_explains_better(split_sum_report: dict, per_pixel_report: dict) -> bool:
+    """Of two fits of the same capture, one per model of the environment light: whether the
+    per-pixel integrals' residual σ is the lower (ties go to the cheaper split sum). Both fit
+    the same parameters to the same pixel values, so that is the likelier model."""
+    return per_pixel_report["residual_sigma"] < split_sum_report["residual_sigma"]

@@ -1,0 +1,81 @@
+"""The default's choice of the environment light's model (`pbrfit.fitting.stages.ibl`)."""
+
+import numpy as np
+import pytest
+
+from pbrfit.fitting.options import FitOptions, occlusion_mode
+from pbrfit.fitting.stages.ibl import (MISFIT_SHARE, misfit_evidence, per_pixel_explains_better,
+                                       split_sum_misfits)
+
+
+def _views(residual, level=0.5, masked=0):
+    """(images, targets, masks) of two 32 × 32 views whose targets are the images plus ``residual``
+    (a function of the view's index and its (H, W) grid), ``masked`` border pixels left out."""
+    images, targets, masks = [], [], []
+    y, x = np.mgrid[0:32, 0:32] / 32.0
+    for k in range(2):
+        image = np.full((32, 32, 3), level) + 0.1 * x[..., None]
+        mask = np.zeros((32, 32), bool)
+        mask[masked:32 - masked, masked:32 - masked] = True
+        images.append(image)
+        targets.append(image + residual(k, y, x))
+        masks.append(mask)
+    return images, targets, masks
+
+
+def test_misfit_evidence_tells_a_smooth_misfit_from_noise():
+    """A residual that changes slowly over the image (a lighting model's error) is shared by
+    neighbours: correlation near 1 and a share near its RMS over the mean value; white noise of
+    the same size shows none; a perfect fit shows nothing at all."""
+    rng = np.random.default_rng(0)
+    smooth = lambda k, y, x: (0.1 * np.sin(3 * x + k) * np.cos(2 * y))[..., None] * np.ones(3)  # noqa: E731
+    noise = lambda k, y, x: 0.05 * rng.standard_normal((32, 32, 3))  # noqa: E731
+    shared = misfit_evidence(*_views(smooth, masked=2))
+    assert shared["rho"] > 0.9 and shared["z"] > 50 and split_sum_misfits(shared)
+    rms = np.sqrt(np.mean(np.concatenate([(t - i)[m] for i, t, m in zip(*_views(smooth, masked=2))]) ** 2))
+    level = np.mean(np.concatenate([t[m] for _, t, m in zip(*_views(smooth, masked=2))]))
+    assert shared["share"] == pytest.approx(rms / level, rel=0.05)
+    white = misfit_evidence(*_views(noise))
+    assert abs(white["rho"]) < 0.05 and white["share"] < MISFIT_SHARE / 2 and not split_sum_misfits(white)
+    assert misfit_evidence(*_views(lambda k, y, x: 0.0)) == dict(rho=0.0, z=0.0, share=0.0, pairs=2 * 3 * 2 * 32 * 31)
+    # a share below the threshold (a small smooth misfit) is left to the split sum
+    small = misfit_evidence(*_views(lambda k, y, x: 0.1 * smooth(k, y, x)))
+    assert small["rho"] > 0.9 and not split_sum_misfits(small)
+    # no two neighbours fitted: no evidence
+    lone = misfit_evidence([np.ones((3, 3, 3))], [np.zeros((3, 3, 3))], [np.eye(3, dtype=bool)])
+    assert lone == dict(rho=0.0, z=0.0, share=0.0, pairs=0)
+
+
+def test_the_likelier_light_model_is_kept_and_occlusion_follows_it():
+    assert per_pixel_explains_better(dict(residual_sigma=0.02), dict(residual_sigma=0.01))
+    assert not per_pixel_explains_better(dict(residual_sigma=0.01), dict(residual_sigma=0.01))
+    # occlusion, unless asked: auto with per-pixel integrals, off with the split sum
+    assert FitOptions().ibl == "auto" and FitOptions().occlusion is None
+    assert occlusion_mode(None, "per_pixel") == "auto" and occlusion_mode(None, "split_sum") == "off"
+    assert occlusion_mode("on", "split_sum") == "on" and occlusion_mode("off", "per_pixel") == "off"
+    with pytest.raises(ValueError, match="ibl must be one of auto, split_sum, per_pixel"):
+        FitOptions(ibl=None)
+
+
+def test_auto_fits_a_path_traced_light_with_per_pixel_integrals(tmp_path):
+    """A sphere on a floor under a sun, its environment light rendered by the Monte Carlo
+    reference (with the sphere's shadow): the split sum's fit leaves residuals neighbours share,
+    the fit runs again with per-pixel integrals and occlusion auto (which casts the shadow), and
+    keeps that fit, whose residuals are the smaller; the split sum's fit counts as "ibl_probe"."""
+    import pbrfit
+    from data_synth.presets import make_scene
+    from data_synth.writer import synthesize
+    from pbrfit.lighting.pixel_ibl import PixelIBLSettings
+
+    scene = make_scene("sphere-floor", size=20, views=3, texture_size=8, noise=0.0)
+    synthesize(scene.replace(model=scene.model.replace(ibl="monte_carlo"), mc_samples=256), tmp_path / "cap")
+    result = pbrfit.fit(tmp_path / "cap", resolution=8, pixel_samples=1, search=False, repair=False,
+                        uniform_check=False, pixel_ibl_settings=PixelIBLSettings(samples=64, levels=5),
+                        cache_dir=tmp_path / "cache")
+    report = result.report
+    choice = report["ibl"]["choice"]
+    assert choice["tried"] and choice["evidence"]["share"] > 0.05 and choice["evidence"]["rho"] > 0.3, choice
+    assert report["ibl"]["mode"] == "per_pixel" and report["model"]["ibl"] == "per_pixel"
+    assert choice["residual_sigma"]["per_pixel"] < 0.9 * choice["residual_sigma"]["split_sum"], choice
+    assert report["occlusion"]["mode"] == "auto" and report["occlusion"]["used"]
+    assert 0 < report["times"]["ibl_probe"] < report["wall_time"]
