@@ -1,7 +1,8 @@
 """The stages after a solve, behind one protocol and run as a list (`pipeline`): the repair of
 texels that fit worse than the noise explains or are out of line with their neighbours
 (`repair`), the uniform check (`selection`) and the hold of unconstrained roughness
-(`unconstrained`); and the pixel footprint's choice (`footprint`), made within the last level.
+(`unconstrained`); the pixel footprint's choice (`footprint`), made within the last level; and
+the environment light's model (`ibl`), chosen between whole fits.
 
 May import: the rest of `pbrfit.fitting` but `api`.
 
