@@ -304,8 +304,15 @@ def tables(results: dict) -> str:
                           for k in ("base_color", "metallic", "roughness"))
         r = f["relight"]
         config = f["config"] + (", pixel-centre capture" if f.get("capture") == "centres" else "")
+        chose = []
+        choice = (f.get("ibl") or {}).get("choice")
+        if choice is not None:  # a fit whose light model the fit chose (--ibl auto)
+            occluded = " + occlusion" if (f.get("occlusion") or {}).get("used") else ""
+            chose.append(f"light test: {f['ibl']['mode']}{occluded} kept")
         if f.get("footprint") and "evidence" in f["footprint"]:  # a fit whose footprint the fit chose
-            config += f" (footprint test: {'2 × 2 kept' if f['pixel_samples'] == 2 else 'centres kept'})"
+            chose.append(f"footprint test: {'2 × 2 kept' if f['pixel_samples'] == 2 else 'centres kept'}")
+        if chose:
+            config += f" ({'; '.join(chose)})"
         lines.append(f"| {f['scene']} | {f['max_depth']} | {config} | {sure} | {_three(f['rmse'], '.3f')} | "
                      f"{_three(f['within_2sigma'], '.0%')} | {r['all']['raw_db']:.1f} / {r['all']['scaled_db']:.1f} | "
                      f"{r['dielectric']['scaled_db']:.1f} / {r['metal']['scaled_db']:.1f} | {f['wall_s']:.0f} |")
