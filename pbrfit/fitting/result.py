@@ -124,8 +124,11 @@ def finish(obs, state, x, model, options, history, times, t_start):
     # 0.060 at weight 1 under noise 0.05). The blocks, too, are the pixels' alone: σ says what the
     # images constrain, the prior not counted.
     data_energy = energy if float(problem.smooth) == 0 else 0.5 * np.sum(np.square(np.asarray(r, np.float64)))
-    sigma, sigma2 = texel_standard_errors(problem, x, jac, float(data_energy), final, texel_channels, seen,
-                                          obs.num_pixels, len(uniform), uncertainty_radius)
+    if state.errors is not None:  # the hold's, at this x for this problem (it held no texel)
+        sigma, sigma2 = state.errors
+    else:
+        sigma, sigma2 = texel_standard_errors(problem, x, jac, float(data_energy), final, texel_channels, seen,
+                                              obs.num_pixels, len(uniform), uncertainty_radius)
     if uniform:
         cs = sorted(uniform)
         directions = np.stack([uniform_direction(seen, c, k) for c in cs])

@@ -40,7 +40,8 @@ class StageState:
     compiler, the problem of the final level and its texel values ``xs`` (T, K) with the
     linearisation at them (residuals, Jacobians), the final map shape, the texels seen, the
     channels fitted (K,), the free parameters, the pixels, the progress callback's ``where``,
-    and the channels the uniform check made one value ({channel: value})."""
+    the channels the uniform check made one value ({channel: value}), and the standard errors
+    at ``xs`` where the last stage computed them for the result (σ, σ̂²), else None."""
 
     options: Any
     runner: Any
@@ -55,6 +56,7 @@ class StageState:
     num_pixels: int
     where: dict
     uniform: dict = dataclasses.field(default_factory=dict)
+    errors: Optional[tuple] = None
 
 
 class Stage(Protocol):
@@ -127,7 +129,7 @@ class UnconstrainedHold:
 
     def run(self, state: StageState) -> dict:
         o = state.options
-        state.xs, state.linearization, state.problem, found = run_hold(
+        state.xs, state.linearization, state.problem, found, state.errors = run_hold(
             state.runner, state.problem, state.xs, state.linearization, state.channels, state.seen, state.final,
             state.num_pixels, o.unconstrained_sigma, int(o.uncertainty_radius), state.uniform)
         return found

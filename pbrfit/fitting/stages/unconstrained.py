@@ -90,10 +90,12 @@ def run_hold(runner, problem: Problem, xs, linearization, channels, seen, final,
     base colour.
     ``uniform``: the channels the uniform check made one common value (not per texel).
 
-    Returns (x, linearisation, problem, report): the problem with those texels' roughness no
-    longer free (the re-fit frees their base colour alone), and the report's "unconstrained"
-    entry (the threshold, the texels held, those the images constrain at the prior and so left
-    as fitted, the steps, the objective before and after).
+    Returns (x, linearisation, problem, report, errors): the problem with those texels'
+    roughness no longer free (the re-fit frees their base colour alone), the report's
+    "unconstrained" entry (the threshold, the texels held, those the images constrain at the
+    prior and so left as fitted, the steps, the objective before and after), and, where no
+    texel is held, the standard errors at x (σ (T, K), σ̂²: `pbrfit.fitting.result.texel_standard_errors`
+    of the final problem, which the result then reads instead of computing them again), else None.
     """
     t = int(np.prod(final))
     r, jac = linearization
@@ -103,19 +105,19 @@ def run_hold(runner, problem: Problem, xs, linearization, channels, seen, final,
     texel_channels[list(uniform)] = 0.0
 
     def unconstrained(x, jac, energy, problem):
-        sigma, _ = texel_standard_errors(problem, x[:t], jac, energy, final, texel_channels, seen[:t], num_pixels,
-                                         len(uniform), uncertainty_radius)
+        errors = texel_standard_errors(problem, x[:t], jac, energy, final, texel_channels, seen[:t], num_pixels,
+                                       len(uniform), uncertainty_radius)
         out = np.zeros(len(x), bool)
-        out[:t] = unconstrained_texels(sigma, seen[:t], threshold)
-        return out
+        out[:t] = unconstrained_texels(errors[0], seen[:t], threshold)
+        return out, errors
 
-    held = unconstrained(xs, jac, energy, problem)
+    held, errors = unconstrained(xs, jac, energy, problem)
     report = dict(threshold=float(threshold), texels=int(held.sum()), constrained_at_prior=0, steps=0)
     x_held, steps = xs, 0
     for attempt in range(HOLD_ROUNDS):  # the texels held, then those the images leave free at the prior too
         if not held.any():
             report["texels"] = 0
-            return xs, linearization, problem, report
+            return xs, linearization, problem, report, errors if attempt == 0 else None
         free = np.array(problem.free, np.float32)
         free[held, ROUGHNESS] = 0.0
         kept = dataclasses.replace(problem, free=jax.device_put(free, problem.free.sharding))  # what finish reads
@@ -134,12 +136,12 @@ def run_hold(runner, problem: Problem, xs, linearization, channels, seen, final,
         e_held = problem_energy(r_held, x_held, kept)
         # with roughness free again at 0.5: where the images pin it down there, the solve moved it
         # away on evidence (a highlight's flank), and its value stays
-        still = held & unconstrained(x_held, jac_held, e_held, problem)
+        still = held & unconstrained(x_held, jac_held, e_held, problem)[0]
         if still.sum() == held.sum() or attempt == HOLD_ROUNDS - 1:
             break
         report["constrained_at_prior"] += int(held.sum() - still.sum())
         held = still
     report.update(texels=int(held.sum()), steps=steps, energy_before=float(energy), energy_after=float(e_held))
     linearization = (r_held, jac_held)
-    return x_held, linearization, kept, report
+    return x_held, linearization, kept, report, None
 
