@@ -79,3 +79,20 @@ def test_auto_fits_a_path_traced_light_with_per_pixel_integrals(tmp_path):
     assert choice["residual_sigma"]["per_pixel"] < 0.9 * choice["residual_sigma"]["split_sum"], choice
     assert report["occlusion"]["mode"] == "auto" and report["occlusion"]["used"]
     assert 0 < report["times"]["ibl_probe"] < report["wall_time"]
+
+
+def test_auto_chooses_only_the_light_model_it_derived():
+    """"auto" tries per-pixel integrals only for the capture's own split-sum model: not for a
+    `Model` or a model mapping with ``ibl`` the caller gave, not with fitted normals (which
+    per-pixel integrals hold fixed), not where the option names a mode."""
+    from pbrfit.fitting.api import _chooses_ibl
+    from pbrfit.physics.model import Model
+
+    split = Model(ibl="split_sum")
+    assert _chooses_ibl(FitOptions(), split)
+    assert _chooses_ibl(FitOptions(model={"diffuse": "burley"}), split)
+    assert not _chooses_ibl(FitOptions(), Model(ibl=None))  # no environment
+    assert not _chooses_ibl(FitOptions(ibl="split_sum"), split)
+    assert not _chooses_ibl(FitOptions(model=split), split)
+    assert not _chooses_ibl(FitOptions(model={"ibl": "split_sum"}), split)
+    assert not _chooses_ibl(FitOptions(fit=("base_color", "roughness", "normal")), split)
