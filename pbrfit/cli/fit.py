@@ -212,6 +212,8 @@ def fit_summary(result, errors) -> str:
     elif n > 1:
         parts[0] += f", {n}x{n} samples per pixel"
     choice = (r.get("ibl") or {}).get("choice")
+    if choice is not None and "skipped" in choice:  # auto: called for, but too many pixels to integrate unasked
+        parts[0] += f", split-sum IBL (auto: its residuals call for per-pixel integrals; {choice['skipped']})"
     if choice is not None and choice["tried"]:  # auto: the split sum's residuals showed light it cannot model
         parts[0] += (f", {r['ibl']['mode'].replace('_', '-')} IBL (auto: residual sigma "
                      f"{choice['residual_sigma']['per_pixel']:.3g} per-pixel against "

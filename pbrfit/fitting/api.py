@@ -77,7 +77,7 @@ from ..scene.capture import Capture, load_capture
 from ..scene.occlusion import cast_visibility, occluding_faces, probe_share
 from .resolution import default_resolution, schedule
 from .solvers.names import DEFAULT_SOLVER, SOLVERS
-from .stages.ibl import misfit_evidence, per_pixel_explains_better, split_sum_misfits
+from .stages.ibl import misfit_evidence, per_pixel_explains_better, per_pixel_skipped, split_sum_misfits
 from .stages.selection import uniform_channels
 from ..transfer import to_device
 
@@ -284,8 +284,10 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
             beyond what noise shows (light the split sum cannot model: a path tracer's, a
             camera's), the same fit with per-pixel integrals, keeping the one whose residual σ is
             lower (the report's "ibl" "choice" gives the evidence and both σ; the fit not kept
-            counts as ``times["ibl_probe"]``). "auto" keeps a `Model` the caller gave, and the
-            split sum where normals are fitted. Ignored without an environment.
+            counts as ``times["ibl_probe"]``). "auto" keeps a `Model` the caller gave, the split
+            sum where normals are fitted, and the split sum beyond
+            `pbrfit.fitting.stages.ibl.AUTO_MAX_IBL_PIXELS` fitted pixels (the choice's
+            "skipped" says so). Ignored without an environment.
         occlusion: whether the mesh blocks the environment's light from its own points
             (`pbrfit.lighting.visibility`): "on" casts a shadow ray per observed point and
             direction cell once, before the solve (cached in ``cache_dir``), and both IBL modes
@@ -415,7 +417,10 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
     choice = None
     if _chooses_ibl(options, model):
         evidence = misfit_evidence(result.images, result.targets, result.masks)
-        choice = dict(evidence=evidence, tried=split_sum_misfits(evidence))
+        skipped = per_pixel_skipped(int(result.report["pixels"])) if split_sum_misfits(evidence) else None
+        choice = dict(evidence=evidence, tried=split_sum_misfits(evidence) and skipped is None)
+        if skipped is not None:
+            choice["skipped"] = skipped
         if choice["tried"]:  # the same fit with per-pixel integrals; the likelier model is kept
             other = _fit_footprint(capture, options, model.replace(ibl="per_pixel"), views, pixel_samples, select,
                                    time.perf_counter())

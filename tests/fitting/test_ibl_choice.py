@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from pbrfit.fitting.options import FitOptions, occlusion_mode
+from pbrfit.fitting.stages import ibl as ibl_stage
 from pbrfit.fitting.stages.ibl import (MISFIT_SHARE, misfit_evidence, per_pixel_explains_better,
                                        split_sum_misfits)
 
@@ -47,6 +48,8 @@ def test_misfit_evidence_tells_a_smooth_misfit_from_noise():
 
 
 def test_the_likelier_light_model_is_kept_and_occlusion_follows_it():
+    assert ibl_stage.per_pixel_skipped(ibl_stage.AUTO_MAX_IBL_PIXELS) is None
+    assert "--ibl per_pixel integrates them" in ibl_stage.per_pixel_skipped(ibl_stage.AUTO_MAX_IBL_PIXELS + 1)
     assert per_pixel_explains_better(dict(residual_sigma=0.02), dict(residual_sigma=0.01))
     assert not per_pixel_explains_better(dict(residual_sigma=0.01), dict(residual_sigma=0.01))
     # occlusion, unless asked: auto with per-pixel integrals, off with the split sum
@@ -57,7 +60,7 @@ def test_the_likelier_light_model_is_kept_and_occlusion_follows_it():
         FitOptions(ibl=None)
 
 
-def test_auto_fits_a_path_traced_light_with_per_pixel_integrals(tmp_path):
+def test_auto_fits_a_path_traced_light_with_per_pixel_integrals(tmp_path, monkeypatch):
     """A sphere on a floor under a sun, its environment light rendered by the Monte Carlo
     reference (with the sphere's shadow): the split sum's fit leaves residuals neighbours share,
     the fit runs again with per-pixel integrals and occlusion auto (which casts the shadow), and
@@ -69,9 +72,15 @@ def test_auto_fits_a_path_traced_light_with_per_pixel_integrals(tmp_path):
 
     scene = make_scene("sphere-floor", size=20, views=3, texture_size=8, noise=0.0)
     synthesize(scene.replace(model=scene.model.replace(ibl="monte_carlo"), mc_samples=256), tmp_path / "cap")
-    result = pbrfit.fit(tmp_path / "cap", resolution=8, pixel_samples=1, search=False, repair=False,
-                        uniform_check=False, pixel_ibl_settings=PixelIBLSettings(samples=64, levels=5),
-                        cache_dir=tmp_path / "cache")
+    options = dict(resolution=8, pixel_samples=1, search=False, repair=False, uniform_check=False,
+                   pixel_ibl_settings=PixelIBLSettings(samples=64, levels=5), cache_dir=tmp_path / "cache")
+    # more pixels than "auto" integrates unasked: the split sum is kept, and the choice says why
+    monkeypatch.setattr(ibl_stage, "AUTO_MAX_IBL_PIXELS", 100)
+    capped = pbrfit.fit(tmp_path / "cap", **options).report["ibl"]
+    assert capped["mode"] == "split_sum" and not capped["choice"]["tried"], capped
+    assert "> AUTO_MAX_IBL_PIXELS (100): the split sum kept" in capped["choice"]["skipped"]
+    monkeypatch.undo()
+    result = pbrfit.fit(tmp_path / "cap", **options)
     report = result.report
     choice = report["ibl"]["choice"]
     assert choice["tried"] and choice["evidence"]["share"] > 0.05 and choice["evidence"]["rho"] > 0.3, choice

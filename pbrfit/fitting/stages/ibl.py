@@ -39,13 +39,19 @@ import math
 
 import numpy as np
 
-__all__ = ["MISFIT_SHARE", "MISFIT_Z", "misfit_evidence", "split_sum_misfits", "per_pixel_explains_better"]
+__all__ = ["MISFIT_SHARE", "MISFIT_Z", "AUTO_MAX_IBL_PIXELS", "misfit_evidence", "split_sum_misfits",
+           "per_pixel_skipped", "per_pixel_explains_better"]
 
 #: Least structured share (`misfit_evidence`) that sends a fit to per-pixel integrals: above the
 #: footprint's own misfit (0.013), far below a path tracer's under a sun (0.29-0.34).
 MISFIT_SHARE = 0.05
 #: Least z of the neighbour correlation that does.
 MISFIT_Z = 3.0
+#: The most fitted pixels "auto" integrates per pixel unasked: the integrals take about 2.5 ms a
+#: pixel on a 2-core CPU at the default 512 samples (docs/ibl.md), about 10 minutes here, and
+#: the footprint's samples four times that; beyond it the fit keeps the split sum and says why
+#: (``ibl="per_pixel"`` integrates them, best on a GPU).
+AUTO_MAX_IBL_PIXELS = 250_000
 
 
 def misfit_evidence(images, targets, masks) -> dict:
@@ -77,6 +83,15 @@ def split_sum_misfits(evidence: dict) -> bool:
     """Whether `misfit_evidence` of a split-sum fit shows light the split sum cannot model: a
     structured share of at least `MISFIT_SHARE` at z ≥ `MISFIT_Z`."""
     return evidence["share"] >= MISFIT_SHARE and evidence["z"] >= MISFIT_Z
+
+
+def per_pixel_skipped(pixels: int) -> str | None:
+    """Why "auto" does not try per-pixel integrals on a fit of ``pixels`` pixels whose split-sum
+    residuals call for them (more than `AUTO_MAX_IBL_PIXELS`), or None."""
+    if pixels <= AUTO_MAX_IBL_PIXELS:
+        return None
+    return (f"{pixels:,} fitted pixels > AUTO_MAX_IBL_PIXELS ({AUTO_MAX_IBL_PIXELS:,}): the split sum kept; "
+            "--ibl per_pixel integrates them")
 
 
 def per_pixel_explains_better(split_sum_report: dict, per_pixel_report: dict) -> bool:
