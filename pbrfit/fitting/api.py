@@ -77,7 +77,7 @@ from ..scene.capture import Capture, load_capture
 from ..scene.occlusion import cast_visibility, occluding_faces, probe_share
 from .resolution import default_resolution, schedule
 from .solvers.names import DEFAULT_SOLVER, SOLVERS
-from .stages.ibl import misfit_evidence, per_pixel_explains_better, per_pixel_skipped, split_sum_misfits
+from .stages.ibl import fit_sigma, misfit_evidence, per_pixel_explains_better, per_pixel_skipped, split_sum_misfits
 from .stages.selection import uniform_channels
 from ..transfer import to_device
 
@@ -417,15 +417,15 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
     choice = None
     if _chooses_ibl(options, model):
         evidence = misfit_evidence(result.images, result.targets, result.masks)
-        skipped = per_pixel_skipped(int(result.report["pixels"])) if split_sum_misfits(evidence) else None
-        choice = dict(evidence=evidence, tried=split_sum_misfits(evidence) and skipped is None)
-        if skipped is not None:
-            choice["skipped"] = skipped
+        rows = int(result.report["pixels"]) * (pixel_samples ** 2 + (1 if select else 0))
+        too_many = per_pixel_skipped(rows) if split_sum_misfits(evidence) else None
+        choice = dict(evidence=evidence, tried=split_sum_misfits(evidence) and too_many is None)
+        if too_many is not None:
+            choice["skipped"] = too_many
         if choice["tried"]:  # the same fit with per-pixel integrals; the likelier model is kept
             other = _fit_footprint(capture, options, model.replace(ibl="per_pixel"), views, pixel_samples, select,
                                    time.perf_counter())
-            choice["residual_sigma"] = dict(split_sum=result.report["residual_sigma"],
-                                            per_pixel=other.report["residual_sigma"])
+            choice["residual_sigma"] = dict(split_sum=fit_sigma(result.report), per_pixel=fit_sigma(other.report))
             if per_pixel_explains_better(result.report, other.report):
                 model, result, other = model.replace(ibl="per_pixel"), other, result
             result = _spent_before(result, other, "ibl_probe")
@@ -433,13 +433,18 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
         result.report["footprint"] = dict(selected=1, skipped=skipped)
     elif probes_footprint(capture, options.pixel_samples, views):
         evidence = footprint_evidence(result.images, result.targets, result.masks)
-        if box_plausible(evidence):  # both footprints, the centres' fit spent on the test
+        # (under per-pixel integrals chosen by "auto", the samples' integrals are capped as its own are)
+        too_many = (per_pixel_skipped(int(result.report["pixels"]) * (AUTO_PIXEL_SAMPLES ** 2 + 1))
+                    if choice is not None and model.ibl == "per_pixel" else None)
+        if box_plausible(evidence) and too_many is None:  # both footprints, the centres' fit spent on the test
             probe = result
             result = _fit_footprint(capture, options, model, views, AUTO_PIXEL_SAMPLES, True, time.perf_counter())
             result = _spent_before(result, probe, "footprint_probe")
             result.report["footprint"]["evidence"] = evidence
         else:
             result.report["footprint"] = dict(selected=1, evidence=evidence)
+            if box_plausible(evidence):
+                result.report["footprint"]["skipped"] = too_many
     if choice is not None:
         result.report["ibl"]["choice"] = choice
     return result

@@ -54,13 +54,14 @@ def checkpoint_folder(out: str | os.PathLike) -> Path:
 
 def call_id(number: int, x0, problem, steps: int) -> str:
     """A solver run's identity in a fit: its number, its start's bytes, its problem (shapes, free
-    channels, prior weight) and its step budget, hashed."""
+    channels, prior weight, the model's environment light) and its step budget, hashed."""
     h = hashlib.sha256(f"{number}:{int(steps)}".encode())
     for part in (x0, problem.free, problem.smooth, problem.pair_weight):
         a = np.ascontiguousarray(np.asarray(part))
         h.update(f"{a.dtype}{a.shape}".encode())
         h.update(a.tobytes())
-    h.update(repr((problem.obs.samples, tuple(problem.index.shape), tuple(problem.pairs.shape))).encode())
+    h.update(repr((problem.obs.samples, tuple(problem.index.shape), tuple(problem.pairs.shape),
+                   problem.model.ibl)).encode())
     return h.hexdigest()[:32]
 
 
@@ -120,6 +121,7 @@ class Checkpoint:
         self.replayed = self.steps_replayed = 0
         self.resumed_from = None
         self.replaying = False
+        self._issued = 0  # solver runs numbered so far in this fit, over every pass and model it fits
         self._saved = time.monotonic()
         index = self.folder / _INDEX
         if self.folder.exists() and not index.is_file() and (not self.folder.is_dir() or any(self.folder.iterdir())):
@@ -190,6 +192,13 @@ class Checkpoint:
         if not self.replayed and self.resumed_from is None:
             return None
         return dict(solver_runs_replayed=self.replayed, steps_replayed=self.steps_replayed, at=self.resumed_from)
+
+    def next_run(self) -> int:
+        """The next solver run's number in the fit: one count over every `pbrfit.fitting.runner.Runner`
+        the fit makes (a fit may run several passes, the footprint's and the light model's
+        choices each fitting again), so that every run is journaled under its own number."""
+        number, self._issued = self._issued, self._issued + 1
+        return number
 
     # -- saving ------------------------------------------------------------------------------------
 

@@ -283,6 +283,7 @@ class Runner:
         number, self.runs = self.runs, self.runs + 1
         ident = None
         if self.checkpoint is not None:
+            number = self.checkpoint.next_run()
             ident = call_id(number, x0, problem, steps)
             replayed = self.checkpoint.replay(number, ident, self.where)
             if replayed is not None:

@@ -103,3 +103,18 @@ def test_folder_digests_name_each_file_and_leave_out_hidden_and_skipped_ones(tmp
     assert list(digests) == ["images/0.png"]
     (tmp_path / "images" / "0.png").write_bytes(b"A")
     assert folder_digests(tmp_path, skip=(tmp_path / "out",)) != digests
+
+
+def test_the_runs_of_several_runners_are_journaled_each_under_its_own_number(tmp_path):
+    """A fit may make several runners (the footprint's and the light model's choices fit again):
+    their runs are numbered on in the checkpoint, each journaled, and all replayed on resume."""
+    folder = tmp_path / "cp"
+    first = Checkpoint(folder, FINGERPRINT)
+    outs = _runs(first)[0] + _runs(first)[0]
+    assert [e["file"] for e in json.loads((folder / "checkpoint.json").read_text())["entries"]] == [
+        f"call-{n:04d}.npy" for n in range(4)]
+    again = Checkpoint(folder, FINGERPRINT, resume=True)
+    replayed = _runs(again)[0] + _runs(again)[0]
+    assert again.replayed == 4
+    for (x, _, _), (y, _, _) in zip(outs, replayed):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

@@ -49,7 +49,11 @@ def test_misfit_evidence_tells_a_smooth_misfit_from_noise():
 
 def test_the_likelier_light_model_is_kept_and_occlusion_follows_it():
     assert ibl_stage.per_pixel_skipped(ibl_stage.AUTO_MAX_IBL_PIXELS) is None
-    assert "--ibl per_pixel integrates them" in ibl_stage.per_pixel_skipped(ibl_stage.AUTO_MAX_IBL_PIXELS + 1)
+    assert "--ibl per_pixel" in ibl_stage.per_pixel_skipped(ibl_stage.AUTO_MAX_IBL_PIXELS + 1)
+    # with an estimated noise level, the first (unweighted) fits are compared
+    weighted = dict(residual_sigma=0.5, noise_level=dict(first_fit=dict(residual_sigma=0.02)))
+    assert ibl_stage.fit_sigma(weighted) == 0.02
+    assert per_pixel_explains_better(dict(residual_sigma=0.03), weighted)  # not by the weighted 0.5
     assert per_pixel_explains_better(dict(residual_sigma=0.02), dict(residual_sigma=0.01))
     assert not per_pixel_explains_better(dict(residual_sigma=0.01), dict(residual_sigma=0.01))
     # occlusion, unless asked: auto with per-pixel integrals, off with the split sum
@@ -76,9 +80,13 @@ def test_auto_fits_a_path_traced_light_with_per_pixel_integrals(tmp_path, monkey
                    pixel_ibl_settings=PixelIBLSettings(samples=64, levels=5), cache_dir=tmp_path / "cache")
     # more pixels than "auto" integrates unasked: the split sum is kept, and the choice says why
     monkeypatch.setattr(ibl_stage, "AUTO_MAX_IBL_PIXELS", 100)
-    capped = pbrfit.fit(tmp_path / "cap", **options).report["ibl"]
+    report = pbrfit.fit(tmp_path / "cap", **dict(options, pixel_samples="auto")).report
+    capped = report["ibl"]
     assert capped["mode"] == "split_sum" and not capped["choice"]["tried"], capped
-    assert "> AUTO_MAX_IBL_PIXELS (100): the split sum kept" in capped["choice"]["skipped"]
+    assert "pixel rows to integrate > AUTO_MAX_IBL_PIXELS (100)" in capped["choice"]["skipped"]
+    # the linear images' footprint test ran all the same (the light's cap is not the footprint's)
+    assert "evidence" in report["footprint"] and "AUTO_MAX_IBL" not in report["footprint"].get("skipped", ""), \
+        report["footprint"]
     monkeypatch.undo()
     result = pbrfit.fit(tmp_path / "cap", **options)
     report = result.report

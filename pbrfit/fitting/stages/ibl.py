@@ -40,17 +40,18 @@ import math
 import numpy as np
 
 __all__ = ["MISFIT_SHARE", "MISFIT_Z", "AUTO_MAX_IBL_PIXELS", "misfit_evidence", "split_sum_misfits",
-           "per_pixel_skipped", "per_pixel_explains_better"]
+           "per_pixel_skipped", "fit_sigma", "per_pixel_explains_better"]
 
 #: Least structured share (`misfit_evidence`) that sends a fit to per-pixel integrals: above the
 #: footprint's own misfit (0.013), far below a path tracer's under a sun (0.29-0.34).
 MISFIT_SHARE = 0.05
 #: Least z of the neighbour correlation that does.
 MISFIT_Z = 3.0
-#: The most fitted pixels "auto" integrates per pixel unasked: the integrals take about 2.5 ms a
-#: pixel on a 2-core CPU at the default 512 samples (docs/ibl.md), about 10 minutes here, and
-#: the footprint's samples four times that; beyond it the fit keeps the split sum and says why
-#: (``ibl="per_pixel"`` integrates them, best on a GPU).
+#: The most rows (pixels, or pixel samples: the footprint's 2 × 2 samples and their centres are
+#: five a pixel) "auto" integrates per pixel unasked: the integrals take about 2.5 ms a row on a
+#: 2-core CPU at the default 512 samples (docs/ibl.md), about 10 minutes here; beyond it the
+#: fit keeps the split sum (or, once per-pixel integrals are chosen, the pixel centres) and says
+#: why (``ibl="per_pixel"``, ``pixel_samples=2`` integrate them, best on a GPU).
 AUTO_MAX_IBL_PIXELS = 250_000
 
 
@@ -85,17 +86,25 @@ def split_sum_misfits(evidence: dict) -> bool:
     return evidence["share"] >= MISFIT_SHARE and evidence["z"] >= MISFIT_Z
 
 
-def per_pixel_skipped(pixels: int) -> str | None:
-    """Why "auto" does not try per-pixel integrals on a fit of ``pixels`` pixels whose split-sum
-    residuals call for them (more than `AUTO_MAX_IBL_PIXELS`), or None."""
-    if pixels <= AUTO_MAX_IBL_PIXELS:
+def per_pixel_skipped(rows: int) -> str | None:
+    """Why "auto" does not integrate ``rows`` rows per pixel unasked (more than
+    `AUTO_MAX_IBL_PIXELS`), or None."""
+    if rows <= AUTO_MAX_IBL_PIXELS:
         return None
-    return (f"{pixels:,} fitted pixels > AUTO_MAX_IBL_PIXELS ({AUTO_MAX_IBL_PIXELS:,}): the split sum kept; "
-            "--ibl per_pixel integrates them")
+    return (f"{rows:,} pixel rows to integrate > AUTO_MAX_IBL_PIXELS ({AUTO_MAX_IBL_PIXELS:,}); "
+            "--ibl per_pixel or --pixel-samples 2 integrates them")
+
+
+def fit_sigma(report: dict) -> float:
+    """A fit's residual σ in the images' own units: with ``noise_level="estimated"`` the first,
+    unweighted fit's (the second weighs each fit's residuals by its own noise estimate, which
+    would favour the model whose misfit it took for noise)."""
+    first = (report.get("noise_level") or {}).get("first_fit")
+    return float(first["residual_sigma"] if first else report["residual_sigma"])
 
 
 def per_pixel_explains_better(split_sum_report: dict, per_pixel_report: dict) -> bool:
     """Of two fits of the same capture, one per model of the environment light: whether the
     per-pixel integrals' residual σ is the lower (ties go to the cheaper split sum). Both fit
     the same parameters to the same pixel values, so that is the likelier model."""
-    return per_pixel_report["residual_sigma"] < split_sum_report["residual_sigma"]
+    return fit_sigma(per_pixel_report) < fit_sigma(split_sum_report)
