@@ -258,9 +258,9 @@ def _monte_carlo_environment(batch, material, model, environment, samples: int, 
             view = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], SHADE_CHUNK - n, 0)]), view)
         normal, base_color, metallic, roughness, occlusion, _ = shading_inputs(view, material)  # as radiance_view
         rows = None
-        if visibility is not None:
-            stop = min(start + len(normal), visibility.num_points)
-            rows = visibility_rows(visibility, min(start, stop), stop, len(normal) - (stop - min(start, stop)))
+        if visibility is not None:  # the chunk's rows that have points, then padding that sees everything
+            lo, hi = (min(i, visibility.num_points) for i in (start, start + len(normal)))
+            rows = visibility_rows(visibility, lo, hi, len(normal) - (hi - lo))
         rad = monte_carlo_radiance(environment, normal, view.view, base_color, metallic, roughness, model,
                                    samples=samples, key=jax.random.PRNGKey(start), visibility=rows)
         if occlusion is not None:  # occlusion scales environment light (`pbrfit.render.shade.shade`)

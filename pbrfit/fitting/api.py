@@ -286,7 +286,7 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
             lower (the report's "ibl" "choice" gives the evidence and both σ; the fit not kept
             counts as ``times["ibl_probe"]``). "auto" keeps a `Model` the caller gave, the split
             sum where normals are fitted, and the split sum beyond
-            `pbrfit.fitting.stages.ibl.AUTO_MAX_IBL_PIXELS` fitted pixels (the choice's
+            `pbrfit.fitting.stages.ibl.AUTO_MAX_IBL_PIXELS` rows to integrate (the choice's
             "skipped" says so). Ignored without an environment.
         occlusion: whether the mesh blocks the environment's light from its own points
             (`pbrfit.lighting.visibility`): "on" casts a shadow ray per observed point and
@@ -416,25 +416,13 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
     result = _fit_footprint(capture, options, model, views, pixel_samples, select, t0)
     choice = None
     if _chooses_ibl(options, model):
-        evidence = misfit_evidence(result.images, result.targets, result.masks)
-        rows = int(result.report["pixels"]) * (pixel_samples ** 2 + (1 if select else 0))
-        too_many = per_pixel_skipped(rows) if split_sum_misfits(evidence) else None
-        choice = dict(evidence=evidence, tried=split_sum_misfits(evidence) and too_many is None)
-        if too_many is not None:
-            choice["skipped"] = too_many
-        if choice["tried"]:  # the same fit with per-pixel integrals; the likelier model is kept
-            other = _fit_footprint(capture, options, model.replace(ibl="per_pixel"), views, pixel_samples, select,
-                                   time.perf_counter())
-            choice["residual_sigma"] = dict(split_sum=fit_sigma(result.report), per_pixel=fit_sigma(other.report))
-            if per_pixel_explains_better(result.report, other.report):
-                model, result, other = model.replace(ibl="per_pixel"), other, result
-            result = _spent_before(result, other, "ibl_probe")
+        result, model, choice = _choose_light_model(capture, options, model, views, pixel_samples, select, result)
     if skipped is not None:
         result.report["footprint"] = dict(selected=1, skipped=skipped)
     elif probes_footprint(capture, options.pixel_samples, views):
         evidence = footprint_evidence(result.images, result.targets, result.masks)
         # (under per-pixel integrals chosen by "auto", the samples' integrals are capped as its own are)
-        too_many = (per_pixel_skipped(int(result.report["pixels"]) * (AUTO_PIXEL_SAMPLES ** 2 + 1))
+        too_many = (per_pixel_skipped(_integral_rows(result, AUTO_PIXEL_SAMPLES, True))
                     if choice is not None and model.ibl == "per_pixel" else None)
         if box_plausible(evidence) and too_many is None:  # both footprints, the centres' fit spent on the test
             probe = result
@@ -448,6 +436,35 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
     if choice is not None:
         result.report["ibl"]["choice"] = choice
     return result
+
+
+def _choose_light_model(capture, options: FitOptions, model: Model, views, pixel_samples: int, select: bool,
+                        result: FitResult) -> tuple[FitResult, Model, dict]:
+    """``ibl="auto"`` after the split-sum ``result`` (`pbrfit.fitting.stages.ibl`): where its
+    residuals show light the split sum cannot model, the same fit with per-pixel integrals (unless
+    it has more rows to integrate than `pbrfit.fitting.stages.ibl.AUTO_MAX_IBL_PIXELS`), and of the
+    two the fit of lower residual σ, with the other's time added. Returns (the fit kept, its
+    model, the report's "ibl" "choice")."""
+    evidence = misfit_evidence(result.images, result.targets, result.masks)
+    misfits = split_sum_misfits(evidence)
+    too_many = per_pixel_skipped(_integral_rows(result, pixel_samples, select)) if misfits else None
+    choice = dict(evidence=evidence, tried=misfits and too_many is None)
+    if too_many is not None:
+        choice["skipped"] = too_many
+    if not choice["tried"]:
+        return result, model, choice
+    other = _fit_footprint(capture, options, model.replace(ibl="per_pixel"), views, pixel_samples, select,
+                           time.perf_counter())
+    choice["residual_sigma"] = dict(split_sum=fit_sigma(result.report), per_pixel=fit_sigma(other.report))
+    if per_pixel_explains_better(result.report, other.report):
+        model, result, other = model.replace(ibl="per_pixel"), other, result
+    return _spent_before(result, other, "ibl_probe"), model, choice
+
+
+def _integral_rows(result: FitResult, samples: int, select: bool) -> int:
+    """The rows per-pixel integrals take for the pixels ``result`` fitted, with ``samples`` ×
+    ``samples`` samples per pixel, and their centres as well where ``select``."""
+    return int(result.report["pixels"]) * (samples ** 2 + (1 if select else 0))
 
 
 def _chooses_ibl(options: FitOptions, model: Model) -> bool:

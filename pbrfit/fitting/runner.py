@@ -222,7 +222,6 @@ class Runner:
         self.solver, self.progress, self.compiler = solver, progress, compiler
         self.checkpoint, self.where = checkpoint, {} if where is None else where
         self.clock = compiler.clock
-        self.runs = 0  # solver runs so far (the checkpoint's numbering)
         self._reported = []
         self._lazy = None  # (x, problem, num_free) of a replayed run, linearised when asked
         self._linearization = None
@@ -280,8 +279,7 @@ class Runner:
     def __call__(self, x0, problem, steps, num_free):
         self.evaluations = itertools.count()
         self._reported = []
-        number, self.runs = self.runs, self.runs + 1
-        ident = None
+        number = ident = None  # the run's number in the fit and its identity, with a checkpoint
         if self.checkpoint is not None:
             number = self.checkpoint.next_run()
             ident = call_id(number, x0, problem, steps)

@@ -22,8 +22,8 @@ least `MISFIT_SHARE` at z ≥ `MISFIT_Z`, the fit runs again with per-pixel inte
 one whose residual σ is lower is kept (`per_pixel_explains_better`): a false call costs time,
 not accuracy.
 
-Measured on split-sum fits at pixel centres (`experiments/pathtraced.md`, "The default's choice
-of light model"):
+Measured on split-sum fits at pixel centres (docs/ibl.md, "The default: split sum or per-pixel
+integrals"; the Mitsuba captures are `experiments/pathtraced.md`'s):
 
 | capture | ρ | share |
 | --- | --- | --- |
