@@ -54,14 +54,21 @@ CONFIGS = {
     "default": {},
     "split_sum + occlusion": dict(ibl="split_sum", occlusion="on"),
     "per_pixel": dict(ibl="per_pixel", occlusion="off"),
-    "per_pixel + occlusion": dict(ibl="per_pixel", occlusion="on"),
+    "per_pixel + occlusion": dict(ibl="per_pixel", occlusion="on", occlusion_settings=dict(bounce="off")),
 }
 #: Probes of the largest remaining error, on the max_depth 4 captures after every `CONFIGS` fit
 #: (``--extras``): the pixel footprint (Mitsuba's pixel is the mean over its area, the default fit
-#: of a linear capture shades the pixel centre) and the resolution of the occlusion's direction cells.
+#: of a linear capture shades the pixel centre), the resolution of the occlusion's direction cells,
+#: and the light reflected between surfaces (the bounce, chosen by default: forced on and off, at pixel centres).
 EXTRAS = {
-    "per_pixel + occlusion, 2 × 2 pixel samples": dict(ibl="per_pixel", occlusion="on", pixel_samples=2),
-    "per_pixel + occlusion, 32-row cells": dict(ibl="per_pixel", occlusion="on", occlusion_settings=dict(rows=32)),
+    "per_pixel + occlusion, 2 × 2 pixel samples": dict(ibl="per_pixel", occlusion="on", pixel_samples=2,
+                                                        occlusion_settings=dict(bounce="off")),
+    "per_pixel + occlusion, 32-row cells": dict(ibl="per_pixel", occlusion="on",
+                                                occlusion_settings=dict(rows=32, bounce="off")),
+    "per_pixel + occlusion + bounce, pixel centres": dict(ibl="per_pixel", occlusion="on", pixel_samples=1,
+                                                          occlusion_settings=dict(bounce="on")),
+    "per_pixel + occlusion, pixel centres": dict(ibl="per_pixel", occlusion="on", pixel_samples=1,
+                                                 occlusion_settings=dict(bounce="off")),
 }
 #: The seed of every scene, and of the noise added (with the scene's name and depth).
 SEED = 0
@@ -207,7 +214,7 @@ def _fit(results: dict, args, name: str, depth: int, config: str, options: dict,
 
 def run_refit(args) -> None:
     """``--refit CONFIG ...``: fit an earlier run's captures (``--work``, the ``--scenes`` at the
-    ``--depths``) again with those `CONFIGS` (the code as it is now), each row replacing the
+    ``--depths``) again with those `CONFIGS` or `EXTRAS` (the code as it is now), each row replacing the
     earlier row of its scene, depth and config in pathtraced.json."""
     from pbrfit.scene.capture import load_capture
 
@@ -221,7 +228,7 @@ def run_refit(args) -> None:
             for config in args.refit:
                 same = [i for i, f in enumerate(results["fits"]) if (f["scene"], f["max_depth"], f["config"],
                         f.get("capture", "pixel area")) == (name, depth, config, "pixel area")]
-                _fit(results, args, name, depth, config, CONFIGS[config], relight)
+                _fit(results, args, name, depth, config, dict(CONFIGS, **EXTRAS)[config], relight)
                 if same:  # in the earlier row's place
                     results["fits"][same[0]] = results["fits"].pop()
                     (args.out / "pathtraced.json").write_text(json.dumps(results, indent=1))
@@ -309,6 +316,9 @@ def tables(results: dict) -> str:
         if choice is not None:  # a fit whose light model the fit chose (--ibl auto)
             occluded = " + occlusion" if (f.get("occlusion") or {}).get("used") else ""
             chose.append(f"light test: {f['ibl']['mode']}{occluded} kept")
+        bounce = (f.get("occlusion") or {}).get("bounce") or {}
+        if "residual_sigma" in bounce:  # a fit that chose whether blocked directions bring light
+            chose.append(f"bounce test: {'kept' if bounce['used'] else 'not kept'}")
         if f.get("footprint") and "evidence" in f["footprint"]:  # a fit whose footprint the fit chose
             chose.append(f"footprint test: {'2 × 2 kept' if f['pixel_samples'] == 2 else 'centres kept'}")
         if chose:
@@ -334,7 +344,7 @@ def main(argv=None):
     ap.add_argument("--extras", action="store_true", help="also fit the deepest captures with EXTRAS")
     ap.add_argument("--centres", action="store_true", help="the pixel-centre probe (run_centres) on an earlier run's --work")
     ap.add_argument("--centre-spp", type=int, default=4096, help="--centres: Mitsuba samples per sub-pixel")
-    ap.add_argument("--refit", nargs="+", choices=list(CONFIGS), metavar="CONFIG",
+    ap.add_argument("--refit", nargs="+", choices=list(CONFIGS) + list(EXTRAS), metavar="CONFIG",
                     help="fit an earlier run's captures (--work) again with these CONFIGS (run_refit)")
     ap.add_argument("--tables", action="store_true", help="print the markdown tables from pathtraced.json and stop")
     ap.add_argument("--work", type=Path, help="where the captures and fits are kept (default: a new temporary folder)")

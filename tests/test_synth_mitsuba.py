@@ -2,8 +2,9 @@
 
 Its conventions (camera rays, environment lookup, texture lookup) and its BRDF plugin are checked
 against pbrfit's own functions value by value; a sphere rendered with ``max_depth=2`` equals
-pbrfit's Monte Carlo render within the two renderers' noise. Everything but the missing-extra
-test needs the ``mitsuba`` extra (and an LLVM it can use, `mitsuba_render.MIN_LLVM`).
+pbrfit's Monte Carlo render within the two renderers' noise; a fit of its capture with light
+reflected between surfaces keeps the bounce. Everything but the missing-extra test needs the
+``mitsuba`` extra (and an LLVM it can use, `mitsuba_render.MIN_LLVM`).
 """
 
 from __future__ import annotations
@@ -381,3 +382,33 @@ def test_cli_synth_renderer_mitsuba_writes_a_capture(tmp_path, capsys, mitsuba):
     assert record["noise"] > mitsuba_render.NOISE_TARGET and record["noise_target"] == mitsuba_render.NOISE_TARGET
     cap = load_capture(out)
     assert len(cap.frames) == 1 and np.all(np.isfinite(cap.frames[0].image)) and cap.frames[0].mask.any()
+
+
+@needs_mitsuba
+@pytest.mark.filterwarnings("ignore:.*Mitsuba's noise")  # 256 samples per pixel: enough here
+def test_the_bounce_is_kept_where_light_is_reflected_between_surfaces(tmp_path, mitsuba):
+    """A sphere on a floor path-traced by Mitsuba with light reflected between them (max_depth 4):
+    with per-pixel integrals and occlusion, the fit whose blocked directions bring the light the
+    images show where they land explains the images clearly better than the one where they are
+    dark, and "auto" keeps it; "on" and "off" fit one way each, the same fits."""
+    import pbrfit
+    from pbrfit.fitting.stages import ibl as ibl_stage
+    from pbrfit.lighting.pixel_ibl import PixelIBLSettings
+    from pbrfit.lighting.visibility import OcclusionSettings
+
+    scene = presets.make_scene("sphere-floor", size=32, views=3, texture_size=8, noise=0.0)
+    writer.synthesize(scene.replace(renderer="mitsuba", max_depth=4, spp=256), tmp_path / "cap")
+    options = dict(ibl="per_pixel", occlusion="on", resolution=16, pixel_samples=1, search=False, repair=False,
+                   uniform_check=False, pixel_ibl_settings=PixelIBLSettings(samples=64, levels=5),
+                   cache_dir=tmp_path / "cache")
+    report = pbrfit.fit(tmp_path / "cap", **options).report
+    bounce = report["occlusion"]["bounce"]
+    sigma = bounce["residual_sigma"]
+    assert bounce["mode"] == "auto" and bounce["used"] and bounce["missed"] < 0.01 * bounce["rays"], bounce
+    assert sigma["bounce"] < (1 - ibl_stage.BOUNCE_MIN_GAIN) * sigma["dark"], bounce
+    assert report["residual_sigma"] == sigma["bounce"] and report["times"]["bounce_probe"] > 0
+    for mode in ("on", "off"):
+        forced = pbrfit.fit(tmp_path / "cap", occlusion_settings=OcclusionSettings(bounce=mode), **options).report
+        assert "bounce_probe" not in forced["times"]
+        assert forced["residual_sigma"] == pytest.approx(sigma["bounce" if mode == "on" else "dark"], rel=1e-4)
+        assert ("bounce" in forced["occlusion"]) == (mode == "on")

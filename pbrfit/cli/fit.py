@@ -33,6 +33,7 @@ from ..io.atomic import check_not_inside, check_output_dir
 from ..io.material_files import read_map, read_material
 from ..io.outputs import write_fit_output
 from ..lighting.settings import MAX_LEVELS, MAX_SAMPLES, MIN_LEVELS, MIN_SAMPLES, PixelIBLSettings
+from ..lighting.visibility import OcclusionSettings
 from ..scene.capture import load_capture
 
 __all__ = ["run", "fit_options", "fit_summary", "FitProgress", "loss_history", "run_fit"]
@@ -126,6 +127,9 @@ def fit_options(args):
         if getattr(args, name) is not None and args.ibl == "split_sum":
             raise CaptureError(f"--{name.replace('_', '-')}: only per-pixel integrals use it (--ibl per_pixel, "
                                "or auto where it chooses them)")
+    if args.bounce is not None and (args.ibl == "split_sum" or args.occlusion == "off"):
+        raise CaptureError("--bounce: only per-pixel integrals with occlusion use it (not with "
+                           f"{'--ibl split_sum' if args.ibl == 'split_sum' else '--occlusion off'})")
     pixel_samples = args.pixel_samples
     if pixel_samples != "auto":
         if not (pixel_samples.isascii() and pixel_samples.isdigit() and 1 <= int(pixel_samples) <= MAX_PIXEL_SAMPLES):
@@ -145,6 +149,7 @@ def fit_options(args):
         coarse_to_fine=args.coarse_to_fine, search=_off(args.no_search), uniform_check=_off(args.no_uniform_check),
         repair=_off(args.no_repair), noise_level=args.noise_level, devices=devices, ibl=args.ibl,
         pixel_ibl_settings=pixel_ibl_settings, occlusion=args.occlusion,
+        occlusion_settings=OcclusionSettings(bounce=args.bounce or OcclusionSettings.bounce),
         continuation=None if args.continuation is None else continuation,
         pixel_samples=pixel_samples,
         cg_rtol=args.cg_rtol, loss_scale=args.loss_scale, uncertainty_radius=args.uncertainty_radius,

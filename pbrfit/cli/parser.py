@@ -19,7 +19,7 @@ from data_synth.presets import IMAGE_FORMATS, INTERREFLECTION_DEPTH, MIN_DEPTH, 
 from .model_flag import add_model_argument
 from ..fitting.defaults import (ATOL, CG_RTOL, CONTINUATION, DEFAULT_SOLVER, IBL_MODES, LOSS_SCALE, LOSSES,
                                 MATERIAL_MAPS, MAX_PIXEL_SAMPLES, MAX_STEPS, NOISE_LEVELS, QUALITY, RTOL, SOLVERS)
-from ..lighting.settings import OCCLUSION_MODES, PixelIBLSettings
+from ..lighting.settings import BOUNCE_MODES, OCCLUSION_MODES, PixelIBLSettings
 
 __all__ = ["build_parser", "add_fit", "default_continuation", "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "MAX_SIZE",
            "MAX_VIEWS", "MAX_SUPERSAMPLE", "MAX_NOISE"]
@@ -189,6 +189,11 @@ def add_fit(sub) -> None:
                         "per-pixel integrals (a path tracer's or a camera's light), off with the split sum (pbrfit's "
                         "own split-sum renders cast no shadows of the environment); report.json's \"occlusion\" says "
                         "which and its time")
+    p.add_argument("--bounce", choices=BOUNCE_MODES,
+                   help="with occlusion and per-pixel integrals, whether a blocked direction brings the light the "
+                        "capture shows on the surface it hits (light reflected between surfaces, as in a photograph or "
+                        "a path tracer's render) or none (a render of direct light only). Default auto: fit both ways "
+                        "at pixel centres, keep the one of lower residual; report.json's \"occlusion\" says which")
     p.add_argument("--pixel-samples", default="auto", metavar="{auto,N}",
                    help=f"shade N x N samples per pixel (N from 1 to {MAX_PIXEL_SAMPLES}) and fit their mean: the pixel "
                         "footprint of an antialiased or supersampled capture (1: pixel centres; cost grows as N^2). Default auto: for "

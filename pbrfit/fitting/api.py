@@ -67,17 +67,18 @@ from .stages.footprint import (AUTO_PIXEL_SAMPLES, box_plausible, footprint_choi
                                probes_footprint)
 from ..physics.model import Model
 from .noise import estimate_noise_level
-from .observations import Observations, observations_from_capture, row_geometry
+from .observations import Observations, linear_radiance, observations_from_capture, row_geometry
 from ..lighting.ibl import OccludedTables
-from ..lighting.pixel_ibl import per_row, pixel_ibl
-from ..lighting.visibility import split_sum_factors
+from ..lighting.pixel_ibl import per_row, pixel_ibl_parts, with_bounce
+from ..lighting.visibility import Bounce, Visibility, blocked_cells, split_sum_factors
 from ..render.views import capture_environment, capture_ibl, check_environment, environment_is_dark
 from ..render.views import model_for_capture
 from ..scene.capture import Capture, load_capture
-from ..scene.occlusion import cast_visibility, occluding_faces, probe_share
+from ..scene.occlusion import blocked_hits, cast_visibility, observed_radiance_at, occluding_faces, probe_share
 from .resolution import default_resolution, schedule
 from .solvers.names import DEFAULT_SOLVER, SOLVERS
-from .stages.ibl import fit_sigma, misfit_evidence, per_pixel_explains_better, per_pixel_skipped, split_sum_misfits
+from .stages.ibl import (bounce_explains_better, fit_sigma, misfit_evidence, per_pixel_explains_better,
+                         per_pixel_skipped, split_sum_misfits)
 from .stages.selection import uniform_channels
 from ..transfer import to_device
 
@@ -109,9 +110,11 @@ def _environment_visibility(capture, env, parts, options: FitOptions, model: Mod
     """The environment's visibility from the rows of ``parts`` (observations of ``capture``, in
     order) as ``options.occlusion`` asks, or by default as ``model``'s light model needs
     (`pbrfit.fitting.options.occlusion_mode`): (`pbrfit.lighting.visibility.Visibility` or None,
-    its direction cells or None, the report's "occlusion" entry). "auto" casts nothing where no
-    face has the mesh above it (`pbrfit.scene.occlusion.occluding_faces`), then probes a few
-    points (`pbrfit.scene.occlusion.probe_share`) and goes on only where the mesh blocks at least
+    its direction cells or None, the light its blocked directions bring or None (`Bounce`: with
+    per-pixel integrals, unless ``occlusion_settings.bounce`` is "off"), the report's "occlusion"
+    entry). "auto" casts nothing where no face has the mesh above it
+    (`pbrfit.scene.occlusion.occluding_faces`), then probes a few points
+    (`pbrfit.scene.occlusion.probe_share`) and goes on only where the mesh blocks at least
     ``options.occlusion_settings.auto_share`` of their irradiance."""
     start = time.perf_counter()
     settings = options.occlusion_settings
@@ -119,18 +122,44 @@ def _environment_visibility(capture, env, parts, options: FitOptions, model: Mod
     entry = dict(mode=mode, used=False)
     done = lambda **more: dict(entry, **more, seconds=time.perf_counter() - start)  # noqa: E731
     if mode == "off":
-        return None, None, done()
+        return None, None, None, done()
     if mode == "auto" and not occluding_faces(capture.mesh).any():
-        return None, None, done(reason="no face has the mesh above it")
+        return None, None, None, done(reason="no face has the mesh above it")
     geometry = [row_geometry(capture, o, cache_dir) for o in parts]
     points, normals = (np.concatenate([g[k] for g in geometry]) for k in (0, 1))
     if mode == "auto":
         entry["probed_share"] = probe_share(capture.mesh, env, points, normals, settings, cache_dir)
         if entry["probed_share"] < settings.auto_share:
-            return None, None, done(reason=f"the mesh blocks less than auto_share {settings.auto_share:g} of the "
+            return None, None, None, done(reason=f"the mesh blocks less than auto_share {settings.auto_share:g} of the "
                                            "irradiance at the probed points")
     visibility, cells = cast_visibility(capture.mesh, env, points, normals, settings, cache_dir)
-    return visibility, cells, done(used=True, cells=cells.count, rows=len(points))
+    bounce = None
+    if settings.bounce != "off" and model.ibl == "per_pixel":
+        bounce, entry["bounce"] = _observed_bounce(capture, parts[0], points, normals, visibility, cells, cache_dir,
+                                                   settings.bounce)
+    return visibility, cells, bounce, done(used=True, cells=cells.count, rows=len(points))
+
+
+def _observed_bounce(capture, obs: Observations, points, normals, visibility: Visibility, cells, cache_dir,
+                     options_bounce: str):
+    """The light the blocked directions of ``visibility`` bring (`pbrfit.lighting.visibility`'s
+    module docstring): where each blocked ray lands (`pbrfit.scene.occlusion.blocked_hits`), and
+    the radiance the rows of ``obs`` (the first rows of ``points``, ``normals``) saw nearest to it
+    (`pbrfit.scene.occlusion.observed_radiance_at`). Returns the `Bounce` and the report's entry
+    (its mode: ``options_bounce``)."""
+    start = time.perf_counter()
+    at, at_normals = blocked_hits(capture.mesh, points, normals, cells.directions, np.asarray(visibility.bits),
+                                  cache_dir)
+    seen = slice(0, obs.num_rows)
+    radiance, unseen = observed_radiance_at(points[seen], normals[seen], linear_radiance(obs), at, at_normals)
+    rows, _ = blocked_cells(np.asarray(visibility.bits), cells.count)
+    offsets = np.searchsorted(rows, np.arange(len(points) + 1)).astype(np.int64)
+    entry = dict(mode=options_bounce, used=True, rays=len(at), missed=int(np.sum(~np.isfinite(at[:, 0]))),
+                 unseen_hits=float(np.mean(unseen)) if len(at) else 0.0)
+    if not np.any(radiance):  # no light to bring: nothing to fit both ways
+        return None, dict(entry, used=False, reason="no blocked ray brings light",
+                          seconds=time.perf_counter() - start)
+    return Bounce(radiance, offsets), dict(entry, seconds=time.perf_counter() - start)
 
 
 def fit_observations(obs: Observations, options: Optional[FitOptions] = None, *, model=None,
@@ -300,7 +329,10 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
             reference, which the mesh shadows), "off" with the split sum (the model of pbrfit's
             own split-sum renders, which cast no shadows of the environment).
             The report's "occlusion" entry says which, why, and the time it took. Ignored
-            without an environment.
+            without an environment. With per-pixel integrals, ``occlusion_settings.bounce``
+            says whether a blocked direction brings the light the capture's pixels saw where it
+            lands ("on"), none ("off"), or, by default ("auto"), whichever fit explains the images
+            better (`pbrfit.fitting.stages.ibl.bounce_explains_better`; the entry's "bounce").
         resolution: map size N (or (H, W)); default `default_resolution(capture)`.
         fit: which maps are free, some of "base_color", "metallic", "roughness", "normal" (a
             tangent-space normal map, `pbrfit.fitting.parameters`; needs the mesh's tangents: uv);
@@ -426,8 +458,10 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
                     if choice is not None and model.ibl == "per_pixel" else None)
         if box_plausible(evidence) and too_many is None:  # both footprints, the centres' fit spent on the test
             probe = result
-            result = _fit_footprint(capture, options, model, views, AUTO_PIXEL_SAMPLES, True, time.perf_counter())
+            result = _fit_footprint(capture, _bounce_decided(options, probe), model, views, AUTO_PIXEL_SAMPLES, True,
+                                    time.perf_counter())
             result = _spent_before(result, probe, "footprint_probe")
+            _carry_bounce_choice(result, probe)
             result.report["footprint"]["evidence"] = evidence
         else:
             result.report["footprint"] = dict(selected=1, evidence=evidence)
@@ -478,7 +512,26 @@ def _chooses_ibl(options: FitOptions, model: Model) -> bool:
 
 
 #: The report's times of fits a fit ran before the one it kept (`_spent_before`).
-_PROBE_TIMES = ("ibl_probe", "footprint_probe")
+_PROBE_TIMES = ("ibl_probe", "footprint_probe", "bounce_probe")
+
+
+def _bounce_decided(options: FitOptions, earlier: FitResult) -> FitOptions:
+    """``options`` with ``occlusion_settings.bounce`` "auto" settled as ``earlier`` (a fit of the
+    same capture that chose) kept it: a later fit (both footprints) does not fit both ways again."""
+    entry = (earlier.report.get("occlusion") or {}).get("bounce") or {}
+    if options.occlusion_settings.bounce != "auto" or "residual_sigma" not in entry:
+        return options
+    settings = dataclasses.replace(options.occlusion_settings, bounce="on" if entry["used"] else "off")
+    return dataclasses.replace(options, occlusion_settings=settings)
+
+
+def _carry_bounce_choice(result: FitResult, earlier: FitResult) -> None:
+    """The bounce's choice made by ``earlier`` (`_bounce_decided`) in ``result``'s report."""
+    chosen = (earlier.report.get("occlusion") or {}).get("bounce") or {}
+    occlusion = result.report.get("occlusion")
+    if "residual_sigma" in chosen and occlusion is not None and occlusion.get("used"):
+        occlusion["bounce"] = dict(occlusion.get("bounce") or {}, mode="auto", used=chosen["used"],
+                                   residual_sigma=chosen["residual_sigma"], chosen_by="footprint_probe")
 
 
 def _spent_before(result: FitResult, earlier: FitResult, name: str) -> FitResult:
@@ -511,21 +564,25 @@ def _fit_footprint(capture, options: FitOptions, model: Model, views, pixel_samp
         # (no environment at all was refused with the observations)
         raise CaptureError(f"{capture.json_path}: no light reaches the mesh: the environment "
                            f"{capture.environment.file} is black, and every light is off or points away")
-    centre_tables = visibility = occlusion = None
+    centre_tables = visibility = bounce = occlusion = None
     parts = [obs] if centres is None else [centres, obs]
     rows = np.cumsum([0] + [o.num_rows for o in parts])
     row_normals = lambda: np.concatenate([np.asarray(o.normal) for o in parts])  # noqa: E731
     row_views = lambda: np.concatenate([np.asarray(o.view) for o in parts])  # noqa: E731
     if model.ibl is not None:
-        visibility, cells, occlusion = _environment_visibility(capture, env, parts, options, model, cache_dir)
+        visibility, cells, bounce, occlusion = _environment_visibility(capture, env, parts, options, model,
+                                                                       cache_dir)
     t_ibl = time.perf_counter()
-    both = None
+    both = direct = None
     if model.ibl == "per_pixel":
         report = options.progress
-        both = pixel_ibl(env, row_normals(), row_views(), model, options.pixel_ibl_settings,
-                         cache_dir=cache_dir, progress=None if report is None else (
-                             lambda done, total: report(dict(stage="ibl", done=done, total=total))),
-                         visibility=visibility)
+        direct, bounced = pixel_ibl_parts(env, row_normals(), row_views(), model, options.pixel_ibl_settings,
+                                          cache_dir=cache_dir, progress=None if report is None else (
+                                              lambda done, total: report(dict(stage="ibl", done=done, total=total))),
+                                          visibility=visibility, bounce=bounce)
+        both = direct if bounced is None else with_bounce(direct, bounced)
+        if bounced is None or options.occlusion_settings.bounce != "auto":
+            direct = None  # (kept only for the fit without the bounce)
         tables = dataclasses.replace(both, table=both.table[rows[-2]:])
     else:
         tables = _ibl_for_capture(capture, model, env)
@@ -535,9 +592,25 @@ def _fit_footprint(capture, options: FitOptions, model: Model, views, pixel_samp
     if centres is not None and both is not None:
         centre_tables = dataclasses.replace(both, table=both.table[: rows[1]])
     t_ibl = time.perf_counter() - t_ibl
-    result = fit_observations(obs, options, model=model, ibl=tables, setup_time=time.perf_counter() - t0,
+    setup = time.perf_counter() - t0
+    result = fit_observations(obs, options, model=model, ibl=tables, setup_time=setup,
                               centres=centres, centre_ibl=centre_tables, select_footprint=select)
     _check_finite(result, capture)
+    if direct is not None:
+        # the same fit with the blocked directions dark (integrals of the same samples); the bounce
+        # is kept where it explains the images clearly better, the other's time counts as "bounce_probe"
+        dark = fit_observations(obs, options, model=model, ibl=dataclasses.replace(direct, table=direct.table[rows[-2]:]),
+                                centres=centres, select_footprint=select, setup_time=setup,
+                                centre_ibl=None if centres is None else dataclasses.replace(
+                                    direct, table=direct.table[: rows[1]]))
+        _check_finite(dark, capture)
+        sigma = dict(bounce=fit_sigma(result.report), dark=fit_sigma(dark.report))
+        kept = bounce_explains_better(dark.report, result.report)
+        probe = dark if kept else result
+        probe.report["times"]["setup"] = 0.0  # (the two fits share the setup: the kept one counts it)
+        probe.report["wall_time"] -= setup
+        result = _spent_before(result if kept else dark, probe, "bounce_probe")
+        occlusion["bounce"].update(used=kept, residual_sigma=sigma)
     if model.ibl is not None:
         result.report["ibl"] = dict(mode=model.ibl, seconds=t_ibl, **(
             dataclasses.asdict(options.pixel_ibl_settings) if model.ibl == "per_pixel" else {}))

@@ -60,7 +60,8 @@ def closed_times(times: dict, wall: float) -> dict:
     waiting for compiles; solve: solver steps; init, search: the grid start and the coordinate
     search; repair, uniform_check: those stages' own work; post: the outputs' arrays;
     footprint_probe: the pixel-centre fit whose residuals showed a box footprint, before the fit
-    of both; ibl_probe: the fit under the light model not kept, `pbrfit.fitting.api.fit`) with
+    of both; ibl_probe: the fit under the light model not kept; bounce_probe: the fit with or
+    without the bounce not kept, `pbrfit.fitting.api.fit`) with
     "other", the rest of ``wall`` (host-side work between stages: each level's problem), so that
     the entries sum to the wall time. "compile_background", compiles overlapped with the fit's
     own work in another thread, is apart from the sum."""

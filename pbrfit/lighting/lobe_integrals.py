@@ -12,7 +12,11 @@ lobes, which do not depend on it, are the same number at every level.
 
 With a `pbrfit.lighting.visibility.Visibility` the environment radiance of every sample direction
 is multiplied by the point's visibility V(p, l) of that direction (its direction cell's shadow
-ray and its own horizon), so the integrals are those of an occluded environment.
+ray and its own horizon), so the integrals are those of an occluded environment; where the
+visibility carries a bounce, a blocked direction brings the radiance of the surface it hits
+(`pbrfit.lighting.visibility.incoming`). The cosine and visible-normal techniques cover every
+direction a lobe reaches, so the estimate stays unbiased where the environment technique never
+samples that light.
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ from ..physics.model import Model
 from .montecarlo import counter_uniforms, environment_pdf, environment_sampler, hash32, sample_environment
 from .sampling import ggx_vndf_pdf, sample_cosine, sample_ggx_vndf, tangent_frame
 from .brdf_lut import lookup_brdf_lut
-from .visibility import visible
+from .visibility import incoming
 
 __all__ = ["SPECULAR_LOBES", "DIFFUSE_LOBES", "integrate_lobes"]
 
@@ -47,10 +51,12 @@ def _dv(model: Model, nv, nl, nh, rough):
 
 @functools.partial(jax.jit, static_argnames=("model", "lobes", "levels", "samples", "batch"))
 def integrate_lobes(env, lut, n, v, first, seed, vis=None, *, model, lobes, levels, samples, batch):
-    """(P, levels, len(lobes), 3) lobe integrals I_k(r_j) of `pbrfit.lighting.pixel_ibl` for points with unit normals n and
+    """(P, levels, len(lobes), C) lobe integrals I_k(r_j) of `pbrfit.lighting.pixel_ibl` for points with unit normals n and
     view directions v (P, 3): ``samples`` sample steps, ``batch`` at a time; pixel i's sequence is shifted by
     hashing ``first`` + i with ``seed``. ``lut`` is the split-sum LUT (read only for the dfg lobes); ``vis``
-    the points' `pbrfit.lighting.visibility.Visibility` (P rows), or None: no occlusion."""
+    the points' `pbrfit.lighting.visibility.Visibility` (P rows), or None: no occlusion. C = 3 (RGB), or 6 where
+    ``vis`` carries a bounce: the environment's light that arrives, then the bounce's
+    (`pbrfit.lighting.visibility.incoming`; the dfg lobes repeated in both)."""
     radiance = env.radiance
     sampler = environment_sampler(radiance)
     dtype = n.dtype
@@ -66,7 +72,7 @@ def integrate_lobes(env, lut, n, v, first, seed, vis=None, *, model, lobes, leve
 
     def arriving(rad, l, d):
         """Radiance ``rad`` of world directions l (environment frame: d) that reaches the points."""
-        return rad if vis is None else rad * visible(vis, l, d)[..., None]
+        return rad if vis is None else incoming(vis, rad, l, d)
 
     def light(l):
         """Radiance arriving along world directions l and the environment technique's density there."""
@@ -112,7 +118,8 @@ def integrate_lobes(env, lut, n, v, first, seed, vis=None, *, model, lobes, leve
     pixels = first + jnp.arange(n.shape[0], dtype=jnp.uint32)
     shift = counter_uniforms(hash32(seed ^ hash32(pixels)), jnp.zeros((1,), jnp.uint32), 7, jnp.float32)[0]  # (P, 7)
     safe = lambda x: jnp.where(x > 0, x, 1.0)  # noqa: E731
-    zeros_r = jnp.zeros(n.shape[:1] + (levels, 3), dtype)
+    channels = 6 if vis is not None and vis.bounce is not None else 3
+    zeros_r = jnp.zeros(n.shape[:1] + (levels, channels), dtype)
 
     def step(acc, k):
         spec_acc, diff_acc, bur_acc = acc
@@ -150,7 +157,8 @@ def integrate_lobes(env, lut, n, v, first, seed, vis=None, *, model, lobes, leve
                 bur_acc = bur_acc + jnp.sum(bur_c[..., None] * w_c[:, :, None, :] + bur_e[..., None] * w_e2[:, :, None, :], 0)
         return (spec_acc, diff_acc, bur_acc), None
 
-    acc0 = (jnp.zeros(n.shape[:1] + (levels, len(spec), 3), dtype), jnp.zeros(n.shape[:1] + (len(diff), 3), dtype),
+    acc0 = (jnp.zeros(n.shape[:1] + (levels, len(spec), channels), dtype),
+            jnp.zeros(n.shape[:1] + (len(diff), channels), dtype),
             zeros_r)
     (spec_acc, diff_acc, bur_acc), _ = jax.lax.scan(step, acc0, jnp.arange(samples // batch, dtype=jnp.uint32))
     inv = 1.0 / (samples // batch * batch)

@@ -41,7 +41,10 @@ interpolated by a Catmull-Rom spline in r (C¹, so LM's roughness derivatives ar
 Occlusion: given the pixels' `pbrfit.lighting.visibility.Visibility` (cast once by
 `pbrfit.scene.occlusion`), every sample direction's radiance is multiplied by V(p, l), so the
 integrals, and the shading, are those of the environment the mesh lets through; without it the
-environment reaches every point unblocked.
+environment reaches every point unblocked. With a `pbrfit.lighting.visibility.Bounce` a blocked
+direction brings the radiance the capture shows on the surface it hits instead of none: the
+integrals stay linear in the light and free of the fitted material, so they are still computed
+once.
 """
 
 from __future__ import annotations
@@ -66,9 +69,9 @@ from .lobe_integrals import integrate_lobes
 from ..physics.model import Model
 from .montecarlo import default_lut, sample_batch
 from .ibl import OccludedTables
-from .visibility import Visibility, visibility_rows
+from .visibility import Bounce, Visibility, visibility_rows
 
-__all__ = ["per_row", "PixelIBLSettings", "MIN_LEVELS", "MIN_SAMPLES", "MAX_LEVELS", "MAX_SAMPLES", "PixelIBL", "LOBES", "lobes_for", "pixel_ibl", "interpolate_lobes",
+__all__ = ["per_row", "pixel_ibl_parts", "with_bounce", "PixelIBLSettings", "MIN_LEVELS", "MIN_SAMPLES", "MAX_LEVELS", "MAX_SAMPLES", "PixelIBL", "LOBES", "lobes_for", "pixel_ibl", "interpolate_lobes",
            "shade_pixel_ibl", "pixel_dfg"]
 
 #: Every lobe a model can need (see the module docstring).
@@ -134,13 +137,16 @@ _CACHE_VERSION = "pixel-ibl-2"
 
 
 def _cache_key(env: Environment, n: np.ndarray, v: np.ndarray, model: Model, settings: PixelIBLSettings,
-               visibility: Optional[Visibility]) -> str:
+               visibility: Optional[Visibility], bounce: Optional[Bounce]) -> str:
     h = hashlib.sha256(_CACHE_VERSION.encode())
     h.update(repr((dataclasses.asdict(model.replace(ibl=None)), dataclasses.asdict(settings), env.world_up,
                    float(env.rotation_deg))).encode())
     seen = () if visibility is None else tuple(np.asarray(a) for a in (visibility.labels, visibility.bits,
                                                                       visibility.normal))
     h.update(b"occluded" if seen else b"open")
+    if bounce is not None:
+        seen = seen + (np.asarray(bounce.radiance, np.float32), np.asarray(bounce.offsets, np.int64))
+        h.update(b"bounce")
     for a in (np.asarray(env.radiance, np.float32), n, v) + seen:
         h.update(repr(a.shape).encode())
         h.update(np.ascontiguousarray(a).tobytes())
@@ -163,32 +169,57 @@ def pixel_ibl(env: Environment, n: Float[Array, "P 3"], v: Float[Array, "P 3"], 
               settings: PixelIBLSettings = PixelIBLSettings(), chunk: Optional[int] = None,
               cache_dir: Optional[os.PathLike] = None,
               progress: Optional[Callable[[int, int], None]] = None,
-              visibility: Optional[Visibility] = None) -> PixelIBL:
+              visibility: Optional[Visibility] = None, bounce: Optional[Bounce] = None) -> PixelIBL:
     """The lobe integrals of `lobes_for(model)` for points with unit normals n and view directions v,
-    occluded by ``visibility`` (one row per point; None: unoccluded).
+    occluded by ``visibility`` (one row per point; None: unoccluded), its blocked directions lit
+    by ``bounce`` (`pbrfit.lighting.visibility.Bounce`; None: dark): `pixel_ibl_parts` added up."""
+    direct, bounced = pixel_ibl_parts(env, n, v, model, settings, chunk, cache_dir, progress, visibility, bounce)
+    return direct if bounced is None else with_bounce(direct, bounced)
+
+
+def with_bounce(direct: PixelIBL, bounced: PixelIBL) -> PixelIBL:
+    """The integrals of the light of both parts of `pixel_ibl_parts` (the dfg lobes, which hold no
+    light, once)."""
+    light = jnp.asarray([name not in ("dfg_scale", "dfg_bias") for name in direct.lobes], direct.table.dtype)
+    return PixelIBL(direct.table + bounced.table * light[:, None], direct.lobes)
+
+
+def pixel_ibl_parts(env: Environment, n: Float[Array, "P 3"], v: Float[Array, "P 3"], model: Model = Model(),
+                    settings: PixelIBLSettings = PixelIBLSettings(), chunk: Optional[int] = None,
+                    cache_dir: Optional[os.PathLike] = None,
+                    progress: Optional[Callable[[int, int], None]] = None,
+                    visibility: Optional[Visibility] = None,
+                    bounce: Optional[Bounce] = None) -> tuple[PixelIBL, Optional[PixelIBL]]:
+    """The lobe integrals of `lobes_for(model)` for points with unit normals n and view directions v,
+    of the environment's light that arrives past ``visibility`` (one row per point; None:
+    unoccluded), and of the light ``bounce`` brings along the blocked directions (None where no
+    bounce is given), from the same samples: (direct, bounced).
 
     Pixels are integrated in chunks of ``chunk`` (default `PIXEL_CHUNK` for the default backend;
     one compilation, the last chunk padded), each pixel with its own quasi-random sequence, so
     the chunking changes only float rounding. With ``cache_dir`` the table is read from / written
     to ``cache_dir/pixel-ibl-<hash>.npy``, the hash covering the environment (radiance and
-    orientation), n, v, the model's lobes, ``settings`` and ``visibility``. ``progress`` is called
+    orientation), n, v, the model's lobes, ``settings``, ``visibility`` and ``bounce``. ``progress`` is called
     with (pixels done, pixels in all) after each chunk.
     """
     lobes = lobes_for(model)
     n = np.asarray(n, np.float32)
     v = np.asarray(v, np.float32)
     total = n.shape[0]
+    if bounce is not None and (visibility is None or len(bounce.offsets) != total + 1):
+        raise ValueError("bounce: needs the visibility it was cast with, one row per point")
     if visibility is not None and (visibility.num_points != total
                                    or tuple(visibility.labels.shape) != tuple(env.radiance.shape[:2])):
         raise ValueError(f"visibility: {visibility.num_points} rows on {tuple(visibility.labels.shape)} cells' texels, "
                          f"for {total} points under a {tuple(env.radiance.shape[:2])} environment")
     levels, samples = int(settings.levels), int(settings.samples)
+    channels = 3 if bounce is None else 6
     path = None
     if cache_dir is not None:
-        path = Path(cache_dir) / f"pixel-ibl-{_cache_key(env, n, v, model, settings, visibility)}.npy"
-        cached = _load_cached(path, (total, levels, len(lobes), 3))
+        path = Path(cache_dir) / f"pixel-ibl-{_cache_key(env, n, v, model, settings, visibility, bounce)}.npy"
+        cached = _load_cached(path, (total, levels, len(lobes), channels))
         if cached is not None:
-            return PixelIBL(jnp.asarray(cached), lobes)
+            return _parts(cached, lobes)
     if chunk is None:
         chunk = PIXEL_CHUNK["cpu" if jax.default_backend() == "cpu" else "accelerator"]
     size = max(1, min(int(chunk), total))
@@ -203,17 +234,23 @@ def pixel_ibl(env: Environment, n: Float[Array, "P 3"], v: Float[Array, "P 3"], 
         if pad:
             nn = np.concatenate([nn, np.tile(np.float32([0, 0, 1]), (pad, 1))])
             vv = np.concatenate([vv, np.tile(np.float32([0, 0, 1]), (pad, 1))])
-        vis = None if visibility is None else visibility_rows(visibility, start, start + size - pad, pad)
+        vis = None if visibility is None else visibility_rows(visibility, start, start + size - pad, pad, bounce)
         part = integrate_lobes(env, lut, jnp.asarray(nn), jnp.asarray(vv),
                                jnp.uint32(start), seed, vis, model=model, lobes=lobes, levels=levels,
                                samples=samples, batch=batch)
         out.append(np.asarray(part)[: size - pad])
         if progress is not None:
             progress(start + size - pad, total)
-    table = np.concatenate(out) if out else np.zeros((0, levels, len(lobes), 3), np.float32)
+    table = np.concatenate(out) if out else np.zeros((0, levels, len(lobes), channels), np.float32)
     if path is not None:
         _save_cached(path, table.astype(np.float32))
-    return PixelIBL(jnp.asarray(table), lobes)
+    return _parts(table, lobes)
+
+
+def _parts(table: np.ndarray, lobes: tuple) -> tuple[PixelIBL, Optional[PixelIBL]]:
+    """(direct, bounced) `PixelIBL` of a table of 3 or 6 channels (`pixel_ibl_parts`)."""
+    direct = PixelIBL(jnp.asarray(table[..., :3]), lobes)
+    return direct, (PixelIBL(jnp.asarray(table[..., 3:]), lobes) if table.shape[-1] == 6 else None)
 
 
 # --- shading -------------------------------------------------------------------------------------

@@ -49,3 +49,8 @@ class PixelIBLSettings:
 #: light, `pbrfit.lighting.visibility.OcclusionSettings.auto_share`) or "on"
 #: (`pbrfit.FitOptions.occlusion` holds the default).
 OCCLUSION_MODES = ("off", "auto", "on")
+
+#: ``OcclusionSettings.bounce``: whether blocked directions bring the light the capture shows on
+#: the surface they hit: "auto" (fit with and without it, keep the fit of lower residual σ),
+#: "on" or "off" (`pbrfit.lighting.visibility`).
+BOUNCE_MODES = ("auto", "on", "off")

@@ -21,6 +21,20 @@ horizon test (geometric normal · l > 0), which is exact. The error is that of a
 drawn at the cell's size: a texel for bright light, 180° / rows for the rest
 (`experiments/occlusion.py` measures it).
 
+Light bounced off the mesh (`Bounce`): a blocked direction is not dark. It carries the radiance
+leaving the surface the ray hits, toward the point. Geometry never moves, so where each blocked
+ray lands is cast once too (`pbrfit.scene.occlusion.blocked_hits`), and the radiance there is
+read from the capture itself: the median linear radiance of the pixels that saw the surface
+nearest to the hit (`pbrfit.scene.occlusion.observed_radiance_at`). The captured images serve
+as the radiance cache of Nimier-David et al., "Material and Lighting Reconstruction for Complex
+Indoor Scenes with Texture-space Differentiable Rendering" (EGSR 2021), read once instead of
+refreshed: what a camera saw holds every bounce of the real scene, and needs no material. The
+error is the hit surface's view dependence (its radiance toward the cameras stands for its
+radiance toward the point) and, where no camera saw the hit, the nearest seen surface standing
+for it. The
+integrators read V(p, l) L_env(l) + (1 - V(p, l)) L_bounce(p, cell(l)) (`incoming`), still
+times the point's horizon test.
+
 The split sum has no per-sample directions to mask; it takes per-point factors instead
 (`split_sum_factors`): the share of the irradiance that arrives (diffuse) and the share of the
 specular lobe's environment light that arrives, on a few roughness levels (specular).
@@ -30,6 +44,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Optional
 
 import equinox as eqx
 import jax
@@ -39,11 +54,11 @@ from jaxtyping import Array, Float, Int, UInt8
 
 from ..physics import brdf
 from ..physics.color import luminance
-from .settings import OCCLUSION_MODES
+from .settings import BOUNCE_MODES, OCCLUSION_MODES
 from .environment import Environment, direction_to_uv, dot3, from_environment_frame, texel_directions, texel_solid_angles
 
-__all__ = ["OCCLUSION_MODES", "OcclusionSettings", "DirectionCells", "direction_cells", "Visibility",
-           "visibility_rows", "visible", "SPECULAR_LEVELS", "split_sum_factors", "factors_at"]
+__all__ = ["OCCLUSION_MODES", "OcclusionSettings", "DirectionCells", "direction_cells", "Visibility", "Bounce",
+           "blocked_cells", "visibility_rows", "visible", "incoming", "SPECULAR_LEVELS", "split_sum_factors", "factors_at"]
 
 #: Roughness levels of the split sum's specular factor (`split_sum_factors`), r_j = j / (levels - 1).
 SPECULAR_LEVELS = 5
@@ -62,12 +77,18 @@ class OcclusionSettings:
             this share of the irradiance (luminance-weighted, cosine-weighted) at the probed
             points.
         probe_points: how many points ``"auto"`` probes (evenly spread over the rows).
+        bounce: whether the per-pixel integrals' blocked directions bring the radiance the
+            capture shows on the surface they hit (`Bounce`; the split sum's factors take none):
+            "on", "off" (dark, as in a render of direct light only) or "auto" (`BOUNCE_MODES`):
+            the fit runs both ways from integrals of the same samples and keeps the one of lower
+            residual σ.
     """
 
     rows: int = 16
     power_share: float = 1.0 / 256.0
     auto_share: float = 0.01
     probe_points: int = 1024
+    bounce: str = "auto"
 
     def __post_init__(self):
         if not (isinstance(self.rows, (int, np.integer)) and 1 <= self.rows <= 1024):
@@ -78,6 +99,8 @@ class OcclusionSettings:
                 raise ValueError(f"OcclusionSettings.{name} must be a number in (0, 1], got {value!r}")
         if not (isinstance(self.probe_points, (int, np.integer)) and self.probe_points >= 1):
             raise ValueError(f"OcclusionSettings.probe_points must be an integer >= 1, got {self.probe_points!r}")
+        if self.bounce not in BOUNCE_MODES:
+            raise ValueError(f"OcclusionSettings.bounce must be one of {', '.join(BOUNCE_MODES)}, got {self.bounce!r}")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -160,29 +183,63 @@ class Visibility(eqx.Module):
             the ray from point p along cell k's centre leaves the mesh.
         normal: (P, 3) the points' geometric normals (world), facing the camera: directions
             below them are blocked by the point's own face.
+        bounce: (P, K, 3) radiance arriving along each blocked cell (`Bounce`, dense for a few
+            rows: `visibility_rows`), or None: blocked cells are dark.
     """
 
     labels: Int[Array, "H W"]
     bits: UInt8[Array, "P B"]
     normal: Float[Array, "P 3"]
+    bounce: Optional[Float[Array, "P K 3"]] = None
 
     @property
     def num_points(self) -> int:
         return int(self.bits.shape[0])
 
 
-def visibility_rows(vis: Visibility, start: int, stop: int, pad: int = 0) -> Visibility:
-    """Rows [start, stop) of ``vis``, with ``pad`` rows of a visible-everywhere, +z-facing point added."""
+@dataclasses.dataclass(frozen=True, eq=False)
+class Bounce:
+    """Radiance arriving at the points along their blocked direction cells (module docstring), one
+    entry per zero bit of `Visibility.bits` (below K), row by row and cell by cell (numpy).
+
+    Attributes:
+        radiance: (N, 3) float32 linear radiance leaving the hit surface toward the point.
+        offsets: (P + 1,) int64: row p's entries are radiance[offsets[p]:offsets[p + 1]].
+    """
+
+    radiance: np.ndarray
+    offsets: np.ndarray
+
+
+def blocked_cells(bits: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cells) of the zero bits of packed ``bits`` (P, ceil(K / 8)) below ``count`` = K, in
+    row-major order: the order of `Bounce`'s entries."""
+    open_ = np.unpackbits(np.asarray(bits), axis=1, count=count, bitorder="little")
+    return np.nonzero(open_ == 0)
+
+
+def visibility_rows(vis: Visibility, start: int, stop: int, pad: int = 0,
+                    bounce: Optional[Bounce] = None) -> Visibility:
+    """Rows [start, stop) of ``vis``, with ``pad`` rows of a visible-everywhere, +z-facing point
+    added; with ``bounce`` (the whole of ``vis``'s) its entries of those rows as a dense (rows, K,
+    3) `Visibility.bounce`."""
     bits, normal = vis.bits[start:stop], vis.normal[start:stop]
+    dense = None
+    if bounce is not None:
+        count = int(np.max(np.asarray(vis.labels))) + 1
+        dense = np.zeros((stop - start + pad, count, 3), np.float32)
+        rows, cells = blocked_cells(np.asarray(bits), count)
+        dense[rows, cells] = bounce.radiance[bounce.offsets[start]:bounce.offsets[stop]]
+        dense = jnp.asarray(dense)
     if pad:
         bits = jnp.concatenate([bits, jnp.full((pad, bits.shape[1]), 255, bits.dtype)])
         normal = jnp.concatenate([normal, jnp.tile(jnp.asarray([[0.0, 0.0, 1.0]], normal.dtype), (pad, 1))])
-    return Visibility(vis.labels, bits, normal)
+    return Visibility(vis.labels, bits, normal, dense)
 
 
-def visible(vis: Visibility, l_world: Float[Array, "*b P 3"], d_env: Float[Array, "*b P 3"]) -> Float[Array, "*b P"]:
-    """V(p, l) for world directions ``l_world`` (and the same directions in the environment's
-    frame, ``d_env``) of the points of ``vis``, whose axis is the second-to-last: 1 or 0."""
+def _cell_lookup(vis: Visibility, l_world, d_env):
+    """(bit, above, p, k) for directions of the points of ``vis``: the cell's bit (1: open), whether
+    the direction is above the point's face, and the point and cell indices."""
     h, w = vis.labels.shape
     uv = direction_to_uv(d_env)
     i = jnp.clip(jnp.floor(uv[..., 1] * h).astype(jnp.int32), 0, h - 1)
@@ -193,7 +250,29 @@ def visible(vis: Visibility, l_world: Float[Array, "*b P 3"], d_env: Float[Array
     bit = (vis.bits[p, k >> 3] >> (k & 7).astype(jnp.uint8)) & jnp.uint8(1)
     ng = vis.normal.reshape(vis.normal.shape[:1] + (1,) * (k.ndim - 1 - _point_axis(k)) + (3,))
     above = dot3(jnp.broadcast_to(ng, l_world.shape).astype(l_world.dtype), l_world) > 0
+    return bit, above, p, k
+
+
+def visible(vis: Visibility, l_world: Float[Array, "*b P 3"], d_env: Float[Array, "*b P 3"]) -> Float[Array, "*b P"]:
+    """V(p, l) for world directions ``l_world`` (and the same directions in the environment's
+    frame, ``d_env``) of the points of ``vis``, whose axis is the second-to-last: 1 or 0."""
+    bit, above, _, _ = _cell_lookup(vis, l_world, d_env)
     return jnp.where(above, bit.astype(l_world.dtype), 0.0)
+
+
+def incoming(vis: Visibility, radiance: Float[Array, "*b P 3"], l_world: Float[Array, "*b P 3"],
+             d_env: Float[Array, "*b P 3"]) -> Float[Array, "*b P C"]:
+    """Radiance arriving at the points of ``vis`` along world directions ``l_world`` (``d_env`` in
+    the environment's frame) whose environment radiance is ``radiance``, above the point's face
+    (0 below it): V L_env (C = 3), and with ``vis.bounce`` the light of the blocked directions
+    beside it, [V L_env, (1 - V) L_bounce] (C = 6; module docstring), so that integrals of the two
+    come from the same samples."""
+    bit, above, p, k = _cell_lookup(vis, l_world, d_env)
+    open_ = bit.astype(radiance.dtype)[..., None]
+    out = radiance * open_
+    if vis.bounce is not None:
+        out = jnp.concatenate([out, (1.0 - open_) * vis.bounce[p, k].astype(radiance.dtype)], -1)
+    return jnp.where(above[..., None], out, 0.0)
 
 
 def _point_axis(k) -> int:

@@ -14,6 +14,10 @@ Two exact shortcuts spare most rays:
   point's horizon per sample direction themselves (`pbrfit.lighting.visibility.visible`), and
   the cell's part above the horizon counts as open.
 
+`blocked_hits` casts the blocked rays again for their closest hit, where the light a blocked
+direction brings comes from (`pbrfit.lighting.visibility.Bounce`), and `observed_radiance_at`
+reads that light from what the capture's pixels saw nearest to the hit.
+
 `occluded_share` says how much of the environment's irradiance the mesh blocks at some points:
 what ``occlusion="auto"`` decides with (`probe_share`), after `occluding_faces` found a face with
 mesh above it at all (none on a convex mesh: no ray is cast). `cast_visibility` puts it together:
@@ -31,21 +35,33 @@ from typing import Optional
 import numpy as np
 import trimesh
 from jaxtyping import Bool, Float
-from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 import jax.numpy as jnp
 
 from ..io.atomic import write_cache_file
 from ..lighting.environment import Environment
 from ..lighting.visibility import DirectionCells, OcclusionSettings, Visibility, direction_cells
+from ..lighting.visibility import blocked_cells
 from .gbuffer import SHADOW_OFFSET_REL
-from .raycast import BARYCENTRIC_SLACK, PARALLEL_EPS, any_hit_along
+from .raycast import BARYCENTRIC_SLACK, PARALLEL_EPS, any_hit_along, cast, make_first_hit
 
 __all__ = ["hull_vertices", "may_be_occluded", "occluding_faces", "environment_visibility", "occluded_share",
-           "shadow_offset", "probe_share", "cast_visibility"]
+           "shadow_offset", "probe_share", "cast_visibility", "blocked_hits", "observed_radiance_at",
+           "BOUNCE_NEIGHBOURS", "SAME_SURFACE_COS", "UNSEEN_SPACINGS"]
 
 #: Bump when the rays change, so that cached tables of an older release are not read.
 _CACHE_VERSION = "pbrfit-visibility/1"
+#: Rays per call of the closest-hit caster in `blocked_hits` (bounds its (rays, 3) arrays).
+_HIT_BLOCK = 1 << 20
+#: Seen points averaged by `observed_radiance_at` (the images' noise falls as 1/sqrt of it; the
+#: radiance is blurred over about that many pixels' footprints).
+BOUNCE_NEIGHBOURS = 8
+#: Least cosine between normals of points `observed_radiance_at` takes for the same surface (60°).
+SAME_SURFACE_COS = 0.5
+#: A hit whose nearest seen point is farther than this many times the seen points' median spacing
+#: counts as on a surface no camera saw (`observed_radiance_at`; the report's "unseen_hits").
+UNSEEN_SPACINGS = 4.0
 #: Points per block of `may_be_occluded` (bounds its (points, hull vertices) array).
 _HULL_BLOCK = 4096
 #: A closed mesh whose volume is within this fraction of its convex hull's is taken as convex: a
@@ -200,3 +216,83 @@ def cast_visibility(mesh: trimesh.Trimesh, env: Environment, points: Float[np.nd
     bits = environment_visibility(mesh, points, normals, cells.directions, cache_dir)
     return Visibility(jnp.asarray(cells.labels), jnp.asarray(bits),
                       jnp.asarray(np.asarray(normals, np.float32))), cells
+
+
+def blocked_hits(mesh: trimesh.Trimesh, points: Float[np.ndarray, "P 3"], normals: Float[np.ndarray, "P 3"],
+                 directions: Float[np.ndarray, "K 3"], bits: np.ndarray,
+                 cache_dir: Optional[os.PathLike] = None) -> tuple[np.ndarray, np.ndarray]:
+    """Where each blocked ray of ``bits`` (`environment_visibility`'s, for the same points, normals
+    and directions) first hits the mesh, in the order of `pbrfit.lighting.visibility.blocked_cells`:
+    (N, 3) float32 points and (N, 3) float32 unit normals of the faces hit, turned against the ray
+    (the side it sees); NaN where the closest-hit caster (Embree where installed) finds no face for
+    a ray the any-hit test found blocked (one grazing an edge). With ``cache_dir`` they are cached
+    beside the bits."""
+    rows, cells = blocked_cells(bits, len(directions))
+    path = None
+    if cache_dir is not None:
+        path = Path(cache_dir) / f"bounce-hits-{_cache_key(mesh, points, normals, directions)}.npy"
+        try:
+            cached = np.load(path, allow_pickle=False)
+            if cached.shape == (len(rows), 6) and cached.dtype == np.float32:
+                return cached[:, :3], cached[:, 3:]
+        except (OSError, ValueError, EOFError):  # missing or damaged: recompute
+            pass
+    out = np.full((len(rows), 6), np.nan, np.float32)
+    if len(rows):
+        points, normals = np.asarray(points, np.float64), np.asarray(normals, np.float64)
+        directions = np.asarray(directions, np.float64)
+        tri = np.asarray(mesh.triangles, np.float64)
+        face_normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        face_normal /= np.maximum(np.linalg.norm(face_normal, axis=-1, keepdims=True), np.finfo(np.float64).tiny)
+        first_hit = make_first_hit(mesh, "auto")
+        offset = shadow_offset(mesh)
+        for s in range(0, len(rows), _HIT_BLOCK):
+            r, k = rows[s:s + _HIT_BLOCK], cells[s:s + _HIT_BLOCK]
+            origin, d = points[r] + normals[r] * offset, directions[k]
+            face, t, _, _ = cast(first_hit, tri, origin, d)
+            hit = face >= 0
+            fn = face_normal[face[hit]]
+            fn *= -np.sign(np.sum(fn * d[hit], -1, keepdims=True) + 1e-30)
+            out[s:s + _HIT_BLOCK][hit] = np.concatenate([origin[hit] + t[hit, None] * d[hit], fn], -1)
+    if path is not None:
+        write_cache_file(path, lambda f: np.save(f, out))
+    return out[:, :3], out[:, 3:]
+
+
+def observed_radiance_at(seen: Float[np.ndarray, "R 3"], seen_normals: Float[np.ndarray, "R 3"],
+                         radiance: Float[np.ndarray, "R 3"], at: Float[np.ndarray, "N 3"],
+                         at_normals: Float[np.ndarray, "N 3"],
+                         neighbours: int = BOUNCE_NEIGHBOURS) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) float32 radiance leaving the surface at points ``at`` (with normals ``at_normals``),
+    read from ``radiance`` seen at points ``seen`` (a capture's pixels, normals ``seen_normals``):
+    of the ``neighbours`` seen points nearest to each, those whose normals lie within 60° of its
+    own (the same surface, not another one close by), their median per channel (a glint one
+    camera saw does not spread), or the nearest one's radiance where none does; 0 where ``at`` is
+    NaN (no hit). And (N,) bool: whether the nearest seen point is farther than `UNSEEN_SPACINGS`
+    times the seen points' median spacing (a surface no camera saw, read from the nearest one
+    that was)."""
+    radiance_out = np.zeros((len(at), 3), np.float32)
+    unseen = np.zeros(len(at), bool)
+    rows = np.flatnonzero(np.all(np.isfinite(at), -1))
+    if not len(rows) or not len(seen):
+        return radiance_out, unseen
+    seen = np.asarray(seen, np.float64)
+    tree = cKDTree(seen)
+    some = seen[:: max(1, len(seen) // 4096)]
+    spacing = float(np.median(tree.query(some, k=2, workers=-1)[0][:, 1])) if len(seen) > 1 else np.inf
+    k = min(int(neighbours), len(seen))
+    seen_normals, radiance = np.asarray(seen_normals, np.float32), np.asarray(radiance, np.float32)
+    for s in range(0, len(rows), _HIT_BLOCK):
+        r = rows[s:s + _HIT_BLOCK]
+        dist, idx = tree.query(np.asarray(at[r], np.float64), k=k, workers=-1)
+        dist, idx = dist.reshape(-1, k), idx.reshape(-1, k)
+        same = np.einsum("nkc,nc->nk", seen_normals[idx], np.asarray(at_normals[r], np.float32)) > SAME_SURFACE_COS
+        take = np.where(same.any(-1, keepdims=True), same, np.arange(k) == 0)
+        # the median of the m taken: those left out sorted last, the mean of the middle one or two
+        values = np.sort(np.where(take[..., None], radiance[idx], np.inf), axis=1)
+        m = take.sum(-1)
+        lo = np.take_along_axis(values, ((m - 1) // 2)[:, None, None], 1)[:, 0]
+        hi = np.take_along_axis(values, (m // 2)[:, None, None], 1)[:, 0]
+        radiance_out[r] = 0.5 * (lo + hi)
+        unseen[r] = dist[:, 0] > UNSEEN_SPACINGS * spacing
+    return radiance_out, unseen

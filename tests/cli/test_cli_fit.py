@@ -248,6 +248,9 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--continuation", "0.01", "--solver", "lm"], "--continuation: only the structured solver uses it, not --solver lm"),
         (["--ibl-samples", "64", "--ibl", "split_sum"], "--ibl-samples: only per-pixel integrals use it (--ibl per_pixel, or auto where it chooses them)"),
         (["--ibl-levels", "5", "--ibl", "split_sum"], "--ibl-levels: only per-pixel integrals use it (--ibl per_pixel, or auto where it chooses them)"),
+        (["--bounce", "off", "--ibl", "split_sum"], "--bounce: only per-pixel integrals with occlusion use it (not with --ibl split_sum)"),
+        (["--bounce", "on", "--occlusion", "off"], "--bounce: only per-pixel integrals with occlusion use it (not with --occlusion off)"),
+        (["--bounce", "sometimes"], "argument --bounce: invalid choice: 'sometimes'"),
         (["--maps", "none", "--resolution", "8"], "--resolution: --maps none fits one uniform material"),
         (["--maps", "none", "--smooth", "0.1"], "--smooth: --maps none fits one uniform material"),
         (["--maps", "none", "--coarse-to-fine"], "--coarse-to-fine: --maps none fits one uniform material"),
@@ -311,6 +314,8 @@ def test_options_that_mean_nothing_else_parse():
     assert parse("--solver", "lm", "--continuation", "none").continuation == ()
     assert parse("--maps", "none", "--continuation", "none", "--smooth", "0").maps == "none"
     assert parse("--ibl", "per_pixel", "--ibl-samples", "64").pixel_ibl_settings.samples == 64
+    assert parse("--bounce", "off").occlusion_settings.bounce == "off"
+    assert parse().occlusion_settings.bounce == "auto" and parse("--bounce", "on").occlusion_settings.bounce == "on"
 
 
 def test_fit_continuation_option(capture, tmp_path, monkeypatch):

@@ -1,4 +1,6 @@
-"""The default's choice of the environment light's model (`pbrfit.fitting.stages.ibl`)."""
+"""The default's choice of the environment light's model (`pbrfit.fitting.stages.ibl`), and of
+the light reflected between surfaces with per-pixel integrals (the bounce; on a Mitsuba capture
+with that light: `tests/test_synth_mitsuba.py`)."""
 
 import numpy as np
 import pytest
@@ -95,6 +97,14 @@ def test_auto_fits_a_path_traced_light_with_per_pixel_integrals(tmp_path, monkey
     assert report["ibl"]["mode"] == "per_pixel" and report["model"]["ibl"] == "per_pixel"
     assert choice["residual_sigma"]["per_pixel"] < 0.9 * choice["residual_sigma"]["split_sum"], choice
     assert report["occlusion"]["mode"] == "auto" and report["occlusion"]["used"]
+    # with the blocked directions bringing the light the images show where they land, the fit
+    # explains these images no better than with them dark (the Monte Carlo reference renders
+    # direct light only), and "auto" keeps the dark fit
+    bounce = report["occlusion"]["bounce"]
+    assert bounce["mode"] == "auto" and bounce["rays"] > 0 and 0 < bounce["unseen_hits"] < 1, bounce
+    sigma = bounce["residual_sigma"]
+    assert not bounce["used"] and sigma["bounce"] > (1 - ibl_stage.BOUNCE_MIN_GAIN) * sigma["dark"], bounce
+    assert report["times"]["bounce_probe"] > 0
     assert 0 < report["times"]["ibl_probe"] < report["wall_time"]
 
 

@@ -5,11 +5,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from data_synth import environments, meshes
-from pbrfit.lighting.environment import Environment
+from pbrfit.lighting.environment import Environment, to_environment_frame
 from pbrfit.lighting.ibl import IBLSettings, build_ibl, shade_ibl
 from pbrfit.lighting.montecarlo import monte_carlo_radiance
-from pbrfit.lighting.pixel_ibl import PixelIBLSettings, pixel_ibl, shade_pixel_ibl
-from pbrfit.lighting.visibility import OcclusionSettings, direction_cells, split_sum_factors
+from pbrfit.lighting.pixel_ibl import PixelIBLSettings, pixel_ibl, pixel_ibl_parts, shade_pixel_ibl
+from pbrfit.lighting.visibility import (Bounce, OcclusionSettings, blocked_cells, direction_cells, incoming,
+                                       split_sum_factors, visibility_rows)
 from pbrfit.physics.model import Model
 from pbrfit.scene.occlusion import cast_visibility
 
@@ -84,3 +85,49 @@ def test_split_sum_factors_come_closer_to_the_occluded_integrals():
     occluded = shade_ibl(tables, n, v, base, metal, rough, Model(), factors=factors)
     err = lambda x: float(np.mean(np.abs(np.asarray(x) - np.asarray(truth)) / np.asarray(truth).mean(1, keepdims=True)))  # noqa: E731
     assert err(occluded) < 0.5 * err(plain)
+
+
+def test_a_bounce_as_bright_as_the_light_it_hides_gives_the_open_integrals():
+    """Under an even sky, blocked directions that bring the sky's own radiance make the occluded
+    integrals those of no occlusion at all (the same samples: equal to rounding); a dark bounce
+    makes them those of occlusion alone; `incoming` picks the bounce only on blocked cells above
+    the point's face."""
+    mesh, points, normals, v = _scene_points()
+    even = Environment(jnp.full((32, 64, 3), 0.7, jnp.float32))
+    vis, cells = cast_visibility(mesh, even, points, normals)
+    rows, blocked = blocked_cells(np.asarray(vis.bits), cells.count)
+    assert len(rows) > 50
+    offsets = np.searchsorted(rows, np.arange(len(points) + 1))
+    n, v = jnp.asarray(normals, jnp.float32), jnp.asarray(v, jnp.float32)
+    model, settings = Model(ibl="per_pixel"), PixelIBLSettings(levels=5, samples=64)
+    table = lambda **kw: np.asarray(pixel_ibl(even, n, v, model, settings, **kw).table)  # noqa: E731
+    sky = Bounce(np.full((len(rows), 3), 0.7, np.float32), offsets)
+    dark = Bounce(np.zeros((len(rows), 3), np.float32), offsets)
+    np.testing.assert_allclose(table(visibility=vis, bounce=sky), table(), rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(table(visibility=vis, bounce=dark), table(visibility=vis), rtol=1e-5, atol=1e-7)
+    direct, bounced = pixel_ibl_parts(even, n, v, model, settings, visibility=vis, bounce=sky)
+    np.testing.assert_allclose(np.asarray(direct.table), table(visibility=vis), rtol=1e-5, atol=1e-7)
+    assert np.asarray(bounced.table).max() > 0.05  # the light the sphere hides, brought back by the bounce
+    assert np.mean(table(visibility=vis)) < 0.95 * np.mean(table())
+
+    colour = Bounce(np.tile(np.float32([[0.1, 0.2, 0.3]]), (len(rows), 1)) * (1 + np.arange(len(rows)))[:, None], offsets)
+    full = np.zeros((len(points), cells.count, 3), np.float32)
+    full[rows, blocked] = colour.radiance
+    middle = (len(points) // 3, 2 * len(points) // 3)  # rows from the middle, padded by two
+    some = visibility_rows(vis, *middle, 2, colour)
+    assert some.bounce.shape == (middle[1] - middle[0] + 2, cells.count, 3) and offsets[middle[0]] > 0
+    np.testing.assert_array_equal(np.asarray(some.bounce[:-2]), full[middle[0]:middle[1]])
+    assert not np.any(np.asarray(some.bounce[-2:]))
+    p = int(rows[0])
+    k_blocked = int(blocked[0])
+    k_open = int(np.flatnonzero(np.unpackbits(np.asarray(vis.bits)[p], count=cells.count, bitorder="little")
+                                & (cells.directions @ normals[p] > 0.3))[0])
+    below = -np.asarray(normals[p])
+    l = jnp.asarray(np.stack([cells.directions[k_blocked], cells.directions[k_open], below])[:, None], jnp.float32)
+    d = to_environment_frame(l, even.world_up, even.rotation_deg)
+    rad = jnp.full(l.shape, 0.7, jnp.float32)
+    got = np.asarray(incoming(visibility_rows(vis, p, p + 1, 0, colour), rad, l, d))[:, 0]
+    assert got.shape == (3, 6)  # [the environment's light, the bounce's]
+    np.testing.assert_allclose(got[0], np.r_[np.zeros(3), colour.radiance[offsets[p]]], rtol=1e-6)
+    np.testing.assert_allclose(got[1], np.r_[np.full(3, 0.7), np.zeros(3)], rtol=1e-6)
+    np.testing.assert_array_equal(got[2], 0.0)
