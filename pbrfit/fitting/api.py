@@ -151,7 +151,8 @@ def _observed_bounce(capture, obs: Observations, points, normals, visibility: Vi
     at, at_normals = blocked_hits(capture.mesh, points, normals, cells.directions, np.asarray(visibility.bits),
                                   cache_dir)
     seen = slice(0, obs.num_rows)
-    radiance, unseen = observed_radiance_at(points[seen], normals[seen], linear_radiance(obs), at, at_normals)
+    radiance, unseen = observed_radiance_at(points[seen], normals[seen], np.asarray(linear_radiance(obs)), at,
+                                            at_normals)
     rows, _ = blocked_cells(np.asarray(visibility.bits), cells.count)
     offsets = np.searchsorted(rows, np.arange(len(points) + 1)).astype(np.int64)
     entry = dict(mode=options_bounce, used=True, rays=len(at), missed=int(np.sum(~np.isfinite(at[:, 0]))),

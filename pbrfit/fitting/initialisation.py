@@ -53,8 +53,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..physics.color import encode, inverse_tonemap, srgb_to_linear, tonemap
+from ..physics.color import encode, tonemap
 from ..physics.brdf import MIN_ROUGHNESS
+from .observations import inverted_targets, linear_radiance
 from .parameters import LOWER, UPPER
 from ..render.shade import shade
 from .objective import (Problem, objective, pixel_residuals, robust_residual, sample_texels, scatter_texels,
@@ -105,17 +106,10 @@ _TINY = 1e-30
 GRID_BASE_CG_STEPS = 3
 
 
-def _inverted_targets(problem: Problem):
-    """The targets as the tone map's input: sRGB decoded, the tone map inverted (`inverse_tonemap`)."""
-    obs = problem.obs
-    y = srgb_to_linear(obs.target) if obs.color_space == "srgb" else obs.target
-    return inverse_tonemap(y, obs.tonemap)
-
-
 def _tonemap_slopes(problem: Problem, inverted):
     """(P, 3) per pixel and channel, d(tone-mapped value)/d(radiance) at the target: the tone map's
-    slope (its Jacobian's diagonal) at `inverted` (`_inverted_targets`), times 2^exposure; None without a
-    tone map. The grid start weights its base-colour least squares by it, which makes them a
+    slope (its Jacobian's diagonal) at `inverted` (`pbrfit.fitting.observations.inverted_targets`),
+    times 2^exposure; None without a tone map. The grid start weights its base-colour least squares by it, which makes them a
     linearised fit of the tone-mapped values: near the top of the display range a tone map is
     flat, one 8-bit code there spans a large range of radiance, and unweighted, those few pixels
     decided whole texels' base colours."""
@@ -126,13 +120,6 @@ def _tonemap_slopes(problem: Problem, inverted):
     diag = [jax.jvp(lambda v: tonemap(v, obs.tonemap), (x,), (jnp.zeros_like(x).at[:, c].set(1.0),))[1][:, c]
             for c in range(3)]
     return jnp.stack(diag, axis=1) * jnp.exp2(obs.exposure)[:, None]
-
-
-def _linear_targets(problem: Problem, inverted=None):
-    """The targets as linear radiance: `_inverted_targets` (or `inverted`, already computed) with
-    the exposure divided out."""
-    inverted = _inverted_targets(problem) if inverted is None else inverted
-    return inverted * jnp.exp2(-problem.obs.exposure)[:, None]
 
 
 def _candidates(roughness, dtype, metallic=METALLIC_CANDIDATES) -> jnp.ndarray:
@@ -196,8 +183,8 @@ def grid_initialise(x_fixed, problem: Problem):
     free = problem.free
     seen = jnp.max(free, axis=1) > 0
     fixed_m = sample_texels(x_fixed, problem)  # (P, 5) sampled values of the fixed channels
-    inverted = _inverted_targets(problem)
-    y = _linear_targets(problem, inverted)
+    inverted = inverted_targets(obs)
+    y = linear_radiance(obs, inverted)
     slope = _tonemap_slopes(problem, inverted)
     metal_free = jnp.max(free[:, 3]) > 0
     rough_free = jnp.max(free[:, 4]) > 0
@@ -320,7 +307,7 @@ def coordinate_search(x, problem: Problem, classes, rounds=1, blend: bool = True
     """
     obs = problem.obs
     free = problem.free
-    y = _linear_targets(problem)
+    y = linear_radiance(obs)
     metal_free = free[:, 3:4] > 0
     rough_free = free[:, 4:5] > 0
     base_free = free[:, 0:3] > 0

@@ -43,11 +43,11 @@ from ..render.views import capture_gbuffers, capture_views, view_rows
 from ..scene.camera import pixel_offsets, sample_camera
 from ..physics.textures import bilinear_weights
 from ..transfer import to_device
-from ..physics.color import inverse_tonemap, linear_to_srgb_host, srgb_to_linear_host
+from ..physics.color import inverse_tonemap, linear_to_srgb_host, srgb_to_linear
 
 __all__ = ["Observations", "PIXEL_FIELDS", "TexelLayout", "CELL_CORNERS", "observations_from_views",
            "observations_from_capture", "row_geometry", "MAX_PIXEL_SAMPLES", "texel_layout", "uniform_layout",
-           "layout_for", "coverage_counts", "neighbour_pairs", "linear_radiance"]
+           "layout_for", "coverage_counts", "neighbour_pairs", "inverted_targets", "linear_radiance"]
 
 
 #: The per-pixel fields of `Observations` (leading axis: rows, P × samples).
@@ -369,10 +369,15 @@ def neighbour_pairs(shape: tuple[int, int]) -> np.ndarray:
     return np.concatenate([right, down], 0).astype(np.int32)
 
 
-def linear_radiance(obs: Observations) -> np.ndarray:
-    """(R, 3) float64: the radiance each row of ``obs`` saw, its image values with the sRGB curve
-    and the tone map undone and the exposure divided out."""
-    y = np.asarray(obs.target, np.float32)
-    if obs.color_space == "srgb":
-        y = srgb_to_linear_host(y)
-    return np.asarray(inverse_tonemap(y, obs.tonemap), np.float64) * np.exp2(-np.asarray(obs.exposure, np.float64))[:, None]
+def inverted_targets(obs: Observations) -> Float[Array, "R 3"]:
+    """The rows' image values as the tone map's input: sRGB decoded, the tone map inverted
+    (`pbrfit.physics.color.inverse_tonemap`)."""
+    y = srgb_to_linear(obs.target) if obs.color_space == "srgb" else obs.target
+    return inverse_tonemap(y, obs.tonemap)
+
+
+def linear_radiance(obs: Observations, inverted: Optional[Array] = None) -> Float[Array, "R 3"]:
+    """The radiance each row of ``obs`` saw: `inverted_targets` (or ``inverted``, already
+    computed) with the exposure divided out."""
+    inverted = inverted_targets(obs) if inverted is None else inverted
+    return inverted * jnp.exp2(-obs.exposure)[:, None]

@@ -31,9 +31,8 @@ Indoor Scenes with Texture-space Differentiable Rendering" (EGSR 2021), read onc
 refreshed: what a camera saw holds every bounce of the real scene, and needs no material. The
 error is the hit surface's view dependence (its radiance toward the cameras stands for its
 radiance toward the point) and, where no camera saw the hit, the nearest seen surface standing
-for it. The
-integrators read V(p, l) L_env(l) + (1 - V(p, l)) L_bounce(p, cell(l)) (`incoming`), still
-times the point's horizon test.
+for it. The integrators read V(p, l) L_env(l) + (1 - V(p, l)) L_bounce(p, cell(l))
+(`incoming`), still times the point's horizon test.
 
 The split sum has no per-sample directions to mask; it takes per-point factors instead
 (`split_sum_factors`): the share of the irradiance that arrives (diffuse) and the share of the

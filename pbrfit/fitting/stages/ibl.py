@@ -119,10 +119,10 @@ def per_pixel_explains_better(split_sum_report: dict, per_pixel_report: dict) ->
 
 #: The bounce's fit (`pbrfit.lighting.visibility.Bounce`) is kept where its residual σ is at least
 #: this share below the fit with the blocked directions dark. It adds light, which a fitted
-#: material can partly absorb: on renders of direct light only the two fits come within 0.4% of
-#: each other (pbrfit's Monte Carlo sphere on a floor: 0.3%, the bounce's slightly lower; Mitsuba
-#: at max_depth 2: 0.4%, the dark one's lower), and with light reflected between surfaces the
-#: bounce's is 9% lower (Mitsuba, max_depth 4).
+#: material can partly absorb, so a tie goes to the dark fit: on the Mitsuba captures of
+#: experiments/pathtraced.md the bounce's σ is 0.02% and 0.9% higher at max_depth 2 (direct light
+#: only) and 8.0% and 4.6% lower at max_depth 4; on pbrfit's Monte Carlo sphere on a floor (direct
+#: light only) 26% higher.
 BOUNCE_MIN_GAIN = 0.01
 
 
