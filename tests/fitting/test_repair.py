@@ -3,7 +3,8 @@
 import numpy as np
 
 from pbrfit.fitting.stages.repair import MISFIT_FLOOR, identifiable_texels, misfit_texels, outlier_texels, texel_misfit, well_seen_texels
-from pbrfit.fitting.stages.repair import evidence_variance, fill_from_nearest, improved_clusters, repair_region
+from pbrfit.fitting.stages.repair import (NOISE_DEVIATIONS, evidence_variance, fill_from_nearest, improved_clusters,
+                                         repair_region)
 from pbrfit.fitting.uncertainty import residual_variance
 
 
@@ -184,6 +185,23 @@ def test_improved_clusters_judges_each_cluster_by_its_own_pixels():
     moving2 = np.array([True, True, False, False, True, True])
     better, clusters, improved = improved_clusters(moving2, np.ones((1, 3)), np.zeros((1, 3)), index2, weight2, 2)
     assert (clusters, improved) == (1, 1) and np.array_equal(better, moving2)
+
+
+def test_improved_clusters_bounds_what_a_refit_can_gain_under_noise():
+    # one moving texel read by 100 pixels, each with 3 residuals of 1: m = 300 residuals, p = 1
+    index = np.zeros((100, 4), np.int64)
+    weight = np.zeros((100, 4))
+    weight[:, 0] = 1.0
+    moving = np.array([True, False])
+    before = np.ones((100, 3))
+    # under noise of variance 1 a re-fit reaches no less than 299 - 3 √598 ≈ 225.6, so the most
+    # it can gain is about 74.4: possible under a margin of 74, not of 75
+    least = 299 - NOISE_DEVIATIONS * np.sqrt(2 * 299)
+    assert improved_clusters(moving, before, None, index, weight, 1, margin=300 - least - 0.1, noise=1.0)[2] == 1
+    assert improved_clusters(moving, before, None, index, weight, 1, margin=300 - least + 0.1, noise=1.0)[2] == 0
+    # noise of variance 2 leaves nothing to gain; no noise: the bound is 0, anything above the margin
+    assert improved_clusters(moving, before, None, index, weight, 1, margin=1.0, noise=2.0)[2] == 0
+    assert improved_clusters(moving, before, None, index, weight, 1, margin=299.0)[2] == 1
 
 
 def test_fill_from_nearest_copies_free_channels_of_the_nearest_source():

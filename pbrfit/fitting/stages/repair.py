@@ -62,7 +62,10 @@ The repair finds the cluster by its misfit and starts it again from outside:
    1% noise, without the √(2p) term, a cluster of 1,743 texels that fit better by about 43 σ̂²
    took metallic from 0.036 to 0.049 RMSE; its threshold is 274 σ̂², and it is put back. It
    costs a search and `REPAIR_STEPS` steps per fit: about 3 s on the peer scene and the demo,
-   14 s on the flash scene (whose search runs on 2 × 2 samples per pixel).
+   23 s on the flash scene (2 × 2 samples per pixel). It runs only where some cluster could
+   clear its threshold: where its pixels' Σ ||r||² lies that far above the least a re-fit
+   reaches under the fit's residual variance (`NOISE_DEVIATIONS`); on the noiseless flash scene,
+   whose 16-bit images are fitted to their rounding, none can, and the pass is skipped.
 
 Which texels are out of line after a solve, by their pixels' misfit or by their values against
 their neighbours':
@@ -105,7 +108,7 @@ from ..objective import Problem
 from ...transfer import to_device
 from ..uncertainty import block_standard_errors, residual_variance
 
-__all__ = ["REPAIR_ROUNDS", "REPAIR_STEPS", "REPAIR_PASSES", "REPAIR_PROGRESS", "OUTLIER_EVIDENCE", "OUTLIER_SPREAD",
+__all__ = ["REPAIR_ROUNDS", "REPAIR_STEPS", "REPAIR_PASSES", "REPAIR_PROGRESS", "OUTLIER_EVIDENCE", "OUTLIER_SPREAD", "NOISE_DEVIATIONS",
            "repair_region", "fill_from_nearest", "improved_clusters", "evidence_variance", "repair_skipped",
            "run_repair",
            "MISFIT_FACTOR", "MISFIT_FLOOR", "WELL_SEEN_FRACTION", "OUTLIER_DEVIATION", "OUTLIER_REFERENCES",
@@ -299,6 +302,10 @@ OUTLIER_EVIDENCE = 10.0
 #: ... plus this many times √(2p) σ̂², p the cluster's free channels: the spread of Σ ||r||² between
 #: two fits of the same noise (χ² with p degrees of freedom).
 OUTLIER_SPREAD = 2.0
+#: A pass runs only where some cluster could be kept: where its pixels' Σ ||r||² lies further above
+#: the least a re-fit reaches under the fit's residual variance ((m - p) σ̂², less this many
+#: standard deviations of that χ²) than the cluster's threshold.
+NOISE_DEVIATIONS = 3.0
 
 
 def repair_region(
@@ -337,7 +344,7 @@ def fill_from_nearest(
 def improved_clusters(
     moving: Bool[np.ndarray, " T"], before: Float[np.ndarray, "P C"], after: Float[np.ndarray, "P C"],
     index: Int[np.ndarray, "R 4"], weight: Float[np.ndarray, "R 4"], samples: int, margin: float = 0.0,
-    spread: float = 0.0, dof: Optional[Int[np.ndarray, " T"]] = None,
+    spread: float = 0.0, dof: Optional[Int[np.ndarray, " T"]] = None, noise: float = 0.0,
 ) -> tuple[Bool[np.ndarray, " T"], int, int]:
     """(the moving texels whose cluster's pixels fit better after than before, by more than
     ``margin`` + ``spread`` √(2 p) in Σ ||r_p||² (p: the sum of ``dof``, each texel's free
@@ -347,7 +354,12 @@ def improved_clusters(
     A cluster is a connected component of the graph on the moving texels that joins two texels
     where one pixel reads both (any sample, any bilinear tap with positive weight): clusters share
     no pixel, so with the other texels held, a cluster's pixels change with it alone and each is
-    judged by Σ ||r_p||² over the pixels that read it, ``before`` and ``after`` per pixel."""
+    judged by Σ ||r_p||² over the pixels that read it, ``before`` and ``after`` per pixel.
+
+    ``after`` None asks whether a re-fit could keep any cluster at all: a cluster's Σ ||r||² after
+    is then the least a fit of its m residuals and p free channels reaches under noise of variance
+    ``noise``, (m - p) ``noise`` less `NOISE_DEVIATIONS` times the spread of that χ², √(2 (m - p))
+    ``noise`` (0 with no noise: no bound but 0)."""
     moving = np.asarray(moving, bool)
     t = moving.shape[0]
     rows = index.shape[0]
@@ -370,13 +382,16 @@ def improved_clusters(
     pixel_cluster[pixel] = cluster[texel]
     on = pixel_cluster >= 0
     err = lambda r: np.sum(np.square(np.asarray(r, np.float64)[:num_pixels]), axis=1)[on]
+    dof = np.ones(t) if dof is None else np.asarray(dof, np.float64)
+    p = np.bincount(cluster[read], weights=dof[read], minlength=n)
     e_before = np.bincount(pixel_cluster[on], weights=err(before), minlength=n)
-    e_after = np.bincount(pixel_cluster[on], weights=err(after), minlength=n)
-    threshold = margin
-    if spread > 0:
-        dof = np.ones(t) if dof is None else np.asarray(dof, np.float64)
-        p = np.bincount(cluster[read], weights=dof[read], minlength=n)
-        threshold = margin + spread * np.sqrt(2.0 * p)
+    if after is None:
+        m = np.asarray(before).shape[1] * np.bincount(pixel_cluster[on], minlength=n)
+        left = np.maximum(m - p, 0.0)
+        e_after = np.maximum(left - NOISE_DEVIATIONS * np.sqrt(2.0 * left), 0.0) * noise
+    else:
+        e_after = np.bincount(pixel_cluster[on], weights=err(after), minlength=n)
+    threshold = margin + spread * np.sqrt(2.0 * p)
     better = e_after < e_before - threshold
     return read & better[np.maximum(cluster, 0)], n, int(np.sum(better))
 
@@ -449,14 +464,15 @@ def run_repair(runner, compiler, problem: Problem, xs, linearization, shape, see
         moving[:t] = repair_region(flagged, trusted, tuple(shape))
         dof = np.sum(free > 0, axis=1)
         if margin > 0:  # a cluster is kept only where its pixels' Σ ||r||² falls by more than its
-            # threshold, so not where Σ ||r||² is below that already: such a pass is not run
-            r = linearization[0]
-            _, clusters, possible = improved_clusters(moving, r, np.zeros_like(r), index, weight, problem.samples,
-                                                      margin, spread, dof)
+            # threshold, so not where Σ ||r||² is within that of what the noise leaves: such a pass
+            # is not run (on the noiseless flash scene, a 16-bit capture fitted to its rounding: 23 s)
+            noise = residual_variance(energy, 3 * obs.num_pixels, num_free)
+            _, clusters, possible = improved_clusters(moving, linearization[0], None, index, weight, problem.samples,
+                                                      margin, spread, dof, noise)
             if not possible:
                 entry.update(moved=0, clusters=clusters, clusters_kept=0, texels_kept=0, energy_before=energy,
                              energy_after=energy, steps=0, kept=False,
-                             skipped="no cluster's pixels misfit by more than the evidence threshold")
+                             skipped="no cluster's pixels misfit by more than noise and the evidence threshold")
                 return False
         region = dataclasses.replace(problem, free=jax.device_put(free * moving[:, None], problem.free.sharding))
         y = fill_from_nearest(xs, flagged, trusted, tuple(shape), free)
