@@ -281,7 +281,8 @@ def _linearize_samples(m, problem: Problem):
     mean = jnp.mean(by_pixel(rad, problem), axis=1)
     pixel = lambda rr, e, t, w: _value_and_jacfwd(lambda v: _value_residual(v, e, t, w, problem), rr)  # noqa: E731
     r, jenc = jax.vmap(pixel)(mean, *_value_args(problem.obs))
-    jac = jnp.einsum("pab,psbk->psak", jenc, by_pixel(jrad, problem), precision=lax.Precision.HIGHEST)
+    # by elements, not a batched dot of 3 × 3 blocks (which a CPU runs slower)
+    jac = jnp.sum(jenc[:, None, :, :, None] * by_pixel(jrad, problem)[:, :, None, :, :], axis=3)
     return r, jac.reshape(jrad.shape) / problem.samples
 
 
