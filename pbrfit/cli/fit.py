@@ -130,8 +130,8 @@ def fit_options(args):
     if args.bounce is not None and (args.ibl == "split_sum" or args.occlusion == "off"):
         raise CaptureError("--bounce: only per-pixel integrals with occlusion use it (not with "
                            f"{'--ibl split_sum' if args.ibl == 'split_sum' else '--occlusion off'})")
-    pixel_samples = args.pixel_samples
-    if pixel_samples != "auto":
+    pixel_samples = args.pixel_samples  # None: the --quality rung's, else auto
+    if pixel_samples not in (None, "auto"):
         if not (pixel_samples.isascii() and pixel_samples.isdigit() and 1 <= int(pixel_samples) <= MAX_PIXEL_SAMPLES):
             raise CaptureError(f"--pixel-samples: expected auto or 1 to {MAX_PIXEL_SAMPLES}, got {args.pixel_samples}")
         pixel_samples = int(pixel_samples)

@@ -153,7 +153,7 @@ def add_fit(sub) -> None:
         p.add_argument(f"--{flag}-from", metavar="DIR", help=f"hold {name} fixed at the map in a material folder")
     p.add_argument("--quality", choices=tuple(QUALITY), default="default",
                    help="the speed ladder: draft previews in a fraction of the time (no search, repair, uniform check "
-                        "or continuation; looser conjugate gradients), best solves to tighter tolerances; flags given "
+                        "or continuation; looser conjugate gradients; pixel centres), best solves to tighter tolerances; flags given "
                         "with it win (default: default; docs/options.md)")
     p.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER, help=f"default {DEFAULT_SOLVER}")
     p.add_argument("--max-steps", type=int, help=f"solver steps at the final resolution (default {MAX_STEPS}); the repair's and the "
@@ -194,7 +194,7 @@ def add_fit(sub) -> None:
                         "capture shows on the surface it hits (light reflected between surfaces, as in a photograph or "
                         "a path tracer's render) or none (a render of direct light only). Default auto: fit both ways "
                         "at pixel centres, keep the one of lower residual; report.json's \"occlusion\" says which")
-    p.add_argument("--pixel-samples", default="auto", metavar="{auto,N}",
+    p.add_argument("--pixel-samples", metavar="{auto,N}",
                    help=f"shade N x N samples per pixel (N from 1 to {MAX_PIXEL_SAMPLES}) and fit their mean: the pixel "
                         "footprint of an antialiased or supersampled capture (1: pixel centres; cost grows as N^2). Default auto: for "
                         "sRGB or tone-mapped images, fit both 2 x 2 samples and centres and keep the better match; for "

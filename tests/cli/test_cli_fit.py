@@ -790,6 +790,8 @@ def test_quality_rungs_set_the_options_not_given():
     assert draft.solver.cg_rtol == QUALITY["draft"]["cg_rtol"] and draft.continuation is None
     assert options("--quality", "draft", "--cg-rtol", "0.01").cg_rtol == 0.01
     assert options("--quality", "draft", "--continuation", "0.01").continuation == (0.01,)
+    assert draft.pixel_samples == 1 and options().pixel_samples == "auto"
+    assert options("--quality", "draft", "--pixel-samples", "auto").pixel_samples == "auto"
     best = options("--quality", "best")
     assert (best.max_steps, best.solver.rtol) == (QUALITY["best"]["max_steps"], QUALITY["best"]["rtol"])
     assert options("--quality", "best", "--max-steps", "7").max_steps == 7
