@@ -55,8 +55,7 @@ STRUCTURED_ONLY = ("cg_rtol", "continuation")
 #: The speed ladder (``quality=``, ``--quality``): per rung, the options it sets where they are
 #: left at their defaults. "draft" previews in a fraction of the default's time (no search,
 #: repair, uniform check or continuation; each step's conjugate gradients to 0.1; pixel centres,
-#: not the automatic footprint's two fits: on the 2 × 2-supersampled flash scene 9.7 s against
-#: 23 s, base colour / roughness RMSE 0.011 / 0.040 against 0.001 / 0.024); "best" runs
+#: not the automatic footprint's two fits); "best" runs
 #: the solve to tighter tolerances and a larger step budget. `experiments/speed.md` measures each.
 QUALITY = {
     "draft": dict(search=False, repair=False, uniform_check=False, continuation=None, cg_rtol=0.1, pixel_samples=1),
