@@ -221,21 +221,41 @@ def sh9_irradiance(coeffs: Float[Array, "9 3"], n: Float[Array, "*b 3"]) -> Floa
     return e / math.pi
 
 
-@functools.partial(jax.jit, static_argnames=("height",))
 def irradiance_map(radiance: Float[Array, "H W 3"], height: int) -> Float[Array, "h 2h 3"]:
     """E/π on an (height, 2 height) equirect by brute-force cosine convolution of a box-filtered source.
 
     E(n)/π = (1/π) Σ_k L_k max(0, n·ω_k) Ω_k over the source texels k (exact solid angles Ω_k),
     with the weights normalised to sum to 1 (their exact integral), so a constant stays exact.
+    The weights depend on the shapes alone: they are formed once per shape pair, outside the
+    compiled program, and passed to it (as a constant they would be lowered into its text).
     """
-    hs = min(radiance.shape[0], max(2 * height, IRRADIANCE_SOURCE_MIN_HEIGHT))
-    src = resample_equirect(radiance, hs, 2 * hs)
-    ds = texel_directions(hs, 2 * hs).reshape(-1, 3)
-    om = np.broadcast_to(texel_solid_angles(hs, 2 * hs), (hs, 2 * hs)).reshape(-1)
+    return _convolve_irradiance(radiance, _irradiance_kernel(radiance.shape[0], height, radiance.dtype))
+
+
+def _irradiance_kernel(source_height: int, height: int, dtype) -> Float[Array, "n m"]:
+    hs = min(source_height, max(2 * height, IRRADIANCE_SOURCE_MIN_HEIGHT))
+    return jnp.asarray(_cosine_weights(hs, height), dtype)
+
+
+@functools.lru_cache(maxsize=8)
+def _cosine_weights(source_height: int, height: int) -> np.ndarray:
+    ds = texel_directions(source_height, 2 * source_height).reshape(-1, 3)
+    om = np.broadcast_to(texel_solid_angles(source_height, 2 * source_height),
+                         (source_height, 2 * source_height)).reshape(-1)
     dn = texel_directions(height, 2 * height).reshape(-1, 3)
     kernel = np.maximum(dn @ ds.T, 0.0) * om[None, :]
     kernel /= kernel.sum(1, keepdims=True)      # = (1/π) Σ max(0, n·ω) Ω, exactly 1 once discretised
-    out = jnp.matmul(jnp.asarray(kernel, radiance.dtype), src.reshape(-1, 3), precision=jax.lax.Precision.HIGHEST)
+    kernel.flags.writeable = False
+    return kernel
+
+
+@jax.jit
+def _convolve_irradiance(radiance, kernel):
+    """`irradiance_map` given its weights (height·2height, source texels)."""
+    height = math.isqrt(kernel.shape[0] // 2)
+    hs = math.isqrt(kernel.shape[1] // 2)
+    src = resample_equirect(radiance, hs, 2 * hs)
+    out = jnp.matmul(kernel, src.reshape(-1, 3), precision=jax.lax.Precision.HIGHEST)
     return out.reshape(height, 2 * height, 3)
 
 
@@ -309,7 +329,7 @@ def prefiltered_lookup(tables: IBLTables, r_env: Float[Array, "*b 3"], roughness
 # --- building and shading ------------------------------------------------------------------------
 
 @functools.partial(jax.jit, static_argnames=("settings",))
-def _build(radiance, settings: IBLSettings):
+def _build(radiance, irradiance_kernel, settings: IBLSettings):
     h, w, _ = radiance.shape
     if h > settings.env_resolution:
         hs = settings.env_resolution
@@ -318,7 +338,7 @@ def _build(radiance, settings: IBLSettings):
     if settings.irradiance == "sh9":
         irr = sh9_coefficients(radiance)
     else:
-        irr = irradiance_map(radiance, settings.irradiance_resolution)
+        irr = _convolve_irradiance(radiance, irradiance_kernel)
     levels = []
     for i in range(settings.prefilter_levels):
         r = i / (settings.prefilter_levels - 1)
@@ -340,7 +360,11 @@ def build_ibl(env: Environment, settings: IBLSettings = IBLSettings(), model: Op
     and the diffuse lobe tabulated (default `Model()`, the glTF BRDF).
     """
     model = model or Model()
-    irr, pre = _build(env.radiance, settings)
+    kernel = None
+    if settings.irradiance != "sh9":
+        kernel = _irradiance_kernel(min(env.radiance.shape[0], settings.env_resolution),
+                                    settings.irradiance_resolution, env.radiance.dtype)
+    irr, pre = _build(env.radiance, kernel, settings)
     shapes = _prefiltered_shapes(settings)
     spec = _specular_tables(settings.lut_size, settings.lut_samples, model).astype(pre.dtype)
     dif = diffuse_lut(settings.lut_size, settings.lut_samples, model).astype(pre.dtype)
