@@ -21,7 +21,7 @@ from .stages.selection import profile_hessian, uniform_direction
 from .objective import linearize, objective, pixel_residuals
 from ..physics.textures import resample_map
 from ..transfer import to_device
-from .uncertainty import WINDOW_RADIUS, residual_variance, window_radii, window_standard_errors
+from .uncertainty import WINDOW_RADIUS, residual_variance, sandwich_ratios, window_radii, window_standard_errors
 
 __all__ = ["FitResult", "closed_times", "finish", "map_rmse", "texel_standard_errors", "truth_at"]
 
@@ -91,10 +91,35 @@ def texel_standard_errors(problem, x, jac, data_energy: float, final, texel_chan
     return sigma, sigma2
 
 
+def misfit_ratios(problem, x, r, jac, sigma2: float, texel_channels, seen, num_pixels: int, num_uniform: int = 0):
+    """(T, K) how much more variance each texel's pixels show than σ̂² accounts for, at least 1:
+    the sandwich's ratio (`pbrfit.fitting.uncertainty.sandwich_ratios`) of its block, with the
+    channels on a bound held as `texel_standard_errors` holds them. The pooled σ̂² is the better
+    estimate of the noise (every residual of the fit against a texel's few dozen), so a ratio
+    under 1 is read as that estimate's scatter, and only the excess widens σ: the variance of a
+    texel whose pixels the model does not fit as well as the rest (light it cannot represent, a
+    wrong basin). The meat's rows, r_pᵀ J_p, go into the Jacobians' first residual channel
+    (the others 0), so that `normal_blocks`' program for the Jacobians serves them."""
+    k = len(texel_channels)
+    jac_np = np.asarray(jac, np.float32)
+    rows = np.repeat(np.asarray(r, np.float32), problem.samples, axis=0)[: jac_np.shape[0]]
+    g = np.zeros_like(jac_np)
+    g[:, 0, :] = np.einsum("rc,rck->rk", rows, jac_np)
+    meat = np.asarray(jitted_normal_blocks(g, problem))
+    blocks = np.asarray(jitted_normal_blocks(jac, problem))
+    n = 3 * int(num_pixels)
+    n_par = int(np.sum(seen)) * int(np.sum(texel_channels)) + int(num_uniform)
+    xt = np.asarray(x, np.float32).reshape(-1, k)
+    pinned = (xt <= lower(k)) | (xt >= upper(k))
+    ratios = sandwich_ratios(blocks, meat, np.asarray(texel_channels) > 0, seen, sigma2, n / max(n - n_par, 1), pinned)
+    return np.maximum(ratios, 1.0)
+
+
 def finish(obs, state, x, model, options, history, times, t_start):
     """The result at the fit's x. The maps' standard errors come from each texel's window of
     ``uncertainty_radius`` (`pbrfit.fitting.uncertainty.window_standard_errors`; 0: its own block), with
-    the channels that sit on a bound held for the others' errors.
+    the channels that sit on a bound held for the others' errors, widened where the texel's own
+    pixels show more variance than σ̂² (`misfit_ratios`).
     ``uniform`` {channel: value}: channels fitted as one common value
     (`pbrfit.fitting.stages.selection.run_uniform_check`); their standard errors, at every seen texel, are
     σ̂ sqrt(diag(P⁻¹)) for P their profile curvature matrix (`pbrfit.fitting.stages.selection.profile_hessian`).
@@ -130,6 +155,8 @@ def finish(obs, state, x, model, options, history, times, t_start):
     else:
         sigma, sigma2 = texel_standard_errors(problem, x, jac, float(data_energy), final, texel_channels, seen,
                                               obs.num_pixels, len(uniform), uncertainty_radius)
+    sigma = sigma * np.sqrt(misfit_ratios(problem, x, r, jac, sigma2, texel_channels, seen, obs.num_pixels,
+                                          len(uniform))).astype(np.float32)
     if uniform:
         cs = sorted(uniform)
         directions = np.stack([uniform_direction(seen, c, k) for c in cs])

@@ -29,6 +29,11 @@ A channel that sits on a bound of its range is held by the projected solver
 well (``pinned``). Counted as free, a binary metallic map at 0 and 1 widened base colour's σ
 on the flash scene until the fits scattered by 0.62 σ (experiments/uncertainty.md).
 
+σ̂² is one variance for every residual. `sandwich_ratios` compares, per texel and channel, the
+variance its own pixels' residuals show (the sandwich D⁻¹ M D⁻¹ of its block) with σ̂² D⁻¹; the
+fit widens σ by that ratio where it exceeds 1 (`pbrfit.fitting.result.misfit_ratios`): the texels
+whose pixels the model misses.
+
 A direction the images do not constrain (a channel no view separates, e.g. roughness where no
 highlight is ever seen) has a tiny eigenvalue: its σ is large, and +inf when the eigenvalue is
 below `EIGEN_FLOOR` of the block's largest. Fixed channels get 0, unobserved texels +inf.
@@ -41,7 +46,7 @@ import numpy as np
 from .normal_matrix import NEIGHBOUR_OFFSETS
 
 __all__ = ["EIGEN_FLOOR", "MAX_UNCERTAINTY_RADIUS", "WINDOW_RADIUS", "block_standard_errors", "residual_variance",
-           "window_precisions", "window_radii", "window_standard_errors"]
+           "sandwich_ratios", "window_precisions", "window_radii", "window_standard_errors"]
 
 #: Eigenvalues below this fraction of a block's largest count as unconstrained (float32 round-off
 #: of JᵀJ sits near 1e-7 relative; 1e-10 in the float64 inversion keeps only exact degeneracies).
@@ -93,6 +98,52 @@ def block_standard_errors(blocks: np.ndarray, channels: np.ndarray, seen: np.nda
         out = np.where(np.isposinf(total), np.inf, np.sqrt(sigma2 * np.where(np.isposinf(total), 0.0, total)))
     out = np.where(seen[:, None], np.where(broken[:, None], np.nan, out), np.inf)
     return np.where(free, out, 0.0).astype(np.float32)
+
+
+def sandwich_ratios(blocks: np.ndarray, meat: np.ndarray, channels: np.ndarray, seen: np.ndarray, sigma2: float,
+                    dof_scale: float = 1.0, pinned: np.ndarray | None = None) -> np.ndarray:
+    """(T, K) per texel and channel, the variance the residuals show over the one the noise model
+    gives: ρ_c = [D⁻¹ M D⁻¹]_cc / (σ̂² [D⁻¹]_cc), D the texel's normal-matrix block and
+    M = Σ_p B_ptᵀ r_p r_pᵀ B_pt its "meat" (B_pt the pixel's Jacobian in the texel's channels,
+    r_p its residuals: `pbrfit.fitting.normal_matrix.normal_blocks` of the rows' r_pᵀ J_p), times
+    ``dof_scale`` (n / (n - p), as σ̂² divides by n - p).
+
+    D⁻¹ M D⁻¹ is the heteroskedasticity-consistent ("sandwich") covariance of the texel's
+    estimate (H. White, "A heteroskedasticity-consistent covariance matrix estimator and a direct
+    test for heteroskedasticity", Econometrica 48, 1980; with the n / (n - p) scale, MacKinnon
+    & White 1985's HC1): it reads the variance from the residuals of the pixels that inform each
+    channel, where σ̂² D⁻¹ assumes every residual has the same variance σ̂². Under that model
+    E[M] = σ² D and ρ ≈ 1; where the model misses light that the texel's most informative pixels
+    carry (a highlight it cannot match, a wrong basin), ρ > 1. Channels on a degenerate
+    direction (σ = inf) and unseen texels get 1; ``pinned`` channels, held by the solver, are
+    held for the others' ratios (as `window_standard_errors` holds them), and their own ratio
+    is that with every channel free."""
+    free = np.broadcast_to(np.asarray(channels, bool), np.asarray(blocks).shape[:2])
+    if pinned is not None and np.any(pinned & free):
+        everyone = sandwich_ratios(blocks, meat, free, seen, sigma2, dof_scale)
+        held = sandwich_ratios(blocks, meat, free & ~pinned, seen, sigma2, dof_scale)
+        return np.where(pinned & free, everyone, held)
+    blocks = np.asarray(blocks, np.float64)
+    meat = np.asarray(meat, np.float64) * dof_scale
+    seen = np.asarray(seen, bool)
+    mask2 = free[:, :, None] & free[:, None, :] & seen[:, None, None]
+    eye = np.eye(blocks.shape[1])
+    b = np.where(mask2, blocks, 0.0) + np.where(free, 0.0, 1.0)[:, :, None] * eye
+    broken = ~np.all(np.isfinite(b), axis=(1, 2)) | ~np.all(np.isfinite(meat), axis=(1, 2))
+    e, v = np.linalg.eigh(np.where(broken[:, None, None], eye, b))
+    top = np.max(np.abs(e), axis=1, keepdims=True)
+    ok = e > EIGEN_FLOOR * np.maximum(top, np.finfo(np.float64).tiny)
+    inv_e = np.where(ok, 1.0 / np.where(ok, e, 1.0), 0.0)
+    d_inv = np.einsum("tij,tj,tkj->tik", v, inv_e, v)
+    m = np.where(mask2 & ~broken[:, None, None], meat, 0.0)
+    robust = np.einsum("tci,tij,tcj->tc", d_inv, m, d_inv)
+    classic = sigma2 * np.diagonal(d_inv, axis1=1, axis2=2)
+    # a channel on a degenerate direction has σ = inf whatever the ratio
+    degenerate = np.any((v * v > 0) & ~ok[:, None, :], axis=2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(classic > 0, robust / np.where(classic > 0, classic, 1.0), 1.0)
+    use = free & seen[:, None] & ~degenerate & ~broken[:, None] & np.isfinite(ratio)
+    return np.where(use, ratio, 1.0)
 
 
 def window_radii(shape: tuple[int, int], radius: int) -> tuple[int, int]:

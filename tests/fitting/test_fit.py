@@ -333,7 +333,7 @@ def test_uncertainty_matches_the_dense_window_inverse():
     residuals, and each texel's σ = σ̂ sqrt(diag((JᵀJ)_W⁻¹)) at its channels, with (JᵀJ)_W the
     dense Gauss-Newton matrix (jax.jacfwd of the pixel residuals at the fitted maps) restricted to
     the texel's 3 × 3 window, wrapped around the map (`pbrfit.fitting.uncertainty`: the window's other
-    texels free, those beyond held). Metallic is held at 0 and the uniform check is off, so no
+    texels free, those beyond held), widened by the sandwich's excess over σ̂² where there is one. Metallic is held at 0 and the uniform check is off, so no
     channel is pinned or made one value: every fitted σ is a window's. (One sample per pixel: a
     pixel reads a 2 × 2 block of texels, so the diagonal and neighbour blocks hold all of the
     window's matrix, and the two agree to float32 round-off and the window's 1e-6 ridge.)"""
@@ -360,7 +360,15 @@ def test_uncertainty_matches_the_dense_window_inverse():
         cols = np.concatenate([np.arange(u * k, (u + 1) * k) for u in window])
         own = window.index(s)
         want[s] = np.sqrt(sigma2 * np.diag(np.linalg.inv(h[np.ix_(cols, cols)]))[own * k:(own + 1) * k])
-    np.testing.assert_allclose(got[:, fitted], want, rtol=1e-3)
+    # widened where the texel's own pixels show more variance than σ̂² (the sandwich of its block:
+    # `pbrfit.fitting.result.misfit_ratios`), from the dense Jacobian: M_t = Σ_p g_pt g_ptᵀ with
+    # g_pt = J_ptᵀ r_p over each pixel's three residuals, D_t its block of JᵀJ
+    g = np.einsum("pcj,pc->pj", jac.reshape(-1, 3, 64 * k), r.reshape(-1, 3)).reshape(-1, 64, k)
+    meat = np.einsum("pti,ptj->tij", g, g) * r.size / (r.size - 64 * k)
+    d_inv = np.linalg.inv(np.stack([h[u * k:(u + 1) * k, u * k:(u + 1) * k] for u in range(64)]))
+    ratio = np.einsum("tci,tij,tcj->tc", d_inv, meat, d_inv) / (sigma2 * np.diagonal(d_inv, axis1=1, axis2=2))
+    assert np.any(ratio > 1.05) and np.any(ratio < 1)  # under noise alone: around 1, both ways
+    np.testing.assert_allclose(got[:, fitted], want * np.sqrt(np.maximum(ratio, 1.0)), rtol=1e-3)
 
 
 def test_fixed_channels_stay_fixed():

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from pbrfit.fitting.normal_matrix import NEIGHBOUR_OFFSETS
-from pbrfit.fitting.uncertainty import block_standard_errors, window_precisions, window_radii, window_standard_errors
+from pbrfit.fitting.uncertainty import (block_standard_errors, sandwich_ratios, window_precisions, window_radii,
+                                        window_standard_errors)
 
 
 def _normal_matrix(shape, k, pixels, seed, wrap=True):
@@ -188,3 +189,60 @@ def test_non_finite_values_outside_the_fit_do_not_reach_the_others():
     sigma = window_standard_errors(diag, coupling, shape, channels, seen, 1.0, 1)
     assert np.all(sigma[:, 1] == 0.0) and np.all(np.isinf(sigma[20, [0, 2]]))
     assert np.all(np.isfinite(np.delete(sigma, 20, axis=0)))
+
+
+def _pixel_rows(k, pixels, seed):
+    """(P, 3, K) random per-pixel Jacobians of one texel, and their block D = Σ J_pᵀJ_p."""
+    jac = np.random.default_rng(seed).normal(size=(pixels, 3, k))
+    return jac, np.einsum("pci,pcj->ij", jac, jac)
+
+
+def _meat(jac, r):
+    g = np.einsum("pck,pc->pk", jac, r)
+    return np.einsum("pi,pj->ij", g, g)
+
+
+def test_sandwich_ratio_reads_the_residuals_variance_against_the_noise_model():
+    """ρ = [D⁻¹ M D⁻¹]_cc / (σ̂² [D⁻¹]_cc): exactly s where M = s σ̂² D; about 1 for residuals of
+    the noise model's variance; above 1 in the channel whose informative pixels carry more."""
+    k, sigma2 = 3, 0.04
+    jac, d = _pixel_rows(k, 4000, seed=0)
+    blocks = np.stack([d, d, d])
+    seen, channels = np.ones(3, bool), np.ones(k, bool)
+    exact = sandwich_ratios(blocks, np.stack([sigma2 * d, 2.5 * sigma2 * d, sigma2 * d / 1.25]), channels, seen,
+                            sigma2, dof_scale=1.25)
+    np.testing.assert_allclose(exact, [[1.25] * k, [3.125] * k, [1.0] * k], rtol=1e-10)
+    rng = np.random.default_rng(1)
+    noise = rng.normal(0, np.sqrt(sigma2), size=(4000, 3))
+    # more residual where the pixel's derivative in channel 0 is large: light the model misses there
+    loud = noise * (1 + 3 * (np.abs(jac[:, :, 0]) > 1.5))
+    got = sandwich_ratios(blocks, np.stack([_meat(jac, noise), _meat(jac, loud), _meat(jac, noise)]), channels, seen,
+                          sigma2)
+    np.testing.assert_allclose(got[0], 1.0, atol=0.1)
+    assert got[1, 0] > 3 and got[1, 0] > 1.5 * got[1, 1:].max()
+
+
+def test_sandwich_ratio_is_one_where_sigma_says_nothing_and_holds_pinned_channels():
+    """Unseen texels, fixed channels and channels on a degenerate direction get 1; a pinned
+    channel is held for the others (their ratio that of the block without it), its own is the
+    ratio with all free."""
+    k, sigma2 = 3, 1.0
+    jac, d = _pixel_rows(k, 500, seed=2)
+    meat = _meat(jac, np.random.default_rng(3).normal(0, 2.0, size=(500, 3)))
+    blind = d.copy()
+    blind[2, :] = blind[:, 2] = 0.0
+    blind_meat = meat.copy()
+    blind_meat[2, :] = blind_meat[:, 2] = 0.0
+    blocks, meats = np.stack([d, d, blind]), np.stack([meat, meat, blind_meat])
+    seen = np.array([True, False, True])
+    channels = np.array([True, False, True])
+    got = sandwich_ratios(blocks, meats, channels, seen, sigma2)
+    assert np.all(got[:, 1] == 1.0) and np.all(got[1] == 1.0) and got[2, 2] == 1.0
+    assert got[0, 0] > 2 and got[2, 0] > 2  # residuals of std 2 against σ̂ 1
+    pinned = np.zeros((3, k), bool)
+    pinned[0, 0] = True
+    held = sandwich_ratios(blocks, meats, channels, seen, sigma2, pinned=pinned)
+    assert held[0, 0] == got[0, 0]
+    d_c, m_c = d[2, 2], meat[2, 2]  # channel 2 alone: (m / d²) / (σ̂² / d)
+    np.testing.assert_allclose(held[0, 2], m_c / d_c / sigma2, rtol=1e-10)
+    np.testing.assert_array_equal(held[1:], got[1:])
