@@ -48,6 +48,10 @@ def run(args) -> int:
         raise CaptureError(f"{where}: no light: {sky}, every light is off and the material emits none, "
                            "so every render would be black (give --lights or --environment)")
     model = model_for_capture(capture, material, **changes)
+    if model.ibl in ("per_pixel", "monte_carlo"):  # a fit's integrals over its pixels, and the reference integrator
+        raise CaptureError(f"--model: ibl={model.ibl} is not one render shades (per_pixel is a fit's, integrated over "
+                           "its pixels; monte_carlo renders a capture through pbrfit synth --ibl monte_carlo): "
+                           "give ibl=split_sum or ibl=none")
     if model.ibl is not None and capture.environment is None:
         raise CaptureError(f"--model: ibl={model.ibl} shades an environment light, and {capture.json_path} has none")
     renders = render_capture(capture, material, model, cache_dir=cache_dir(args), supersample=args.supersample,

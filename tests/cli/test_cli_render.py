@@ -374,3 +374,19 @@ def test_control_characters_in_a_message_are_escaped(capsys, monkeypatch):
     assert capsys.readouterr().err.splitlines() == [
         "pbrfit: warning: images/\\x1b[2Jx\\n.png: odd",
         "pbrfit: error: capture.json: frames[1].file_path: not found: images/0\\n01.exr"]
+
+
+def test_render_refuses_the_environment_integrators_it_does_not_shade(tmp_path, monkeypatch, capsys):
+    """``--model ibl=per_pixel`` (a fit's integrals) and ``ibl=monte_carlo`` (synth's reference) are
+    refused in one line, exit status 2, nothing written."""
+    monkeypatch.setenv("PBRFIT_CACHE", str(tmp_path / "cache"))
+    cap = tmp_path / "cap"
+    assert main(["synth", "sphere-env", "--out", str(cap), "--size", "8", "--views", "1", "--texture-size", "4",
+                 "--quiet"]) == 0
+    for ibl in ("per_pixel", "monte_carlo"):
+        out = tmp_path / f"o-{ibl}"
+        assert main(["render", str(cap), "--material", str(cap / "truth"), "--out", str(out), "--model",
+                     f"ibl={ibl}", "--quiet"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"--model: ibl={ibl} is not one render shades" in err[0], err
+        assert not out.exists()
