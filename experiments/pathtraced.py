@@ -69,6 +69,8 @@ EXTRAS = {
                                                           occlusion_settings=dict(bounce="on")),
     "per_pixel + occlusion, pixel centres": dict(ibl="per_pixel", occlusion="on", pixel_samples=1,
                                                  occlusion_settings=dict(bounce="off")),
+    "per_pixel + occlusion + bounce, 3 × 3 pixel samples": dict(ibl="per_pixel", occlusion="on", pixel_samples=3,
+                                                                occlusion_settings=dict(bounce="on")),
 }
 #: The seed of every scene, and of the noise added (with the scene's name and depth).
 SEED = 0
