@@ -78,17 +78,25 @@ def texel_standard_errors(problem, x, jac, data_energy: float, final, texel_chan
     texel's σ comes from its window of ``uncertainty_radius``
     (`pbrfit.fitting.uncertainty.window_standard_errors`), with the channels that sit on a bound held for
     the others' errors; 0 for channels not fitted, +inf for texels no view sees."""
-    k = len(texel_channels)
     blocks = np.asarray(jitted_normal_blocks(jac, problem))
-    n_par = int(np.sum(seen)) * int(np.sum(texel_channels)) + int(num_uniform)
+    n_par = _parameter_count(seen, texel_channels, num_uniform)
     sigma2 = residual_variance(float(data_energy), 3 * int(num_pixels), n_par)
     radius = max(window_radii(tuple(final), uncertainty_radius))
     couplings = np.asarray(jitted_neighbour_blocks(jac, problem, tuple(final))) if radius > 0 else None
-    xt = np.asarray(x, np.float32).reshape(-1, k)
-    pinned = (xt <= lower(k)) | (xt >= upper(k))  # on a bound: the projected solver holds them
     sigma = window_standard_errors(blocks, couplings, tuple(final), np.asarray(texel_channels) > 0, seen, sigma2,
-                                   radius, pinned)
+                                   radius, _on_bounds(x, len(texel_channels)))
     return sigma, sigma2
+
+
+def _parameter_count(seen, texel_channels, num_uniform: int) -> int:
+    """The fit's free parameters: the seen texels' fitted channels and the common values."""
+    return int(np.sum(seen)) * int(np.sum(texel_channels)) + int(num_uniform)
+
+
+def _on_bounds(x, k: int) -> np.ndarray:
+    """(T, K) the channels that sit on a bound of their range: the projected solver holds them."""
+    xt = np.asarray(x, np.float32).reshape(-1, k)
+    return (xt <= lower(k)) | (xt >= upper(k))
 
 
 def misfit_ratios(problem, x, r, jac, sigma2: float, texel_channels, seen, num_pixels: int, num_uniform: int = 0):
@@ -100,7 +108,6 @@ def misfit_ratios(problem, x, r, jac, sigma2: float, texel_channels, seen, num_p
     texel whose pixels the model does not fit as well as the rest (light it cannot represent, a
     wrong basin). The meat's rows, r_pᵀ J_p, go into the Jacobians' first residual channel
     (the others 0), so that `normal_blocks`' program for the Jacobians serves them."""
-    k = len(texel_channels)
     jac_np = np.asarray(jac, np.float32)
     rows = np.repeat(np.asarray(r, np.float32), problem.samples, axis=0)[: jac_np.shape[0]]
     g = np.zeros_like(jac_np)
@@ -108,10 +115,9 @@ def misfit_ratios(problem, x, r, jac, sigma2: float, texel_channels, seen, num_p
     meat = np.asarray(jitted_normal_blocks(g, problem))
     blocks = np.asarray(jitted_normal_blocks(jac, problem))
     n = 3 * int(num_pixels)
-    n_par = int(np.sum(seen)) * int(np.sum(texel_channels)) + int(num_uniform)
-    xt = np.asarray(x, np.float32).reshape(-1, k)
-    pinned = (xt <= lower(k)) | (xt >= upper(k))
-    ratios = sandwich_ratios(blocks, meat, np.asarray(texel_channels) > 0, seen, sigma2, n / max(n - n_par, 1), pinned)
+    dof_scale = n / max(n - _parameter_count(seen, texel_channels, num_uniform), 1)
+    ratios = sandwich_ratios(blocks, meat, np.asarray(texel_channels) > 0, seen, sigma2, dof_scale,
+                             _on_bounds(x, len(texel_channels)))
     return np.maximum(ratios, 1.0)
 
 

@@ -72,6 +72,22 @@ def residual_variance(loss: float, residual_count: int, parameter_count: int) ->
     return 2.0 * float(loss) / dof
 
 
+def _fitted_eigh(blocks: np.ndarray, free: np.ndarray, seen: np.ndarray):
+    """The eigenpairs of each block restricted to its ``free`` channels (identity on the others;
+    float64): (e, V, which eigenvalues are above `EIGEN_FLOOR` of the largest, which blocks are
+    broken (non-finite: an overflowed solve's, `pbrfit.fit` refuses it; eigh of the identity
+    there), the (T, K, K) mask of the free channels' entries of seen texels)."""
+    blocks = np.asarray(blocks, np.float64)
+    mask2 = free[:, :, None] & free[:, None, :] & seen[:, None, None]  # (nothing of an unseen texel is read)
+    eye = np.eye(blocks.shape[1])
+    b = np.where(mask2, blocks, 0.0) + np.where(free, 0.0, 1.0)[:, :, None] * eye
+    broken = ~np.all(np.isfinite(b), axis=(1, 2))
+    e, v = np.linalg.eigh(np.where(broken[:, None, None], eye, b))
+    top = np.max(np.abs(e), axis=1, keepdims=True)
+    ok = e > EIGEN_FLOOR * np.maximum(top, np.finfo(np.float64).tiny)
+    return e, v, ok, broken, mask2
+
+
 def block_standard_errors(blocks: np.ndarray, channels: np.ndarray, seen: np.ndarray, sigma2: float) -> np.ndarray:
     """(T, K) one-sigma errors from (T, K, K) normal-matrix blocks, the (K,) fitted-channel mask
     and the (T,) observed-texel mask (K = 5, or 7 with normals).
@@ -79,16 +95,9 @@ def block_standard_errors(blocks: np.ndarray, channels: np.ndarray, seen: np.nda
     σ_c² = σ̂² Σ_k V_ck² / e_k over the eigenpairs (e_k, V_k) of the block restricted to the
     fitted channels; 0 for fixed channels; +inf for fitted channels of texels no pixel reads.
     """
-    blocks = np.asarray(blocks, np.float64)
-    free = np.broadcast_to(np.asarray(channels, bool), blocks.shape[:2])
+    free = np.broadcast_to(np.asarray(channels, bool), np.asarray(blocks).shape[:2])
     seen = np.asarray(seen, bool)
-    mask2 = free[:, :, None] & free[:, None, :] & seen[:, None, None]  # (nothing of an unseen texel is read)
-    eye = np.eye(blocks.shape[1])
-    b = np.where(mask2, blocks, 0.0) + np.where(free, 0.0, 1.0)[:, :, None] * eye
-    broken = ~np.all(np.isfinite(b), axis=(1, 2))  # an overflowed solve's blocks: NaN out (`pbrfit.fit` refuses it)
-    e, v = np.linalg.eigh(np.where(broken[:, None, None], eye, b))
-    top = np.max(np.abs(e), axis=1, keepdims=True)
-    ok = e > EIGEN_FLOOR * np.maximum(top, np.finfo(np.float64).tiny)
+    e, v, ok, broken, _ = _fitted_eigh(blocks, free, seen)
     inv_e = np.where(ok, 1.0 / np.where(ok, e, 1.0), np.inf)
     # Σ_k V_ck² / e_k, with 0 · inf taken as 0 (a degenerate direction that misses channel c).
     with np.errstate(invalid="ignore"):  # (and a NaN σ̂² from an overflowed solve: `pbrfit.fit` refuses it)
@@ -123,16 +132,10 @@ def sandwich_ratios(blocks: np.ndarray, meat: np.ndarray, channels: np.ndarray, 
         everyone = sandwich_ratios(blocks, meat, free, seen, sigma2, dof_scale)
         held = sandwich_ratios(blocks, meat, free & ~pinned, seen, sigma2, dof_scale)
         return np.where(pinned & free, everyone, held)
-    blocks = np.asarray(blocks, np.float64)
-    meat = np.asarray(meat, np.float64) * dof_scale
     seen = np.asarray(seen, bool)
-    mask2 = free[:, :, None] & free[:, None, :] & seen[:, None, None]
-    eye = np.eye(blocks.shape[1])
-    b = np.where(mask2, blocks, 0.0) + np.where(free, 0.0, 1.0)[:, :, None] * eye
-    broken = ~np.all(np.isfinite(b), axis=(1, 2)) | ~np.all(np.isfinite(meat), axis=(1, 2))
-    e, v = np.linalg.eigh(np.where(broken[:, None, None], eye, b))
-    top = np.max(np.abs(e), axis=1, keepdims=True)
-    ok = e > EIGEN_FLOOR * np.maximum(top, np.finfo(np.float64).tiny)
+    e, v, ok, broken, mask2 = _fitted_eigh(blocks, free, seen)
+    meat = np.asarray(meat, np.float64) * dof_scale
+    broken = broken | ~np.all(np.isfinite(meat), axis=(1, 2))
     inv_e = np.where(ok, 1.0 / np.where(ok, e, 1.0), 0.0)
     d_inv = np.einsum("tij,tj,tkj->tik", v, inv_e, v)
     m = np.where(mask2 & ~broken[:, None, None], meat, 0.0)

@@ -333,8 +333,9 @@ def test_uncertainty_matches_the_dense_window_inverse():
     residuals, and each texel's σ = σ̂ sqrt(diag((JᵀJ)_W⁻¹)) at its channels, with (JᵀJ)_W the
     dense Gauss-Newton matrix (jax.jacfwd of the pixel residuals at the fitted maps) restricted to
     the texel's 3 × 3 window, wrapped around the map (`pbrfit.fitting.uncertainty`: the window's other
-    texels free, those beyond held), widened by the sandwich's excess over σ̂² where there is one. Metallic is held at 0 and the uniform check is off, so no
-    channel is pinned or made one value: every fitted σ is a window's. (One sample per pixel: a
+    texels free, those beyond held), widened by the sandwich's excess over σ̂² where there is one.
+    Metallic is held at 0 and the uniform check is off, so no channel is pinned or made one value:
+    every fitted σ is a window's. (One sample per pixel: a
     pixel reads a 2 × 2 block of texels, so the diagonal and neighbour blocks hold all of the
     window's matrix, and the two agree to float32 round-off and the window's 1e-6 ridge.)"""
     truth = _checker()
