@@ -25,8 +25,8 @@ held at the prior's 0.5, its base colour re-fitted (`pbrfit.fitting.stages.uncon
 A pixel's footprint: a display-referred capture (sRGB, tone mapped) is fitted both at pixel
 centres and with 2 × 2 samples per pixel, and the fit whose images match better is kept
 (``pixel_samples="auto"``, `footprint_choice`); linear images are fitted at pixel centres, and
-both ways only where the centres' residuals follow the blur of a box footprint
-(`pbrfit.fitting.stages.footprint.footprint_evidence`).
+both ways, with 3 × 3 samples, only where the centres' residuals follow the blur of a box
+footprint (`pbrfit.fitting.stages.footprint.footprint_evidence`).
 
 The environment's light: the split sum, and per-pixel integrals with the mesh's occlusion where
 the split sum's residuals show light it cannot model (``ibl="auto"``, `pbrfit.fitting.stages.ibl`);
@@ -63,7 +63,7 @@ from ..errors import CaptureError, listed
 from .options import IBL_MODES, FitOptions, check_model, check_normals, held_report, occlusion_mode, options_from
 from .passes import PassInputs, fit_pass
 from .result import FitResult, closed_times, map_rmse
-from .stages.footprint import (AUTO_PIXEL_SAMPLES, box_plausible, footprint_choice, footprint_evidence,
+from .stages.footprint import (AUTO_LINEAR_PIXEL_SAMPLES, box_plausible, footprint_choice, footprint_evidence,
                                probes_footprint)
 from ..physics.model import Model
 from .noise import estimate_noise_level
@@ -298,7 +298,8 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
             steps and the search run on pixel centres, the settling and released steps on the
             samples (`fit_observations`). ``"auto"`` (default, `footprint_choice`): pixel
             centres with precomputed ``views``; for linear HDR images pixel centres, then both
-            ways as below only where the centres' residuals show a box's blur
+            ways as below, with 3 × 3 samples (a path tracer's box is finer than 2 × 2's
+            quadrature), only where the centres' residuals show a box's blur
             (`pbrfit.fitting.stages.footprint.footprint_evidence`, the report's
             "footprint" "evidence"); for display-referred
             ones (sRGB, tone mapped) the last steps run both ways, at centres and with 2 × 2
@@ -455,12 +456,12 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
     elif probes_footprint(capture, options.pixel_samples, views):
         evidence = footprint_evidence(result.images, result.targets, result.masks)
         # (under per-pixel integrals chosen by "auto", the samples' integrals are capped as its own are)
-        too_many = (per_pixel_skipped(_integral_rows(result, AUTO_PIXEL_SAMPLES, True))
+        too_many = (per_pixel_skipped(_integral_rows(result, AUTO_LINEAR_PIXEL_SAMPLES, True))
                     if choice is not None and model.ibl == "per_pixel" else None)
         if box_plausible(evidence) and too_many is None:  # both footprints, the centres' fit spent on the test
             probe = result
-            result = _fit_footprint(capture, _bounce_decided(options, probe), model, views, AUTO_PIXEL_SAMPLES, True,
-                                    time.perf_counter())
+            result = _fit_footprint(capture, _bounce_decided(options, probe), model, views, AUTO_LINEAR_PIXEL_SAMPLES,
+                                    True, time.perf_counter())
             result = _spent_before(result, probe, "footprint_probe")
             _carry_bounce_choice(result, probe)
             result.report["footprint"]["evidence"] = evidence

@@ -5,7 +5,8 @@ its area (an antialiased render, a photograph), a linear HDR one either. `fit` s
 samples per pixel where asked (`pbrfit.fitting.observations`); with ``pixel_samples="auto"`` it
 fits display-referred images both ways and keeps the footprint whose images match better
 (`footprint_choice`, `footprint_energies`), and fits linear images at pixel centres, then both ways
-only where those centres' residuals show the box's blur (`footprint_evidence`, `box_plausible`).
+(with `AUTO_LINEAR_PIXEL_SAMPLES`) only where those centres' residuals show the box's blur
+(`footprint_evidence`, `box_plausible`).
 """
 
 from __future__ import annotations
@@ -21,13 +22,23 @@ from ..objective import Problem, pixel_residuals
 from ...transfer import to_device
 
 __all__ = ["footprint_choice", "footprint_energies", "centres_explain_better", "samples_side", "final_residuals",
-           "probes_footprint", "footprint_evidence", "box_plausible", "AUTO_PIXEL_SAMPLES", "AUTO_MAX_PIXELS",
+           "probes_footprint", "footprint_evidence", "box_plausible", "AUTO_PIXEL_SAMPLES", "AUTO_LINEAR_PIXEL_SAMPLES",
+           "AUTO_MAX_PIXELS",
            "BOX_SLOPE", "BOX_Z"]
 
 #: Samples per pixel side that ``pixel_samples="auto"`` tries on display-referred images
 #: (`footprint_choice`): 2 × 2 is exact for 2 × 2 supersampled renders and close to finer box
 #: averages (experiments/solvers.md, "Pixel footprints").
 AUTO_PIXEL_SAMPLES = 2
+#: Samples per pixel side for linear images whose pixel-centre fit shows a box footprint
+#: (`box_plausible`): path tracers write those, each pixel the mean of thousands of samples over
+#: its area, where n × n point samples miss the box by about 1 / n² of its blur for smooth
+#: radiance (the midpoint rule), and glints by much more: on Mitsuba's sphere on a floor a 2 × 2
+#: render misses a 4 × 4 one by a median 1.7% at bright pixels, and the fit moves the maps to
+#: match (experiments/pathtraced.md). 3 × 3 samples take 2.25 times the rows of 2 × 2; a 2 × 2
+#: supersampled linear capture (``pbrfit synth --supersample 2``) is then fitted with a model 5/36
+#: of the blur off where 2 × 2 would be exact (docs/footprint.md measures both).
+AUTO_LINEAR_PIXEL_SAMPLES = 3
 #: ... and only on captures of at most this many pixels (all frames together; 16 views of 350²):
 #: the samples take four times the rows, so about four times the memory and three times the time
 #: of pixel centres; beyond it a fit asks for them with ``pixel_samples=2``.
