@@ -28,8 +28,16 @@ needs_mitsuba = pytest.mark.skipif(importlib.util.find_spec("mitsuba") is None
 
 @pytest.fixture(scope="module")
 def mitsuba():
-    """(mi, dr) in the renderer's variant."""
-    return mitsuba_render.load_mitsuba()
+    """(mi, dr) in the renderer's variant; installed but unable to run (Dr.Jit found no LLVM, or
+    one too old) the tests skip with the renderer's one-line reason, unless PBRFIT_REQUIRE_MITSUBA."""
+    from pbrfit.errors import CaptureError
+
+    try:
+        return mitsuba_render.load_mitsuba()
+    except CaptureError as e:
+        if os.environ.get("PBRFIT_REQUIRE_MITSUBA"):
+            raise
+        pytest.skip(str(e))
 
 
 def _vector(mi, a):
@@ -398,7 +406,9 @@ def test_the_bounce_is_kept_where_light_is_reflected_between_surfaces(tmp_path, 
 
     scene = presets.make_scene("sphere-floor", size=32, views=3, texture_size=8, noise=0.0)
     writer.synthesize(scene.replace(renderer="mitsuba", max_depth=4, spp=256), tmp_path / "cap")
-    options = dict(ibl="per_pixel", occlusion="on", resolution=16, pixel_samples=1, search=False, repair=False,
+    # (8² maps, which the three views determine: at 16² the fits of tables equal to the float rounding,
+    # the "dark" part of "auto"'s against "off"'s own, went 3% apart in σ on an Intel Xeon)
+    options = dict(ibl="per_pixel", occlusion="on", resolution=8, pixel_samples=1, search=False, repair=False,
                    uniform_check=False, pixel_ibl_settings=PixelIBLSettings(samples=64, levels=5),
                    cache_dir=tmp_path / "cache")
     report = pbrfit.fit(tmp_path / "cap", **options).report

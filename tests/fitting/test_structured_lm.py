@@ -25,15 +25,20 @@ from pbrfit.fitting.solvers.names import SOLVERS, is_structured, solver_for, sol
 from pbrfit.fitting.solvers.structured import ATOL, CG_RTOL, HISTORY, RTOL, LMCarry, StructuredLM, solve
 from test_sharding import _problem, _start
 
-# The solver on `_problem` from the grid start with rtol 1e-7 and atol 1e-6, 30 steps at most:
-# (steps, accepted, CG iterations), E, λ and the mean of each channel of x (CPU, float32). Both
-# reach E's float32 floor at the third step and stop at the first step, accepted or refused, whose
-# predicted and actual gains are both within rtol · E (before that test, the refused steps went on
-# until λ passed LAMBDA_MAX: 11 steps with the prior, 3 accepted).
+# The solver on `_problem` from the grid start with rtol 1e-7 and atol 1e-6, 30 steps at most: E
+# and the mean of each channel of x (CPU, float32). Both reach E's float32 floor at the third step
+# and stop at the first step, accepted or refused, whose predicted and actual gains are both within
+# rtol · E (before that test, the refused steps went on until λ passed LAMBDA_MAX: 11 steps with
+# the prior, 3 accepted).
 REFERENCE = {
-    1e-3: ((5, 4, 62), 0.14778104424476624, 2.4691360522410832e-05, (0.57315885, 0.46256703, 0.55512856, 0.0, 0.48584283)),
-    0.0: ((4, 3, 48), 0.1453242152929306, 7.40740797482431e-05, (0.57316106, 0.46256966, 0.55513156, 0.0, 0.48588503)),
+    1e-3: (0.14778104424476624, (0.57315885, 0.46256703, 0.55512856, 0.0, 0.48584283)),
+    0.0: (0.1453242152929306, (0.57316106, 0.46256966, 0.55513156, 0.0, 0.48588503)),
 }
+# ... that stop, as (steps, accepted, CG iterations) and λ: at the fourth step, or at the fifth where
+# the fourth, on the floor, still gains more than rtol · E in the last bits (λ a third lower after
+# one more accepted step). Which one depends on the CPU's float32 rounding: an AMD EPYC stopped
+# at the fourth without the prior and at the fifth with it, an Intel Xeon the other way round.
+STOPS = (((4, 3, 48), 7.40740797482431e-05), ((5, 4, 62), 2.4691360522410832e-05))
 
 
 @pytest.fixture(scope="module", params=sorted(REFERENCE))
@@ -72,13 +77,16 @@ def test_the_fit_options_hold_optimistix_solvers():
 
 def test_structured_lm_steps_as_the_loop_it_replaced(start):
     smooth, problem, x0 = start
-    (steps, accepted, cg), loss, damping, mean = REFERENCE[smooth]
+    loss, mean = REFERENCE[smooth]
     sol = optx.least_squares(lambda x, p: residuals(x, p), StructuredLM(rtol=1e-7, atol=1e-6), x0, args=problem,
                              options=dict(max_steps=jnp.asarray(30, jnp.int32)),
                              max_steps=None, throw=False)
     jax.block_until_ready(sol.value)
     s = sol.stats
-    assert (int(s["steps"]), int(s["accepted"]), int(s["cg_iterations"])) == (steps, accepted, cg)
+    counts = (int(s["steps"]), int(s["accepted"]), int(s["cg_iterations"]))
+    assert counts in [c for c, _ in STOPS], counts
+    damping = dict(STOPS)[counts]
+    steps = counts[0]
     assert int(s["num_steps"]) == steps + 1  # optimistix counts the first call, which only linearises
     assert float(s["loss"]) == pytest.approx(loss, rel=1e-5) and float(s["damping"]) == pytest.approx(damping, rel=1e-3)
     np.testing.assert_allclose(np.asarray(sol.value, np.float64).mean(0), mean, atol=1e-6)
@@ -108,7 +116,8 @@ def test_one_program_serves_every_step_budget(start):
     x2, stats2, *_ = compiled(x0, problem, solver, jnp.asarray(2, jnp.int32))
     assert int(stats2.steps) == 2 and float(stats2.loss) < float(stats.loss)
     _, stats30, *_ = compiled(x0, problem, solver, jnp.asarray(30, jnp.int32))
-    assert int(stats30.steps) == REFERENCE[smooth][0][0]
+    assert (int(stats30.steps), int(stats30.accepted), int(stats30.cg_iterations)) in [c for c, _ in STOPS]
+    assert float(stats30.loss) == pytest.approx(REFERENCE[smooth][0], rel=1e-5)
 
 
 @pytest.mark.parametrize("steps", [30, 3])
@@ -116,7 +125,7 @@ def test_a_solve_run_in_parts_takes_the_steps_of_one_run_bit_for_bit(start, step
     """A solve cut into parts of 1, 2, 3, ... steps, each going on from the last one's x and
     `LMCarry` (what a checkpoint keeps): the same x, counts, damping and losses as one run to the
     same budget, to the bit, and the same residuals and Jacobians at the end (the next part's
-    first call only linearises again). A stopping test ends the solve in 30 steps (`REFERENCE`),
+    first call only linearises again). A stopping test ends the solve in 30 steps (`STOPS`),
     the budget in 3."""
     _, problem, x0 = start
     solver = StructuredLM(rtol=1e-7, atol=1e-6)
