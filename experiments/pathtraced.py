@@ -322,7 +322,8 @@ def tables(results: dict) -> str:
         if "residual_sigma" in bounce:  # a fit that chose whether blocked directions bring light
             chose.append(f"bounce test: {'kept' if bounce['used'] else 'not kept'}")
         if f.get("footprint") and "evidence" in f["footprint"]:  # a fit whose footprint the fit chose
-            chose.append(f"footprint test: {'2 × 2 kept' if f['pixel_samples'] == 2 else 'centres kept'}")
+            n = f["pixel_samples"]
+            chose.append(f"footprint test: {f'{n} × {n} kept' if n > 1 else 'centres kept'}")
         if chose:
             config += f" ({'; '.join(chose)})"
         lines.append(f"| {f['scene']} | {f['max_depth']} | {config} | {sure} | {_three(f['rmse'], '.3f')} | "
