@@ -208,7 +208,7 @@ def fit_summary(result, errors) -> str:
              f"{r['wall_time']:.1f} s ({compile_summary(r['times'])}{extra})"]
     n, foot = r.get("pixel_samples", 1), r.get("footprint")
     if foot is not None and "skipped" in foot:  # auto, on a capture too large to try the samples
-        parts[0] += ", pixel centres (auto: 2x2 samples skipped, too many pixels)"
+        parts[0] += ", pixel centres (auto: the footprint's samples skipped, too many pixels)"
     elif foot is not None and "energies" in foot:  # auto, both: which explained the images, and by how much
         other = next(k for k in foot["energies"] if int(k) != foot["selected"])
         where = "pixel centres" if n == 1 else f"{n}x{n} samples per pixel"

@@ -551,8 +551,12 @@ def test_summary_line_names_the_footprint():
     report.update(pixel_samples=1, footprint=dict(selected=1, energies={"2": 3.5, "1": 2.0}, pixels=10))
     assert "pixel centres (auto: data loss 2.000e+00 against 3.500e+00 with 2x2)" in fit_summary(
         SimpleNamespace(report=report), {})
-    report["footprint"] = dict(selected=1, skipped="too many")
-    assert "pixel centres (auto: 2x2 samples skipped, too many pixels)" in fit_summary(SimpleNamespace(report=report), {})
+    report.update(pixel_samples=3, footprint=dict(selected=3, energies={"3": 2.0, "1": 3.5}, pixels=10))
+    assert "3x3 samples per pixel (auto: data loss 2.000e+00 against 3.500e+00 at centres)" in fit_summary(
+        SimpleNamespace(report=report), {})
+    report.update(pixel_samples=1, footprint=dict(selected=1, skipped="too many"))
+    assert "pixel centres (auto: the footprint's samples skipped, too many pixels)" in fit_summary(
+        SimpleNamespace(report=report), {})
     report.pop("footprint")
     assert "samples" not in fit_summary(SimpleNamespace(report=report), {})
     assert "5.0 s (compile 1.0 s)" in fit_summary(SimpleNamespace(report=report), {})
