@@ -20,29 +20,17 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 import pbrfit  # noqa: F401  (sets the XLA flags pbrfit needs before JAX starts)
 
 SUPERSAMPLES = (2, 4)
 FITTED = (2, 3, "auto")
 
 
-def rmse_per_map(material, truth, coverage) -> dict:
-    """All-observed RMSE of base colour, metallic and roughness."""
-    seen = np.asarray(coverage) > 0
-    out = {}
-    for name in ("base_color", "metallic", "roughness"):
-        a, b = np.asarray(getattr(material, name)), np.asarray(getattr(truth, name))
-        out[name] = float(np.sqrt(np.mean(np.square(a - b)[seen])))
-    return out
-
-
 def main(argv=None) -> None:
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
     from pbrfit import fit
-    from pbrfit.fitting.result import truth_at
+    from pbrfit.fitting.result import map_rmse
     from pbrfit.io.material_files import read_material
     from pbrfit.scene.capture import load_capture
 
@@ -66,7 +54,7 @@ def main(argv=None) -> None:
             t = time.perf_counter()
             res = fit(capture, resolution=args.texture_size, pixel_samples=n)
             seconds = time.perf_counter() - t
-            rmse = rmse_per_map(res.material, truth_at(truth, res.material.resolution), res.coverage)
+            rmse = map_rmse(truth, res)  # over the observed texels
             rows.append(dict(supersample=k, pixel_samples=n, kept=res.report.get("pixel_samples", 1),
                              seconds=seconds, rmse=rmse))
             print(f"supersampled {k}x{k}, fitted {n}: kept {rows[-1]['kept']}, RMSE "

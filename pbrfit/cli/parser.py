@@ -198,8 +198,8 @@ def add_fit(sub) -> None:
                    help=f"shade N x N samples per pixel (N from 1 to {MAX_PIXEL_SAMPLES}) and fit their mean: the pixel "
                         "footprint of an antialiased or supersampled capture (1: pixel centres; cost grows as N^2). Default auto: for "
                         "sRGB or tone-mapped images, fit both 2 x 2 samples and centres and keep the better match; for "
-                        "linear HDR ones, pixel centres, and both (with 3 x 3 samples) only where their residuals show a box "
-                        "filter's blur")
+                        "linear HDR ones, pixel centres, and both (with 3 x 3 samples) only where their residuals "
+                        "show a box filter's blur")
     p.add_argument("--no-search", action="store_true",
                    help="skip the per-texel re-search of metallic and roughness midway through the solve")
     p.add_argument("--no-repair", action="store_true",

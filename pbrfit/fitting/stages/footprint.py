@@ -23,8 +23,7 @@ from ...transfer import to_device
 
 __all__ = ["footprint_choice", "footprint_energies", "centres_explain_better", "samples_side", "final_residuals",
            "probes_footprint", "footprint_evidence", "box_plausible", "AUTO_PIXEL_SAMPLES", "AUTO_LINEAR_PIXEL_SAMPLES",
-           "AUTO_MAX_PIXELS",
-           "BOX_SLOPE", "BOX_Z"]
+           "AUTO_MAX_PIXELS", "BOX_SLOPE", "BOX_Z"]
 
 #: Samples per pixel side that ``pixel_samples="auto"`` tries on display-referred images
 #: (`footprint_choice`): 2 × 2 is exact for 2 × 2 supersampled renders and close to finer box
@@ -39,9 +38,10 @@ AUTO_PIXEL_SAMPLES = 2
 #: supersampled linear capture (``pbrfit synth --supersample 2``) is then fitted with a model 5/36
 #: of the blur off where 2 × 2 would be exact (docs/footprint.md measures both).
 AUTO_LINEAR_PIXEL_SAMPLES = 3
-#: ... and only on captures of at most this many pixels (all frames together; 16 views of 350²):
-#: the samples take four times the rows, so about four times the memory and three times the time
-#: of pixel centres; beyond it a fit asks for them with ``pixel_samples=2``.
+#: ... and only on captures of at most this many pixels (all frames together; 16 views of 350²),
+#: for both kinds of images: 2 × 2 samples take four times the rows of pixel centres, so about
+#: four times the memory and three times the time (3 × 3 on linear images: nine times the rows);
+#: beyond it a fit asks for them with ``pixel_samples``.
 AUTO_MAX_PIXELS = 2_000_000
 #: A centre fit of linear images shows a box footprint (`box_plausible`) where its residuals grow
 #: with its render's Laplacian / 24 by at least this slope (1 for a pure box average that the maps
