@@ -435,9 +435,9 @@ def test_monte_carlo_reference_casts_the_mesh_shadows_of_the_environment(tmp_pat
 
 
 def test_mitsuba_masks_hold_only_pixels_wholly_on_the_mesh(tmp_path):
-    """A Mitsuba pixel is the mean over its area: its mask holds the pixels all of whose 4 x 4
-    samples hit the mesh, not those whose centre alone does (a sky-mixed silhouette pixel), and
-    more samples per side find no masked pixel off the mesh."""
+    """A Mitsuba pixel is the mean over its area: its mask holds the pixels wholly on the mesh, not
+    those whose centre alone does (a sky-mixed silhouette pixel), and 16 samples per side find no
+    masked pixel even partly off the mesh."""
     from pbrfit.scene.gbuffer import compute_gbuffer
     from pbrfit.scene.mesh import load_mesh
 
@@ -446,11 +446,27 @@ def test_mitsuba_masks_hold_only_pixels_wholly_on_the_mesh(tmp_path):
     mesh = load_mesh(tmp_path / "m.glb")
     (mask,) = writer.mitsuba_masks(scene, mesh)
     centre = np.asarray(compute_gbuffer(mesh, writer.frame_camera(scene, scene.cameras[0])).hit, bool)
-    fine = noise.box_downsample(np.asarray(compute_gbuffer(mesh, writer.frame_camera(scene, scene.cameras[0], 8)).hit,
-                                           np.float32)[..., None], 8)[..., 0]
+    fine = noise.box_downsample(np.asarray(compute_gbuffer(mesh, writer.frame_camera(scene, scene.cameras[0], 16)).hit,
+                                           np.float32)[..., None], 16)[..., 0]
     assert mask.any() and not np.any(mask & ~centre) and np.sum(centre & ~mask) >= 4
-    assert np.all(fine[mask] > 0.95)  # a silhouette can cut a pixel between the 4 x 4 samples, by a sliver
-    assert np.sum((fine < 1) & mask) < np.sum((fine < 1) & centre)
+    assert np.all(fine[mask] == 1.0) and np.any((fine < 1) & centre)
+
+
+def test_whole_pixel_masks_leave_out_slivers_between_the_samples():
+    """A straight edge that cuts a pixel between its 4 x 4 samples (up to 1/4 of a pixel's side from
+    its border) leaves it out of the mask, and a pixel wholly on the mesh stays in: checked against
+    the exact coverage of a half-plane at 64 samples per side."""
+    k, n = writer.MITSUBA_MASK_SAMPLES, 12
+
+    def hits(per_pixel):  # the half-plane y < 0.37 x + 5.06 (in pixels), sampled at sub-pixel centres
+        t = (np.arange(n * per_pixel) + 0.5) / per_pixel
+        return t[:, None] < 0.37 * t[None, :] + 5.06
+
+    exact = noise.box_downsample(hits(64).astype(np.float32)[..., None], 64)[..., 0]
+    mask, samples_alone = writer._whole_pixels(hits(k), k), writer._mask(hits(k), k)
+    assert np.all(exact[mask] == 1.0) and np.any(samples_alone & (exact < 1))
+    inner = exact == 1.0
+    assert np.sum(inner & ~mask) <= n  # what it gives up: pixels within 1/(2k) of the edge, about one per column
 
 
 def test_texture_top_row_is_the_far_edge_seen_from_above(tmp_path):
