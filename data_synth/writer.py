@@ -59,8 +59,9 @@ SHADE_CHUNK = 16384
 #: Samples per side of a pixel that the masks of a Mitsuba render test (`mitsuba_masks`): Mitsuba's
 #: pixel is the mean over its whole area, so a pixel whose centre alone is on the mesh mixes in
 #: what lies beyond the silhouette (the sky). The samples of the neighbouring pixels next to it are
-#: tested too (`_whole_pixels`): 4 x 4 samples alone let a silhouette cut off up to 8% of a pixel
-#: between them (torus-floor, the floor's far edge, where a glint of 3-4 then read 5% low).
+#: tested too (`_whole_pixels`): 4 x 4 samples alone let a silhouette cut off a strip up to 1/8 of a
+#: pixel wide between them (on torus-floor, pixels at the floor's far edge with 2-8% of their area off it, where the sky
+#: mixed into the sun's glint and pulled the fit's roughness there).
 MITSUBA_MASK_SAMPLES = 4
 
 
@@ -147,8 +148,8 @@ def _whole_pixels(hit: np.ndarray, supersample: int) -> np.ndarray:
     The window of (k + 2)^2 samples holds the four samples around each of the pixel's corners. A
     straight silhouette edge that enters the pixel leaves a corner c on its far side, and then one of
     the four samples c + (±1/2k, ±1/2k) too (their mean is c), however thin the sliver it cuts off;
-    the k x k samples alone miss slivers up to 1/k wide. Samples past the image's border repeat the
-    border's."""
+    the k x k samples alone miss strips up to 1/(2k) of the pixel wide along a side. Samples past the
+    image's border repeat the border's."""
     h, w = hit.shape
     padded = np.pad(np.asarray(hit, bool), 1, mode="edge")
     near = np.ones_like(hit, bool)

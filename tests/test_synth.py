@@ -453,9 +453,9 @@ def test_mitsuba_masks_hold_only_pixels_wholly_on_the_mesh(tmp_path):
 
 
 def test_whole_pixel_masks_leave_out_slivers_between_the_samples():
-    """A straight edge that cuts a pixel between its 4 x 4 samples (up to 1/4 of a pixel's side from
-    its border) leaves it out of the mask, and a pixel wholly on the mesh stays in: checked against
-    the exact coverage of a half-plane at 64 samples per side."""
+    """A straight edge that cuts a pixel between its 4 x 4 samples (within 1/8 of its side of its
+    border) leaves it out of the mask, and a pixel wholly on the mesh stays in: checked against the
+    exact coverage of a half-plane at 64 samples per side."""
     k, n = writer.MITSUBA_MASK_SAMPLES, 12
 
     def hits(per_pixel):  # the half-plane y < 0.37 x + 5.06 (in pixels), sampled at sub-pixel centres
