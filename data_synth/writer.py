@@ -60,8 +60,8 @@ SHADE_CHUNK = 16384
 #: pixel is the mean over its whole area, so a pixel whose centre alone is on the mesh mixes in
 #: what lies beyond the silhouette (the sky). The samples of the neighbouring pixels next to it are
 #: tested too (`_whole_pixels`): 4 x 4 samples alone let a silhouette cut off a strip up to 1/8 of a
-#: pixel wide between them (on torus-floor, pixels at the floor's far edge with 2-8% of their area off it, where the sky
-#: mixed into the sun's glint and pulled the fit's roughness there).
+#: pixel wide between them (on torus-floor, pixels at the floor's far edge with 2-8% of their area
+#: off it, where the sky mixed into the sun's glint and pulled the fit's roughness there).
 MITSUBA_MASK_SAMPLES = 4
 
 
