@@ -150,13 +150,10 @@ def _whole_pixels(hit: np.ndarray, supersample: int) -> np.ndarray:
     the four samples c + (±1/2k, ±1/2k) too (their mean is c), however thin the sliver it cuts off;
     the k x k samples alone miss strips up to 1/(2k) of the pixel wide along a side. Samples past the
     image's border repeat the border's."""
-    h, w = hit.shape
-    padded = np.pad(np.asarray(hit, bool), 1, mode="edge")
-    near = np.ones_like(hit, bool)
-    for dy in range(3):
-        for dx in range(3):
-            near &= padded[dy : dy + h, dx : dx + w]
-    return _mask(near, supersample)
+    from scipy import ndimage
+
+    padded = np.pad(np.asarray(hit, bool), 1, mode="edge")  # as pbrfit.scene.uv_layout's _interior
+    return _mask(ndimage.binary_erosion(padded, np.ones((3, 3), bool))[1:-1, 1:-1], supersample)
 
 
 def mitsuba_masks(scene: Scene, mesh, progress=None) -> list:

@@ -434,8 +434,9 @@ def test_footprint_evidence_sees_a_box_average():
 def test_auto_footprint_tests_linear_images_before_fitting_both(tmp_path):
     """Linear EXR images: ``"auto"`` fits pixel centres, then both footprints only where the
     centres' residuals show a box's blur: on a 2 × 2 supersampled capture it keeps the samples
-    (3 × 3 of them: `AUTO_LINEAR_PIXEL_SAMPLES`), the centres' fit counted as "footprint_probe" time. (A capture rendered at centres keeps its
-    centres' fit alone: tests/cli/test_cli_fit.py::test_fit_writes_the_spec_output.)"""
+    (3 × 3 of them: `AUTO_LINEAR_PIXEL_SAMPLES`), the centres' fit counted as "footprint_probe"
+    time. (A capture rendered at centres keeps its centres' fit alone:
+    tests/cli/test_cli_fit.py::test_fit_writes_the_spec_output.)"""
     from data_synth.presets import make_scene
     from data_synth.writer import synthesize
     from pbrfit.fitting.stages.footprint import AUTO_LINEAR_PIXEL_SAMPLES

@@ -56,9 +56,10 @@ MISFIT_SHARE = 0.05
 MISFIT_Z = 3.0
 #: The most rows (pixels, or pixel samples: the footprint's 2 × 2 samples and their centres are
 #: five a pixel, its 3 × 3 on linear images ten) "auto" integrates per pixel unasked: the
-#: integrals take about 2.5 ms a row on a 2-core CPU at the default 512 samples (docs/ibl.md), about 10 minutes here; beyond it the
-#: fit keeps the split sum (or, once per-pixel integrals are chosen, the pixel centres) and says
-#: why (``ibl="per_pixel"``, ``pixel_samples=2`` integrate them, best on a GPU).
+#: integrals take about 2.5 ms a row on a 2-core CPU at the default 512 samples (docs/ibl.md),
+#: about 10 minutes here; beyond it the fit keeps the split sum (or, once per-pixel integrals are
+#: chosen, the pixel centres) and says why (``ibl="per_pixel"``, ``pixel_samples=2`` integrate
+#: them, best on a GPU).
 AUTO_MAX_IBL_PIXELS = 250_000
 
 
