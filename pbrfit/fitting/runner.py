@@ -40,10 +40,13 @@ __all__ = ["enable_compilation_cache", "stamp_cache_entries", "Compiler", "Runne
 #: first linearises once more, about half a step's time (peer-plane, 32 x 32 maps), so the parts
 #: cost at most about 5 % more (where a run is cut does not change its steps: `structured.LMCarry`).
 MIN_PART_STEPS = 10
-#: Compiles shorter than this are not kept on disk. Every one is kept: loading even a program
-#: that compiles in 0.1 s is faster than compiling it, and a fit's small ones add up (peer scene,
-#: warm command: 6.6 s with only those over 0.5 s kept, 5.9 s with all 13 programs, 0.7 MB).
-MIN_CACHED_COMPILE_SECONDS = 0.0
+#: Compiles shorter than this are not kept on disk. Loading a program that compiles in 0.1 s is
+#: faster than compiling it, and a fit's small ones add up (peer scene, warm command: 6.6 s with
+#: only compiles over 0.5 s kept, 6.0 s with all over 0.05 s, 9 of its 13 programs); the few
+#: shorter ones (type conversions) are left out, as each entry kept makes every later write scan
+#: the folder (JAX's size limit, `COMPILATION_CACHE_BYTES`): keeping every compile made the test
+#: suite 860 s instead of 700 (1,400 of its programs compile in over 0.05 s).
+MIN_CACHED_COMPILE_SECONDS = 0.05
 #: The persistent compilation cache's size: the oldest executables are evicted beyond it. A size
 #: also makes JAX lock the folder (``filelock``) for each read and write, so processes that share
 #: it (two fits at once, a test suite's workers) never read an executable another is writing.
