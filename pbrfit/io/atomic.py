@@ -20,7 +20,7 @@ from typing import BinaryIO, Callable, Iterator, Optional
 from ..errors import CaptureError, listed
 
 __all__ = ["atomic_path", "atomic_dir", "check_output_dir", "check_not_inside", "output_path", "write_cache_file",
-           "abandon_writes", "hold_on_abandon", "CacheWarning", "OUTPUT_MARKER", "OUTPUT_KINDS", "REFUSED_ERRNOS"]
+           "abandon_writes", "hold_on_abandon", "CacheWarning", "REWRITE", "OUTPUT_MARKER", "OUTPUT_KINDS", "REFUSED_ERRNOS"]
 
 
 def _process_umask() -> int:
@@ -37,6 +37,8 @@ _UMASK = _process_umask()
 _FILE_MODE = 0o666 & ~_UMASK
 _DIR_MODE = 0o777 & ~_UMASK
 
+#: How a writer opens `atomic_path`'s temporary: for writing, without making it.
+REWRITE = "r+b"
 #: Every temporary file and folder the writers below have made and neither renamed into place nor
 #: removed (insertion-ordered), for `abandon_writes`.
 _TEMPORARIES: dict = {}
@@ -120,6 +122,9 @@ def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
     The temporary name keeps ``final``'s suffix, so tools that pick a format by extension
     (OpenImageIO, trimesh) write the right one. The file gets the mode the umask gives a new
     file. If the body raises, the temporary file is deleted and ``final`` is left as it was.
+    The temporary exists, empty, when yielded: a writer that opens it itself opens it with
+    `REWRITE` ("r+b"), which cannot make it again where a signal's `abandon_writes` has removed
+    it meanwhile ("wb" would, and leave it behind).
     """
     final = Path(final)
     final.parent.mkdir(parents=True, exist_ok=True)
@@ -148,7 +153,7 @@ def write_cache_file(path: str | os.PathLike, write: Callable[[BinaryIO], None])
     run's time: a `CacheWarning` naming its folder (once per folder and reason), and nothing else."""
     path = Path(path)
     try:
-        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        with atomic_path(path) as tmp, open(tmp, REWRITE) as f:
             write(f)
     except OSError as err:
         said = (str(path.parent), str(err.strerror or err))

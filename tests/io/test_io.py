@@ -227,6 +227,54 @@ def test_abandoned_writes_leave_no_temporary_and_rename_nothing(tmp_path):
     assert got["removed"] == 2 and got["left"] == ["out"] and got["out"] == ["old.txt"]
     assert not got["renamed"] and got["held"] and got["waited"] >= 0.2
 
+_CACHE_WRITE_ABANDONED = r"""
+import json, os, sys, threading, time, warnings
+from pathlib import Path
+from pbrfit.io import atomic
+
+root = Path(sys.argv[1])
+made, go_on, done = threading.Event(), threading.Event(), threading.Event()
+made_temporary = atomic._new_temporary
+
+def made_then_wait(make):  # the moment between the temporary's making and the writer's open
+    path = made_temporary(make)
+    made.set()
+    go_on.wait()
+    return path
+
+atomic._new_temporary = made_then_wait
+
+def write():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        atomic.write_cache_file(root / "gbuffer.npz", lambda f: f.write(b"data"))
+    done.set()
+
+threading.Thread(target=write, daemon=True).start()
+made.wait()
+removed = atomic.abandon_writes(timeout=5)
+go_on.set()  # the writer now opens the temporary the signal removed
+done.wait(5)
+print(json.dumps(dict(removed=len(removed), done=done.is_set(), left=sorted(os.listdir(root)))))
+sys.stdout.flush()
+os._exit(0)
+"""
+
+
+def test_a_cache_write_a_signal_abandoned_before_its_open_leaves_nothing(tmp_path):
+    """A signal that removes a cache file's temporary between its making and the writer's open
+    (the G-buffer cache's first write): the open does not make it again, so nothing is left."""
+    import json
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _CACHE_WRITE_ABANDONED, str(tmp_path)], capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    got = json.loads(done.stdout)
+    assert got == dict(removed=1, done=True, left=[])
+
+
 # --- images -------------------------------------------------------------------------------------
 def test_single_channel_2d_round_trip_guards_oiio_bug(tmp_path):
     # OpenImageIO garbles a 2-D array passed to write_image; write_image must pass (H, W, 1).
