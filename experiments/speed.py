@@ -47,6 +47,7 @@ rung, one repeat); the five scenes roughly 25.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import shlex
@@ -451,6 +452,9 @@ def main(argv=None) -> int:
             print(table_line(name, rung, rows), flush=True)
             write_json(results, out)
     write_json(results, out)
+    if importlib.util.find_spec("matplotlib") is None:
+        print(f"wrote {out}; no chart: matplotlib is not installed (pip install -e '.[experiments]')")
+        return 0
     plot(results, out.with_suffix(".png"))
     print(f"wrote {out} and {out.with_suffix('.png')}")
     return 0
