@@ -405,8 +405,9 @@ def plot(rows, path: Path):
 
 
 #: Packages whose versions can move the fits: the float programs (jax), the data (numpy, trimesh,
-#: OpenImageIO) and the optimistix rows.
-VERSIONED = ("jax", "jaxlib", "numpy", "scipy", "trimesh", "OpenImageIO", "equinox", "lineax", "optimistix", "optax")
+#: OpenImageIO) and the optimistix rows; and the start-up's time (ml_dtypes, `pyproject.toml`).
+VERSIONED = ("jax", "jaxlib", "ml_dtypes", "numpy", "scipy", "trimesh", "OpenImageIO", "equinox", "lineax",
+             "optimistix", "optax")
 
 
 def machine() -> dict:
