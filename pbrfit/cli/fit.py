@@ -36,7 +36,7 @@ from ..lighting.settings import MAX_LEVELS, MAX_SAMPLES, MIN_LEVELS, MIN_SAMPLES
 from ..lighting.visibility import OcclusionSettings
 from ..scene.capture import load_capture
 
-__all__ = ["run", "fit_options", "fit_summary", "FitProgress", "loss_history", "run_fit"]
+__all__ = ["run", "fit_options", "fit_summary", "describe", "FitProgress", "loss_history", "run_fit"]
 
 
 def run(args) -> int:
@@ -248,9 +248,30 @@ def fit_summary(result, errors) -> str:
     return "; ".join(parts)
 
 
+def describe(info: dict) -> str:
+    """The progress line's text for one of a fit's progress entries: a step ``level 0 (64x64)
+    step  12  loss 1.2345e-03``, or the stage that begins (``level 0 (64x64) search``), with
+    where it is (the automatic footprint's finish, the repair's pass, the weighted fit, the
+    uniform check's channel) between them."""
+    if info.get("stage") == "ibl":  # the per-pixel integrals before the solve
+        return f"per-pixel IBL {info['done']:,} / {info['total']:,} pixels"
+    h, w = info["resolution"]
+    n = info.get("footprint")  # the auto footprint's two finishes: centres, then samples
+    where = "" if n is None else ("  pixel centres" if n == 1 else f"  {n}x{n} samples")
+    if "repair" in info:
+        where += f"  repair {info['repair']}"
+    if info.get("weighted"):
+        where += "  weighted"
+    if "check" in info:
+        where += f"  uniform {info['check']}?"
+    if "loss" not in info:
+        return f"level {info['level']} ({h}x{w}){where}  {info['stage']}"
+    return f"level {info['level']} ({h}x{w}){where} step {info['step']:3d}  loss {info['loss']:.4e}"
+
+
 class FitProgress:
-    """A live line (rich) with level, step, loss and elapsed time (before the solve, the per-pixel IBL
-    integrals' progress); also keeps the loss history."""
+    """A live line (rich) with where the fit is (`describe`: level, stage or step and loss) and the
+    elapsed time; also keeps the loss history (the steps' entries)."""
 
     def __init__(self, enabled: bool):
         self.history = []
@@ -264,23 +285,10 @@ class FitProgress:
             self._live.start()
 
     def __call__(self, info: dict) -> None:
-        if info.get("stage") == "ibl":  # the per-pixel integrals before the solve: no loss yet
-            if self._live is not None:
-                self._live.update(self._task, description=f"per-pixel IBL {info['done']:,} / {info['total']:,} pixels")
-            return
-        self.history.append(dict(info, time=self._clock() - self._start))
+        if "loss" in info:
+            self.history.append(dict(info, time=self._clock() - self._start))
         if self._live is not None:
-            h, w = info["resolution"]
-            n = info.get("footprint")  # the auto footprint's two finishes: centres, then samples
-            where = "" if n is None else ("  pixel centres" if n == 1 else f"  {n}x{n} samples")
-            if "repair" in info:
-                where += f"  repair {info['repair']}"
-            if info.get("weighted"):
-                where += "  weighted"
-            if "check" in info:
-                where += f"  uniform {info['check']}?"
-            self._live.update(self._task, description=(
-                f"level {info['level']} ({h}x{w}){where} step {info['step']:3d}  loss {info['loss']:.4e}"))
+            self._live.update(self._task, description=describe(info))
 
     def close(self) -> None:
         if self._live is not None:

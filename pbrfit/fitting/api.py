@@ -419,7 +419,9 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
             the time the fit waited for compiles, ``times["compile_background"]`` what was
             compiled meanwhile). Off: every compile runs where it is first needed.
         progress: called with {stage: "ibl", done, total} (pixels) while per-pixel IBL integrals
-            are computed, then with {level, resolution, step, loss} for each step (``check``:
+            are computed, then with {level, resolution, stage} as each stage begins ("grid
+            start", "solving", "search", each stage after the solve that runs by its name,
+            "standard errors") and {level, resolution, step, loss} for each step (``check``:
             the channel, during the uniform check's re-fits): the structured solver's after each
             solve (it keeps the losses in its state, so its program holds no host callback); an
             optimistix solver's at each evaluation of the objective, one per step, by a host

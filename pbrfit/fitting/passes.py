@@ -28,7 +28,7 @@ from .initialisation import coordinate_search, grid_initialise, parity_classes
 from .observations import Observations, coverage_counts, layout_for, neighbour_pairs
 from .parameters import FIT_GROUPS, channel_mask, prior
 from .resolution import default_resolution, schedule
-from .runner import Compiler, Runner, jitted_normal_blocks, problem_key, search_key, timed
+from .runner import Compiler, Runner, announce, jitted_normal_blocks, problem_key, search_key, timed
 from .stages.pipeline import STAGES, StageState, run_stages
 from .stages.selection import SELECTABLE
 from .sharding import pixel_mesh, shard_problem
@@ -224,9 +224,11 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
             if early is not problem:
                 runner.prefetch(x0, problem, num_free)
             if grid_start:
+                announce(options.progress, where, "grid start")
                 x0 = to_device(np.asarray(timed(compiler, ("grid",) + problem_key(early), grid_initialise, "init",
                                                  x0, early)), np.float32)
             xs, info = x0, None
+            announce(options.progress, where, "solving")
             if annealing:
                 jac = runner.jacobian(xs, early, num_free)  # timed as compile and solve
                 t0 = time.perf_counter()
@@ -244,6 +246,7 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
             done = head if (annealing or searching) else 0
             settle = False
             if searching:
+                announce(options.progress, where, "search")
                 xn = np.asarray(timed(compiler, searched, coordinate_search, "search", to_device(xs, np.float32),
                                        early, classes, *search_args))
                 info["search_moved"] = int(np.sum(np.any(xn[:t] != np.asarray(xs)[:t], axis=1)))
@@ -251,6 +254,7 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
                 settle = annealing and weights[-1] > 0 and steps - done - SETTLE_STEPS >= RELEASED_STEPS
                 if settle:
                     annealed["settle_steps"] = SETTLE_STEPS
+                announce(options.progress, where, "solving")
 
             tail = dict(steps=steps - done, num_free=num_free,
                         settle_weight=options.smooth + weights[-1] if settle else None)

@@ -15,7 +15,7 @@ from .stages.footprint import samples_side
 from ..physics.material import Material
 from .observations import coverage_counts, layout_for
 from .parameters import CHANNELS, NORMAL_CHANNELS, lower, normal_from_slopes, upper
-from .runner import jitted_neighbour_blocks, jitted_normal_blocks, thread_time
+from .runner import announce, jitted_neighbour_blocks, jitted_normal_blocks, thread_time
 from .solvers.names import solver_name
 from .stages.selection import profile_hessian, uniform_direction
 from .objective import linearize, objective, pixel_residuals
@@ -159,6 +159,7 @@ def finish(obs, state, x, model, options, history, times, t_start):
     if state.errors is not None:  # the hold's, at this x for this problem (it held no texel)
         sigma, sigma2 = state.errors
     else:
+        announce(options.progress, state.where, "standard errors")
         sigma, sigma2 = texel_standard_errors(problem, x, jac, float(data_energy), final, texel_channels, seen,
                                               obs.num_pixels, len(uniform), uncertainty_radius)
     sigma = sigma * np.sqrt(misfit_ratios(problem, x, r, jac, sigma2, texel_channels, seen, obs.num_pixels,

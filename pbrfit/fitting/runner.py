@@ -31,7 +31,7 @@ from .checkpoint import call_id
 from ..io.atomic import hold_on_abandon
 from ..transfer import to_device
 
-__all__ = ["enable_compilation_cache", "stamp_cache_entries", "Compiler", "Runner", "timed", "timed_rest", "thread_time", "problem_key",
+__all__ = ["announce", "enable_compilation_cache", "stamp_cache_entries", "Compiler", "Runner", "timed", "timed_rest", "thread_time", "problem_key",
            "compile_summary", "jitted_normal_blocks", "jitted_neighbour_blocks", "problem_energy"]
 
 #: With a checkpoint, the structured solver's runs go in parts of about
@@ -87,6 +87,14 @@ def enable_compilation_cache(folder) -> None:
 jitted_normal_blocks = jax.jit(normal_blocks)
 #: The blocks between neighbouring texels, for the uncertainty's windows (one compile per map size).
 jitted_neighbour_blocks = jax.jit(neighbour_blocks, static_argnums=2)
+
+
+def announce(progress, where: dict, stage: str) -> None:
+    """Tell a fit's ``progress`` callback (or None) that `stage` begins: ``{stage, **where}``
+    (the level and resolution, and the pass it is in), so that a display says where the fit is
+    between the solver's steps, which are reported only when each run ends."""
+    if progress is not None:
+        progress(dict(where, stage=stage))
 
 
 def problem_energy(residuals, x, problem: Problem) -> float:

@@ -588,6 +588,22 @@ def test_summary_line_names_the_footprint():
         SimpleNamespace(report=report), {})
 
 
+def test_the_progress_line_says_which_stage_runs_and_keeps_only_steps_in_the_history():
+    """Between the solver's steps (reported when each run ends) the line names the stage that
+    began, with where the fit is; only the steps' entries go to the loss history."""
+    from pbrfit.cli.fit import FitProgress, describe
+
+    at = dict(level=0, resolution=(64, 64))
+    assert describe(dict(at, stage="search")) == "level 0 (64x64)  search"
+    assert describe(dict(at, stage="solving", repair=2)) == "level 0 (64x64)  repair 2  solving"
+    assert describe(dict(at, step=12, loss=1.5e-3)) == "level 0 (64x64) step  12  loss 1.5000e-03"
+    assert describe(dict(stage="ibl", done=1200, total=5000)) == "per-pixel IBL 1,200 / 5,000 pixels"
+    progress = FitProgress(False)
+    for entry in (dict(at, stage="grid start"), dict(at, step=0, loss=2.0), dict(at, stage="standard errors")):
+        progress(entry)
+    assert [h["loss"] for h in progress.history] == [2.0]
+
+
 def test_loss_history_keeps_the_kept_footprint_only():
     from pbrfit.cli.fit import loss_history
 

@@ -208,7 +208,7 @@ def test_a_second_fit_of_the_same_shapes_compiles_nothing():
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
     reported = []
     first = fit_observations(obs, resolution=8, max_steps=16, progress=reported.append)
-    losses = [entry["loss"] for entry in reported]
+    losses = [entry["loss"] for entry in reported if "loss" in entry]
     # every step reported, once: the solve's steps and the stages' (their steps count apart)
     assert len(losses) >= first.report["steps"] + 1 and losses[-1] == pytest.approx(first.report["final_loss"], rel=1e-3)
     lowered = []
@@ -225,6 +225,23 @@ def test_a_second_fit_of_the_same_shapes_compiles_nothing():
         counting[0] = False
     assert lowered == []
     np.testing.assert_array_equal(np.asarray(second.material.base_color), np.asarray(first.material.base_color))
+
+
+def test_progress_names_each_stage_as_it_begins():
+    """Between the solver's runs, whose steps are reported as each run ends, the progress callback
+    hears which stage begins, with the level and resolution: the grid start, the solve, the
+    search, the solve again, then each stage after the solve that runs, in the report's order."""
+    truth = _checker()
+    obs = observations_from_views(VIEWS, _images(VIEWS, truth))
+    reported = []
+    res = fit_observations(obs, resolution=8, max_steps=16, progress=reported.append)
+    stages = [entry["stage"] for entry in reported if "stage" in entry]
+    ran = [s["name"].replace("_", " ") for s in res.report["stages"] if s["ran"]]
+    assert ran and stages[:4] == ["grid start", "solving", "search", "solving"], stages
+    assert stages[4:4 + len(ran)] == ran and stages[4 + len(ran):] in ([], ["standard errors"]), stages
+    assert all(entry["level"] == 0 and tuple(entry["resolution"]) == (8, 8) for entry in reported)
+    first_step = next(i for i, entry in enumerate(reported) if "loss" in entry)
+    assert [entry.get("stage") for entry in reported[:first_step]] == ["grid start", "solving"]
 
 
 def test_coarse_to_fine_runs_its_levels_and_recovers_the_maps():

@@ -22,7 +22,7 @@ from typing import Any, Optional, Protocol, Sequence
 import numpy as np
 
 from ..objective import Problem
-from ..runner import timed_rest
+from ..runner import announce, timed_rest
 from .repair import repair_skipped, run_repair
 from .selection import run_uniform_check, uniform_check_skipped
 from .unconstrained import hold_skipped, run_hold
@@ -158,6 +158,7 @@ def run_stages(stages: Sequence[Stage], state: StageState, clock: dict) -> tuple
         if why is not None:
             entries[stage.name] = dict(skipped=why)
         else:
+            announce(state.options.progress, state.where, stage.name.replace("_", " "))
             with timed_rest(clock, stage.name):
                 entries[stage.name] = stage.run(state)
         found = entries[stage.name]
