@@ -302,9 +302,9 @@ def load_mesh(path, normalize: bool = False) -> MeshData:
 
 def write_glb(path, mesh: MeshData) -> None:
     """Write the mesh as a binary glTF (positions, normals, TEXCOORD_0), atomically."""
-    from pbrfit.io.atomic import atomic_path
+    from pbrfit.io.atomic import atomic_open
 
     tm = mesh.to_trimesh()
     data = tm.export(file_type="glb", include_normals=True)
-    with atomic_path(Path(path)) as tmp:
-        Path(tmp).write_bytes(data)
+    with atomic_open(Path(path)) as f:
+        f.write(data)

@@ -30,7 +30,7 @@ from typing import Any, Mapping, Optional
 import numpy as np
 
 from ..errors import CaptureError
-from ..io.atomic import REWRITE, atomic_path
+from ..io.atomic import atomic_open
 
 __all__ = ["Checkpoint", "checkpoint_folder", "call_id", "folder_digests", "CHECKPOINT_SECONDS", "CHECKPOINT_SUFFIX"]
 
@@ -208,7 +208,7 @@ class Checkpoint:
             return
         name = f"call-{number:04d}.npy"
         self.folder.mkdir(parents=True, exist_ok=True)
-        with atomic_path(self.folder / name) as tmp, open(tmp, REWRITE) as f:
+        with atomic_open(self.folder / name) as f:
             np.save(f, np.asarray(x))
         self._journal.append(dict(id=ident, file=name, info=dict(info),
                                   reported=[[int(k), float(e)] for k, e in reported]))
@@ -220,14 +220,14 @@ class Checkpoint:
         if time.monotonic() - self._saved < self.seconds:
             return
         self.folder.mkdir(parents=True, exist_ok=True)
-        with atomic_path(self.folder / "partial.npz") as tmp, open(tmp, REWRITE) as f:
+        with atomic_open(self.folder / "partial.npz") as f:
             np.savez(f, x=np.asarray(x), number=np.asarray(number), **{k: np.asarray(v) for k, v in carry.items()})
         self._write_index(dict(number=number, id=ident, steps=int(steps)))
 
     def _write_index(self, partial: Optional[dict]) -> None:
         text = json.dumps(dict(layout=_LAYOUT, fingerprint=self.fingerprint, entries=self._journal,
                                partial=partial))
-        with atomic_path(self.folder / _INDEX) as tmp, open(tmp, REWRITE) as f:
+        with atomic_open(self.folder / _INDEX) as f:
             f.write(text.encode())
         self._saved = time.monotonic()
 

@@ -20,7 +20,7 @@ from typing import BinaryIO, Callable, Iterator, Optional
 from ..errors import CaptureError, listed
 
 __all__ = ["atomic_path", "atomic_dir", "check_output_dir", "check_not_inside", "output_path", "write_cache_file",
-           "abandon_writes", "hold_on_abandon", "CacheWarning", "REWRITE", "OUTPUT_MARKER", "OUTPUT_KINDS", "REFUSED_ERRNOS"]
+           "abandon_writes", "hold_on_abandon", "CacheWarning", "atomic_open", "OUTPUT_MARKER", "OUTPUT_KINDS", "REFUSED_ERRNOS"]
 
 
 def _process_umask() -> int:
@@ -37,8 +37,8 @@ _UMASK = _process_umask()
 _FILE_MODE = 0o666 & ~_UMASK
 _DIR_MODE = 0o777 & ~_UMASK
 
-#: How a writer opens `atomic_path`'s temporary: for writing, without making it.
-REWRITE = "r+b"
+#: How `atomic_open` opens `atomic_path`'s temporary: for writing, without making it.
+_REWRITE = "r+b"
 #: Every temporary file and folder the writers below have made and neither renamed into place nor
 #: removed (insertion-ordered), for `abandon_writes`.
 _TEMPORARIES: dict = {}
@@ -122,9 +122,8 @@ def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
     The temporary name keeps ``final``'s suffix, so tools that pick a format by extension
     (OpenImageIO, trimesh) write the right one. The file gets the mode the umask gives a new
     file. If the body raises, the temporary file is deleted and ``final`` is left as it was.
-    The temporary exists, empty, when yielded: a writer that opens it itself opens it with
-    `REWRITE` ("r+b"), which cannot make it again where a signal's `abandon_writes` has removed
-    it meanwhile ("wb" would, and leave it behind).
+    The temporary exists, empty, when yielded; a writer that writes to a file object takes
+    `atomic_open` instead, which opens it without making it again.
     """
     final = Path(final)
     final.parent.mkdir(parents=True, exist_ok=True)
@@ -143,6 +142,16 @@ def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+@contextlib.contextmanager
+def atomic_open(final: str | os.PathLike) -> Iterator[BinaryIO]:
+    """`atomic_path`'s temporary, opened for binary writing: renamed into place once the block
+    and the file close. It is opened "r+b", which cannot make it again where a signal's
+    `abandon_writes` removed it between its making and the open ("wb" would, and leave it
+    behind): the write then fails, and the process is ending anyway."""
+    with atomic_path(final) as tmp, open(tmp, _REWRITE) as f:
+        yield f
+
+
 class CacheWarning(UserWarning):
     """A cache file could not be written; the command goes on without it."""
 
@@ -153,7 +162,7 @@ def write_cache_file(path: str | os.PathLike, write: Callable[[BinaryIO], None])
     run's time: a `CacheWarning` naming its folder (once per folder and reason), and nothing else."""
     path = Path(path)
     try:
-        with atomic_path(path) as tmp, open(tmp, REWRITE) as f:
+        with atomic_open(path) as f:
             write(f)
     except OSError as err:
         said = (str(path.parent), str(err.strerror or err))

@@ -17,7 +17,7 @@ from PIL import Image
 from trimesh.visual.material import PBRMaterial
 from trimesh.visual.texture import TextureVisuals
 
-from .atomic import atomic_path
+from .atomic import atomic_open
 from .images import srgb_encoded
 from .material_files import encode_normal, map_array, pack_orm
 
@@ -151,8 +151,8 @@ def _export_glb(path, mesh, visual, world_up: str, edit=None) -> Path:
 
     data = _glb_with_json(data, conventions)
     path = Path(path)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
+    with atomic_open(path) as f:
+        f.write(data)
     return path
 
 

@@ -227,8 +227,9 @@ def test_abandoned_writes_leave_no_temporary_and_rename_nothing(tmp_path):
     assert got["removed"] == 2 and got["left"] == ["out"] and got["out"] == ["old.txt"]
     assert not got["renamed"] and got["held"] and got["waited"] >= 0.2
 
+
 _CACHE_WRITE_ABANDONED = r"""
-import json, os, sys, threading, time, warnings
+import json, os, sys, threading, warnings
 from pathlib import Path
 from pbrfit.io import atomic
 
