@@ -41,7 +41,8 @@ from jaxtyping import Array, Float, Int
 from .normal_matrix import block_gram
 from .objective import Problem, by_pixel
 
-__all__ = ["Stencil", "cell_side", "offsets", "cells_fit", "stencil", "stencil_blocks", "stencil_product"]
+__all__ = ["Stencil", "cell_side", "offsets", "cells_fit", "stencil", "stencil_blocks", "stencil_product", "channel_blocks",
+           "channel_product"]
 
 #: A grid step beyond every stencil (its cell cannot hold the pixel).
 _FAR = 1 << 20
@@ -138,9 +139,8 @@ def stencil_blocks(jac: Float[Array, "R 3 K"], problem: Problem, st: Stencil) ->
     """JᵀJ + smooth L by stencil (module docstring): block n of texel t is the K × K block between
     t and ``st.neighbours[t, n]``, ``st`` the problem's `stencil`. The prior adds
     smooth w (e_a - e_b)(e_a - e_b)ᵀ ⊗ diag(freed channels) for each pair (a, b) of weight w."""
-    t, side = problem.num_texels, st.side
-    corners = [(i, j) for i in range(side) for j in range(side)]
-    pairs = [(a, b) for a in range(side * side) for b in range(a, side * side)]
+    t = problem.num_texels
+    pairs = _corner_pairs(st.side)
     # by elements (`block_gram`; the flash scene's 2 × 2 samples: 184 ms an assembly against 464)
     if problem.samples == 1:
         gp = block_gram(jac, jac)
@@ -157,15 +157,7 @@ def stencil_blocks(jac: Float[Array, "R 3 K"], problem: Problem, st: Stencil) ->
     # 60k pixels) that the allocator maps afresh at each call, and took five times as long
     _, cells = lax.scan(lambda _, ab: (None, jax.ops.segment_sum(pair_rows(ab[0], ab[1]), st.cell, num_segments=t)),
                         None, jnp.asarray(np.asarray(pairs, np.int32)))  # (pairs, T, K, K)
-    slots = [[] for _ in range(st.neighbours.shape[1])]
-    for q, (qa, qb) in enumerate(pairs):
-        for a, b, flip in ((qa, qb, False), (qb, qa, True))[: 1 if qa == qb else 2]:
-            (ai, aj), (bi, bj) = corners[a], corners[b]
-            back = _slot(-ai, -aj, side)  # texel t is corner a of cell t - o_a
-            block = cells[q] if back == st.centre else cells[q][st.neighbours[:, back]]
-            slots[_slot(bi - ai, bj - aj, side)].append(jnp.swapaxes(block, 1, 2) if flip else block)
-    zero = jnp.zeros_like(cells[0])
-    blocks = jnp.stack([sum(s) if s else zero for s in slots], axis=1)
+    blocks = _by_offset(cells, st, lambda block: jnp.swapaxes(block, 1, 2))
     a, b = problem.pairs[:, 0], problem.pairs[:, 1]
     sw = problem.smooth * problem.pair_weight
     n = st.neighbours.shape[1]
@@ -173,6 +165,48 @@ def stencil_blocks(jac: Float[Array, "R 3 K"], problem: Problem, st: Stencil) ->
                           b * n + st.pair_offsets[:, 1]])
     prior = jax.ops.segment_sum(jnp.concatenate([sw, sw, -sw, -sw]), at, num_segments=t * n).reshape(t, n)
     return blocks + prior[:, :, None, None] * jnp.diag(jnp.max(problem.free, axis=0))
+
+
+def _corner_pairs(side: int) -> list[tuple[int, int]]:
+    """The cell's corner pairs (a, b), a <= b, corners numbered row by row."""
+    return [(a, b) for a in range(side * side) for b in range(a, side * side)]
+
+
+def _by_offset(cells, st: Stencil, transpose):
+    """(T, N, ...) the stencil's blocks from the cells' sums per corner pair, ``cells[q]`` (T, ...)
+    for the q-th pair of `_corner_pairs`: block (t, t + o) adds pair (a, b)'s sum over the cell t
+    is corner a of, for o_b - o_a = o, and ``transpose`` of it for the pair the other way round."""
+    side = st.side
+    corners = [(i, j) for i in range(side) for j in range(side)]
+    slots = [[] for _ in range(st.neighbours.shape[1])]
+    for q, (qa, qb) in enumerate(_corner_pairs(side)):
+        for a, b, flip in ((qa, qb, False), (qb, qa, True))[: 1 if qa == qb else 2]:
+            (ai, aj), (bi, bj) = corners[a], corners[b]
+            back = _slot(-ai, -aj, side)  # texel t is corner a of cell t - o_a
+            block = cells[q] if back == st.centre else cells[q][st.neighbours[:, back]]
+            slots[_slot(bi - ai, bj - aj, side)].append(transpose(block) if flip else block)
+    zero = jnp.zeros_like(cells[0])
+    return jnp.stack([sum(s) if s else zero for s in slots], axis=1)
+
+
+def channel_blocks(rows: Float[Array, "P C"], problem: Problem, st: Stencil) -> Float[Array, "T N C"]:
+    """By stencil, the Gram matrix of a problem at pixel centres whose parameters are one value
+    per texel and channel and whose residual channel c reads channel c alone, scaled by
+    ``rows[p, c]`` (its squared slope): entry (t, u, c) = Σ_p rows_pc w_pt w_pu, block n of texel t
+    the one towards ``st.neighbours[t, n]``. One segment sum of every corner pair's rows (wide
+    rows; `stencil_blocks` takes K × K blocks a pair at a time). At pixel centres only (one
+    sample: the cells of side 2)."""
+    pairs = _corner_pairs(st.side)
+    share = st.share[:, 0, :]
+    per_pair = jnp.stack([share[:, a] * share[:, b] for a, b in pairs], axis=1)[:, :, None] * rows[:, None, :]
+    cells = jax.ops.segment_sum(per_pair.reshape(per_pair.shape[0], -1), st.cell, num_segments=problem.num_texels)
+    cells = jnp.moveaxis(cells.reshape(problem.num_texels, len(pairs), -1), 1, 0)  # (pairs, T, C)
+    return _by_offset(cells, st, lambda block: block)
+
+
+def channel_product(blocks: Float[Array, "T N C"], neighbours: Int[Array, "T N"], v: Float[Array, "T C"]):
+    """(Σ_n blocks[t, n] v[neighbours[t, n]])_t per channel: the product of `channel_blocks`."""
+    return jnp.sum(blocks * v[neighbours], axis=1)
 
 
 def stencil_product(blocks: Float[Array, "T N K K"], neighbours: Int[Array, "T N"], v: Float[Array, "T K"]):

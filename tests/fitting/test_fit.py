@@ -32,6 +32,7 @@ from pbrfit.physics.lights import point_light
 from pbrfit.physics.material import Material
 from pbrfit.physics.model import Model
 from pbrfit.fitting.observations import coverage_counts, neighbour_pairs, observations_from_views, texel_layout
+from pbrfit.fitting.stencil import cells_fit
 from pbrfit.fitting.parameters import LOWER, UPPER, from_sine, to_sine
 from pbrfit.fitting.stages.repair import REPAIR_PROGRESS
 from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view
@@ -527,16 +528,19 @@ def test_optx_solvers_move_a_channel_started_on_its_bound():
         assert float(np.max(np.asarray(res.material.metallic))) < 0.2, solver
 
 
-def _texel_problem(truth, smooth=0.0):
+def _texel_problem(truth, smooth=0.0, on_grid=False):
+    """The fit's problem of `truth`'s images; `on_grid`: with its map's grid and stencil, as a fit
+    makes it (`pbrfit.fitting.stencil`), else the products go through the pixels."""
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))
     shape = truth.resolution
     layout = texel_layout(obs, shape)
     t = shape[0] * shape[1]
     pairs = neighbour_pairs(shape)
     free = np.ones((t, 5), np.float32)
+    grid = dict(grid=jnp.asarray(shape, jnp.int32), stencil=cells_fit(layout.index, 1, shape)) if on_grid else {}
     return Problem(obs, layout.index, layout.weight, jnp.asarray(free), jnp.asarray(pairs),
                    jnp.ones(len(pairs), jnp.float32), jnp.asarray(smooth, jnp.float32), jnp.asarray(0.05, jnp.float32),
-                   None, Model(), "l2")
+                   None, Model(), "l2", **grid)
 
 
 def _stack(material):
@@ -550,25 +554,31 @@ def _dense_jacobian(x, problem):
     return jax.jacfwd(lambda v: pbrfit.fitting.objective.pixel_residuals(v.reshape(-1, 5), problem).ravel())(x.ravel())
 
 
-def test_grid_start_solves_base_colour_jointly_at_colour_edges():
+@pytest.mark.parametrize("on_grid", [False, True])
+def test_grid_start_solves_base_colour_jointly_at_colour_edges(on_grid):
     """Every pixel of the checker mixes texels of both colours. The grid start solves all base
     colours jointly, so each comes out right (solved texel by texel, as if a pixel showed only the
-    texel being solved, they were up to 0.15 off) and each roughness stays in its basin."""
+    texel being solved, they were up to 0.15 off) and each roughness stays in its basin; the same
+    by stencil and through the pixels."""
     truth = _checker()
     x_true = np.asarray(_stack(truth))
-    x = np.asarray(grid_initialise(jnp.asarray(x_true), _texel_problem(truth)))
+    problem = _texel_problem(truth, on_grid=on_grid)
+    assert problem.stencil == on_grid
+    x = np.asarray(grid_initialise(jnp.asarray(x_true), problem))
     assert np.abs(x[:, :3] - x_true[:, :3]).max() < 0.02, np.abs(x[:, :3] - x_true[:, :3]).max()
     assert np.abs(x[:, 4] - x_true[:, 4]).max() < 0.09 and np.all(x[:, 3] == 0.0)
 
 
-def test_joint_base_colour_solve_matches_a_dense_solve(monkeypatch):
+@pytest.mark.parametrize("on_grid", [False, True])
+def test_joint_base_colour_solve_matches_a_dense_solve(monkeypatch, on_grid):
     """`_solve_base_joint` is least squares over all texels at once: it converges to the base
     colours that made the pixels (a dense solve's answer), 3 steps already close; rows with zero
-    slope and all-zero channels stay finite."""
+    slope and all-zero channels stay finite. By stencil (`on_grid`) each step is the step through
+    the pixels, to float32 rounding."""
     from pbrfit.fitting.initialisation import _solve_base, _solve_base_joint
 
     truth = _checker()
-    problem = _texel_problem(truth)
+    problem = _texel_problem(truth, on_grid=on_grid)
     rng = np.random.default_rng(0)
     p, t = problem.index.shape[0], problem.num_texels
     b_true = jnp.asarray(rng.uniform(0.2, 0.8, (t, 3)), jnp.float32)
@@ -583,6 +593,11 @@ def test_joint_base_colour_solve_matches_a_dense_solve(monkeypatch):
     assert err[40] < 1e-4 and err[3] < 0.25 * per_texel and err[0] == pytest.approx(per_texel, abs=1e-6), (err, per_texel)
     out = np.asarray(_solve_base_joint(l0, a, y, problem, 3))
     assert np.all(np.isfinite(out)) and np.all(out[:, 2] == 0.0)
+    if on_grid:
+        through_pixels = dataclasses.replace(problem, stencil=False)
+        for n in (0, 1, 3):
+            np.testing.assert_allclose(np.asarray(_solve_base_joint(l0, a, y, problem, n)),
+                                       np.asarray(_solve_base_joint(l0, a, y, through_pixels, n)), rtol=0, atol=2e-6)
     # the knob: the module's GRID_BASE_CG_STEPS is the default step count (equal to float32
     # rounding, not to the bit: a GPU's scatter-adds sum in no fixed order, so two runs of one
     # program can differ in the last digits; 3 steps against 40 differ by far more)
