@@ -250,6 +250,17 @@ def residuals(x: Float[Array, "T K"], problem: Problem):
     return pixel_residuals(x, problem), smooth_residuals(x, problem)
 
 
+def rounding_floor(problem: Problem) -> Float[Array, ""]:
+    """½ Σ_pc (ε w_pc y_pc)², ε the float32 machine epsilon, y the targets and w their
+    `Observations.residual_weight`: the data term when every residual is one rounding of its
+    target. The renderer computes in float32, so below it a step's change of E is rounding, not
+    evidence (a noiseless capture's fit gets there; noise of any size keeps E far above it)."""
+    obs = problem.obs
+    target, weight = obs.pixel_rows(obs.target), obs.pixel_rows(obs.residual_weight)
+    eps = jnp.finfo(jnp.float32).eps
+    return 0.5 * jnp.sum((eps * weight * target) ** 2)
+
+
 def objective(x: Float[Array, "T K"], problem: Problem) -> Float[Array, ""]:
     """E(x) = 1/2 Σ residuals²."""
     r, s = residuals(x, problem)

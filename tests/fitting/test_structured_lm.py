@@ -18,7 +18,7 @@ import pytest
 
 import pbrfit
 from pbrfit.fitting.initialisation import grid_initialise
-from pbrfit.fitting.objective import linearize, residuals
+from pbrfit.fitting.objective import linearize, pixel_residuals, residuals, rounding_floor
 from pbrfit.fitting.options import FitOptions
 from pbrfit.fitting.parameters import lower, upper
 from pbrfit.fitting.solvers.names import SOLVERS, is_structured, solver_for, solver_name
@@ -101,6 +101,25 @@ def test_structured_lm_steps_as_the_loop_it_replaced(start):
     np.testing.assert_allclose(np.asarray(sol.state.r), np.asarray(r), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(np.asarray(sol.state.jac), np.asarray(jac), rtol=1e-5, atol=1e-6)
     assert float(e) == pytest.approx(float(s["loss"]), rel=1e-6)
+
+
+def test_a_noiseless_solve_stops_once_e_is_within_the_targets_rounding():
+    """Targets rendered from the truth without noise: the solve stops at its first step that brings
+    E within `rounding_floor` (with rtol and atol 0 it went on until λ passed LAMBDA_MAX), and
+    there x is the truth; the floor is far below the noisy targets' E."""
+    noisy, truth = _problem(smooth=0.0)
+    blank = dataclasses.replace(noisy, obs=dataclasses.replace(noisy.obs, target=jnp.zeros_like(noisy.obs.target)))
+    clean = dataclasses.replace(noisy, obs=dataclasses.replace(noisy.obs, target=jax.jit(pixel_residuals)(truth, blank)))
+    x0 = grid_initialise(_start(clean), clean)
+    sol = optx.least_squares(lambda x, p: residuals(x, p), StructuredLM(rtol=0.0, atol=0.0), x0, args=clean,
+                             options=dict(max_steps=jnp.asarray(40, jnp.int32)), max_steps=None, throw=False)
+    steps = int(sol.stats["steps"])
+    history = np.asarray(sol.stats["history"])[: steps + 1]
+    floor = float(rounding_floor(clean))
+    assert 0 < floor < 1e-9 and 2 <= steps < 15, (floor, steps, history)
+    assert history[-1] <= floor < history[-2], (floor, history)
+    np.testing.assert_allclose(np.asarray(sol.value)[:, [0, 1, 2, 4]], truth[:, [0, 1, 2, 4]], atol=1e-3)
+    assert float(jax.jit(linearize)(x0, noisy)[2]) > 1e6 * float(rounding_floor(noisy))
 
 
 def test_one_program_serves_every_step_budget(start):

@@ -58,7 +58,7 @@ from jaxtyping import Array, Float
 from ..defaults import ATOL, CG_RTOL, RTOL
 from ..normal_matrix import gauss_newton_factors, gn_product, gradient, normal_blocks, spd_block_inverse
 from ..stencil import stencil, stencil_blocks, stencil_product
-from ..objective import Problem, linearize, prior_degree, residuals
+from ..objective import Problem, linearize, prior_degree, residuals, rounding_floor
 from ..parameters import lower, upper
 
 __all__ = ["StructuredLM", "solve", "pcg", "LMStats", "LMCarry", "RTOL", "ATOL", "CG_RTOL", "CG_MAX_STEPS",
@@ -195,7 +195,9 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
     Stops at an accepted step that lowers E by less than ``rtol · E``, at a step, accepted or
     not, whose predicted and actual changes of E are both within ``rtol · E`` (MINPACK's ftol
     test: J. J. Moré, B. S. Garbow, K. E. Hillstrom, "User guide for MINPACK-1", ANL-80-74, 1980)
-    or that moves no value by more than `atol` (in `norm`, the max norm by default), when λ
+    or that moves no value by more than `atol` (in `norm`, the max norm by default), once E is
+    within the targets' float32 rounding (`pbrfit.fitting.objective.rounding_floor`: there E's
+    changes are rounding, larger than ``rtol · E``, and the tests above wait for λ), when λ
     passes `LAMBDA_MAX`, or after ``options["max_steps"]`` steps (an int32 array, so that one compiled
     program serves every budget; without it, optimistix's ``max_steps`` bounds the solve, and
     counts the first call to `step`, which only linearises at the start clipped into the box).
@@ -307,7 +309,9 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         # grow over rejected steps until the step is within atol
         tol = self.rtol * loss
         floor = (predicted <= tol) & (jnp.abs(actual) <= tol)
-        done = ~first & ((accept & (actual <= tol)) | floor | (moved <= self.atol) | (lam_new > LAMBDA_MAX))
+        # E at the targets' float32 rounding: no step can tell anything more from the images
+        rounded = jnp.where(accept, loss_new, loss) <= rounding_floor(problem)
+        done = ~first & ((accept & (actual <= tol)) | floor | rounded | (moved <= self.atol) | (lam_new > LAMBDA_MAX))
         lam_new = jnp.where(first, lam, lam_new)
         nu_new = jnp.where(first, nu, nu_new)
         history = jnp.where(again, state.history,
