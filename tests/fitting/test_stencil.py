@@ -19,6 +19,7 @@ from pbrfit.fitting.normal_matrix import gauss_newton_factors, gn_product
 from pbrfit.fitting.objective import linearize
 from pbrfit.fitting.observations import PIXEL_FIELDS, neighbour_pairs, texel_layout
 from pbrfit.fitting.solvers.structured import LMCarry, StructuredLM, solve
+from pbrfit.fitting.stages.selection import profile_hessian, uniform_direction
 from pbrfit.fitting.stencil import cell_side, cells_fit, stencil, stencil_blocks, stencil_product
 from test_sharding import _problem, _start
 
@@ -111,3 +112,24 @@ def test_the_solver_by_stencil_takes_the_steps_through_the_pixels():
     history = [np.asarray(s.history)[: counts[0][0] + 1] for _, s, *_ in runs]
     np.testing.assert_allclose(history[1], history[0], rtol=1e-8)
     np.testing.assert_allclose(np.asarray(runs[1][0]), np.asarray(runs[0][0]), atol=1e-7)
+
+
+def test_the_uniform_checks_profile_curvature_is_the_same_by_stencil():
+    """`profile_hessian` by stencil and through the pixels (the prior on, in both products): the
+    same curvature and slope along a common metallic and roughness."""
+    problem, _ = _problem(pixels=300, render=False)
+    problem, _ = _on_map(problem, (5, 6), "repeat")
+    rng = np.random.default_rng(3)
+    t = problem.num_texels
+    x = jnp.asarray(rng.uniform(0.1, 0.9, (t, 5)), jnp.float32)
+    r, jac, _ = jax.jit(linearize)(x, problem)
+    free = np.ones((t, 5), np.float32)
+    free[:, 3:] = 0.0  # the common values' channels are held; base colour re-fitted
+    held = dataclasses.replace(problem, free=jnp.asarray(free))
+    directions = jnp.asarray(np.stack([uniform_direction(np.ones(t, bool), c, 5) for c in (3, 4)]))
+    got = [np.asarray(a, np.float64) for a in profile_hessian(r, jac, x, held, directions)]
+    want = [np.asarray(a, np.float64) for a in profile_hessian(r, jac, x, dataclasses.replace(held, stencil=False),
+                                                               directions)]
+    assert np.all(np.linalg.eigvalsh(want[0]) > 0)
+    for a, b in zip(got, want):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6 * np.abs(b).max())
