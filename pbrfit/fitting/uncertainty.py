@@ -163,9 +163,21 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
     P_t = D_t - B_t S_t⁻¹ B_tᵀ (float64), from the diagonal blocks D (T, K, K), the neighbour
     blocks C (T, 4, K, K) of `pbrfit.fitting.normal_matrix.neighbour_blocks`, the (K,) or (T, K) fitted-channel mask and
     the (T,) observed-texel mask. Fixed channels and unobserved texels take no part (their rows
-    are replaced by the identity). S is Jacobi-scaled and gets a `WINDOW_RIDGE` before the solve."""
+    are replaced by the identity; a channel no texel fits is left out of the matrices). S is
+    Jacobi-scaled and gets a `WINDOW_RIDGE` before the solve. (On the peer scene's 4096 texels,
+    metallic uniform: 83 ms, of which the solves 36.)"""
     h, w = shape
     t, k = blocks.shape[0], blocks.shape[1]
+    free = np.asarray(channels, bool)
+    seen = np.asarray(seen, bool)
+    taking_part = np.any(seen[:, None] & np.broadcast_to(free, (t, k)), axis=0)
+    if not taking_part.all():  # the window matrices of the channels some texel fits (their rows alone)
+        out = np.zeros((t, k, k))
+        c = np.flatnonzero(taking_part)
+        if c.size:
+            out[:, c[:, None], c[None, :]] = window_precisions(blocks[:, c][:, :, c], couplings[:, :, c][:, :, :, c],
+                                                               shape, free[..., c], seen, radius)
+        return out
     ri, rj = window_radii(shape, radius)
     # the texel itself first, so that its channels are the window matrix's first K rows
     offsets = [(0, 0)] + [(di, dj) for di in range(-ri, ri + 1) for dj in range(-rj, rj + 1) if (di, dj) != (0, 0)]
@@ -188,8 +200,6 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
                 behind.append((a, b, codes[(-rel[0], -rel[1])]))
     diag_ab, ahead, behind = (np.array(v, np.intp) for v in (diag_ab, ahead, behind))
     q = len(NEIGHBOUR_OFFSETS)
-    free = np.asarray(channels, bool)
-    seen = np.asarray(seen, bool)
     rows, cols = np.divmod(np.arange(t), w)
 
     def texels(at, steps):  # (len(at), len(steps)): the texels the steps lead to, wrapped
@@ -201,20 +211,20 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
     towards = texels(slice(None), NEIGHBOUR_OFFSETS)
     blocks = np.where(part[:, :, None] & part[:, None, :], blocks, 0.0)
     flat = np.where(part[:, None, :, None] & part[towards][:, :, None, :], couplings, 0.0).reshape(t * q, k, k)
+    # every block a window matrix can hold, in float64: D, C, Cᵀ and a zero block (the last)
+    source = np.concatenate([blocks, flat, np.swapaxes(flat, 1, 2), np.zeros((1, k, k))]).astype(np.float64)
     out = np.empty((t, k, k))
     chunk = max(1, _WINDOW_CHUNK_BYTES // (8 * n * n * k * k))
     rest = np.arange(k, n * k)
     for lo in range(0, t, chunk):
         ts = np.arange(lo, min(t, lo + chunk))
         u = texels(ts, offsets)  # (c, n)
-        # assembled in place as (c, n, K, n, K), the layout of the (c, n K, n K) window matrix: the
-        # (a, b) blocks, indexed by two arrays around a slice, take values shaped (pairs, c, K, K)
-        m = np.zeros((len(ts), n, k, n, k))
-        m[:, diag_ab[:, 0], :, diag_ab[:, 1]] = np.moveaxis(blocks[u[:, diag_ab[:, 0]]], 1, 0)
-        m[:, ahead[:, 0], :, ahead[:, 1]] = np.moveaxis(flat[u[:, ahead[:, 0]] * q + ahead[:, 2]], 1, 0)
-        m[:, behind[:, 0], :, behind[:, 1]] = np.moveaxis(
-            np.swapaxes(flat[u[:, behind[:, 1]] * q + behind[:, 2]], -1, -2), 1, 0)
-        m = m.reshape(len(ts), n * k, n * k)
+        # the (a, b) block of each window: its place in `source`, then one gather
+        at = np.full((len(ts), n, n), len(source) - 1)
+        at[:, diag_ab[:, 0], diag_ab[:, 1]] = u[:, diag_ab[:, 0]]
+        at[:, ahead[:, 0], ahead[:, 1]] = t + u[:, ahead[:, 0]] * q + ahead[:, 2]
+        at[:, behind[:, 0], behind[:, 1]] = t + t * q + u[:, behind[:, 1]] * q + behind[:, 2]
+        m = np.swapaxes(source[at], 2, 3).reshape(len(ts), n * k, n * k)  # (c, n, K, n, K) as (c, n K, n K)
         on = part[u].reshape(len(ts), n * k)
         diag = np.diagonal(m, axis1=1, axis2=2)
         live = on & (diag > 0)  # a row of JᵀJ with a zero diagonal is zero (positive semi-definite)

@@ -186,6 +186,7 @@ def test_non_finite_values_outside_the_fit_do_not_reach_the_others():
     for q, (di, dj) in enumerate(NEIGHBOUR_OFFSETS):
         coupling[((20 // 6 - di) % 6) * 6 + (20 % 6 - dj) % 6, q] = -np.inf
     np.testing.assert_array_equal(window_precisions(diag, coupling, shape, channels, seen, 1), clean)
+    assert np.all(window_precisions(diag, coupling, shape, np.zeros(k, bool), seen, 1) == 0.0)  # none fitted
     sigma = window_standard_errors(diag, coupling, shape, channels, seen, 1.0, 1)
     assert np.all(sigma[:, 1] == 0.0) and np.all(np.isinf(sigma[20, [0, 2]]))
     assert np.all(np.isfinite(np.delete(sigma, 20, axis=0)))
