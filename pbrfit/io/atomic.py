@@ -19,7 +19,7 @@ from typing import BinaryIO, Callable, Iterator, Optional
 
 from ..errors import CaptureError, listed
 
-__all__ = ["atomic_path", "atomic_dir", "check_output_dir", "check_not_inside", "output_path", "write_cache_file",
+__all__ = ["atomic_path", "atomic_dir", "make_folder", "check_output_dir", "check_not_inside", "output_path", "write_cache_file",
            "abandon_writes", "hold_on_abandon", "CacheWarning", "atomic_open", "OUTPUT_MARKER", "OUTPUT_KINDS", "REFUSED_ERRNOS"]
 
 
@@ -69,6 +69,15 @@ def _new_temporary(make: Callable[[], str]) -> Path:
         path = Path(make())
         _TEMPORARIES[path] = None
     return path
+
+
+def make_folder(path: str | os.PathLike) -> None:
+    """``path`` and its missing parents (``mkdir(parents=True, exist_ok=True)``), made under
+    `_RENAMING` (`_renaming`), so that none is made once `abandon_writes` has begun: a writer in
+    another thread would otherwise make a temporary folder it removed again (an output's, the
+    file the writer is about to write inside it) and leave it behind."""
+    with _renaming():
+        Path(path).mkdir(parents=True, exist_ok=True)
 
 
 def _into_place(tmp: Path, final: Path) -> None:
@@ -126,7 +135,8 @@ def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
     `atomic_open` instead, which opens it without making it again.
     """
     final = Path(final)
-    final.parent.mkdir(parents=True, exist_ok=True)
+    make_folder(final.parent)
+
     def make() -> str:
         fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=f".tmp{final.suffix}", dir=final.parent)
         os.close(fd)
@@ -312,7 +322,7 @@ def atomic_dir(final_dir: str | os.PathLike, overwrite: bool = True, kind: Optio
     if kind is not None:
         check_output_dir(final_dir, kind)
     try:
-        final_dir.parent.mkdir(parents=True, exist_ok=True)
+        make_folder(final_dir.parent)
         tmp = _new_temporary(lambda: tempfile.mkdtemp(prefix=f".{final_dir.name}.", suffix=".tmp",
                                                        dir=final_dir.parent))
     except OSError as err:

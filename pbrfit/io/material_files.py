@@ -12,6 +12,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import CaptureError
+from .atomic import make_folder
 from .images import ImageInfo, read_image, srgb_decoded, srgb_encoded, write_image
 from ..physics.material import Material
 
@@ -98,7 +99,7 @@ def write_material(directory: str | os.PathLike, material) -> list[Path]:
     if directory.exists() and not directory.is_dir():
         raise CaptureError(f"{directory}: is not a folder")
     orm = pack_orm(material)  # every check first: nothing is written for a material that is refused
-    directory.mkdir(parents=True, exist_ok=True)
+    make_folder(directory)
     written = [
         write_image(directory / "base_color.exr", base, "float"),
         write_image(directory / "base_color.png", srgb_encoded(base), "uint8"),

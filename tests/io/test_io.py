@@ -276,6 +276,47 @@ def test_a_cache_write_a_signal_abandoned_before_its_open_leaves_nothing(tmp_pat
     assert got == dict(removed=1, done=True, left=[])
 
 
+_OUTPUT_WRITE_ABANDONED = r"""
+import json, os, sys, threading
+from pathlib import Path
+from pbrfit.io import atomic
+
+root = Path(sys.argv[1])
+inside, go_on, done = threading.Event(), threading.Event(), threading.Event()
+
+def write():  # a command's worker writing its output folder
+    with atomic.atomic_dir(root / "out") as tmp:
+        inside.set()
+        go_on.wait()
+        with atomic.atomic_path(tmp / "maps" / "base_color.exr") as path:
+            path.write_bytes(b"data")
+    done.set()
+
+threading.Thread(target=write, daemon=True).start()
+inside.wait()
+removed = atomic.abandon_writes(timeout=5)  # the signal, in the main thread
+go_on.set()  # the worker goes on to its next file, inside the folder the signal removed
+done.wait(1)
+print(json.dumps(dict(removed=len(removed), done=done.is_set(), left=sorted(os.listdir(root)))))
+sys.stdout.flush()
+os._exit(0)
+"""
+
+
+def test_an_output_folder_a_signal_abandoned_is_not_made_again_by_its_writer(tmp_path):
+    """A signal that removes an output's temporary folder while the command's worker writes into
+    it: the worker's next file does not make the folder again (it waits, and the process ends),
+    so nothing is left."""
+    import json
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _OUTPUT_WRITE_ABANDONED, str(tmp_path)], capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout) == dict(removed=1, done=False, left=[])
+
+
 # --- images -------------------------------------------------------------------------------------
 def test_single_channel_2d_round_trip_guards_oiio_bug(tmp_path):
     # OpenImageIO garbles a 2-D array passed to write_image; write_image must pass (H, W, 1).
