@@ -126,29 +126,36 @@ def abandon_writes(timeout: float) -> list[Path]:
 
 @contextlib.contextmanager
 def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path beside ``final`` (same folder, same suffix); rename on success.
+    """Yield a temporary path for ``final``: its name, in a private temporary folder beside it;
+    rename it into place on success.
 
-    The temporary name keeps ``final``'s suffix, so tools that pick a format by extension
-    (OpenImageIO, trimesh) write the right one. The file gets the mode the umask gives a new
-    file. If the body raises, the temporary file is deleted and ``final`` is left as it was.
-    The temporary exists, empty, when yielded; a writer that writes to a file object takes
-    `atomic_open` instead, which opens it without making it again.
+    The temporary keeps ``final``'s name, so tools that pick a format by extension (OpenImageIO,
+    trimesh) write the right one. The file gets the mode the umask gives a new file. If the body
+    raises, the temporary folder is deleted and ``final`` is left as it was. The temporary exists,
+    empty, when yielded; a writer that writes to a file object takes `atomic_open` instead,
+    which opens it without making it again. The folder is what `abandon_writes` removes: a writer
+    that writes by path (OpenImageIO) and reaches its write after that cannot make the file
+    again, as its folder is gone.
     """
     final = Path(final)
     make_folder(final.parent)
 
     def make() -> str:
-        fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=f".tmp{final.suffix}", dir=final.parent)
-        os.close(fd)
-        return tmp
+        folder = tempfile.mkdtemp(prefix=f".{final.stem}.", suffix=".tmp", dir=final.parent)
+        (Path(folder) / final.name).touch()
+        return folder
 
-    tmp_path = _new_temporary(make)
+    folder = _new_temporary(make)
+    tmp_path = folder / final.name
     try:
         yield tmp_path
         os.chmod(tmp_path, _FILE_MODE)
-        _into_place(tmp_path, final)
+        with _renaming():
+            os.replace(tmp_path, final)
+            os.rmdir(folder)
+            _TEMPORARIES.pop(folder, None)
     except BaseException:
-        _discard(tmp_path)
+        _discard(folder)
         raise
 
 

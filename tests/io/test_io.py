@@ -25,7 +25,8 @@ def _listing(folder):
 def test_atomic_path_renames_on_success(tmp_path):
     final = tmp_path / "sub" / "a.txt"
     with atomic_path(final) as tmp:
-        assert tmp.parent == final.parent and tmp.suffix == ".txt" and tmp != final
+        # the same name in a private folder beside it (what a signal removes)
+        assert tmp.parent.parent == final.parent and tmp.name == final.name and tmp != final
         tmp.write_text("new")
         assert not final.exists()
     assert final.read_text() == "new"
@@ -315,6 +316,50 @@ def test_an_output_folder_a_signal_abandoned_is_not_made_again_by_its_writer(tmp
                           text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout) == dict(removed=1, done=False, left=[])
+
+
+_PATH_WRITE_ABANDONED = r"""
+import json, os, sys, threading
+from pathlib import Path
+from pbrfit.io import atomic
+
+root = Path(sys.argv[1])
+made, go_on, done = threading.Event(), threading.Event(), threading.Event()
+
+def write():  # a writer that makes its file by path, as OpenImageIO does
+    try:
+        with atomic.atomic_path(root / "base_color.exr") as path:
+            made.set()
+            go_on.wait()
+            with open(path, "wb") as f:
+                f.write(b"data")
+    except OSError:
+        pass
+    done.set()
+
+threading.Thread(target=write, daemon=True).start()
+made.wait()
+removed = atomic.abandon_writes(timeout=5)
+go_on.set()  # the writer now writes the temporary the signal removed
+done.wait(5)
+print(json.dumps(dict(removed=len(removed), done=done.is_set(), left=sorted(os.listdir(root)))))
+sys.stdout.flush()
+os._exit(0)
+"""
+
+
+def test_a_file_written_by_path_after_a_signal_abandoned_it_leaves_nothing(tmp_path):
+    """A signal that removes a file's temporary while its writer, which makes the file by path
+    (OpenImageIO), has yet to write it: the temporary is the file's name in a private folder, so
+    the write fails once the folder is gone instead of making the file again, and nothing is left."""
+    import json
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _PATH_WRITE_ABANDONED, str(tmp_path)], capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout) == dict(removed=1, done=True, left=[])
 
 
 # --- images -------------------------------------------------------------------------------------
