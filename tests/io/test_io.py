@@ -213,18 +213,23 @@ os._exit(0)
 """
 
 
-def test_abandoned_writes_leave_no_temporary_and_rename_nothing(tmp_path):
-    """`abandon_writes` (what a signal does before the process ends) removes the temporaries of
-    a writer in another thread (the output folder's, a cache file's), waits for another writer's
-    lock and keeps it, and no rename happens after it: the earlier output stays, whole."""
+def _in_a_process(script: str, folder) -> dict:
+    """The JSON line a script prints, run in a Python process of its own with ``folder`` as its
+    argument (it ends with ``os._exit``, as a process a signal ended)."""
     import json
     import subprocess
     import sys
 
-    done = subprocess.run([sys.executable, "-c", _ABANDONED_PROCESS, str(tmp_path)], capture_output=True, text=True,
-                          timeout=60)
+    done = subprocess.run([sys.executable, "-c", script, str(folder)], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
-    got = json.loads(done.stdout)
+    return json.loads(done.stdout)
+
+
+def test_abandoned_writes_leave_no_temporary_and_rename_nothing(tmp_path):
+    """`abandon_writes` (what a signal does before the process ends) removes the temporaries of
+    a writer in another thread (the output folder's, a cache file's), waits for another writer's
+    lock and keeps it, and no rename happens after it: the earlier output stays, whole."""
+    got = _in_a_process(_ABANDONED_PROCESS, tmp_path)
     assert got["removed"] == 2 and got["left"] == ["out"] and got["out"] == ["old.txt"]
     assert not got["renamed"] and got["held"] and got["waited"] >= 0.2
 
@@ -266,15 +271,7 @@ os._exit(0)
 def test_a_cache_write_a_signal_abandoned_before_its_open_leaves_nothing(tmp_path):
     """A signal that removes a cache file's temporary between its making and the writer's open
     (the G-buffer cache's first write): the open does not make it again, so nothing is left."""
-    import json
-    import subprocess
-    import sys
-
-    done = subprocess.run([sys.executable, "-c", _CACHE_WRITE_ABANDONED, str(tmp_path)], capture_output=True,
-                          text=True, timeout=60)
-    assert done.returncode == 0, done.stderr
-    got = json.loads(done.stdout)
-    assert got == dict(removed=1, done=True, left=[])
+    assert _in_a_process(_CACHE_WRITE_ABANDONED, tmp_path) == dict(removed=1, done=True, left=[])
 
 
 _OUTPUT_WRITE_ABANDONED = r"""
@@ -308,14 +305,7 @@ def test_an_output_folder_a_signal_abandoned_is_not_made_again_by_its_writer(tmp
     """A signal that removes an output's temporary folder while the command's worker writes into
     it: the worker's next file does not make the folder again (it waits, and the process ends),
     so nothing is left."""
-    import json
-    import subprocess
-    import sys
-
-    done = subprocess.run([sys.executable, "-c", _OUTPUT_WRITE_ABANDONED, str(tmp_path)], capture_output=True,
-                          text=True, timeout=60)
-    assert done.returncode == 0, done.stderr
-    assert json.loads(done.stdout) == dict(removed=1, done=False, left=[])
+    assert _in_a_process(_OUTPUT_WRITE_ABANDONED, tmp_path) == dict(removed=1, done=False, left=[])
 
 
 _PATH_WRITE_ABANDONED = r"""
@@ -352,14 +342,7 @@ def test_a_file_written_by_path_after_a_signal_abandoned_it_leaves_nothing(tmp_p
     """A signal that removes a file's temporary while its writer, which makes the file by path
     (OpenImageIO), has yet to write it: the temporary is the file's name in a private folder, so
     the write fails once the folder is gone instead of making the file again, and nothing is left."""
-    import json
-    import subprocess
-    import sys
-
-    done = subprocess.run([sys.executable, "-c", _PATH_WRITE_ABANDONED, str(tmp_path)], capture_output=True,
-                          text=True, timeout=60)
-    assert done.returncode == 0, done.stderr
-    assert json.loads(done.stdout) == dict(removed=1, done=True, left=[])
+    assert _in_a_process(_PATH_WRITE_ABANDONED, tmp_path) == dict(removed=1, done=True, left=[])
 
 
 # --- images -------------------------------------------------------------------------------------
