@@ -80,11 +80,14 @@ def make_folder(path: str | os.PathLike) -> None:
         Path(path).mkdir(parents=True, exist_ok=True)
 
 
-def _into_place(tmp: Path, final: Path) -> None:
-    """Rename a temporary into place and forget it, under `_RENAMING` (`_renaming`)."""
+def _into_place(tmp: Path, final: Path, folder: Optional[Path] = None) -> None:
+    """Rename a temporary into place and forget it, under `_RENAMING` (`_renaming`); ``folder``:
+    the temporary's own folder (`atomic_path`'s), the temporary noted, removed once empty."""
     with _renaming():
         os.replace(tmp, final)
-        _TEMPORARIES.pop(tmp, None)
+        if folder is not None:
+            os.rmdir(folder)
+        _TEMPORARIES.pop(tmp if folder is None else folder, None)
 
 
 def _discard(path: Path) -> None:
@@ -150,10 +153,7 @@ def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
     try:
         yield tmp_path
         os.chmod(tmp_path, _FILE_MODE)
-        with _renaming():
-            os.replace(tmp_path, final)
-            os.rmdir(folder)
-            _TEMPORARIES.pop(folder, None)
+        _into_place(tmp_path, final, folder)
     except BaseException:
         _discard(folder)
         raise

@@ -234,13 +234,40 @@ def test_abandoned_writes_leave_no_temporary_and_rename_nothing(tmp_path):
     assert not got["renamed"] and got["held"] and got["waited"] >= 0.2
 
 
-_CACHE_WRITE_ABANDONED = r"""
+def _abandoned_mid_write(writer: str, wait: float = 5.0) -> str:
+    """A script for `_in_a_process`: ``writer`` defines ``write()``, run in a thread, which sets
+    ``made`` at the moment a signal should come and then waits for ``go_on``; the main thread
+    abandons the writes there (`abandon_writes`, what a signal does), lets the writer go on, waits
+    at most ``wait`` seconds for it and prints how many temporaries were removed, whether the
+    writer finished, and what is left in the folder."""
+    return _MID_WRITE_HEAD + writer + _MID_WRITE_TAIL.replace("WAIT", repr(wait))
+
+
+_MID_WRITE_HEAD = r"""
 import json, os, sys, threading, warnings
 from pathlib import Path
 from pbrfit.io import atomic
 
 root = Path(sys.argv[1])
 made, go_on, done = threading.Event(), threading.Event(), threading.Event()
+"""
+
+_MID_WRITE_TAIL = r"""
+threading.Thread(target=write, daemon=True).start()
+made.wait()
+removed = atomic.abandon_writes(timeout=5)  # the signal, in the main thread
+go_on.set()  # the writer goes on, past the moment the signal removed its temporaries
+done.wait(WAIT)
+print(json.dumps(dict(removed=len(removed), done=done.is_set(), left=sorted(os.listdir(root)))))
+sys.stdout.flush()
+os._exit(0)
+"""
+
+
+def test_a_cache_write_a_signal_abandoned_before_its_open_leaves_nothing(tmp_path):
+    """A signal that removes a cache file's temporary between its making and the writer's open
+    (the G-buffer cache's first write): the open does not make it again, so nothing is left."""
+    writer = r"""
 made_temporary = atomic._new_temporary
 
 def made_then_wait(make):  # the moment between the temporary's making and the writer's open
@@ -256,66 +283,31 @@ def write():
         warnings.simplefilter("ignore")
         atomic.write_cache_file(root / "gbuffer.npz", lambda f: f.write(b"data"))
     done.set()
-
-threading.Thread(target=write, daemon=True).start()
-made.wait()
-removed = atomic.abandon_writes(timeout=5)
-go_on.set()  # the writer now opens the temporary the signal removed
-done.wait(5)
-print(json.dumps(dict(removed=len(removed), done=done.is_set(), left=sorted(os.listdir(root)))))
-sys.stdout.flush()
-os._exit(0)
 """
-
-
-def test_a_cache_write_a_signal_abandoned_before_its_open_leaves_nothing(tmp_path):
-    """A signal that removes a cache file's temporary between its making and the writer's open
-    (the G-buffer cache's first write): the open does not make it again, so nothing is left."""
-    assert _in_a_process(_CACHE_WRITE_ABANDONED, tmp_path) == dict(removed=1, done=True, left=[])
-
-
-_OUTPUT_WRITE_ABANDONED = r"""
-import json, os, sys, threading
-from pathlib import Path
-from pbrfit.io import atomic
-
-root = Path(sys.argv[1])
-inside, go_on, done = threading.Event(), threading.Event(), threading.Event()
-
-def write():  # a command's worker writing its output folder
-    with atomic.atomic_dir(root / "out") as tmp:
-        inside.set()
-        go_on.wait()
-        with atomic.atomic_path(tmp / "maps" / "base_color.exr") as path:
-            path.write_bytes(b"data")
-    done.set()
-
-threading.Thread(target=write, daemon=True).start()
-inside.wait()
-removed = atomic.abandon_writes(timeout=5)  # the signal, in the main thread
-go_on.set()  # the worker goes on to its next file, inside the folder the signal removed
-done.wait(1)
-print(json.dumps(dict(removed=len(removed), done=done.is_set(), left=sorted(os.listdir(root)))))
-sys.stdout.flush()
-os._exit(0)
-"""
+    assert _in_a_process(_abandoned_mid_write(writer), tmp_path) == dict(removed=1, done=True, left=[])
 
 
 def test_an_output_folder_a_signal_abandoned_is_not_made_again_by_its_writer(tmp_path):
     """A signal that removes an output's temporary folder while the command's worker writes into
     it: the worker's next file does not make the folder again (it waits, and the process ends),
     so nothing is left."""
-    assert _in_a_process(_OUTPUT_WRITE_ABANDONED, tmp_path) == dict(removed=1, done=False, left=[])
+    writer = r"""
+def write():  # a command's worker writing its output folder
+    with atomic.atomic_dir(root / "out") as tmp:
+        made.set()
+        go_on.wait()  # then on to its next file, inside the folder the signal removed
+        with atomic.atomic_path(tmp / "maps" / "base_color.exr") as path:
+            path.write_bytes(b"data")
+    done.set()
+"""
+    assert _in_a_process(_abandoned_mid_write(writer, wait=1.0), tmp_path) == dict(removed=1, done=False, left=[])
 
 
-_PATH_WRITE_ABANDONED = r"""
-import json, os, sys, threading
-from pathlib import Path
-from pbrfit.io import atomic
-
-root = Path(sys.argv[1])
-made, go_on, done = threading.Event(), threading.Event(), threading.Event()
-
+def test_a_file_written_by_path_after_a_signal_abandoned_it_leaves_nothing(tmp_path):
+    """A signal that removes a file's temporary while its writer, which makes the file by path
+    (OpenImageIO), has yet to write it: the temporary is the file's name in a private folder, so
+    the write fails once the folder is gone instead of making the file again, and nothing is left."""
+    writer = r"""
 def write():  # a writer that makes its file by path, as OpenImageIO does
     try:
         with atomic.atomic_path(root / "base_color.exr") as path:
@@ -326,23 +318,8 @@ def write():  # a writer that makes its file by path, as OpenImageIO does
     except OSError:
         pass
     done.set()
-
-threading.Thread(target=write, daemon=True).start()
-made.wait()
-removed = atomic.abandon_writes(timeout=5)
-go_on.set()  # the writer now writes the temporary the signal removed
-done.wait(5)
-print(json.dumps(dict(removed=len(removed), done=done.is_set(), left=sorted(os.listdir(root)))))
-sys.stdout.flush()
-os._exit(0)
 """
-
-
-def test_a_file_written_by_path_after_a_signal_abandoned_it_leaves_nothing(tmp_path):
-    """A signal that removes a file's temporary while its writer, which makes the file by path
-    (OpenImageIO), has yet to write it: the temporary is the file's name in a private folder, so
-    the write fails once the folder is gone instead of making the file again, and nothing is left."""
-    assert _in_a_process(_PATH_WRITE_ABANDONED, tmp_path) == dict(removed=1, done=True, left=[])
+    assert _in_a_process(_abandoned_mid_write(writer), tmp_path) == dict(removed=1, done=True, left=[])
 
 
 # --- images -------------------------------------------------------------------------------------
