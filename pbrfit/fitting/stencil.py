@@ -31,6 +31,8 @@ problem has no grid and the solver's products go through the pixels.
 
 from __future__ import annotations
 
+from typing import Optional
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -38,11 +40,11 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float, Int
 
-from .normal_matrix import block_gram
-from .objective import Problem, by_pixel
+from .normal_matrix import block_gram, gauss_newton_factors, gn_product, normal_blocks
+from .objective import Problem, by_pixel, prior_degree
 
 __all__ = ["Stencil", "cell_side", "offsets", "cells_fit", "stencil", "stencil_blocks", "stencil_product", "channel_blocks",
-           "channel_product"]
+           "channel_product", "gauss_newton_operator"]
 
 #: A grid step beyond every stencil (its cell cannot hold the pixel).
 _FAR = 1 << 20
@@ -214,3 +216,17 @@ def stencil_product(blocks: Float[Array, "T N K K"], neighbours: Int[Array, "T N
     and sums of float32 elements (no dot, so no TF32 on a GPU), which a CPU runs three times as
     fast as a batched dot of K × K blocks."""
     return jnp.sum(blocks * v[neighbours][:, :, None, :], axis=(1, 3))
+
+
+def gauss_newton_operator(jac: Float[Array, "R 3 K"], problem: Problem, st: Optional[Stencil]):
+    """JᵀJ + smooth L at the per-row Jacobians ``jac``, as the solvers use it: (its diagonal
+    blocks (T, K, K), the product v ↦ (JᵀJ + smooth L) v, and its blocks by stencil (T, N, K, K)).
+    By stencil where ``st`` (the problem's `stencil`) is given, else through the pixels
+    (`pbrfit.fitting.normal_matrix.gn_product`; no stencil blocks then, None)."""
+    if st is None:
+        gp = gauss_newton_factors(jac, problem)
+        eye = jnp.eye(jac.shape[-1], dtype=jac.dtype)
+        blocks = normal_blocks(jac, problem) + problem.smooth * prior_degree(problem)[:, None, None] * eye
+        return blocks, lambda v: gn_product(gp, v, problem), None
+    full = stencil_blocks(jac, problem, st)
+    return full[:, st.centre], lambda v: stencil_product(full, st.neighbours, v), full

@@ -56,9 +56,9 @@ from jax import lax
 from jaxtyping import Array, Float
 
 from ..defaults import ATOL, CG_RTOL, RTOL
-from ..normal_matrix import gauss_newton_factors, gn_product, gradient, normal_blocks, spd_block_inverse
-from ..stencil import stencil, stencil_blocks, stencil_product
-from ..objective import Problem, linearize, prior_degree, residuals, rounding_floor
+from ..normal_matrix import gradient, spd_block_inverse
+from ..stencil import gauss_newton_operator, stencil, stencil_product
+from ..objective import Problem, linearize, residuals, rounding_floor
 from ..parameters import lower, upper
 
 __all__ = ["StructuredLM", "solve", "pcg", "LMStats", "LMCarry", "RTOL", "ATOL", "CG_RTOL", "CG_MAX_STEPS",
@@ -250,18 +250,8 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         st = state.stencil
 
         def take_step():
-            if st is None:  # products through the pixels
-                gp = gauss_newton_factors(jac, problem)
-                blocks = normal_blocks(jac, problem) + problem.smooth * prior_degree(problem)[:, None, None] * eye
-
-                def product(v):
-                    return gn_product(gp, v, problem)
-            else:  # JᵀJ + smooth L by stencil, assembled once for the step's products
-                full = stencil_blocks(jac, problem, st)
-                blocks = full[:, st.centre]
-
-                def product(v):
-                    return stencil_product(full, st.neighbours, v)
+            # through the pixels, or by stencil: JᵀJ + smooth L assembled once for the step's products
+            blocks, product, full = gauss_newton_operator(jac, problem, st)
             g = gradient(r, jac, x, problem)
             a = _active(x, g, problem.free)
             diag = jnp.diagonal(blocks, axis1=1, axis2=2)

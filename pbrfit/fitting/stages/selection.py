@@ -62,9 +62,9 @@ from ..parameters import lower, upper
 from ..runner import jitted_normal_blocks, problem_energy
 from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ..objective import Problem
-from ..normal_matrix import gauss_newton_factors, gn_product, gradient, normal_blocks, spd_block_inverse
+from ..normal_matrix import gradient, spd_block_inverse
 from ..solvers.structured import pcg
-from ..stencil import stencil, stencil_blocks, stencil_product
+from ..stencil import gauss_newton_operator, stencil
 from ...transfer import to_device
 from ..uncertainty import block_standard_errors, residual_variance
 
@@ -124,19 +124,7 @@ def profile_hessian(r: Float[Array, "P 3"], jac: Float[Array, "R 3 K"], x: Float
     others stopped short of their optimum."""
     free = problem.free
     k = free.shape[1]
-    if problem.stencil:  # the products by stencil, as the structured solver's
-        st = stencil(problem)
-        full = stencil_blocks(jac, problem, st)
-        blocks = full[:, st.centre]
-
-        def product(v):
-            return stencil_product(full, st.neighbours, v)
-    else:
-        gp = gauss_newton_factors(jac, problem)
-        blocks = normal_blocks(jac, problem)
-
-        def product(v):
-            return gn_product(gp, v, problem)
+    blocks, product, _ = gauss_newton_operator(jac, problem, stencil(problem) if problem.stencil else None)
     diag = jnp.diagonal(blocks, axis1=1, axis2=2)
     ridge = (PRECONDITIONER_RIDGE * jnp.max(diag * free, axis=1)
              + PRECONDITIONER_FLOOR * jnp.sum(diag * free) / jnp.maximum(jnp.sum(free), 1.0))
