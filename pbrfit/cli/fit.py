@@ -250,7 +250,8 @@ def fit_summary(result, errors) -> str:
 
 def describe(info: dict) -> str:
     """The progress line's text for one of a fit's progress entries: a step ``level 0 (64x64)
-    step  12  loss 1.2345e-03``, or the stage that begins (``level 0 (64x64) search``), with
+    step  12/40  loss 1.2345e-03`` (of at most 40 in this solve; the step alone where a solver
+    gives no budget), or the stage that begins (``level 0 (64x64) search``), with
     where it is (the automatic footprint's finish, the repair's pass, the weighted fit, the
     uniform check's channel) between them."""
     if info.get("stage") == "ibl":  # the per-pixel integrals before the solve
@@ -266,7 +267,8 @@ def describe(info: dict) -> str:
         where += f"  uniform {info['check']}?"
     if "loss" not in info:
         return f"level {info['level']} ({h}x{w}){where}  {info['stage']}"
-    return f"level {info['level']} ({h}x{w}){where} step {info['step']:3d}  loss {info['loss']:.4e}"
+    of = f"/{info['budget']}" if info.get("budget") is not None else ""
+    return f"level {info['level']} ({h}x{w}){where} step {info['step']:3d}{of}  loss {info['loss']:.4e}"
 
 
 class FitProgress:

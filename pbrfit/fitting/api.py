@@ -423,7 +423,8 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
             start", "solving", "search", each stage after the solve that runs by its name,
             "standard errors") and {level, resolution, step, loss} for each step (``check``:
             the channel, during the uniform check's re-fits): the structured solver's after each
-            solve (it keeps the losses in its state, so its program holds no host callback); an
+            solve (it keeps the losses in its state, so its program holds no host callback), with
+            ``budget``, the most steps that solve may take (it stops sooner once converged); an
             optimistix solver's at each evaluation of the objective, one per step, by a host
             callback.
         checkpoint: a `pbrfit.fitting.checkpoint.Checkpoint`: each solver run is journaled in its

@@ -153,7 +153,8 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
     if "runner" not in shared:
         where = dict(level=0, resolution=levels[0])
         cb = None if options.progress is None else (
-            lambda step, value: options.progress(dict(where, step=int(step), loss=float(value))))
+            lambda step, value, budget: options.progress(dict(
+                where, step=int(step), loss=float(value), **({} if budget is None else dict(budget=budget)))))
         compiler = Compiler(dict(compile=0.0, solve=0.0), options.background_compile)
         shared.update(where=where, runner=Runner(options.solver, cb, compiler, options.checkpoint, where))
     # (an executable keeps the callback it was compiled with: a later pass reports through the

@@ -219,9 +219,9 @@ class Runner:
     (`Compiler`): once per fit, or twice when the start runs on pixel centres
     (`pbrfit.fitting.api.fit_observations`). The structured solver takes its step budget as an
     argument; any other solver is also compiled once per step budget (optimistix's loop length is
-    static). ``progress(k, E)`` gets the structured solver's E at each step after its solve (so
-    its program holds no host callback and can be cached), another solver's at each evaluation of
-    the objective, as they happen.
+    static). ``progress(k, E, budget)`` gets the structured solver's E at each step k after its
+    solve (so its program holds no host callback and can be cached), with the run's step budget,
+    and another solver's at each evaluation k of the objective, as they happen (budget None).
 
     With a ``checkpoint`` (`pbrfit.fitting.checkpoint.Checkpoint`) each run is journaled, a run the
     checkpoint holds is replayed, not solved, and the structured solver runs in parts of about
@@ -236,6 +236,7 @@ class Runner:
         self.checkpoint, self.where = checkpoint, {} if where is None else where
         self.clock = compiler.clock
         self._reported = []
+        self._budget = None  # the structured run's step budget, which its progress entries carry
         self._lazy = None  # (x, problem, num_free) of a replayed run, linearised when asked
         self._linearization = None
         self._step_seconds = None  # a structured step's seconds, as the last part of a run took
@@ -264,7 +265,7 @@ class Runner:
     def _report(self, k, value) -> None:
         self._reported.append((k, value))
         if self.progress is not None:
-            self.progress(k, value)
+            self.progress(k, value, self._budget)
 
     def _call(self, x0, problem, steps, num_free, carry=None):
         """(key, fn, args, solver run) of a run."""
@@ -292,6 +293,8 @@ class Runner:
     def __call__(self, x0, problem, steps, num_free):
         self.evaluations = itertools.count()
         self._reported = []
+        # the steps a structured run may take (an optimistix solver's entries count evaluations)
+        self._budget = int(steps) if self.structured else None
         number = ident = None  # the run's number in the fit and its identity, with a checkpoint
         if self.checkpoint is not None:
             number = self.checkpoint.next_run()

@@ -597,6 +597,7 @@ def test_the_progress_line_says_which_stage_runs_and_keeps_only_steps_in_the_his
     assert describe(dict(at, stage="search")) == "level 0 (64x64)  search"
     assert describe(dict(at, stage="solving", repair=2)) == "level 0 (64x64)  repair 2  solving"
     assert describe(dict(at, step=12, loss=1.5e-3)) == "level 0 (64x64) step  12  loss 1.5000e-03"
+    assert describe(dict(at, step=12, budget=40, loss=1.5e-3)) == "level 0 (64x64) step  12/40  loss 1.5000e-03"
     assert describe(dict(stage="ibl", done=1200, total=5000)) == "per-pixel IBL 1,200 / 5,000 pixels"
     progress = FitProgress(False)
     for entry in (dict(at, stage="grid start"), dict(at, step=0, loss=2.0), dict(at, stage="standard errors")):

@@ -42,7 +42,7 @@ def _runs(checkpoint):
     problem, _ = _problem(smooth=1e-3)
     x0 = np.asarray(grid_initialise(_start(problem), problem))
     reported = []
-    run = Runner(StructuredLM(rtol=1e-9, atol=0.0), lambda k, e: reported.append((k, float(e))),
+    run = Runner(StructuredLM(rtol=1e-9, atol=0.0), lambda k, e, budget: reported.append((k, float(e))),
                  Compiler(dict(compile=0.0, solve=0.0), background=False), checkpoint)
     num_free = int(np.sum(np.asarray(problem.free)))
     outs = []

@@ -243,6 +243,12 @@ def test_progress_names_each_stage_as_it_begins():
     assert all(entry["level"] == 0 and tuple(entry["resolution"]) == (8, 8) for entry in reported)
     first_step = next(i for i, entry in enumerate(reported) if "loss" in entry)
     assert [entry.get("stage") for entry in reported[:first_step]] == ["grid start", "solving"]
+    # each step with its solve's budget: the steps before the search (SEARCH_AFTER), then the rest
+    # of max_steps, then each stage's solves (the hold's, the repair's, the uniform check's)
+    steps = [entry for entry in reported if "loss" in entry]
+    assert all(0 <= entry["step"] <= entry["budget"] for entry in steps), steps
+    budgets = [entry["budget"] for entry in steps]
+    assert budgets[0] == SEARCH_AFTER and 16 - SEARCH_AFTER in budgets, budgets
 
 
 def test_coarse_to_fine_runs_its_levels_and_recovers_the_maps():
@@ -488,6 +494,7 @@ def test_every_solver_runs(solver):
     # bound), the same for every solver
     losses = [entry["loss"] for entry in seen if "loss" in entry]
     assert len(losses) == res.report["steps"] and np.all(np.isfinite(losses)), seen
+    assert not any("budget" in entry for entry in seen)  # they count evaluations, not a solve's steps
     assert losses[0] == pytest.approx(17.8896, rel=1e-4)
     # from the prior's 0.5, the three steps of every solver with a damping or a line search move
     # base colour towards the truth (measured: RMSE 0.011 (lm) to 0.175 (adam), against the
