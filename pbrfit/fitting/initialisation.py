@@ -62,7 +62,8 @@ from .stencil import channel_blocks, channel_product, stencil
 from .objective import (Problem, objective, pixel_residuals, robust_residual, sample_texels, scatter_texels,
                         shading_normal, smooth_residuals, to_rows)
 
-__all__ = ["ROUGHNESS_CANDIDATES", "METALLIC_CANDIDATES", "BLEND_METALLIC_CANDIDATES", "grid_initialise", "coordinate_search", "parity_classes"]
+__all__ = ["ROUGHNESS_CANDIDATES", "METALLIC_CANDIDATES", "BLEND_METALLIC_CANDIDATES", "grid_initialise", "coordinate_search", "parity_classes",
+           "classes_share_no_pixel"]
 
 #: Roughness values tried per texel: geometric from the BRDF's floor to 1 (highlight widths scale
 #: with alpha = r², so equal steps in log r are equal steps in highlight width). The spacing
@@ -286,6 +287,23 @@ def _local_energy(x, problem: Problem):
     return _energies(x, problem)[0]
 
 
+def classes_share_no_pixel(problem: Problem, classes: np.ndarray) -> bool:
+    """Whether no pixel reads two texels of one class (`classes` (T,), host-side) with nonzero
+    weight: then the texels of a class have separable local energies (`_energies`), and
+    `coordinate_search` needs no check of the whole objective. False with several samples per
+    pixel, or on an odd-sized map whose wrapped seam puts two texels of a class in one cell."""
+    index = np.asarray(problem.index).reshape(problem.num_pixels, -1)
+    valid = np.asarray(problem.weight).reshape(problem.num_pixels, -1) > 0
+    cls = np.asarray(classes)[index]
+    for c in np.unique(cls[valid]):
+        member = valid & (cls == c)
+        low = np.where(member, index, np.iinfo(index.dtype).max).min(axis=1)
+        high = np.where(member, index, -1).max(axis=1)
+        if np.any((high >= 0) & (low != high)):
+            return False
+    return True
+
+
 def _normal_search(x, problem: Problem, member):
     """One parity class's texels (`member` (T, 2): their free slope channels) try every
     (s_x, s_y) of `NORMAL_SEARCH_SLOPES`² with their other channels kept, scored by the exact
@@ -305,7 +323,7 @@ def _normal_search(x, problem: Problem, member):
 
 
 @eqx.filter_jit
-def coordinate_search(x, problem: Problem, classes, rounds=1, blend: bool = True):
+def coordinate_search(x, problem: Problem, classes, rounds=1, blend: bool = True, separable: bool = False):
     """Per-texel grid search with neighbours held fixed, one parity class at a time.
 
     For class c, every texel t of the class tries each (metallic, roughness) candidate with its
@@ -316,8 +334,13 @@ def coordinate_search(x, problem: Problem, classes, rounds=1, blend: bool = True
     Each pixel reads at most one texel of the class, so a texel's score, the summed squared
     error of the pixels that read it, depends on its own value only. The best candidate is then
     checked against the exact local energy (robust loss and smoothness prior included) and kept
-    only where it lowers it, so the objective never rises. When normals are fitted, the class's
+    only where it lowers it, so the objective never rises (the current and proposed values'
+    local energies come from one batched evaluation). When normals are fitted, the class's
     texels then try the slopes of `NORMAL_SEARCH_SLOPES` the same way (other channels kept).
+    Where a pixel may read two texels of a class the local energies do not add up, and each
+    sweep checks the whole objective too; `separable` (static,
+    `classes_share_no_pixel`) says it need not (one evaluation of the pixels less per sweep,
+    and in the program).
     `rounds` sweeps over the four classes; the fit passes it as an int32 array (a Python int is
     static), so its search and its repair share one executable. `classes` is `parity_classes(shape)` (T,); channels that are
     not free keep x.
@@ -387,14 +410,13 @@ def coordinate_search(x, problem: Problem, classes, rounds=1, blend: bool = True
         best = jnp.argmin(scores, axis=0)
         base = jnp.take_along_axis(bases, best[None, :, None], axis=0)[0]
         proposal = trial(cands[best, 0][:, None], roughness(cands[best].T[:, :, None]), base)
-        before, energy = _energies(x, problem)
-        after = _local_energy(proposal, problem)
-        keep = member & (after < before)[:, None]
+        local, energy = jax.vmap(lambda xx: _energies(xx, problem))(jnp.stack([x, proposal]))
+        keep = member & (local[1] < local[0])[:, None]
         new = jnp.where(keep, proposal, x)
         if x.shape[1] > 5:
             new = _normal_search(new, problem, member & (free[:, 5:] > 0))
-        # Texels of one class can share a pixel only across the seam of an odd-sized wrapped
-        # map; there the local energies are not separable, so check the whole objective.
-        return jnp.where(objective(new, problem) <= energy, new, x), None
+        if separable:
+            return new, None
+        return jnp.where(objective(new, problem) <= energy[0], new, x), None
 
     return jax.lax.fori_loop(0, 4 * rounds, lambda i, x: sweep(x, i % 4)[0], x)

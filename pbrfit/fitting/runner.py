@@ -176,10 +176,10 @@ def problem_key(problem: Problem) -> tuple:
             problem.grid is not None, problem.stencil)
 
 
-def search_key(shape, problem: Problem) -> tuple:
+def search_key(shape, problem: Problem, separable: bool) -> tuple:
     """The key of `coordinate_search`'s executable at map ``shape``: one for the fit's search and
-    its repair (the rounds are an argument)."""
-    return ("coordinate_search", tuple(shape)) + problem_key(problem)
+    its repair (the rounds are an argument; ``separable`` is its static argument)."""
+    return ("coordinate_search", tuple(shape), separable) + problem_key(problem)
 
 
 #: Clock entries that are not time on the fit's own thread (`Compiler`'s overlapped compiles).

@@ -27,7 +27,8 @@ from pbrfit.fitting.options import fit_arguments
 from pbrfit.fitting.options import LOSS_SCALE
 from pbrfit.fitting.passes import COARSE_STEPS, RELEASED_STEPS, SEARCH_AFTER, SETTLE_STEPS
 from pbrfit.fitting.stages.pipeline import TURNED_OFF
-from pbrfit.fitting.initialisation import SEARCH_ROUGHNESS_RATIO, coordinate_search, grid_initialise, parity_classes
+from pbrfit.fitting.initialisation import (SEARCH_ROUGHNESS_RATIO, classes_share_no_pixel, coordinate_search,
+                                          grid_initialise, parity_classes)
 from pbrfit.physics.lights import point_light
 from pbrfit.physics.material import Material
 from pbrfit.physics.model import Model
@@ -699,6 +700,24 @@ def test_coordinate_search_never_raises_the_objective():
     energy = jax.jit(objective)
     assert float(energy(x, problem)) <= float(energy(x0, problem))
     assert float(energy(x, problem)) < 0.5 * float(energy(x0, problem))
+
+
+def test_coordinate_search_checks_the_whole_objective_only_where_classes_share_pixels():
+    """On an even-sized map no pixel reads two texels of a parity class, and the search without
+    the whole objective's check moves the texels as the one with it; on an odd-sized wrapped map
+    the seam's cells hold two texels of a class, and the check is needed."""
+    truth = _checker()
+    problem = _texel_problem(truth, 1e-3)
+    classes = parity_classes(truth.resolution)
+    assert classes_share_no_pixel(problem, classes)
+    odd = texel_layout(problem.obs, (7, 7))
+    assert not classes_share_no_pixel(dataclasses.replace(problem, index=odd.index, weight=odd.weight),
+                                      parity_classes((7, 7)))
+    x0 = jnp.asarray(np.random.default_rng(5).uniform(LOWER, UPPER, (64, 5)).astype(np.float32))
+    checked = np.asarray(coordinate_search(x0, problem, jnp.asarray(classes)))
+    unchecked = np.asarray(coordinate_search(x0, problem, jnp.asarray(classes), 1, True, True))
+    assert np.any(checked != np.asarray(x0))
+    np.testing.assert_allclose(unchecked, checked, atol=1e-6)
 
 
 def test_fit_reports_the_search():
