@@ -156,7 +156,7 @@ def finish(obs, state, x, model, options, history, times, t_start):
     # 0.060 at weight 1 under noise 0.05). The blocks, too, are the pixels' alone: σ says what the
     # images constrain, the prior not counted.
     data_energy = energy if float(problem.smooth) == 0 else 0.5 * np.sum(np.square(np.asarray(r, np.float64)))
-    if state.errors is not None:  # the hold's, at this x for this problem (it held no texel)
+    if state.errors is not None:  # the hold's, at this x
         sigma, sigma2 = state.errors
     else:
         announce(options.progress, state.where, "standard errors")

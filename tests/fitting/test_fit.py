@@ -279,9 +279,13 @@ def test_unseen_texels_flagged_and_left_at_prior():
     assert np.all(np.isfinite(res.uncertainty[~unseen]))
 
 
-def test_roughness_the_images_do_not_constrain_is_held_at_the_prior():
+def test_roughness_the_images_do_not_constrain_is_held_at_the_prior(monkeypatch):
     """`pbrfit.fitting.stages.unconstrained`: the texels whose roughness σ exceeds the threshold get 0.5 and a
     re-fit of their base colour; every other texel keeps the value the solve gave it."""
+    import pbrfit.fitting.result
+    import pbrfit.fitting.stages.pipeline
+    import pbrfit.fitting.stages.unconstrained
+    from pbrfit.fitting.result import texel_standard_errors
     from pbrfit.fitting.stages.unconstrained import ROUGHNESS, hold_skipped
 
     truth = _checker()
@@ -306,6 +310,26 @@ def test_roughness_the_images_do_not_constrain_is_held_at_the_prior():
     # their σ: what the images give at 0.5, not the 0 of a channel the caller holds
     assert np.all(np.isfinite(res.uncertainty[..., ROUGHNESS][held]) & (res.uncertainty[..., ROUGHNESS][held] > 0))
     assert report["energy_after"] >= report["energy_before"] * (1 - 1e-6)  # held off the optimum
+    # the result reads the hold's last standard errors, taken at its x, instead of computing them
+    # again: as many as without them, and one computation fewer
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return texel_standard_errors(*args, **kwargs)
+
+    monkeypatch.setattr(pbrfit.fitting.stages.unconstrained, "texel_standard_errors", counted)
+    monkeypatch.setattr(pbrfit.fitting.result, "texel_standard_errors", counted)
+    again = fit_observations(obs, resolution=8, max_steps=20, unconstrained_sigma=threshold)
+    reused = len(calls)
+    run_hold = pbrfit.fitting.stages.pipeline.run_hold
+    monkeypatch.setattr(pbrfit.fitting.stages.pipeline, "run_hold", lambda *a: run_hold(*a)[:4] + (None,))
+    calls.clear()
+    fresh = fit_observations(obs, resolution=8, max_steps=20, unconstrained_sigma=threshold)
+    assert reused == len(calls) - 1, (reused, len(calls))
+    np.testing.assert_array_equal(x(again), x(fresh))
+    np.testing.assert_allclose(again.uncertainty, fresh.uncertainty, rtol=1e-5)
+    monkeypatch.undo()
     # with base colour held by the caller there is nothing to re-fit: the roughness alone is held
     only = dict(resolution=8, max_steps=20, fit=("roughness",),
                 fixed={"base_color": truth.base_color, "metallic": truth.metallic})

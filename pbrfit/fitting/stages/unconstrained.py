@@ -93,9 +93,10 @@ def run_hold(runner, problem: Problem, xs, linearization, channels, seen, final,
     Returns (x, linearisation, problem, report, errors): the problem with those texels'
     roughness no longer free (the re-fit frees their base colour alone), the report's
     "unconstrained" entry (the threshold, the texels held, those the images constrain at the
-    prior and so left as fitted, the steps, the objective before and after), and, where no
-    texel is held, the standard errors at x (σ (T, K), σ̂²: `pbrfit.fitting.result.texel_standard_errors`
-    of the final problem, which the result then reads instead of computing them again), else None.
+    prior and so left as fitted, the steps, the objective before and after), and the standard
+    errors at the x returned (σ (T, K), σ̂²: `pbrfit.fitting.result.texel_standard_errors`, which
+    the result then reads instead of computing them again: they depend on which channels are
+    fitted, not on which the final problem frees), or None where x is not where they were taken.
     """
     t = int(np.prod(final))
     r, jac = linearization
@@ -136,12 +137,13 @@ def run_hold(runner, problem: Problem, xs, linearization, channels, seen, final,
         e_held = problem_energy(r_held, x_held, kept)
         # with roughness free again at 0.5: where the images pin it down there, the solve moved it
         # away on evidence (a highlight's flank), and its value stays
-        still = held & unconstrained(x_held, jac_held, e_held, problem)[0]
+        still, errors = unconstrained(x_held, jac_held, e_held, problem)
+        still &= held
         if still.sum() == held.sum() or attempt == HOLD_ROUNDS - 1:
             break
         report["constrained_at_prior"] += int(held.sum() - still.sum())
         held = still
     report.update(texels=int(held.sum()), steps=steps, energy_before=float(energy), energy_after=float(e_held))
     linearization = (r_held, jac_held)
-    return x_held, linearization, kept, report, None
+    return x_held, linearization, kept, report, errors
 
