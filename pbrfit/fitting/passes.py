@@ -24,11 +24,11 @@ import numpy as np
 from .defaults import COARSE_STEPS, CONTINUATION, MAX_STEPS
 from .result import FitResult, finish
 from .stages.footprint import centres_explain_better, final_residuals, footprint_energies, samples_side
-from .initialisation import classes_share_no_pixel, coordinate_search, grid_initialise, parity_classes
+from .initialisation import coordinate_search, grid_initialise
 from .observations import Observations, coverage_counts, layout_for, neighbour_pairs
 from .parameters import FIT_GROUPS, channel_mask, prior
 from .resolution import default_resolution, schedule
-from .runner import Compiler, Runner, announce, jitted_normal_blocks, problem_key, search_key, timed
+from .runner import Compiler, Runner, announce, jitted_normal_blocks, problem_key, search_inputs, timed
 from .stages.pipeline import STAGES, StageState, run_stages
 from .stages.selection import SELECTABLE
 from .sharding import pixel_mesh, shard_problem
@@ -213,11 +213,8 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
                     early = shard_problem(early, mesh)
             num_free = int(np.sum(free))
             x0 = to_device(x0, np.float32)
-            classes = parity_classes(shape) if searching else None
-            separable = searching and classes_share_no_pixel(early, classes)
-            classes = to_device(classes) if searching else None
-            searched = search_key(shape, early, separable)
-            search_args = (to_device(SEARCH_ROUNDS, np.int32), bool(channels[3] > 0), separable)
+            if searching:
+                searched, classes, search_args = search_inputs(shape, early, SEARCH_ROUNDS, channels[3] > 0)
             selecting = last and inputs.select_footprint
             # compiles this level needs, in the order of their first use, overlap the work before it
             if early is problem or annealing or searching or selecting:  # else only the grid start runs on it

@@ -28,6 +28,7 @@ from .objective import Problem, objective
 from .normal_matrix import neighbour_blocks, normal_blocks
 from .solvers import structured
 from .checkpoint import call_id
+from .initialisation import classes_share_no_pixel, parity_classes
 from ..io.atomic import hold_on_abandon
 from ..transfer import to_device
 
@@ -176,10 +177,15 @@ def problem_key(problem: Problem) -> tuple:
             problem.grid is not None, problem.stencil)
 
 
-def search_key(shape, problem: Problem, separable: bool) -> tuple:
-    """The key of `coordinate_search`'s executable at map ``shape``: one for the fit's search and
-    its repair (the rounds are an argument; ``separable`` is its static argument)."""
-    return ("coordinate_search", tuple(shape), separable) + problem_key(problem)
+def search_inputs(shape, problem: Problem, rounds: int, blend: bool) -> tuple:
+    """(key, classes, arguments after them) of a `coordinate_search` at map ``shape``: the key of
+    its executable, one for the fit's search and its repair (the rounds are an argument, an int32
+    array; whether classes share pixels, `classes_share_no_pixel`, is static), the parity classes
+    on the device, and (rounds, blend, separable)."""
+    classes = parity_classes(shape)
+    separable = classes_share_no_pixel(problem, classes)
+    key = ("coordinate_search", tuple(shape), separable) + problem_key(problem)
+    return key, to_device(classes), (to_device(rounds, np.int32), bool(blend), separable)
 
 
 #: Clock entries that are not time on the fit's own thread (`Compiler`'s overlapped compiles).

@@ -100,9 +100,9 @@ from jaxtyping import Bool, Float, Int
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from ..initialisation import classes_share_no_pixel, coordinate_search, parity_classes
+from ..initialisation import coordinate_search
 from ..parameters import CHANNELS
-from ..runner import jitted_normal_blocks, problem_energy, search_key, timed
+from ..runner import jitted_normal_blocks, problem_energy, search_inputs, timed
 from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ..objective import Problem
 from ...transfer import to_device
@@ -436,11 +436,7 @@ def run_repair(runner, compiler, problem: Problem, xs, linearization, shape, see
     scale = float(np.mean(np.square(np.asarray(obs.pixel_rows(obs.target), np.float64))))
     index, weight, free = np.asarray(problem.index), np.asarray(problem.weight), np.asarray(problem.free)
     fitted = np.asarray(channels) > 0
-    classes = parity_classes(shape)
-    separable = classes_share_no_pixel(problem, classes)
-    classes = to_device(classes)
-    key = search_key(shape, problem, separable)
-    static = (to_device(REPAIR_ROUNDS, np.int32), bool(channels[3] > 0), separable)
+    key, classes, static = search_inputs(shape, problem, REPAIR_ROUNDS, channels[3] > 0)
     xs = np.asarray(xs, np.float32)
     energy = problem_energy(linearization[0], xs, problem)
     passes = []
