@@ -290,8 +290,9 @@ def _local_energy(x, problem: Problem):
 def classes_share_no_pixel(problem: Problem, classes: np.ndarray) -> bool:
     """Whether no pixel reads two texels of one class (`classes` (T,), host-side) with nonzero
     weight: then the texels of a class have separable local energies (`_energies`), and
-    `coordinate_search` needs no check of the whole objective. False with several samples per
-    pixel, or on an odd-sized map whose wrapped seam puts two texels of a class in one cell."""
+    `coordinate_search` needs no check of the whole objective. False where a pixel's samples read
+    two cells (several samples per pixel), or on an odd-sized map whose wrapped seam puts two
+    texels of a class in one cell."""
     index = np.asarray(problem.index).reshape(problem.num_pixels, -1)
     valid = np.asarray(problem.weight).reshape(problem.num_pixels, -1) > 0
     cls = np.asarray(classes)[index]
