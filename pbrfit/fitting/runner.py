@@ -16,7 +16,7 @@ import dataclasses
 import itertools
 import time
 from pathlib import Path
-from typing import Mapping
+from typing import Mapping, Optional
 
 import equinox as eqx
 import filelock
@@ -122,6 +122,10 @@ class Compiler:
         self.executor = None
         self.pending, self.done = {}, {}
 
+    def has(self, key) -> bool:
+        """Whether the executable of `key` is compiled or being compiled."""
+        return key in self.done or key in self.pending
+
     def prefetch(self, key, fn, *args, **kwargs) -> None:
         if not self.background or key in self.pending or key in self.done:
             return
@@ -170,11 +174,13 @@ def compile_summary(times: Mapping[str, float]) -> str:
     return text
 
 
-def problem_key(problem: Problem) -> tuple:
+def problem_key(problem: Problem, pixels: Optional[int] = None) -> tuple:
     """What an executable over `problem` is specialised to: rows per pixel, the shapes, whether it
-    has a ``grid`` and whether the structured solver's products go by stencil."""
-    return (problem.obs.samples, tuple(problem.index.shape), tuple(problem.free.shape), tuple(problem.pairs.shape),
-            problem.grid is not None, problem.stencil)
+    has a ``grid`` and whether the structured solver's products go by stencil; with ``pixels``,
+    that of `problem` over so many pixels (`pbrfit.fitting.sharding.take_pixels`)."""
+    rows = problem.index.shape[0] if pixels is None else pixels * problem.samples
+    return (problem.obs.samples, (rows,) + tuple(problem.index.shape[1:]), tuple(problem.free.shape),
+            tuple(problem.pairs.shape), problem.grid is not None, problem.stencil)
 
 
 def search_inputs(shape, problem: Problem, rounds: int, blend: bool) -> tuple:

@@ -32,6 +32,9 @@ nothing to texel sums (nor to `coverage_counts`) even where their Jacobian would
 Build layouts from the real observations and pad them; a layout computed from padded
 observations would give the padded pixels bilinear weights at uv 0.
 
+`take_pixels` makes a problem of some of the pixels the same way: their rows, padded with inert
+pixels to a size the mesh divides, placed as the problem's arrays are.
+
 Results that are per pixel (the solver's residuals and Jacobians) come back padded; their
 first ``num_real`` rows are the real pixels, in the original order. With several samples per
 pixel, ``num_real`` counts rows: the residuals (one per pixel) have ``num_real / samples`` real
@@ -58,7 +61,7 @@ from .objective import Problem
 from ..lighting.pixel_ibl import per_row
 
 __all__ = ["PIXEL_AXIS", "PAD_NORMAL", "PAD_VIEW", "PAD_LIGHT", "padded_size", "pad_observations", "pad_pixel_rows",
-           "pad_layout", "pixel_mesh", "pixel_sharding", "shard_problem"]
+           "pad_layout", "pixel_mesh", "pixel_sharding", "shard_problem", "mesh_size", "take_pixels"]
 
 #: Name of the mesh axis the pixels are split over.
 PIXEL_AXIS = "pixels"
@@ -88,8 +91,11 @@ def _append(a, extra: int, fill) -> np.ndarray:
 def _padded_pixel_fields(obs: Observations, multiple: int) -> dict:
     """The per-pixel fields of `obs` padded on the host (empty when no padding is needed)."""
     extra = padded_size(obs.num_rows, multiple * obs.samples) - obs.num_rows
-    if extra == 0:
-        return {}
+    return _inert_rows(obs, extra) if extra else {}
+
+
+def _inert_rows(obs: Observations, extra: int) -> dict:
+    """The per-pixel fields of `obs` on the host with `extra` rows of inert pixels appended."""
     fills = dict(normal=PAD_NORMAL, tangent=PAD_TANGENT, view=PAD_VIEW, light_l=PAD_LIGHT, light_radiance=0.0, uv=0.0, exposure=0.0,
                  target=0.0, residual_weight=0.0, view_index=-1, pixel=-1)
     return {name: _append(getattr(obs, name), extra, fills[name]) for name in PIXEL_FIELDS}
@@ -173,4 +179,36 @@ def shard_problem(problem: Problem, mesh: Mesh) -> Problem:
     for field in dataclasses.fields(problem):
         if field.name not in changes and not field.metadata.get("static", False):
             changes[field.name] = _put(getattr(problem, field.name), whole)
+    return dataclasses.replace(problem, **changes)
+
+
+def mesh_size(problem: Problem) -> int:
+    """How many devices `problem`'s pixels are split over (1 where they are not split)."""
+    sharding = getattr(problem.obs.target, "sharding", None)
+    return int(sharding.mesh.shape[PIXEL_AXIS]) if isinstance(sharding, NamedSharding) else 1
+
+
+def take_pixels(problem: Problem, pixels: Int[np.ndarray, " N"], size: int) -> Problem:
+    """`problem` over some of its pixels: the rows of ``pixels`` (every sample of each, in their
+    order), then inert pixels (`pad_observations`'s) up to ``size`` pixels, a multiple of
+    `mesh_size`; each per-pixel array placed as `problem`'s is, the rest shared.
+
+    Its objective is `problem`'s less the terms of the pixels left out, so where those read no
+    texel that moves, a change of the objective is the same on both (what
+    `pbrfit.fitting.stages.repair` searches over the pixels of the texels it moves)."""
+    s, n = problem.samples, int(size)
+    if n % mesh_size(problem) or n < len(pixels):
+        raise ValueError(f"take_pixels: {n} pixels cannot hold {len(pixels)} over {mesh_size(problem)} devices")
+    rows = (np.asarray(pixels, np.int64)[:, None] * s + np.arange(s)).reshape(-1)
+    extra = n * s - rows.size
+    place = lambda a, host: jax.device_put(host, a.sharding)
+    obs = problem.obs
+    taken = dataclasses.replace(obs, **{name: np.asarray(getattr(obs, name))[rows] for name in PIXEL_FIELDS})
+    fields = {name: place(getattr(obs, name), host) for name, host in _inert_rows(taken, extra).items()}
+    index, weight = (_append(np.asarray(a)[rows], extra, 0) for a in (problem.index, problem.weight))
+    changes = dict(obs=dataclasses.replace(obs, **fields), index=place(problem.index, index),
+                   weight=place(problem.weight, weight))
+    if per_row(problem.ibl):
+        table = _append(np.asarray(problem.ibl.table)[rows], extra, 0.0)
+        changes["ibl"] = dataclasses.replace(problem.ibl, table=place(problem.ibl.table, table))
     return dataclasses.replace(problem, **changes)

@@ -35,7 +35,8 @@ from pbrfit.physics.model import Model
 from pbrfit.fitting.observations import coverage_counts, neighbour_pairs, observations_from_views, texel_layout
 from pbrfit.fitting.stencil import cells_fit
 from pbrfit.fitting.parameters import LOWER, UPPER, from_sine, to_sine
-from pbrfit.fitting.stages.repair import REPAIR_PROGRESS
+from pbrfit.fitting.stages.repair import REPAIR_PROGRESS, SEARCH_COMPILE_COST, moving_pixels, search_problem
+from pbrfit.fitting.sharding import take_pixels
 from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view
 from pbrfit.fitting.objective import Problem, objective
 from pbrfit.fitting.solvers.structured import solve
@@ -742,6 +743,52 @@ def test_coordinate_search_checks_the_whole_objective_only_where_classes_share_p
     unchecked = np.asarray(coordinate_search(x0, problem, jnp.asarray(classes), 1, True, True))
     assert np.any(checked != np.asarray(x0))
     np.testing.assert_allclose(unchecked, checked, atol=1e-6)
+
+
+def test_coordinate_search_over_the_pixels_of_the_moving_texels_alone():
+    """The repair's search: where only some texels are free, a search over the pixels that read
+    them (`moving_pixels`, `take_pixels`) moves them as the search over every pixel does."""
+    truth = _checker()
+    problem = _texel_problem(truth, 1e-3)
+    moving = np.zeros(problem.num_texels, bool)
+    moving[[9, 10, 17, 18, 45, 46, 53, 54]] = True
+    region = dataclasses.replace(problem, free=problem.free * jnp.asarray(moving[:, None], jnp.float32))
+    pixels = moving_pixels(moving, np.asarray(problem.index), np.asarray(problem.weight), problem.samples)
+    assert 0 < len(pixels) < problem.num_pixels // 3
+    sub = take_pixels(region, pixels, len(pixels) + 3)
+    classes = jnp.asarray(parity_classes(truth.resolution))
+    x0 = np.asarray(_stack(truth)).copy()
+    x0[moving, 3:5] = [1.0, 0.9]
+    whole = np.asarray(coordinate_search(jnp.asarray(x0), region, classes))
+    alone = np.asarray(coordinate_search(jnp.asarray(x0), sub, classes))
+    assert np.all(alone[~moving] == x0[~moving]) and np.all(alone[moving, 3] == 0.0)
+    np.testing.assert_allclose(alone, whole, atol=1e-5)
+
+
+def test_repair_searches_the_moving_texels_pixels_alone_where_that_costs_less():
+    """`search_problem`: a search's time in proportion to its pixels, plus `SEARCH_COMPILE_COST`
+    where its size's program is not compiled."""
+    problem = _texel_problem(_checker(), 1e-3)
+    key = ("coordinate_search", (8, 8), True) + pbrfit.fitting.runner.problem_key(problem)
+    size_key = lambda n: key[:4] + ((n, 4),) + key[5:]
+
+    class Compiled:
+        def __init__(self, *keys):
+            self.keys = keys
+
+        def has(self, k):
+            return k in self.keys
+
+    assert SEARCH_COMPILE_COST + 1 / 8 < 1 <= SEARCH_COMPILE_COST + 1 / 4  # a tie keeps the whole problem
+    few, quarter = np.arange(150), np.arange(300)  # of 1444 pixels: 1/8 is 181, 1/4 is 361
+    # the whole problem's program is compiled: another pays for its compile at 1/8, not at 1/4
+    sub, sub_key = search_problem(problem, few, key, Compiled(key))
+    assert sub.num_pixels == 181 and sub_key == size_key(181)
+    assert search_problem(problem, quarter, key, Compiled(key)) == (problem, key)
+    # a size already compiled needs no compile: the one for 1/4 rather than compiling 1/8's
+    assert search_problem(problem, few, key, Compiled(key, size_key(361)))[1] == size_key(361)
+    # nothing compiled yet (the repair's problem is not the fit's search's): the smallest size
+    assert search_problem(problem, quarter, key, Compiled())[1] == size_key(361)
 
 
 def test_fit_reports_the_search():

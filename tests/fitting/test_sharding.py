@@ -29,7 +29,7 @@ from pbrfit.physics.model import Model
 from pbrfit.fitting.observations import PIXEL_FIELDS, Observations, coverage_counts, neighbour_pairs, texel_layout
 from pbrfit.render.shade import shade
 from pbrfit.fitting.sharding import (PAD_LIGHT, PAD_NORMAL, PAD_VIEW, PIXEL_AXIS, pad_layout, pad_observations, pad_pixel_rows,
-                             padded_size, pixel_mesh, shard_problem)
+                             padded_size, pixel_mesh, shard_problem, take_pixels)
 from pbrfit.fitting.objective import Problem, linearize, objective, pixel_residuals
 from pbrfit.fitting.normal_matrix import gradient, normal_blocks, spd_block_inverse
 
@@ -194,6 +194,31 @@ def test_shard_problem_on_one_device():
     np.testing.assert_array_equal(np.asarray(sharded.index), np.asarray(problem.index))
 
 
+def test_take_pixels_keeps_the_objective_change_of_the_texels_its_pixels_read():
+    """A problem of the pixels that read texel 5, padded with inert pixels: its rows are theirs,
+    and moving texel 5 changes its objective as it changes the whole problem's (the prior too)."""
+    problem, truth = _problem(pixels=37, render=False)
+    index, weight = np.asarray(problem.index), np.asarray(problem.weight)
+    pixels = np.flatnonzero(np.any((index == 5) & (weight > 0), axis=1))
+    assert 0 < len(pixels) < 30
+    sub = take_pixels(problem, pixels, 32)
+    assert sub.num_pixels == 32 and sub.obs.num_pixels == 32 and sub.obs.shapes == problem.obs.shapes
+    for name in PIXEL_FIELDS:
+        np.testing.assert_array_equal(np.asarray(getattr(sub.obs, name))[: len(pixels)],
+                                      np.asarray(getattr(problem.obs, name))[pixels])
+    np.testing.assert_array_equal(np.asarray(sub.index)[: len(pixels)], index[pixels])
+    assert np.all(np.asarray(sub.weight)[len(pixels):] == 0.0)
+    assert np.all(np.asarray(sub.obs.residual_weight)[len(pixels):] == 0.0)
+    moved = truth.copy()
+    moved[5] = [0.9, 0.1, 0.3, 0.0, 0.8]
+    energy = jax.jit(objective)
+    change = lambda p: float(energy(jnp.asarray(moved), p)) - float(energy(jnp.asarray(truth), p))
+    assert abs(change(problem)) > 1e-2
+    assert change(sub) == pytest.approx(change(problem), rel=1e-5)
+    with pytest.raises(ValueError, match="cannot hold"):
+        take_pixels(problem, pixels, len(pixels) - 1)
+
+
 def test_spd_block_inverse_matches_lapack_in_float64():
     """The preconditioner's block inverses (plain XLA, no LAPACK: see the four-device test) on
     SPD blocks whose channels differ in scale by 1e6, as colour and roughness do, and the identity
@@ -320,6 +345,18 @@ def _multi_device_report() -> dict:
         samples_loss=[one.report["final_loss"], many.report["final_loss"]],
         samples_render_diff=max(float(np.max(np.abs(a - b))) for a, b in zip(one.images, many.images)),
     )
+    # some of those pixels alone (a repair's search): whole pixels per device, integrals with them
+    with_table = dataclasses.replace(sp, ibl=table, model=model)
+    reads = np.any((np.asarray(sp.index) == 5) & (np.asarray(sp.weight) > 0), axis=1)
+    pixels = np.flatnonzero(reads.reshape(-1, 4).any(axis=1))
+    sub = take_pixels(shard_problem(with_table, mesh), pixels, padded_size(len(pixels) + 1, DEVICES))
+    moved = x.at[5].set(jnp.asarray([0.9, 0.1, 0.3, 0.0, 0.8], jnp.float32))
+    change = lambda p: float(energy(moved, p)) - float(energy(x, p))
+    out.update(
+        taken_pixels=len(pixels), taken_shard_rows=sorted(int(s.data.shape[0]) for s in sub.obs.target.addressable_shards),
+        taken_table_rows=sorted(int(s.data.shape[0]) for s in sub.ibl.table.addressable_shards),
+        taken_change=[change(with_table), change(sub)],
+    )
     # The whole `pbrfit fit --devices 4` on the peer layout (32² images of 16² maps here). With 64² it
     # hung at the solver's first step: the block-Jacobi inverses went through LAPACK
     # (``jnp.linalg.inv``), whose batched kernel waits on the CPU thread pool that the other
@@ -342,7 +379,8 @@ def _multi_device_report() -> dict:
 
 def test_structured_lm_sharded_over_four_cpu_devices():
     """One interpreter with four host devices: the solver, the stages' kernels and the whole fit
-    sharded and not, samples and per-pixel IBL rows with their pixels, and the whole
+    sharded and not, samples and per-pixel IBL rows with their pixels (in a problem of some of
+    them too, `take_pixels`), and the whole
     `pbrfit fit --devices 4` command (it once hung), under one time limit."""
     proc = subprocess.run([sys.executable, __file__], env=_four_device_env(), capture_output=True, text=True, timeout=400)
     assert proc.returncode == 0, proc.stderr[-4000:]
@@ -376,6 +414,10 @@ def test_structured_lm_sharded_over_four_cpu_devices():
     assert rep["samples_map_diff"] <= 1e-3 and rep["samples_render_diff"] <= 1e-3, rep
     np.testing.assert_allclose(rep["samples_loss"][1], rep["samples_loss"][0], rtol=1e-4)
     assert rep["fit_map_diff"] <= 1e-4 and rep["fit_render_diff"] <= 1e-4 and rep["fit_sigma_diff"] <= 1e-4, rep
+    rows = 4 * padded_size(rep["taken_pixels"] + 1, DEVICES) // DEVICES
+    assert rep["taken_shard_rows"] == [rows] * DEVICES and rep["taken_table_rows"] == [rows] * DEVICES, rep
+    assert abs(rep["taken_change"][0]) > 1e-3, rep
+    np.testing.assert_allclose(rep["taken_change"][1], rep["taken_change"][0], rtol=1e-4)
     assert rep["command_devices"] == DEVICES, rep
     assert max(rep["command_truth_rmse"].values()) < 1e-4, rep
 

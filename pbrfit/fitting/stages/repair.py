@@ -61,9 +61,11 @@ The repair finds the cluster by its misfit and starts it again from outside:
    ends at 0.025 (0.024 from the true maps), seed 9 at 0.014 (0.028). On the flash scene with
    1% noise, without the √(2p) term, a cluster of 1,743 texels that fit better by about 43 σ̂²
    took metallic from 0.036 to 0.049 RMSE; its threshold is 274 σ̂², and it is put back. It
-   costs a search and `REPAIR_STEPS` steps per fit: about 3 s on the peer scene and the demo,
-   23 s on the flash scene (2 × 2 samples per pixel). It runs only where some cluster could
-   clear its threshold: where its pixels' Σ ||r||² lies that far above the least a re-fit
+   costs a search and `REPAIR_STEPS` steps per pass. On a 2-core CPU the repair's time besides
+   its steps (report.json's ``times.repair``, mostly its searches) was 2.7 s in `pbrfit demo`'s
+   fit and 6.5 s on the flash scene with 1% noise (2 × 2 samples per pixel), each search over
+   the moved texels' pixels alone where that costs less (`search_problem`): 7.3 and 13.4 s over
+   every pixel. It runs only where some cluster could clear its threshold: where its pixels' Σ ||r||² lies that far above the least a re-fit
    reaches under the fit's residual variance (`NOISE_DEVIATIONS`); on the noiseless flash scene,
    whose 16-bit images are fitted to their rounding, none can, and the pass is skipped.
 
@@ -102,7 +104,8 @@ from scipy.sparse import csgraph
 
 from ..initialisation import coordinate_search
 from ..parameters import CHANNELS
-from ..runner import jitted_normal_blocks, problem_energy, search_inputs, timed
+from ..runner import jitted_normal_blocks, problem_energy, problem_key, search_inputs, timed
+from ..sharding import mesh_size, padded_size, take_pixels
 from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ..objective import Problem
 from ...transfer import to_device
@@ -110,7 +113,7 @@ from ..uncertainty import block_standard_errors, residual_variance
 
 __all__ = ["REPAIR_ROUNDS", "REPAIR_STEPS", "REPAIR_PASSES", "REPAIR_PROGRESS", "OUTLIER_EVIDENCE", "OUTLIER_SPREAD", "NOISE_DEVIATIONS",
            "repair_region", "fill_from_nearest", "improved_clusters", "evidence_variance", "repair_skipped",
-           "run_repair",
+           "run_repair", "moving_pixels", "search_problem", "SEARCH_COMPILE_COST",
            "MISFIT_FACTOR", "MISFIT_FLOOR", "WELL_SEEN_FRACTION", "OUTLIER_DEVIATION", "OUTLIER_REFERENCES",
            "OUTLIER_PEELS", "OUTLIER_PEEL_SHARE", "texel_misfit", "misfit_texels", "identifiable_texels",
            "well_seen_texels", "outlier_texels"]
@@ -287,6 +290,13 @@ def outlier_texels(
 #: sweep moved after them: on the peer scene's seed 3, roughness RMSE 0.013 after one, exact
 #: after two).
 REPAIR_ROUNDS = 2
+#: A compile of a search's program, counted in searches of every pixel (`search_problem`): less
+#: than a cold compile takes (on a 2-core CPU 3.3 s against a 2.0 s search on the demo, 1.9 s
+#: against 0.7 s on the peer scene), as a program compiled once serves the passes after it and,
+#: from the persistent cache, later fits. So a search over 1/8 of the pixels or fewer pays for
+#: its compile, over 1/4 not. `pbrfit demo`'s fit, whose three misfit passes search 1/16 of the
+#: pixels, took 28.2 s with empty caches and 16.3 s warm, against 30.3 and 20.0 s searching all.
+SEARCH_COMPILE_COST = 0.75
 #: Solver steps after a repair's search.
 REPAIR_STEPS = 20
 #: Most misfit passes per fit (the outlier pass comes after them).
@@ -406,6 +416,29 @@ def evidence_variance(energy: float, residual_count: int, parameter_count: int, 
     return max(residual_variance(energy, residual_count, parameter_count), MISFIT_FLOOR * scale)
 
 
+def moving_pixels(moving: Bool[np.ndarray, " T"], index, weight, samples: int) -> Int[np.ndarray, " N"]:
+    """The pixels some sample of which reads a texel of ``moving`` (with a weight above 0)."""
+    reads = np.any(moving[index] & (weight > 0), axis=1)
+    return np.flatnonzero(reads.reshape(-1, samples).any(axis=1))
+
+
+def search_problem(region: Problem, pixels: Int[np.ndarray, " N"], key, compiler) -> tuple:
+    """(problem, key) of a repair's search over ``region`` (``key`` its `search_inputs` key):
+    ``region`` itself, or ``region`` over ``pixels`` alone (the pixels of the texels it moves,
+    `moving_pixels`) padded to 1/2, 1/4, ... of its pixels (`take_pixels`), whichever costs
+    least: a search's time in proportion to its pixels, plus `SEARCH_COMPILE_COST` where its
+    size's program is not compiled yet. The pixels left out read no texel that moves, so both
+    search alike; their programs do not."""
+    devices, total = mesh_size(region), region.num_pixels
+    sizes = [total]
+    while len(pixels) <= padded_size(-(-sizes[-1] // 2), devices) < sizes[-1]:
+        sizes.append(padded_size(-(-sizes[-1] // 2), devices))
+    keys = [key] + [key[:3] + problem_key(region, size) for size in sizes[1:]]
+    cost = [size / total + (0.0 if compiler.has(k) else SEARCH_COMPILE_COST) for size, k in zip(sizes, keys)]
+    best = int(np.argmin(cost))
+    return (region if best == 0 else take_pixels(region, pixels, sizes[best])), keys[best]
+
+
 def repair_skipped(solver, final, channels) -> Optional[str]:
     """Why the basin repair does not apply to a fit, or None where it does."""
     if tuple(final) == (1, 1):
@@ -418,7 +451,7 @@ def repair_skipped(solver, final, channels) -> Optional[str]:
 
 
 def run_repair(runner, compiler, problem: Problem, xs, linearization, shape, seen, channels, num_free: int,
-            where: dict):
+               where: dict):
     """Texels the solve left in a wrong basin, started again from their neighbours
     (`pbrfit.fitting.stages.repair`): (x, linearisation, report). Each pass flags texels, copies into them the
     nearest unflagged one's values, runs the coordinate search and `REPAIR_STEPS` steps over the
@@ -475,7 +508,11 @@ def run_repair(runner, compiler, problem: Problem, xs, linearization, shape, see
         region = dataclasses.replace(problem, free=jax.device_put(free * moving[:, None], problem.free.sharding))
         y = fill_from_nearest(xs, flagged, trusted, tuple(shape), free)
         where["repair"] = len(passes)
-        y = timed(compiler, key, coordinate_search, "repair", to_device(y, np.float32), region, classes, *static)
+        searched, search_key = search_problem(region, moving_pixels(moving, index, weight, problem.samples), key,
+                                              compiler)
+        entry["searched_pixels"] = searched.num_pixels
+        y = timed(compiler, search_key, coordinate_search, "repair", to_device(y, np.float32), searched, classes,
+                  *static)
         y, info = runner(to_device(y, np.float32), region, REPAIR_STEPS, num_free)
         # residuals and pixel Jacobians do not depend on which texels move: the full problem's
         after = runner.linearization
