@@ -185,7 +185,8 @@ def problem_key(problem: Problem, pixels: Optional[int] = None) -> tuple:
 
 def search_inputs(shape, problem: Problem, rounds: int, blend: bool) -> tuple:
     """(key, classes, arguments after them) of a `coordinate_search` at map ``shape``: the key of
-    its executable, one for the fit's search and its repair (the rounds are an argument, an int32
+    its executable (``("coordinate_search", shape, separable) + problem_key(problem)``), one for
+    the fit's search and its repair (the rounds are an argument, an int32
     array; whether classes share pixels, `classes_share_no_pixel`, is static), the parity classes
     on the device, and (rounds, blend, separable)."""
     classes = parity_classes(shape)

@@ -65,9 +65,10 @@ The repair finds the cluster by its misfit and starts it again from outside:
    its steps (report.json's ``times.repair``, mostly its searches) was 2.7 s in `pbrfit demo`'s
    fit and 6.5 s on the flash scene with 1% noise (2 × 2 samples per pixel), each search over
    the moved texels' pixels alone where that costs less (`search_problem`): 7.3 and 13.4 s over
-   every pixel. It runs only where some cluster could clear its threshold: where its pixels' Σ ||r||² lies that far above the least a re-fit
-   reaches under the fit's residual variance (`NOISE_DEVIATIONS`); on the noiseless flash scene,
-   whose 16-bit images are fitted to their rounding, none can, and the pass is skipped.
+   every pixel. It runs only where some cluster could clear its threshold: where its pixels'
+   Σ ||r||² lies that far above the least a re-fit reaches under the fit's residual variance
+   (`NOISE_DEVIATIONS`); on the noiseless flash scene, whose 16-bit images are fitted to their
+   rounding, none can, and the pass is skipped.
 
 Which texels are out of line after a solve, by their pixels' misfit or by their values against
 their neighbours':
@@ -433,6 +434,7 @@ def search_problem(region: Problem, pixels: Int[np.ndarray, " N"], key, compiler
     sizes = [total]
     while len(pixels) <= padded_size(-(-sizes[-1] // 2), devices) < sizes[-1]:
         sizes.append(padded_size(-(-sizes[-1] // 2), devices))
+    # a size's key: the search's (its name, the map's shape, whether classes share no pixel), the problem's
     keys = [key] + [key[:3] + problem_key(region, size) for size in sizes[1:]]
     cost = [size / total + (0.0 if compiler.has(k) else SEARCH_COMPILE_COST) for size, k in zip(sizes, keys)]
     best = int(np.argmin(cost))
