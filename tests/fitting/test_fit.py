@@ -32,7 +32,8 @@ from pbrfit.fitting.initialisation import (SEARCH_ROUGHNESS_RATIO, classes_share
 from pbrfit.physics.lights import point_light
 from pbrfit.physics.material import Material
 from pbrfit.physics.model import Model
-from pbrfit.fitting.observations import coverage_counts, neighbour_pairs, observations_from_views, texel_layout
+from pbrfit.fitting.observations import (PIXEL_FIELDS, coverage_counts, neighbour_pairs, observations_from_views,
+                                        texel_layout)
 from pbrfit.fitting.stencil import cells_fit
 from pbrfit.fitting.parameters import LOWER, UPPER, from_sine, to_sine
 from pbrfit.fitting.stages.repair import REPAIR_PROGRESS, SEARCH_COMPILE_COST, moving_pixels, search_problem
@@ -745,11 +746,20 @@ def test_coordinate_search_checks_the_whole_objective_only_where_classes_share_p
     np.testing.assert_allclose(unchecked, checked, atol=1e-6)
 
 
-def test_coordinate_search_over_the_pixels_of_the_moving_texels_alone():
+@pytest.mark.parametrize("on_grid,samples", [(False, 1), (True, 2)])
+def test_coordinate_search_over_the_pixels_of_the_moving_texels_alone(on_grid, samples):
     """The repair's search: where only some texels are free, a search over the pixels that read
-    them (`moving_pixels`, `take_pixels`) moves them as the search over every pixel does."""
+    them (`moving_pixels`, `take_pixels`) moves them as the search over every pixel does; also
+    with the map's grid (as a fit's problem has it) and two samples per pixel."""
     truth = _checker()
-    problem = _texel_problem(truth, 1e-3)
+    problem = _texel_problem(truth, 1e-3, on_grid)
+    if samples > 1:  # each pixel's row twice, its uv moved either way: two samples per pixel
+        rows = {name: np.repeat(np.asarray(getattr(problem.obs, name)), samples, axis=0) for name in PIXEL_FIELDS}
+        rows["uv"] = rows["uv"] + np.tile([[-0.004, 0.003], [0.004, -0.003]], (problem.obs.num_rows, 1)).astype(np.float32)
+        obs = dataclasses.replace(problem.obs, samples=samples, **{k: jnp.asarray(v) for k, v in rows.items()})
+        layout = texel_layout(obs, truth.resolution)
+        problem = dataclasses.replace(problem, obs=obs, index=layout.index, weight=layout.weight,
+                                      stencil=cells_fit(layout.index, samples, truth.resolution))
     moving = np.zeros(problem.num_texels, bool)
     moving[[9, 10, 17, 18, 45, 46, 53, 54]] = True
     region = dataclasses.replace(problem, free=problem.free * jnp.asarray(moving[:, None], jnp.float32))
