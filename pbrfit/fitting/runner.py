@@ -127,7 +127,7 @@ class Compiler:
         return key in self.done or key in self.pending
 
     def prefetch(self, key, fn, *args, **kwargs) -> None:
-        if not self.background or key in self.pending or key in self.done:
+        if not self.background or self.has(key):
             return
         if self.executor is None:
             self.executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pbrfit-compile")

@@ -432,8 +432,8 @@ def search_problem(region: Problem, pixels: Int[np.ndarray, " N"], key, compiler
     search alike; their programs do not."""
     devices, total = mesh_size(region), region.num_pixels
     sizes = [total]
-    while len(pixels) <= padded_size(-(-sizes[-1] // 2), devices) < sizes[-1]:
-        sizes.append(padded_size(-(-sizes[-1] // 2), devices))
+    while len(pixels) <= (half := padded_size(-(-sizes[-1] // 2), devices)) < sizes[-1]:
+        sizes.append(half)
     # a size's key: the search's (its name, the map's shape, whether classes share no pixel), the problem's
     keys = [key] + [key[:3] + problem_key(region, size) for size in sizes[1:]]
     cost = [size / total + (0.0 if compiler.has(k) else SEARCH_COMPILE_COST) for size, k in zip(sizes, keys)]
