@@ -176,9 +176,16 @@ def _hits(scene: Scene, mesh, progress=None, k: int = 1) -> list:
     return hits
 
 
+def _pad_rows(tree, size: int):
+    """Every (host) array of ``tree`` padded to ``size`` rows with copies of its last row, with
+    numpy: a concatenation run eagerly by JAX compiles once per shape."""
+    import jax
+
+    return jax.tree_util.tree_map(lambda a: np.concatenate([a, np.repeat(a[-1:], size - len(a), axis=0)]), tree)
+
+
 def _render_pbrfit(scene: Scene, mesh, environment=None, ibl=None, progress=None):
     """pbrfit's own radiance and masks of every view: ([(H, W, 3) float32], [(H, W) bool]); see `render_scene`."""
-    import jax
     import jax.numpy as jnp
 
     from pbrfit.lighting.environment import environment_lookup
@@ -207,14 +214,13 @@ def _render_pbrfit(scene: Scene, mesh, environment=None, ibl=None, progress=None
             progress(f"geometry {i + 1}/{scene.num_views}")
     # every view's pixels in one flat batch: one compilation for the whole capture
     fields = ("pixel", "uv", "normal", "tangent", "view", "light_l", "light_radiance")
-    batch = ViewInputs(
-        **{f: jnp.concatenate([getattr(v, f) for v in views], axis=0) for f in fields},
+    batch = ViewInputs(  # on the host, as the padding (`_pad_rows`): no compile per capture size
+        **{f: np.concatenate([np.asarray(getattr(v, f)) for v in views], axis=0) for f in fields},
         shape=(1, sum(v.num_pixels for v in views)),
     )
     total = batch.num_pixels
     if 0 < total < SHADE_CHUNK:  # pad to a power of two: small captures share compilations
-        size = 1 << (total - 1).bit_length()
-        batch = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], size - total, axis=0)]), batch)
+        batch = _pad_rows(batch, 1 << (total - 1).bit_length())
     if scene.model.ibl == "monte_carlo":  # punctual light as usual, the environment by the reference integrator
         radiance = radiance_view(batch, material, scene.model.replace(ibl=None), ibl, chunk=SHADE_CHUNK)
         visibility = _reference_visibility(mesh, environment, surface, progress)
@@ -262,7 +268,6 @@ def _monte_carlo_environment(batch, material, model, environment, samples: int, 
     the first rows' `pbrfit.lighting.visibility.Visibility` (`_reference_visibility`; rows past
     it, the batch's padding, see everything), or None: no occlusion."""
     import jax
-    import jax.numpy as jnp
 
     from pbrfit.lighting.montecarlo import monte_carlo_radiance
     from pbrfit.lighting.visibility import visibility_rows
@@ -271,10 +276,10 @@ def _monte_carlo_environment(batch, material, model, environment, samples: int, 
     out = []
     total = batch.num_pixels
     for start in range(0, total, SHADE_CHUNK):
-        view = jax.tree_util.tree_map(lambda a: a[start:start + SHADE_CHUNK], batch)
+        view = jax.tree_util.tree_map(lambda a: np.asarray(a)[start:start + SHADE_CHUNK], batch)
         n = view.normal.shape[0]
         if n < SHADE_CHUNK and total > SHADE_CHUNK:  # pad the tail: one compilation
-            view = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], SHADE_CHUNK - n, 0)]), view)
+            view = _pad_rows(view, SHADE_CHUNK)
         normal, base_color, metallic, roughness, occlusion, _ = shading_inputs(view, material)  # as radiance_view
         rows = None
         if visibility is not None:  # the chunk's rows that have points, then padding that sees everything

@@ -261,8 +261,10 @@ def radiance_view(
     per_pixel = per_row(ibl)
     pieces = []
     for start in range(0, count, chunk):
-        part = _slice(view, start, min(start + chunk, count))
-        rows = dataclasses.replace(ibl, table=ibl.table[start:start + chunk]) if per_pixel else ibl
+        # a view of one chunk goes as it is: a slice, pad or concatenation run eagerly compiles
+        # once per shape (the test suite compiled hundreds)
+        part = view if count <= chunk else _slice(view, start, min(start + chunk, count))
+        rows = dataclasses.replace(ibl, table=ibl.table[start:start + chunk]) if per_pixel and count > chunk else ibl
         n = part.num_pixels
         size = chunk if count > chunk else n  # pad the tail so every chunk reuses one compilation
         if n < size:
@@ -270,8 +272,9 @@ def radiance_view(
             if per_pixel:
                 rows = dataclasses.replace(rows, table=jnp.concatenate(
                     [rows.table, jnp.zeros((size - n,) + rows.table.shape[1:], rows.table.dtype)]))
-        pieces.append(_radiance_chunk_jit(part, material, model, rows, wrap, normal_convention)[:n])
-    return jnp.concatenate(pieces, axis=0)
+        out = _radiance_chunk_jit(part, material, model, rows, wrap, normal_convention)
+        pieces.append(out if n == size else out[:n])
+    return pieces[0] if len(pieces) == 1 else jnp.concatenate(pieces, axis=0)
 
 
 def render_view(
