@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pbrfit.fitting import uncertainty
 from pbrfit.fitting.normal_matrix import NEIGHBOUR_OFFSETS
 from pbrfit.fitting.uncertainty import (block_standard_errors, sandwich_ratios, window_precisions, window_radii,
                                         window_standard_errors)
@@ -63,9 +64,14 @@ def test_radius_zero_is_the_per_texel_blocks():
 
 
 @pytest.mark.parametrize("radius", [1, 2])
-def test_window_is_the_inverse_of_its_part_of_the_matrix(radius):
+@pytest.mark.parametrize("chunk_bytes", [None, 29160])
+def test_window_is_the_inverse_of_its_part_of_the_matrix(radius, chunk_bytes, monkeypatch):
     """σ² of a texel is σ̂² times the diagonal of the inverse of JᵀJ restricted to the texel's
-    window (wrapping around the map), at the texel's channels: inside the map and on its edges."""
+    window (wrapping around the map), at the texel's channels: inside the map and on its edges;
+    the same where the windows are assembled a few texels at a time (29160 bytes: 5 texels a
+    chunk at radius 1, the last chunk 2; one at radius 2)."""
+    if chunk_bytes is not None:
+        monkeypatch.setattr(uncertainty, "_WINDOW_CHUNK_BYTES", chunk_bytes)
     shape, k, sigma2 = (6, 7), 3, 0.5
     a, diag, coupling = _normal_matrix(shape, k, 400, seed=2)
     got = window_standard_errors(diag, coupling, shape, np.ones(k, bool), np.ones(42, bool), sigma2, radius)
