@@ -64,9 +64,9 @@ MAX_UNCERTAINTY_RADIUS = 2
 WINDOW_RIDGE = 1e-6
 #: Bytes of window matrices assembled at once (float64): few enough that the chunks' arrays stay
 #: in cache and the allocator reuses their memory from chunk to chunk, many enough that the
-#: loop's per-chunk overhead stays small (256 texels a chunk with 3 × 3 windows of 5 channels).
+#: loop's per-chunk overhead stays small (258 texels a chunk with 3 × 3 windows of 5 channels).
 #: On the peer scene, against 64 MiB: the hold's standard errors took 0.11 to 0.13 s of a fit
-#: in a script instead of 0.15 to 0.7 s, and the command's peak memory fell from 1,040 to 909 MiB.
+#: in a script instead of 0.15 to 0.7 s, and the command's peak memory fell from 1,036-1,043 to 909 MiB.
 _WINDOW_CHUNK_BYTES = 1 << 22
 
 
