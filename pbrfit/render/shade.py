@@ -259,14 +259,15 @@ def radiance_view(
     if count == 0:
         return jnp.zeros((0, 3), jnp.float32)
     per_pixel = per_row(ibl)
+    # a view of one chunk goes as it is: a slice, pad or concatenation run eagerly compiles once
+    # per shape (the test suite compiled hundreds)
+    whole = count <= chunk
     pieces = []
     for start in range(0, count, chunk):
-        # a view of one chunk goes as it is: a slice, pad or concatenation run eagerly compiles
-        # once per shape (the test suite compiled hundreds)
-        part = view if count <= chunk else _slice(view, start, min(start + chunk, count))
-        rows = dataclasses.replace(ibl, table=ibl.table[start:start + chunk]) if per_pixel and count > chunk else ibl
+        part = view if whole else _slice(view, start, min(start + chunk, count))
+        rows = dataclasses.replace(ibl, table=ibl.table[start:start + chunk]) if per_pixel and not whole else ibl
         n = part.num_pixels
-        size = chunk if count > chunk else n  # pad the tail so every chunk reuses one compilation
+        size = n if whole else chunk  # pad the tail so every chunk reuses one compilation
         if n < size:
             part = _pad(part, size)
             if per_pixel:
