@@ -243,7 +243,9 @@ def _cosine_weights(source_height: int, height: int) -> np.ndarray:
     om = np.broadcast_to(texel_solid_angles(source_height, 2 * source_height),
                          (source_height, 2 * source_height)).reshape(-1)
     dn = texel_directions(height, 2 * height).reshape(-1, 3)
-    kernel = np.maximum(dn @ ds.T, 0.0) * om[None, :]
+    kernel = dn @ ds.T                          # in place from here: one (n, m) array, not three
+    np.maximum(kernel, 0.0, out=kernel)
+    kernel *= om[None, :]
     kernel /= kernel.sum(1, keepdims=True)      # = (1/π) Σ max(0, n·ω) Ω, exactly 1 once discretised
     kernel.flags.writeable = False
     return kernel
