@@ -15,9 +15,11 @@ B. Burley, SIGGRAPH 2012; C. Schlick 1994.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Optional
 
+import jax
 import jax.numpy as jnp
 from jax.scipy.special import erfc
 from jaxtyping import Array, ArrayLike, Float
@@ -481,6 +483,7 @@ def per_point(x: Float[ArrayLike, "*batch"] | Float[ArrayLike, "*batch 1"], rank
     raise ValueError(f"{name} must hold one value per point, shape (*batch, 1); got shape {x.shape}")
 
 
+@functools.partial(jax.jit, static_argnames="model")
 def evaluate_cosines(
     n_dot_v: Float[ArrayLike, "*batch"],
     n_dot_l: Float[ArrayLike, "*batch"],
@@ -549,6 +552,7 @@ def evaluate_cosines(
     return jnp.where(lit[..., None], out * nl[..., None], 0.0)
 
 
+@functools.partial(jax.jit, static_argnames="model")
 def evaluate(
     n: Float[ArrayLike, "*batch 3"],
     v: Float[ArrayLike, "*batch 3"],
