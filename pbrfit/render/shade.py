@@ -10,6 +10,7 @@ mapping, exposure, tone mapping and encoding, and scatters the pixels back into 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Optional
 
 import equinox as eqx
@@ -125,6 +126,7 @@ def prepare_view(gbuffer, lights, mask: Optional[np.ndarray] = None) -> ViewInpu
     )
 
 
+@functools.partial(jax.jit, static_argnames="model")
 def shade_punctual(
     normal: Float[Array, "P 3"],
     view: Float[Array, "P 3"],
@@ -157,6 +159,7 @@ def shade_punctual(
     return jnp.sum(f * light_radiance, axis=1)
 
 
+@functools.partial(jax.jit, static_argnames="model")
 def shade(
     normal: Float[Array, "P 3"],
     view: Float[Array, "P 3"],
