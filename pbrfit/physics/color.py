@@ -8,6 +8,8 @@ exactly at a clip keeps the derivative from inside, not half of it.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -167,6 +169,7 @@ _TONEMAPS = {
 }
 
 
+@functools.partial(jax.jit, static_argnames="name")
 def tonemap(x: Float[ArrayLike, "... 3"], name: str) -> Float[Array, "... 3"]:
     """Apply the named tone mapping operator (one of `TONEMAPS`)."""
     if name not in _TONEMAPS:
@@ -230,6 +233,7 @@ _INVERSE_TONEMAPS = {
 }
 
 
+@functools.partial(jax.jit, static_argnames="name")
 def inverse_tonemap(y: Float[ArrayLike, "... 3"], name: str) -> Float[Array, "... 3"]:
     """The linear values that the named operator maps to `y` (tone-mapped, before any sRGB curve):
     exact where the operator is invertible, in closed form for each of `TONEMAPS`.
@@ -246,6 +250,7 @@ def inverse_tonemap(y: Float[ArrayLike, "... 3"], name: str) -> Float[Array, "..
     return jnp.maximum(_INVERSE_TONEMAPS[name](jnp.clip(y, 0.0, _INVERSE_CAP)), 0.0)
 
 
+@functools.partial(jax.jit, static_argnames=("tonemap", "color_space"))
 def encode(
     radiance: Float[ArrayLike, "... 3"], exposure_ev=0.0, tonemap: str = "none", color_space: str = "linear"
 ) -> Float[Array, "... 3"]:
