@@ -735,8 +735,8 @@ def test_check_grads_float64(name, x64):
     error is why the tolerance is 1e-4. `pbrfit.checks.gradcheck` checks every Hessian entry more tightly."""
     fn, args = CHECK_GRADS_TERMS[name]
     args = tuple(jnp.asarray(a, jnp.float64) for a in args)
-    # The compositions run eagerly through hundreds of primitives: 1st order here (their Hessians
-    # are checked entry by entry, per Model variant, by `pbrfit.checks.gradcheck`).
+    # The compositions: 1st order here (their second order took 4 s more; their Hessians are
+    # checked entry by entry, per Model variant, by `pbrfit.checks.gradcheck`).
     order = 1 if name in ("evaluate", "evaluate_cosines") else 2
     jax.test_util.check_grads(fn, args, order=order, modes=("rev",), eps=1e-4, atol=1e-4, rtol=1e-4)
 
