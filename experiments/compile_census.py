@@ -107,7 +107,8 @@ def main() -> None:
           f"{len(misses)} compiled, {sum(r['seconds'] for r in misses):.0f} s")
     by_key = collections.defaultdict(list)
     for r in misses:
-        by_key[r["key"]].append(r["seconds"])
+        if r["key"] is not None:  # None: the persistent cache was off, no key to compare
+            by_key[r["key"]].append(r["seconds"])
     again = [s for seconds in by_key.values() for s in seconds[1:]]
     print(f"compiled more than once (by key): {len(again)} compiles, {sum(again):.0f} s")
 
