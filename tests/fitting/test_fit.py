@@ -693,6 +693,24 @@ def test_coordinate_search_repairs_texels_in_wrong_basins(smooth):
     np.testing.assert_allclose(polished, optimum, atol=2e-3)
 
 
+@pytest.mark.parametrize("ibl", [None, "per_pixel", "split_sum"])
+def test_the_split_sums_candidates_are_shaded_once_and_unchanged(ibl):
+    """The grid start's and the search's shaded rows pass through a conditional under the split
+    sum alone (`_shaded_once`: XLA then stores them instead of shading them again in each fusion
+    that reads them), and come back unchanged, a NaN in the first row included."""
+    from types import SimpleNamespace
+    from pbrfit.fitting.initialisation import _shaded_once
+
+    problem = SimpleNamespace(model=Model(ibl=ibl))
+    radiance = jnp.asarray([[jnp.nan, 0.5, 2.0], [jnp.inf, 0.0, 1e-30]], jnp.float32)
+    slope = jnp.asarray([[0.25, -1.0, 3.0], [0.0, 7.0, 1e30]], jnp.float32)
+    out = jax.jit(lambda a, b: _shaded_once(problem, a, b))(radiance, slope)
+    for got, want in zip(out, (radiance, slope)):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    primitives = {e.primitive.name for e in jax.make_jaxpr(lambda a, b: _shaded_once(problem, a, b))(radiance, slope).eqns}
+    assert ("cond" in primitives) == (ibl == "split_sum"), primitives
+
+
 def test_coordinate_search_tries_blended_metallic():
     """Texels of a half-metal square stuck at the metallic bound move to the blend candidate."""
     checker = _checker()
