@@ -145,7 +145,7 @@ def _shaded_once(problem: Problem, *arrays):
     instead of 4.0 and the grid start 1.2 instead of 2.2. Under punctual lights alone the fused
     programs are faster (the peer's search 0.67 to 0.75 s against 0.81 to 0.84 stored), with
     per-pixel integrals as fast (experiments/speed.md, "The shading computed once")."""
-    if problem.model.ibl != "split_sum":
+    if problem.model.ibl != "split_sum" or arrays[0].size == 0:
         return arrays
     v = arrays[0].ravel()[0]
     return jax.lax.cond((v == v) | jnp.isnan(v), lambda: arrays, lambda: tuple(jnp.zeros_like(a) for a in arrays))

@@ -709,6 +709,8 @@ def test_the_split_sums_candidates_are_shaded_once_and_unchanged(ibl):
         np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
     primitives = {e.primitive.name for e in jax.make_jaxpr(lambda a, b: _shaded_once(problem, a, b))(radiance, slope).eqns}
     assert ("cond" in primitives) == (ibl == "split_sum"), primitives
+    empty = jnp.zeros((0, 3), jnp.float32)  # no rows: nothing to store
+    assert [a.shape for a in _shaded_once(problem, empty, empty)] == [(0, 3), (0, 3)]
 
 
 def test_coordinate_search_tries_blended_metallic():
