@@ -58,7 +58,7 @@ from ..physics.brdf import MIN_ROUGHNESS
 from .observations import inverted_targets, linear_radiance
 from .parameters import LOWER, UPPER
 from ..render.shade import shade
-from .stencil import channel_blocks, channel_product, stencil
+from .stencil import channel_blocks, channel_product
 from .objective import (Problem, objective, pixel_residuals, robust_residual, sample_texels, scatter_texels,
                         shading_normal, smooth_residuals, to_rows)
 
@@ -184,8 +184,8 @@ def _solve_base_joint(l0, a, y, problem: Problem, steps: Optional[int] = None):
     steps = GRID_BASE_CG_STEPS if steps is None else steps
     w = problem.weight[:, :, None]
     rhs = scatter_texels(w * (a * (y - l0))[:, None, :], problem)  # also the per-texel solve's numerator
-    if problem.stencil and problem.samples == 1:
-        st = stencil(problem)
+    if problem.stencil is not None and problem.samples == 1:
+        st = problem.stencil
         blocks = channel_blocks(a * a, problem, st)
 
         def normal_op(b):  # AᵀA b

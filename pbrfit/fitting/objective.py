@@ -33,6 +33,7 @@ from typing import Optional
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 from jaxtyping import Array, Float, Int
 
@@ -44,13 +45,44 @@ from ..physics.material import apply_normal_map
 from .parameters import lower, normal_from_slopes, upper
 from ..render.shade import shade
 from ..lighting.pixel_ibl import per_row
+from ..transfer import to_device
 
 __all__ = ["Problem", "LOSSES", "robust_residual", "shading_normal", "sample_texels", "sample_material", "pixel_residuals", "residuals",
-           "objective", "linearize", "by_pixel", "to_rows", "scatter_texels", "cell_corners", "laplacian",
+           "objective", "linearize", "by_pixel", "to_rows", "scatter_texels", "TexelGrid", "texel_grid", "laplacian",
            "prior_degree", "smooth_residuals"]
 
 #: Below this ratio s = r²/c² the robust weights use their series (ρ(s)/s -> 1) to stay finite.
 _ROBUST_SERIES = 1e-6
+
+
+class TexelGrid(eqx.Module):
+    """The (H, W) map the first H W of a problem's T texels form (flat t = i W + j; the texels past
+    H W are a coarser level's padding), with its cells' corner tables, both in
+    `pbrfit.fitting.observations.CELL_CORNERS` order and wrapped around the map: ``corners`` (T, 4)
+    the texels at the corners of the cell that starts at t, ``corner_of`` (T, 4) the cells whose
+    corner a texel t is (corner a of cell t - o_a). A padding texel is its own everywhere.
+
+    The shape is an array, so one compiled program serves every level of a fit; the tables are
+    made on the host (`texel_grid`) rather than by modular arithmetic in each program, where every
+    loop that passes values by cells held its own copy of it (on the peer scene 39 of the
+    coordinate search's 160 kernels, and a fifth of its compile time)."""
+
+    shape: Int[Array, "2"]
+    corners: Int[Array, "T 4"]
+    corner_of: Int[Array, "T 4"]
+
+
+def texel_grid(shape: tuple[int, int], num_texels: int) -> TexelGrid:
+    """The `TexelGrid` of an (H, W) map held by the first H W of ``num_texels`` texels."""
+    h, w = (int(n) for n in shape)
+    t = np.arange(num_texels, dtype=np.int64)[:, None]
+
+    def table(sign: int) -> np.ndarray:
+        di, dj = (sign * np.asarray([o[n] for o in CELL_CORNERS]) for n in (0, 1))
+        corners = np.mod(t // w + di, h) * w + np.mod(t % w + dj, w)
+        return np.where(t < h * w, corners, t).astype(np.int32)
+
+    return TexelGrid(to_device(np.asarray((h, w), np.int32)), to_device(table(1)), to_device(table(-1)))
 
 
 class Problem(eqx.Module):
@@ -66,14 +98,15 @@ class Problem(eqx.Module):
         ibl: the environment's split-sum tables (``model.ibl == "split_sum"``), the pixels'
             `pbrfit.lighting.pixel_ibl.PixelIBL` (``"per_pixel"``, one row per pixel), or None.
         model, loss: static configuration.
-        grid: (2,) int32, the (H, W) of the map the first H W texels form (flat t = i W + j),
-            where each row's four taps are the corners of a cell of it in
+        grid: the map the first H W texels form (`TexelGrid`, made by `texel_grid`), where each
+            row's four taps are the corners of a cell of it in
             `pbrfit.fitting.observations.CELL_CORNERS` order (a `texel_layout`'s): the texels then
             pass values to and from the rows by cells (`sample_texels`, `scatter_texels`); or None.
-        stencil: static; the structured solver holds the Gauss-Newton matrix by stencil
-            (`pbrfit.fitting.stencil`), which needs a grid, every pixel's taps in one cell
-            (`pbrfit.fitting.stencil.cells_fit`) and the prior's pairs grid neighbours; else its
-            products go through the pixels.
+        stencil: where the structured solver holds the Gauss-Newton matrix by stencil
+            (`pbrfit.fitting.stencil`), the problem's `pbrfit.fitting.stencil.Stencil`
+            (`pbrfit.fitting.stencil.with_stencil`), which needs a grid, every pixel's taps in
+            one cell (`pbrfit.fitting.stencil.cells_fit`) and the prior's pairs grid neighbours;
+            else None, and its products go through the pixels.
     """
 
     obs: Observations
@@ -87,8 +120,8 @@ class Problem(eqx.Module):
     ibl: object = None
     model: Model = eqx.field(static=True, default=Model())
     loss: str = eqx.field(static=True, default="l2")
-    grid: Optional[Int[Array, "2"]] = None
-    stencil: bool = eqx.field(static=True, default=False)
+    grid: Optional[TexelGrid] = None
+    stencil: object = None
 
     @property
     def num_texels(self) -> int:
@@ -185,24 +218,13 @@ def _value_and_jacfwd(f, x):
     return value, jac
 
 
-def cell_corners(problem: Problem, sign: int = 1) -> Int[Array, "T 4"]:
-    """For each texel t of ``problem.grid``: the texels at the corners of the cell that starts at
-    t (``sign`` 1), or the cells whose corners they are, corner a of cell t - o_a (``sign`` -1),
-    wrapped around the map. A texel past H W (a coarser level's padding) is its own everywhere."""
-    h, w = problem.grid[0], problem.grid[1]
-    t = jnp.arange(problem.num_texels, dtype=problem.grid.dtype)[:, None]
-    di, dj = (sign * jnp.asarray([o[n] for o in CELL_CORNERS], t.dtype) for n in (0, 1))
-    corners = jnp.mod(t // w + di, h) * w + jnp.mod(t % w + dj, w)
-    return jnp.where(t < h * w, corners, t)
-
-
 def sample_texels(x: Float[Array, "T K"], problem: Problem) -> Float[Array, "P K"]:
     """Bilinear samples m_p = Σ_k w_pk x_(t_pk). With a grid, by cells: each cell's four texel
     values side by side (T, 4 K), then one row of them per pixel row, from its first texel (a
     gather of P wide rows, not of 4 P narrow ones: a third of the time on a CPU)."""
     if problem.grid is None:
         return jnp.einsum("pk,pkc->pc", problem.weight, x[problem.index], precision=lax.Precision.HIGHEST)
-    cells = x[cell_corners(problem)].reshape(problem.num_texels, -1)
+    cells = x[problem.grid.corners].reshape(problem.num_texels, -1)
     rows = cells[problem.index[:, 0]].reshape(problem.index.shape + x.shape[1:])
     return jnp.sum(problem.weight[..., None] * rows, axis=1)
 
@@ -312,7 +334,7 @@ def scatter_texels(values, problem: Problem):
         return jax.ops.segment_sum(flat, problem.index.reshape(-1), num_segments=t)
     cells = jax.ops.segment_sum(values.reshape(values.shape[0], -1), problem.index[:, 0], num_segments=t)
     cells = cells.reshape((t,) + values.shape[1:])
-    of = cell_corners(problem, -1)
+    of = problem.grid.corner_of
     return sum(cells[of[:, a], a] for a in range(len(CELL_CORNERS)))
 
 

@@ -32,8 +32,8 @@ from .runner import Compiler, Runner, announce, jitted_normal_blocks, problem_ke
 from .stages.pipeline import STAGES, StageState, run_stages
 from .stages.selection import SELECTABLE
 from .sharding import pixel_mesh, shard_problem
-from .objective import Problem
-from .stencil import cells_fit
+from .objective import Problem, texel_grid
+from .stencil import with_stencil
 from ..physics.textures import resample_map, sample_bilinear
 from ..physics.model import Model
 from ..transfer import to_device
@@ -188,9 +188,10 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
                          and any(w > 0 for w in continuation) and steps - head >= RELEASED_STEPS)
             prior_on = maps_level and (options.smooth > 0 or annealing)
             pairs, pw = _neighbour_weights(shape, seen, e_final, prior_on)
-            problem = Problem(obs, layout.index, layout.weight, to_device(free), to_device(pairs), to_device(pw),
-                              to_device(options.smooth, np.float32), to_device(options.loss_scale, np.float32),
-                              inputs.ibl, inputs.model, options.loss, **_on_grid(layout, obs.samples))
+            problem = with_stencil(Problem(
+                obs, layout.index, layout.weight, to_device(free), to_device(pairs), to_device(pw),
+                to_device(options.smooth, np.float32), to_device(options.loss_scale, np.float32), inputs.ibl,
+                inputs.model, options.loss, texel_grid(shape, t_final)))
             if mesh is not None:
                 problem = shard_problem(problem, mesh)
             early = problem  # the start, the continuation's steps and the search
@@ -204,11 +205,10 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
                 centre_seen[:t] = coverage_counts(lay).reshape(-1) > 0
                 c_pairs, c_pw = _neighbour_weights(shape, centre_seen, e_final, prior_on)
                 centre_free = (centre_seen[:, None] * channels[None, :]).astype(np.float32)
-                early = dataclasses.replace(problem, obs=inputs.centres, index=lay.index, weight=lay.weight,
-                                            free=to_device(centre_free),
-                                            pairs=to_device(c_pairs), pair_weight=to_device(c_pw),
-                                            ibl=inputs.centre_ibl if per_row(inputs.ibl) else inputs.ibl,
-                                            **_on_grid(lay, inputs.centres.samples))
+                early = with_stencil(dataclasses.replace(
+                    problem, obs=inputs.centres, index=lay.index, weight=lay.weight, free=to_device(centre_free),
+                    pairs=to_device(c_pairs), pair_weight=to_device(c_pw),
+                    ibl=inputs.centre_ibl if per_row(inputs.ibl) else inputs.ibl))
                 if mesh is not None:
                     early = shard_problem(early, mesh)
             num_free = int(np.sum(free))
@@ -315,14 +315,6 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
     if footprint is not None:
         result.report["footprint"] = footprint
     return result, np.asarray(xs, np.float32)[:t_final]
-
-
-def _on_grid(layout, samples: int) -> dict:
-    """A `Problem`'s ``grid`` and ``stencil`` for ``layout`` (`samples` rows a pixel): the (H, W)
-    of its map, and whether each pixel's taps lie in one cell of it (`cells_fit`: always at pixel
-    centres), so that the structured solver holds its normal matrix by stencil."""
-    shape = tuple(int(n) for n in layout.shape)
-    return dict(grid=to_device(np.asarray(shape, np.int32)), stencil=cells_fit(layout.index, samples, shape))
 
 
 def _neighbour_weights(shape, seen, size: int, on: bool):

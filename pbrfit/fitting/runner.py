@@ -180,7 +180,7 @@ def problem_key(problem: Problem, pixels: Optional[int] = None) -> tuple:
     that of `problem` over so many pixels (`pbrfit.fitting.sharding.take_pixels`)."""
     rows = problem.index.shape[0] if pixels is None else pixels * problem.samples
     return (problem.obs.samples, (rows,) + tuple(problem.index.shape[1:]), tuple(problem.free.shape),
-            tuple(problem.pairs.shape), problem.grid is not None, problem.stencil)
+            tuple(problem.pairs.shape), problem.grid is not None, problem.stencil is not None)
 
 
 def search_inputs(shape, problem: Problem, rounds: int, blend: bool) -> tuple:

@@ -58,6 +58,7 @@ from jaxtyping import Array, Float, Int
 
 from .observations import PIXEL_FIELDS, Observations, TexelLayout
 from .objective import Problem
+from .stencil import with_stencil
 from ..lighting.pixel_ibl import per_row
 
 __all__ = ["PIXEL_AXIS", "PAD_NORMAL", "PAD_VIEW", "PAD_LIGHT", "padded_size", "pad_observations", "pad_pixel_rows",
@@ -151,6 +152,12 @@ def _put(tree, sharding: NamedSharding):
     return jax.tree_util.tree_map(lambda a: jax.device_put(a, sharding) if eqx.is_array(a) else a, tree)
 
 
+def _restenciled(problem: Problem, changed: Problem) -> Problem:
+    """``changed`` (``problem`` with other pixels) with its own stencil where ``problem`` has one:
+    the stencil's per-pixel tables follow the pixels (`pbrfit.fitting.stencil.with_stencil`)."""
+    return changed if problem.stencil is None else with_stencil(changed)
+
+
 def shard_problem(problem: Problem, mesh: Mesh) -> Problem:
     """`problem` with its pixels split over `mesh` and everything else replicated on it.
 
@@ -179,7 +186,7 @@ def shard_problem(problem: Problem, mesh: Mesh) -> Problem:
     for field in dataclasses.fields(problem):
         if field.name not in changes and not field.metadata.get("static", False):
             changes[field.name] = _put(getattr(problem, field.name), whole)
-    return dataclasses.replace(problem, **changes)
+    return _restenciled(problem, dataclasses.replace(problem, **changes))
 
 
 def mesh_size(problem: Problem) -> int:
@@ -211,4 +218,4 @@ def take_pixels(problem: Problem, pixels: Int[np.ndarray, " N"], size: int) -> P
     if per_row(problem.ibl):
         table = _append(np.asarray(problem.ibl.table)[rows], extra, 0.0)
         changes["ibl"] = dataclasses.replace(problem.ibl, table=place(problem.ibl.table, table))
-    return dataclasses.replace(problem, **changes)
+    return _restenciled(problem, dataclasses.replace(problem, **changes))

@@ -20,17 +20,20 @@ their K × K products, with no gather, product and scatter per pixel row as
 `pbrfit.fitting.normal_matrix.gn_product` has (on the peer scene, 4096 texels read by 60k
 pixels, 0.5 ms against 3.3 ms on a CPU).
 
-Offsets wrap around the map (the "repeat" sampler reads it so; clamped taps never wrap), and all
-of it is modular arithmetic on the map's (H, W), which the problem carries as an array
-(`pbrfit.fitting.objective.Problem.grid`): one compiled program serves every level of a fit. On a
-map narrower than the stencil several offsets reach one texel; each pair of taps is kept at one of
-them, and the product is the same. Whether every pixel's taps fit a cell is checked on the host
-when the problem is made (`cells_fit`); where one does not (a pixel wider than a texel), the
-problem has no grid and the solver's products go through the pixels.
+Offsets wrap around the map (the "repeat" sampler reads it so; clamped taps never wrap). Where
+each texel's neighbours and each pixel's cell and corner weights are (`Stencil`) is worked out on
+the host when the problem is made (`with_stencil`) and travels with it as arrays
+(``Problem.stencil``), so one compiled program serves every level of a fit, and the programs hold
+no copy of that index arithmetic (it was 9 to 15 kernels in each of the solver's, the grid
+start's and the uniform check's programs). On a map narrower than the stencil several offsets
+reach one texel; each pair of taps is kept at one of them, and the product is the same. Where a
+pixel's taps do not fit a cell (`cells_fit`: a pixel wider than a texel), the problem has no
+stencil and the solver's products go through the pixels.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Optional
 
 import equinox as eqx
@@ -42,8 +45,9 @@ from jaxtyping import Array, Float, Int
 
 from .normal_matrix import block_gram, gauss_newton_factors, gn_product, normal_blocks
 from .objective import Problem, by_pixel, prior_degree
+from ..transfer import to_device
 
-__all__ = ["Stencil", "cell_side", "offsets", "cells_fit", "stencil", "stencil_blocks", "stencil_product", "channel_blocks",
+__all__ = ["Stencil", "cell_side", "offsets", "cells_fit", "with_stencil", "stencil_blocks", "stencil_product", "channel_blocks",
            "channel_product", "gauss_newton_operator"]
 
 #: A grid step beyond every stencil (its cell cannot hold the pixel).
@@ -77,21 +81,29 @@ def _steps(d, n, side: int, xp=jnp):
     return xp.where(d <= r, d, xp.where(d >= n - r, d - n, _FAR))
 
 
+def _tap_steps(index, samples: int, shape: tuple[int, int]):
+    """Each pixel's taps (``index`` (R, 4), `samples` rows a pixel, a host array) as grid steps
+    from its first tap along rows and along columns, each (P, 4 S) (`_steps`, cells of side
+    `cell_side`)."""
+    h, w = shape
+    side = cell_side(samples)
+    index = np.asarray(index, np.int32).reshape(-1, 4 * samples)
+    row, col = index // w, index % w
+    return _steps(row - row[:, :1], h, side, np), _steps(col - col[:, :1], w, side, np)
+
+
 def cells_fit(index, samples: int, shape: tuple[int, int]) -> bool:
     """Whether the taps of every pixel (``index`` (R, 4), `samples` rows a pixel, host arrays) lie
     in one cell of side `cell_side` of the ``shape`` map (wrapped), as `stencil_blocks` needs."""
-    h, w = shape
-    side = cell_side(samples)
-    index = np.asarray(index).reshape(-1, 4 * samples)
-    for coord, n in ((index // w, h), (index % w, w)):
-        steps = _steps(coord - coord[:, :1], n, side, np)
-        if np.any(steps.max(axis=1) - steps.min(axis=1) > side - 1):
-            return False
-    return True
+    return _fit(*_tap_steps(index, samples, shape), cell_side(samples))
+
+
+def _fit(sr, sc, side: int) -> bool:
+    return all(not np.any(np.max(st, axis=1) - np.min(st, axis=1) > side - 1) for st in (sr, sc))
 
 
 class Stencil(eqx.Module):
-    """Where a problem's texels and pixels sit on its map (`stencil`): each texel's neighbour at
+    """Where a problem's texels and pixels sit on its map (`with_stencil`): each texel's neighbour at
     every offset of `offsets` (T, N), N = (2 side - 1)²; each pixel's cell, the texel of its first corner (P,);
     the bilinear weights of each sample's taps summed per corner of the cell (P, S, side²); and the
     offset of each prior pair's second texel from its first, and back (E, 2)."""
@@ -111,35 +123,52 @@ class Stencil(eqx.Module):
         return self.neighbours.shape[1] // 2
 
 
-def stencil(problem: Problem) -> Stencil:
-    """The `Stencil` of ``problem`` on its ``grid`` (each pixel's taps in one cell: `cells_fit`).
-    A pixel's cell starts at the smallest row and column among its taps (wrapped). A texel past
-    H W (a coarser level's padding) is its own neighbour at every offset: no pixel reads it, and
-    its blocks are zero."""
-    h, w = problem.grid[0], problem.grid[1]
-    side = cell_side(problem.samples)
-    t = jnp.arange(problem.num_texels, dtype=problem.grid.dtype)
-    di, dj = (jnp.asarray([o[n] for o in offsets(side)], t.dtype) for n in (0, 1))
-    neighbours = jnp.mod(t[:, None] // w + di, h) * w + jnp.mod(t[:, None] % w + dj, w)
-    neighbours = jnp.where(t[:, None] < h * w, neighbours, t[:, None])
-    p, samples = problem.num_pixels, problem.samples
-    index = problem.index.reshape(p, 4 * samples)
-    row, col = index // w, index % w
-    sr, sc = _steps(row - row[:, :1], h, side), _steps(col - col[:, :1], w, side)
-    low_r, low_c = jnp.min(sr, axis=1, keepdims=True), jnp.min(sc, axis=1, keepdims=True)
-    cell = jnp.mod(row[:, 0] + low_r[:, 0], h) * w + jnp.mod(col[:, 0] + low_c[:, 0], w)
-    corner = side * (sr - low_r) + (sc - low_c)
-    weight = problem.weight.reshape(p, 4 * samples, 1)
-    share = weight * (corner[..., None] == jnp.arange(side * side)).astype(weight.dtype)
-    a, b = problem.pairs[:, 0], problem.pairs[:, 1]
-    pi, pj = _steps(b // w - a // w, h, side), _steps(b % w - a % w, w, side)
-    pair_offsets = jnp.stack([_slot(pi, pj, side), _slot(-pi, -pj, side)], axis=1)
-    return Stencil(neighbours, cell, jnp.sum(share.reshape(p, samples, 4, -1), axis=2), pair_offsets)
+def with_stencil(problem: Problem) -> Problem:
+    """``problem`` with its `Stencil` (``Problem.stencil``) where it has a ``grid`` and every
+    pixel's taps lie in one cell of it (`cells_fit`), else with none: its products then go through
+    the pixels. Made on the host from the problem's grid, taps and prior pairs, so a problem whose
+    pixels or pairs change gets it again (`pbrfit.fitting.sharding`). A pixel's cell starts at the
+    smallest row and column among its taps (wrapped). A texel past H W (a coarser level's
+    padding) is its own neighbour at every offset: no pixel reads it, and its blocks are zero.
+    The per-pixel tables are placed as the problem's pixels are, the rest as its texels."""
+    if problem.grid is None:
+        return dataclasses.replace(problem, stencil=None)
+    h, w = (int(n) for n in np.asarray(problem.grid.shape))
+    samples = problem.samples
+    side = cell_side(samples)
+    sr, sc = _tap_steps(problem.index, samples, (h, w))
+    if not _fit(sr, sc, side):
+        return dataclasses.replace(problem, stencil=None)
+    t = np.arange(problem.num_texels, dtype=np.int32)[:, None]
+    di, dj = (np.asarray([o[n] for o in offsets(side)], np.int32) for n in (0, 1))
+    neighbours = np.where(t < h * w, np.mod(t // w + di, h) * w + np.mod(t % w + dj, w), t)
+    p = problem.num_pixels
+    first = np.asarray(problem.index, np.int32).reshape(p, 4 * samples)[:, 0]
+    low_r, low_c = np.min(sr, axis=1), np.min(sc, axis=1)
+    cell = np.mod(first // w + low_r, h) * w + np.mod(first % w + low_c, w)
+    corner = side * (sr - low_r[:, None]) + (sc - low_c[:, None])  # (P, 4 S)
+    # each sample's tap weights summed per corner of the cell: one bincount over (pixel, sample, corner)
+    slot = (np.arange(p * samples, dtype=np.int64)[:, None] * side * side
+            + corner.reshape(p * samples, 4)).reshape(-1)
+    weight = np.asarray(problem.weight)
+    share = np.bincount(slot, weight.reshape(-1), p * samples * side * side).astype(weight.dtype)
+    pairs = np.asarray(problem.pairs, np.int32)
+    a, b = pairs[:, 0], pairs[:, 1]
+    pi, pj = _steps(b // w - a // w, h, side, np), _steps(b % w - a % w, w, side, np)
+    pair_offsets = np.stack([_slot(pi, pj, side), _slot(-pi, -pj, side)], axis=1)
+
+    def place(host, like):
+        return jax.device_put(host, like.sharding) if isinstance(like, jax.Array) else to_device(host)
+
+    st = Stencil(place(neighbours, problem.free), place(cell.astype(np.int32), problem.index),
+                 place(share.reshape(p, samples, side * side), problem.index),
+                 place(pair_offsets.astype(np.int32), problem.pairs))
+    return dataclasses.replace(problem, stencil=st)
 
 
 def stencil_blocks(jac: Float[Array, "R 3 K"], problem: Problem, st: Stencil) -> Float[Array, "T N K K"]:
     """JᵀJ + smooth L by stencil (module docstring): block n of texel t is the K × K block between
-    t and ``st.neighbours[t, n]``, ``st`` the problem's `stencil`. The prior adds
+    t and ``st.neighbours[t, n]``, ``st`` the problem's `Stencil`. The prior adds
     smooth w (e_a - e_b)(e_a - e_b)ᵀ ⊗ diag(freed channels) for each pair (a, b) of weight w."""
     t = problem.num_texels
     pairs = _corner_pairs(st.side)
@@ -221,7 +250,7 @@ def stencil_product(blocks: Float[Array, "T N K K"], neighbours: Int[Array, "T N
 def gauss_newton_operator(jac: Float[Array, "R 3 K"], problem: Problem, st: Optional[Stencil]):
     """JᵀJ + smooth L at the per-row Jacobians ``jac``, as the solvers use it: (its diagonal
     blocks (T, K, K), the product v ↦ (JᵀJ + smooth L) v, and its blocks by stencil (T, N, K, K)).
-    By stencil where ``st`` (the problem's `stencil`) is given, else through the pixels
+    By stencil where ``st`` (the problem's `Stencil`) is given, else through the pixels
     (`pbrfit.fitting.normal_matrix.gn_product`; no stencil blocks then, None)."""
     if st is None:
         gp = gauss_newton_factors(jac, problem)

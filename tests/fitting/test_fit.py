@@ -34,12 +34,12 @@ from pbrfit.physics.material import Material
 from pbrfit.physics.model import Model
 from pbrfit.fitting.observations import (PIXEL_FIELDS, coverage_counts, neighbour_pairs, observations_from_views,
                                         texel_layout)
-from pbrfit.fitting.stencil import cells_fit
+from pbrfit.fitting.stencil import with_stencil
 from pbrfit.fitting.parameters import LOWER, UPPER, from_sine, to_sine
 from pbrfit.fitting.stages.repair import REPAIR_PROGRESS, SEARCH_COMPILE_COST, moving_pixels, search_problem
 from pbrfit.fitting.sharding import take_pixels
 from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view
-from pbrfit.fitting.objective import Problem, objective
+from pbrfit.fitting.objective import Problem, objective, texel_grid
 from pbrfit.fitting.solvers.structured import solve
 
 RES = 24  # pixels per view side
@@ -571,10 +571,10 @@ def _texel_problem(truth, smooth=0.0, on_grid=False):
     t = shape[0] * shape[1]
     pairs = neighbour_pairs(shape)
     free = np.ones((t, 5), np.float32)
-    grid = dict(grid=jnp.asarray(shape, jnp.int32), stencil=cells_fit(layout.index, 1, shape)) if on_grid else {}
-    return Problem(obs, layout.index, layout.weight, jnp.asarray(free), jnp.asarray(pairs),
-                   jnp.ones(len(pairs), jnp.float32), jnp.asarray(smooth, jnp.float32), jnp.asarray(0.05, jnp.float32),
-                   None, Model(), "l2", **grid)
+    problem = Problem(obs, layout.index, layout.weight, jnp.asarray(free), jnp.asarray(pairs),
+                      jnp.ones(len(pairs), jnp.float32), jnp.asarray(smooth, jnp.float32), jnp.asarray(0.05, jnp.float32),
+                      None, Model(), "l2", texel_grid(shape, t) if on_grid else None)
+    return with_stencil(problem)
 
 
 def _stack(material):
@@ -597,7 +597,7 @@ def test_grid_start_solves_base_colour_jointly_at_colour_edges(on_grid):
     truth = _checker()
     x_true = np.asarray(_stack(truth))
     problem = _texel_problem(truth, on_grid=on_grid)
-    assert problem.stencil == on_grid
+    assert (problem.stencil is not None) == on_grid
     x = np.asarray(grid_initialise(jnp.asarray(x_true), problem))
     assert np.abs(x[:, :3] - x_true[:, :3]).max() < 0.02, np.abs(x[:, :3] - x_true[:, :3]).max()
     assert np.abs(x[:, 4] - x_true[:, 4]).max() < 0.09 and np.all(x[:, 3] == 0.0)
@@ -628,7 +628,7 @@ def test_joint_base_colour_solve_matches_a_dense_solve(monkeypatch, on_grid):
     out = np.asarray(_solve_base_joint(l0, a, y, problem, 3))
     assert np.all(np.isfinite(out)) and np.all(out[:, 2] == 0.0)
     if on_grid:
-        through_pixels = dataclasses.replace(problem, stencil=False)
+        through_pixels = dataclasses.replace(problem, stencil=None)
         for n in (0, 1, 3):
             np.testing.assert_allclose(np.asarray(_solve_base_joint(l0, a, y, problem, n)),
                                        np.asarray(_solve_base_joint(l0, a, y, through_pixels, n)), rtol=0, atol=2e-6)
@@ -778,8 +778,7 @@ def test_coordinate_search_over_the_pixels_of_the_moving_texels_alone(on_grid, s
         rows["uv"] = rows["uv"] + np.tile([[-0.004, 0.003], [0.004, -0.003]], (problem.obs.num_rows, 1)).astype(np.float32)
         obs = dataclasses.replace(problem.obs, samples=samples, **{k: jnp.asarray(v) for k, v in rows.items()})
         layout = texel_layout(obs, truth.resolution)
-        problem = dataclasses.replace(problem, obs=obs, index=layout.index, weight=layout.weight,
-                                      stencil=cells_fit(layout.index, samples, truth.resolution))
+        problem = with_stencil(dataclasses.replace(problem, obs=obs, index=layout.index, weight=layout.weight))
     moving = np.zeros(problem.num_texels, bool)
     moving[[9, 10, 17, 18, 45, 46, 53, 54]] = True
     region = dataclasses.replace(problem, free=problem.free * jnp.asarray(moving[:, None], jnp.float32))

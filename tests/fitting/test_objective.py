@@ -9,7 +9,7 @@ import pytest
 
 from pbrfit.physics.material import Material
 from pbrfit.physics.textures import sample_bilinear
-from pbrfit.fitting.objective import (linearize, pixel_residuals, sample_material, sample_texels,
+from pbrfit.fitting.objective import (texel_grid, linearize, pixel_residuals, sample_material, sample_texels,
                                       scatter_texels)
 from pbrfit.fitting.observations import CELL_CORNERS, texel_layout
 from pbrfit.fitting.parameters import LOWER, UPPER
@@ -34,7 +34,7 @@ def test_rows_read_and_write_texels_by_cells(shape, wrap, texels):
     np.testing.assert_array_equal(index, corners)
     t = texels or h * w
     plain = dataclasses.replace(problem, obs=obs, index=layout.index, weight=layout.weight, free=jnp.ones((t, 5)))
-    cells = dataclasses.replace(plain, grid=jnp.asarray(shape, jnp.int32))
+    cells = dataclasses.replace(plain, grid=texel_grid(shape, t))
     rng = np.random.default_rng(4)
     x = jnp.asarray(rng.uniform(size=(t, 5)), jnp.float32)
     values = jnp.asarray(rng.normal(size=(obs.num_rows, 4, 3)), jnp.float32)

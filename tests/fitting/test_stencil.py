@@ -13,14 +13,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.sharding import Mesh
 
 from pbrfit.fitting.initialisation import grid_initialise
 from pbrfit.fitting.normal_matrix import gauss_newton_factors, gn_product
-from pbrfit.fitting.objective import linearize
+from pbrfit.fitting.objective import linearize, texel_grid
 from pbrfit.fitting.observations import PIXEL_FIELDS, neighbour_pairs, texel_layout
+from pbrfit.fitting.sharding import shard_problem, take_pixels
 from pbrfit.fitting.solvers.structured import LMCarry, StructuredLM, solve
 from pbrfit.fitting.stages.selection import profile_hessian, uniform_direction
-from pbrfit.fitting.stencil import cell_side, cells_fit, stencil, stencil_blocks, stencil_product
+from pbrfit.fitting.stencil import cell_side, cells_fit, stencil_blocks, stencil_product, with_stencil
 from test_sharding import _problem, _start
 
 
@@ -40,19 +42,18 @@ def _on_map(problem, shape, wrap, samples=1, texels=None):
     layout = texel_layout(obs, shape, wrap)
     t = texels or h * w
     pairs = neighbour_pairs(shape)
-    return dataclasses.replace(problem, obs=obs, index=layout.index, weight=layout.weight,
-                               free=jnp.ones((t, 5), jnp.float32), pairs=jnp.asarray(pairs),
-                               pair_weight=jnp.asarray(np.random.default_rng(1).uniform(0.5, 1.5, len(pairs)),
-                                                       jnp.float32),
-                               smooth=jnp.asarray(0.3, jnp.float32), grid=jnp.asarray(shape, jnp.int32),
-                               stencil=True), layout
+    return with_stencil(dataclasses.replace(
+        problem, obs=obs, index=layout.index, weight=layout.weight, free=jnp.ones((t, 5), jnp.float32),
+        pairs=jnp.asarray(pairs), pair_weight=jnp.asarray(np.random.default_rng(1).uniform(0.5, 1.5, len(pairs)),
+                                                          jnp.float32),
+        smooth=jnp.asarray(0.3, jnp.float32), grid=texel_grid(shape, t))), layout
 
 
 @jax.jit
 def _products(x, v, problem):
     """By stencil and through the pixels, and the stencil's blocks and neighbours."""
     _, jac, _ = linearize(x, problem)
-    st = stencil(problem)
+    st = problem.stencil
     blocks = stencil_blocks(jac, problem, st)
     product = gn_product(gauss_newton_factors(jac, problem), v, problem)
     return stencil_product(blocks, st.neighbours, v), product, blocks, st.neighbours
@@ -88,11 +89,37 @@ def test_the_stencil_product_is_the_product_through_the_pixels(samples, shape, w
 
 
 def test_cells_fit_only_footprints_narrower_than_a_cell():
+    """... and only such a problem gets a stencil (`with_stencil`); one without a grid gets none."""
     problem, _ = _problem(pixels=300, render=False)
     assert cell_side(1) == 2 and cell_side(4) == 3
+    assert with_stencil(problem).stencil is None
     for spread, fits in ((0.2, True), (2.5, False)):  # in texels of an 8 x 8 map
         obs = _sampled(problem.obs, spread / 8)
-        assert cells_fit(texel_layout(obs, (8, 8)).index, 4, (8, 8)) == fits
+        layout = texel_layout(obs, (8, 8))
+        assert cells_fit(layout.index, 4, (8, 8)) == fits
+        on_map = dataclasses.replace(problem, obs=obs, index=layout.index, weight=layout.weight,
+                                     free=jnp.ones((64, 5), jnp.float32), grid=texel_grid((8, 8), 64))
+        assert (with_stencil(on_map).stencil is not None) == fits
+
+
+@pytest.mark.parametrize("samples", [1, 4])
+def test_the_stencil_follows_the_pixels_a_problem_keeps(samples):
+    """A problem over some of its pixels, padded with inert ones (`take_pixels`), and one split
+    over the devices (`shard_problem`, padded to their count) get stencils of their own pixels:
+    their products by stencil are still those through their pixels (a stencil kept from the whole
+    problem would sum the wrong pixels into each cell)."""
+    problem, _ = _problem(pixels=300, tonemap="aces_hill", color_space="srgb", render=False)
+    problem, _ = _on_map(problem, (5, 6), "repeat", samples)
+    pixels = np.arange(1, problem.num_pixels, 3)
+    mesh = Mesh(np.asarray(jax.devices()), ("pixels",))
+    rng = np.random.default_rng(5)
+    t = problem.num_texels
+    x = jnp.asarray(rng.uniform(0.1, 0.9, (t, 5)), jnp.float32)
+    v = jnp.asarray(rng.normal(size=(t, 5)), jnp.float32)
+    for part in (take_pixels(problem, pixels, len(pixels) + 7), shard_problem(take_pixels(problem, pixels, len(pixels)), mesh)):
+        assert part.stencil is not None and part.stencil.cell.shape[0] == part.num_pixels
+        got, want, _, _ = (np.asarray(a, np.float64) for a in _products(x, v, part))
+        np.testing.assert_allclose(got, want, atol=2e-6 * np.abs(want).max())
 
 
 def test_the_solver_by_stencil_takes_the_steps_through_the_pixels():
@@ -101,7 +128,7 @@ def test_the_solver_by_stencil_takes_the_steps_through_the_pixels():
     float32). (In float32 the solutions agree to its rounding, but at E's float32 floor whether a
     step lowers E is rounding too: with rtol 1e-7, 10 steps against 5.)"""
     problem, _ = _problem(smooth=1e-3)
-    on_grid = dataclasses.replace(problem, grid=jnp.asarray((4, 4), jnp.int32), stencil=True)
+    on_grid = with_stencil(dataclasses.replace(problem, grid=texel_grid((4, 4), problem.num_texels)))
     x0 = grid_initialise(_start(problem), problem)
     with jax.enable_x64(True):
         x64 = x0.astype(jnp.float64)
@@ -128,7 +155,7 @@ def test_the_uniform_checks_profile_curvature_is_the_same_by_stencil():
     held = dataclasses.replace(problem, free=jnp.asarray(free))
     directions = jnp.asarray(np.stack([uniform_direction(np.ones(t, bool), c, 5) for c in (3, 4)]))
     got = [np.asarray(a, np.float64) for a in profile_hessian(r, jac, x, held, directions)]
-    want = [np.asarray(a, np.float64) for a in profile_hessian(r, jac, x, dataclasses.replace(held, stencil=False),
+    want = [np.asarray(a, np.float64) for a in profile_hessian(r, jac, x, dataclasses.replace(held, stencil=None),
                                                                directions)]
     assert np.all(np.linalg.eigvalsh(want[0]) > 0)
     for a, b in zip(got, want):

@@ -57,7 +57,7 @@ from jaxtyping import Array, Float
 
 from ..defaults import ATOL, CG_RTOL, RTOL
 from ..normal_matrix import gradient, spd_block_inverse
-from ..stencil import gauss_newton_operator, stencil, stencil_product
+from ..stencil import gauss_newton_operator, stencil_product
 from ..objective import Problem, linearize, residuals, rounding_floor
 from ..parameters import lower, upper
 
@@ -167,9 +167,7 @@ class _StructuredLMState(eqx.Module):
     """The iterate's residuals r (P, 3), per-row Jacobians (R, 3, K) and E, the damping λ and
     Nielsen's factor ν, the count k of calls to `step` (step 0 only linearises), whether the last
     step ended the solve, the steps accepted, the CG iterations, the step budget, E after each
-    step (`HISTORY`), whether the next call to `step` only linearises (the first of a run), and
-    the problem's `pbrfit.fitting.stencil.Stencil` where the solver holds the Gauss-Newton matrix
-    by stencil (``Problem.stencil``; else None)."""
+    step (`HISTORY`), and whether the next call to `step` only linearises (the first of a run)."""
 
     r: Array
     jac: Array
@@ -183,7 +181,6 @@ class _StructuredLMState(eqx.Module):
     budget: Array
     history: Array
     fresh: Array
-    stencil: Any = None
 
 
 class StructuredLM(optx.AbstractLeastSquaresSolver):
@@ -233,8 +230,7 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
             loss=jnp.asarray(jnp.inf, y.dtype), lam=jnp.asarray(carry.lam, y.dtype), nu=jnp.asarray(carry.nu, y.dtype),
             k=jnp.asarray(carry.k, jnp.int32), done=jnp.asarray(False),
             accepted=jnp.asarray(carry.accepted, jnp.int32), cg=jnp.asarray(carry.cg, jnp.int32), budget=budget,
-            history=jnp.asarray(carry.history, y.dtype), fresh=jnp.asarray(True),
-            stencil=stencil(args) if args.stencil else None)
+            history=jnp.asarray(carry.history, y.dtype), fresh=jnp.asarray(True))
 
     def step(self, fn, y, args: Problem, options, state: _StructuredLMState, tags):
         del fn, tags
@@ -247,7 +243,7 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         # where an earlier run of it stopped (k > 0: then it counts no call and keeps no E)
         first = state.fresh
         again = first & (state.k > 0)
-        st = state.stencil
+        st = args.stencil
 
         def take_step():
             # through the pixels, or by stencil: JᵀJ + smooth L assembled once for the step's products
@@ -311,7 +307,7 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
             r=pick(r_new, r), jac=pick(jac_new, jac), loss=pick(loss_new, loss), lam=lam_new, nu=nu_new,
             k=state.k + (~again).astype(state.k.dtype), done=done,
             accepted=state.accepted + (accept & ~first).astype(jnp.int32), cg=state.cg + iters, budget=state.budget,
-            history=history, fresh=jnp.asarray(False), stencil=st)
+            history=history, fresh=jnp.asarray(False))
         return pick(x_new, x), new_state, None
 
     def terminate(self, fn, y, args, options, state: _StructuredLMState, tags):
