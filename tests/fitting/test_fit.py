@@ -391,8 +391,12 @@ def test_uncertainty_matches_the_dense_window_inverse():
     window's matrix, and the two agree to float32 round-off and the window's 1e-6 ridge.)"""
     truth = _checker()
     obs = _noisy_checker_obs(truth, seed=3)
+    blocks = pbrfit.fitting.runner.jitted_normal_blocks
+    blocks.clear_cache()
     res = fit_observations(obs, resolution=8, fixed={"metallic": 0}, uniform_check=False, max_steps=20)
     assert res.report["fitted"] == ["base_r", "base_g", "base_b", "roughness"] and np.all(res.coverage > 0)
+    # the sandwich's meat goes through the Jacobians' own program (placed as they are): one compile
+    assert blocks._cache_size() == 1
     problem = dataclasses.replace(_texel_problem(truth), obs=obs)
     x = np.asarray(_stack(res.material))
     r = np.asarray(jax.jit(pbrfit.fitting.objective.pixel_residuals)(jnp.asarray(x), problem), np.float64)
