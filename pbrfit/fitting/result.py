@@ -108,14 +108,14 @@ def misfit_ratios(problem, x, r, jac, sigma2: float, texel_channels, seen, num_p
     texel whose pixels the model does not fit as well as the rest (light it cannot represent, a
     wrong basin). The meat's rows, r_pᵀ J_p, go into the Jacobians' first residual channel
     (the others 0), placed as the Jacobians are, so that `normal_blocks`' program for the
-    Jacobians serves them (a host array is an argument of another placement, and compiled it
-    again)."""
+    Jacobians serves them (jit compiles again for an argument committed to a device where the
+    Jacobians are not, and the other way round, and keys a host array apart from a device one)."""
     jac_np = np.asarray(jac, np.float32)
     rows = np.repeat(np.asarray(r, np.float32), problem.samples, axis=0)[: jac_np.shape[0]]
     g = np.zeros_like(jac_np)
     g[:, 0, :] = np.einsum("rc,rck->rk", rows, jac_np)
     if isinstance(jac, jax.Array):
-        g = jax.device_put(g, jac.sharding)
+        g = jax.device_put(g, jac.sharding) if jac.committed else jax.device_put(g)
     meat = np.asarray(jitted_normal_blocks(g, problem))
     blocks = np.asarray(jitted_normal_blocks(jac, problem))
     n = 3 * int(num_pixels)

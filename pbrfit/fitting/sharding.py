@@ -7,8 +7,9 @@ blocks, the CG vectors) are small next to the per-pixel ones (P × 3 × 5 Jacobi
 millions for a real capture). So the scheme is data parallel over pixels:
 
 - every per-pixel array of a `Problem` (the `Observations` fields, the (P, 4) texel `index`
-  and `weight`, per-pixel IBL integrals) is split along its leading axis over a one-axis
-  device mesh named ``"pixels"`` (`PartitionSpec("pixels")`);
+  and `weight`, per-pixel IBL integrals, the stencil's cells and corner weights, which
+  `pbrfit.fitting.stencil.with_stencil` makes again for the padded pixels) is split along its
+  leading axis over a one-axis device mesh named ``"pixels"`` (`PartitionSpec("pixels")`);
 - everything else (free mask, smoothness pairs, scalars, split-sum tables) is replicated.
 
 Nothing in the solver changes: under `jax.jit`, XLA partitions the per-pixel work across
@@ -159,7 +160,8 @@ def _restenciled(problem: Problem, changed: Problem) -> Problem:
 
 
 def shard_problem(problem: Problem, mesh: Mesh) -> Problem:
-    """`problem` with its pixels split over `mesh` and everything else replicated on it.
+    """`problem` with its pixels split over `mesh` and everything else replicated on it (its
+    stencil made again for the padded pixels, `_restenciled`).
 
     The pixel axis is padded with inert pixels (`pad_observations`, `pad_pixel_rows`) to a
     multiple of the mesh's size along ``"pixels"``; the real pixels are the first
@@ -183,6 +185,7 @@ def shard_problem(problem: Problem, mesh: Mesh) -> Problem:
         count = padded_size(problem.ibl.num_pixels, n * obs.samples)
         table = _append(problem.ibl.table, count - problem.ibl.num_pixels, 0.0)
         changes["ibl"] = dataclasses.replace(problem.ibl, table=jax.device_put(table, rows))
+    changes["stencil"] = None  # made again below: its per-pixel tables are not copied to every device
     for field in dataclasses.fields(problem):
         if field.name not in changes and not field.metadata.get("static", False):
             changes[field.name] = _put(getattr(problem, field.name), whole)

@@ -20,6 +20,7 @@ import pbrfit.fitting.initialisation
 import pbrfit.fitting.objective
 import pbrfit.fitting.stages.repair
 import pbrfit.fitting.runner
+import pbrfit.fitting.result
 import pbrfit.fitting.stages.selection
 import pbrfit.fitting.solvers.structured
 from pbrfit.fitting.api import SOLVERS, default_resolution, fit_observations, map_rmse, schedule
@@ -425,6 +426,27 @@ def test_uncertainty_matches_the_dense_window_inverse():
     ratio = np.einsum("tci,tij,tcj->tc", d_inv, meat, d_inv) / (sigma2 * np.diagonal(d_inv, axis1=1, axis2=2))
     assert np.any(ratio > 1.05) and np.any(ratio < 1)  # under noise alone: around 1, both ways
     np.testing.assert_allclose(got[:, fitted], want * np.sqrt(np.maximum(ratio, 1.0)), rtol=1e-3)
+
+
+@pytest.mark.parametrize("committed", [False, True])
+def test_the_sandwichs_meat_shares_the_jacobians_program(committed):
+    """`misfit_ratios` passes the meat's rows to `normal_blocks` placed as the Jacobians are,
+    committed to a device or not (a stencil's arrays are; a problem without one need not be), so
+    the one program serves both calls."""
+    truth = _checker()
+    problem = _texel_problem(truth)
+    x = jnp.asarray(_stack(truth))
+    r, jac, _ = jax.jit(pbrfit.fitting.objective.linearize)(x, problem)
+    if committed:
+        jac = jax.device_put(jac, jax.devices()[0])
+    assert jac.committed == committed
+    blocks = pbrfit.fitting.runner.jitted_normal_blocks
+    blocks.clear_cache()
+    seen = np.ones(problem.num_texels, bool)
+    ratios = pbrfit.fitting.result.misfit_ratios(problem, np.asarray(x), r, jac, 1e-4, np.ones(5), seen,
+                                                 problem.num_pixels)
+    assert ratios.shape == (problem.num_texels, 5) and np.all(ratios >= 1.0)
+    assert blocks._cache_size() == 1
 
 
 def test_fixed_channels_stay_fixed():
