@@ -48,7 +48,7 @@ from ..lighting.pixel_ibl import per_row
 from ..transfer import to_device
 
 __all__ = ["Problem", "LOSSES", "robust_residual", "shading_normal", "sample_texels", "sample_material", "pixel_residuals", "residuals",
-           "objective", "linearize", "by_pixel", "to_rows", "scatter_texels", "TexelGrid", "texel_grid", "laplacian",
+           "objective", "linearize", "by_pixel", "to_rows", "scatter_texels", "TexelGrid", "texel_grid", "offset_texels", "laplacian",
            "prior_degree", "smooth_residuals"]
 
 #: Below this ratio s = r²/c² the robust weights use their series (ρ(s)/s -> 1) to stay finite.
@@ -72,17 +72,22 @@ class TexelGrid(eqx.Module):
     corner_of: Int[Array, "T 4"]
 
 
-def texel_grid(shape: tuple[int, int], num_texels: int) -> TexelGrid:
-    """The `TexelGrid` of an (H, W) map held by the first H W of ``num_texels`` texels."""
+def offset_texels(shape: tuple[int, int], num_texels: int, steps) -> Int[np.ndarray, "T N"]:
+    """(T, N) int32, for each of ``num_texels`` texels whose first H W form the (H, W) map, the
+    texel each grid step (di, dj) of ``steps`` leads to, wrapped around the map; a texel past H W
+    (a coarser level's padding) leads to itself. A host table (`texel_grid`,
+    `pbrfit.fitting.stencil.with_stencil`)."""
     h, w = (int(n) for n in shape)
     t = np.arange(num_texels, dtype=np.int64)[:, None]
+    di, dj = (np.asarray([s[n] for s in steps], np.int64) for n in (0, 1))
+    return np.where(t < h * w, np.mod(t // w + di, h) * w + np.mod(t % w + dj, w), t).astype(np.int32)
 
-    def table(sign: int) -> np.ndarray:
-        di, dj = (sign * np.asarray([o[n] for o in CELL_CORNERS]) for n in (0, 1))
-        corners = np.mod(t // w + di, h) * w + np.mod(t % w + dj, w)
-        return np.where(t < h * w, corners, t).astype(np.int32)
 
-    return TexelGrid(to_device(np.asarray((h, w), np.int32)), to_device(table(1)), to_device(table(-1)))
+def texel_grid(shape: tuple[int, int], num_texels: int) -> TexelGrid:
+    """The `TexelGrid` of an (H, W) map held by the first H W of ``num_texels`` texels."""
+    corners = offset_texels(shape, num_texels, CELL_CORNERS)
+    corner_of = offset_texels(shape, num_texels, [(-di, -dj) for di, dj in CELL_CORNERS])
+    return TexelGrid(to_device(np.asarray(shape, np.int32)), to_device(corners), to_device(corner_of))
 
 
 class Problem(eqx.Module):

@@ -44,7 +44,7 @@ from jax import lax
 from jaxtyping import Array, Float, Int
 
 from .normal_matrix import block_gram, gauss_newton_factors, gn_product, normal_blocks
-from .objective import Problem, by_pixel, prior_degree
+from .objective import Problem, by_pixel, offset_texels, prior_degree
 from ..transfer import to_device
 
 __all__ = ["Stencil", "cell_side", "offsets", "cells_fit", "with_stencil", "stencil_blocks", "stencil_product", "channel_blocks",
@@ -136,14 +136,13 @@ def with_stencil(problem: Problem) -> Problem:
     h, w = (int(n) for n in np.asarray(problem.grid.shape))
     samples = problem.samples
     side = cell_side(samples)
-    sr, sc = _tap_steps(problem.index, samples, (h, w))
+    index = np.asarray(problem.index, np.int32)
+    sr, sc = _tap_steps(index, samples, (h, w))
     if not _fit(sr, sc, side):
         return dataclasses.replace(problem, stencil=None)
-    t = np.arange(problem.num_texels, dtype=np.int32)[:, None]
-    di, dj = (np.asarray([o[n] for o in offsets(side)], np.int32) for n in (0, 1))
-    neighbours = np.where(t < h * w, np.mod(t // w + di, h) * w + np.mod(t % w + dj, w), t)
+    neighbours = offset_texels((h, w), problem.num_texels, offsets(side))
     p = problem.num_pixels
-    first = np.asarray(problem.index, np.int32).reshape(p, 4 * samples)[:, 0]
+    first = index.reshape(p, 4 * samples)[:, 0]
     low_r, low_c = np.min(sr, axis=1), np.min(sc, axis=1)
     cell = np.mod(first // w + low_r, h) * w + np.mod(first % w + low_c, w)
     corner = side * (sr - low_r[:, None]) + (sc - low_c[:, None])  # (P, 4 S)
