@@ -4,7 +4,8 @@ Nothing here is differentiated. For every pixel of a view, a ray through the pix
 intersected with the mesh; the hit gives the surface point, its face, its barycentric
 coordinates and from them the interpolated shading normal, uv and tangent frame. One shadow ray
 per light then says whether the light reaches the point. The result is a `GBuffer` of numpy
-arrays, cached on disk by a hash of everything it depends on.
+arrays, cached on disk by a hash of everything it depends on, and the latest ones in the process
+(`MEMO_BYTES`, read-only).
 
 Conventions pinned here (tests in ``tests/test_gbuffer.py``):
 
@@ -35,6 +36,7 @@ Rays are cast by `pbrfit.scene.raycast` (embree when installed, else numpy, refi
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import hashlib
 import os
@@ -58,6 +60,7 @@ __all__ = [
     "silhouette",
     "has_embree",
     "SHADOW_OFFSET_REL",
+    "MEMO_BYTES",
     "UV_CONVENTIONS",
 ]
 
@@ -71,6 +74,11 @@ SHADOW_OFFSET_REL = 1e-4
 UV_DEGENERATE_REL = 1e-10
 _CACHE_VERSION = "pbrfit-gbuffer/1"
 UV_CONVENTIONS = ("gltf", "trimesh")
+#: The process keeps the G-buffers it last cast or read, by their cache key, up to this many bytes
+#: in all (read-only: callers share them), so a second fit of a capture casts no ray and reads no
+#: file (the peer scene's six 128² views: 12 MB, 0.13 s of a 2 s fit).
+MEMO_BYTES = 128 << 20
+_memo: "collections.OrderedDict[str, GBuffer]" = collections.OrderedDict()
 
 
 # ------------------------------------------------------------------------------------ gbuffer
@@ -192,6 +200,20 @@ def _save_cached(path: Path, gbuffer: GBuffer) -> None:
     write_cache_file(path, lambda f: np.savez(f, **gbuffer._arrays()))
 
 
+def _remembered(key: str, gbuffer: GBuffer) -> GBuffer:
+    """``gbuffer``, its arrays made read-only and kept in `_memo` under ``key`` (the oldest
+    entries dropped past `MEMO_BYTES`; one larger than that is not kept)."""
+    for a in gbuffer._arrays().values():
+        a.flags.writeable = False
+    size = lambda g: sum(a.nbytes for a in g._arrays().values())  # noqa: E731
+    if size(gbuffer) <= MEMO_BYTES:
+        _memo[key] = gbuffer
+        total = sum(size(g) for g in _memo.values())
+        while total > MEMO_BYTES:
+            total -= size(_memo.popitem(last=False)[1])
+    return gbuffer
+
+
 # ----------------------------------------------------------------------------------- compute
 
 
@@ -269,7 +291,9 @@ def compute_gbuffer(
     ``direction`` (where the light travels), e.g. `pbrfit.physics.lights.Light`.
     cache_dir: when given, the result is read from / written to
     ``cache_dir/gbuffer-<hash>.npz``, the hash covering the mesh (vertices, faces, uv,
-    normals, tangents), the camera and the lights' kinds, positions and directions.
+    normals, tangents), the camera and the lights' kinds, positions and directions. With or
+    without it, the process keeps the latest G-buffers under that hash (`MEMO_BYTES`): the
+    arrays of a result are read-only.
     backend: "embree" (embreex via trimesh, float32 traversal), "numpy" (box-culled exact
     tests, float64, slower) or "auto" (embree when installed). Either way the hit on the reported face is recomputed in
     float64, so positions lie on the mesh to float64 rounding.
@@ -282,12 +306,17 @@ def compute_gbuffer(
     uv_v = _mesh_uv(mesh, uv_convention)
     tan_v = _mesh_tangents(mesh)
     normals_v = np.asarray(mesh.vertex_normals, dtype=np.float64)
-    path = None
-    if cache_dir is not None:
-        path = Path(cache_dir) / f"gbuffer-{_cache_key(mesh, uv_v, normals_v, tan_v, camera, lights)}.npz"
+    key = _cache_key(mesh, uv_v, normals_v, tan_v, camera, lights)
+    path = None if cache_dir is None else Path(cache_dir) / f"gbuffer-{key}.npz"
+    if key in _memo:
+        _memo.move_to_end(key)
+        if path is not None and not path.exists():
+            _save_cached(path, _memo[key])
+        return _memo[key]
+    if path is not None:
         cached = _load_cached(path)
         if cached is not None:
-            return cached
+            return _remembered(key, cached)
 
     H, W = camera.height, camera.width
     faces_v = np.asarray(mesh.faces, dtype=np.int64)
@@ -355,4 +384,4 @@ def compute_gbuffer(
     )
     if path is not None:
         _save_cached(path, gbuffer)
-    return gbuffer
+    return _remembered(key, gbuffer)

@@ -325,6 +325,8 @@ def test_embree_matches_numpy_intersector():
 
 
 def test_cache_round_trip_and_invalidation(tmp_path, monkeypatch):
+    monkeypatch.setattr(gb, "_memo", type(gb._memo)())  # the files alone (the process's memo: the
+    monkeypatch.setattr(gb, "MEMO_BYTES", 0)  # test below)
     mesh, _ = _occluded_scene()
     g1 = compute_gbuffer(mesh, SHADOW_CAM, SHADOW_LIGHTS, cache_dir=tmp_path)
     files = sorted(tmp_path.iterdir())
@@ -363,6 +365,33 @@ def test_cache_round_trip_and_invalidation(tmp_path, monkeypatch):
     g4 = compute_gbuffer(mesh, SHADOW_CAM, SHADOW_LIGHTS, cache_dir=tmp_path)
     np.testing.assert_array_equal(g4.position, g1.position)
     np.testing.assert_array_equal(np.load(files[0])["position"], g1.position)
+
+
+def test_the_process_remembers_the_latest_gbuffers(tmp_path, monkeypatch):
+    monkeypatch.setattr(gb, "_memo", type(gb._memo)())
+    mesh, _ = _occluded_scene()
+    g1 = compute_gbuffer(mesh, SHADOW_CAM, SHADOW_LIGHTS)
+    size = sum(a.nbytes for a in g1._arrays().values())
+    with monkeypatch.context() as m:
+        m.setattr(gb, "make_first_hit", lambda *a, **k: pytest.fail("ray cast despite a remembered result"))
+        assert compute_gbuffer(mesh, SHADOW_CAM, SHADOW_LIGHTS) is g1
+        # a cache folder named later still gets its file, written from the memo
+        assert compute_gbuffer(mesh, SHADOW_CAM, SHADOW_LIGHTS, cache_dir=tmp_path) is g1
+    np.testing.assert_array_equal(np.load(next(tmp_path.iterdir()))["position"], g1.position)
+    with pytest.raises(ValueError):  # shared: read-only
+        g1.position[0, 0, 0] = 1.0
+    # room for one: the next view's G-buffer takes its place, and the first is cast again
+    monkeypatch.setattr(gb, "MEMO_BYTES", size)
+    moved = Camera.from_fov(look_at((0.0, -0.01, 4.1), (0.0, 0.0, 0.0)), 0.6, 48, 48)
+    g2 = compute_gbuffer(mesh, moved, SHADOW_LIGHTS)
+    assert list(gb._memo.values()) == [g2]
+    g3 = compute_gbuffer(mesh, SHADOW_CAM, SHADOW_LIGHTS)
+    assert g3 is not g1
+    np.testing.assert_array_equal(g3.position, g1.position)
+    monkeypatch.setattr(gb, "MEMO_BYTES", size - 1)  # one larger than the bound is not kept
+    gb._memo.clear()
+    compute_gbuffer(mesh, moved, SHADOW_LIGHTS)
+    assert not gb._memo
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary file left
 
 
