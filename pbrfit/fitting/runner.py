@@ -25,7 +25,7 @@ import numpy as np
 
 from .solvers.optx import for_size, optx_solve
 from .objective import Problem, objective
-from .normal_matrix import neighbour_blocks, normal_blocks
+from .stencil import data_blocks, data_neighbour_blocks, stencil_covers
 from .solvers import structured
 from .checkpoint import call_id
 from .initialisation import classes_share_no_pixel, parity_classes
@@ -83,11 +83,19 @@ def enable_compilation_cache(folder) -> None:
     jax.config.update("jax_compilation_cache_max_size", COMPILATION_CACHE_BYTES)
 
 
-#: The per-texel blocks of JᵀJ, one jitted function for the repair, the uniform check, the
-#: preconditioner's scale and the uncertainty (one compile per problem shape).
-jitted_normal_blocks = jax.jit(normal_blocks)
-#: The blocks between neighbouring texels, for the uncertainty's windows (one compile per map size).
-jitted_neighbour_blocks = jax.jit(neighbour_blocks, static_argnums=2)
+_data_blocks = jax.jit(data_blocks, static_argnums=2)
+
+
+def jitted_normal_blocks(jac, problem: Problem):
+    """The per-texel blocks of JᵀJ (`pbrfit.fitting.stencil.data_blocks`), one jitted function for
+    the repair, the uniform check, the preconditioner's scale and the uncertainty (one compile per
+    problem shape): by stencil where `stencil_covers` the problem's map."""
+    return _data_blocks(jac, problem, stencil_covers(problem))
+
+
+#: The blocks between neighbouring texels (`pbrfit.fitting.stencil.data_neighbour_blocks`), for the
+#: uncertainty's windows (one compile per map size).
+jitted_neighbour_blocks = jax.jit(data_neighbour_blocks, static_argnums=2)
 
 
 def announce(progress, where: dict, stage: str) -> None:

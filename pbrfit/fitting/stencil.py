@@ -43,12 +43,14 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float, Int
 
-from .normal_matrix import block_gram, gauss_newton_factors, gn_product, normal_blocks
+from .normal_matrix import (NEIGHBOUR_OFFSETS, block_gram, gauss_newton_factors, gn_product, neighbour_blocks,
+                            normal_blocks)
 from .objective import Problem, by_pixel, offset_texels, prior_degree
 from ..transfer import to_device
 
 __all__ = ["Stencil", "cell_side", "offsets", "cells_fit", "with_stencil", "stencil_blocks", "stencil_product", "channel_blocks",
-           "channel_product", "gauss_newton_operator"]
+           "channel_product", "gauss_newton_operator", "stencil_covers", "data_blocks",
+           "data_neighbour_blocks"]
 
 #: A grid step beyond every stencil (its cell cannot hold the pixel).
 _FAR = 1 << 20
@@ -165,12 +167,10 @@ def with_stencil(problem: Problem) -> Problem:
     return dataclasses.replace(problem, stencil=st)
 
 
-def stencil_blocks(jac: Float[Array, "R 3 K"], problem: Problem, st: Stencil) -> Float[Array, "T N K K"]:
-    """JᵀJ + smooth L by stencil (module docstring): block n of texel t is the K × K block between
-    t and ``st.neighbours[t, n]``, ``st`` the problem's `Stencil`. The prior adds
-    smooth w (e_a - e_b)(e_a - e_b)ᵀ ⊗ diag(freed channels) for each pair (a, b) of weight w."""
+def _pair_cells(jac: Float[Array, "R 3 K"], problem: Problem, st: Stencil, pairs) -> Float[Array, "Q T K K"]:
+    """Per corner pair (a, b) of ``pairs``, C_c,ab = Σ_(p in cell c) B_paᵀ B_pb over every cell c
+    (module docstring): a segment sum over the pixels' cells per pair."""
     t = problem.num_texels
-    pairs = _corner_pairs(st.side)
     # by elements (`block_gram`; the flash scene's 2 × 2 samples: 184 ms an assembly against 464)
     if problem.samples == 1:
         gp = block_gram(jac, jac)
@@ -186,7 +186,16 @@ def stencil_blocks(jac: Float[Array, "R 3 K"], problem: Problem, st: Stencil) ->
     # a scan step per corner pair: the rows of all pairs at once make a buffer (over 32 MiB for
     # 60k pixels) that the allocator maps afresh at each call, and took five times as long
     _, cells = lax.scan(lambda _, ab: (None, jax.ops.segment_sum(pair_rows(ab[0], ab[1]), st.cell, num_segments=t)),
-                        None, jnp.asarray(np.asarray(pairs, np.int32)))  # (pairs, T, K, K)
+                        None, jnp.asarray(np.asarray(pairs, np.int32)))
+    return cells
+
+
+def stencil_blocks(jac: Float[Array, "R 3 K"], problem: Problem, st: Stencil) -> Float[Array, "T N K K"]:
+    """JᵀJ + smooth L by stencil (module docstring): block n of texel t is the K × K block between
+    t and ``st.neighbours[t, n]``, ``st`` the problem's `Stencil`. The prior adds
+    smooth w (e_a - e_b)(e_a - e_b)ᵀ ⊗ diag(freed channels) for each pair (a, b) of weight w."""
+    t = problem.num_texels
+    cells = _pair_cells(jac, problem, st, _corner_pairs(st.side))  # (pairs, T, K, K)
     blocks = _by_offset(cells, st, lambda block: jnp.swapaxes(block, 1, 2))
     a, b = problem.pairs[:, 0], problem.pairs[:, 1]
     sw = problem.smooth * problem.pair_weight
@@ -197,19 +206,62 @@ def stencil_blocks(jac: Float[Array, "R 3 K"], problem: Problem, st: Stencil) ->
     return blocks + prior[:, :, None, None] * jnp.diag(jnp.max(problem.free, axis=0))
 
 
+def stencil_covers(problem: Problem, shape: Optional[tuple[int, int]] = None) -> bool:
+    """Whether ``problem`` has a stencil whose offsets reach distinct texels of its map (``shape``,
+    else its grid's, read from the device): at least 2 side - 1 texels each way. Then its blocks
+    at offsets of one step are JᵀJ's blocks between those texels, and its middle one the diagonal
+    block, alone."""
+    st = problem.stencil
+    if st is None:
+        return False
+    shape = tuple(int(n) for n in np.asarray(problem.grid.shape)) if shape is None else shape
+    return min(shape) >= 2 * st.side - 1
+
+
+def data_blocks(jac: Float[Array, "R 3 K"], problem: Problem, by_stencil: bool) -> Float[Array, "T K K"]:
+    """`pbrfit.fitting.normal_matrix.normal_blocks`, JᵀJ's diagonal blocks (pixels only, no
+    prior): ``by_stencil`` (static; where `stencil_covers` the problem's map) D_t = Σ_a
+    C_(t - o_a),aa, a segment sum over the pixels' cells per corner, else through the pixels (on
+    the flash scene's 2 × 2 samples a sort and two segment sums over its 552k sample rows)."""
+    if not by_stencil:
+        return normal_blocks(jac, problem)
+    st, side = problem.stencil, problem.stencil.side
+    corners = [(i, j) for i in range(side) for j in range(side)]
+    cells = _pair_cells(jac, problem, st, [(a, a) for a in range(len(corners))])
+    back = [_slot(-i, -j, side) for i, j in corners]  # texel t is corner a of cell t - o_a
+    return sum(cells[a] if back[a] == st.centre else cells[a][st.neighbours[:, back[a]]] for a in range(len(corners)))
+
+
+def data_neighbour_blocks(jac: Float[Array, "R 3 K"], problem: Problem, shape: tuple[int, int]) -> Float[Array, "T 4 K K"]:
+    """`pbrfit.fitting.normal_matrix.neighbour_blocks` (JᵀJ's blocks towards the neighbours of
+    `NEIGHBOUR_OFFSETS`) of a problem on the ``shape`` map: read from its blocks by stencil where
+    `stencil_covers` it (a segment sum per corner pair one step apart, 6 or 20, against a scatter
+    per pair of a pixel's taps, 6 or 120), else through the pixels."""
+    if not stencil_covers(problem, shape):
+        return neighbour_blocks(jac, problem, shape)
+    st, side = problem.stencil, problem.stencil.side
+    corners = [(i, j) for i in range(side) for j in range(side)]
+    steps = {o for di, dj in NEIGHBOUR_OFFSETS for o in ((di, dj), (-di, -dj))}
+    pairs = [(a, b) for a, b in _corner_pairs(side)
+             if (corners[b][0] - corners[a][0], corners[b][1] - corners[a][1]) in steps]  # (b, a): the reverse
+    blocks = _by_offset(_pair_cells(jac, problem, st, pairs), st, lambda block: jnp.swapaxes(block, 1, 2), pairs)
+    return jnp.stack([blocks[:, _slot(di, dj, side)] for di, dj in NEIGHBOUR_OFFSETS], axis=1)
+
+
 def _corner_pairs(side: int) -> list[tuple[int, int]]:
     """The cell's corner pairs (a, b), a <= b, corners numbered row by row."""
     return [(a, b) for a in range(side * side) for b in range(a, side * side)]
 
 
-def _by_offset(cells, st: Stencil, transpose):
+def _by_offset(cells, st: Stencil, transpose, pairs=None):
     """(T, N, ...) the stencil's blocks from the cells' sums per corner pair, ``cells[q]`` (T, ...)
-    for the q-th pair of `_corner_pairs`: block (t, t + o) adds pair (a, b)'s sum over the cell t
-    is corner a of, for o_b - o_a = o, and ``transpose`` of it for the pair the other way round."""
+    for the q-th pair of ``pairs`` (default `_corner_pairs`; blocks no pair reaches are 0): block
+    (t, t + o) adds pair (a, b)'s sum over the cell t is corner a of, for o_b - o_a = o, and
+    ``transpose`` of it for the pair the other way round."""
     side = st.side
     corners = [(i, j) for i in range(side) for j in range(side)]
     slots = [[] for _ in range(st.neighbours.shape[1])]
-    for q, (qa, qb) in enumerate(_corner_pairs(side)):
+    for q, (qa, qb) in enumerate(_corner_pairs(side) if pairs is None else pairs):
         for a, b, flip in ((qa, qb, False), (qb, qa, True))[: 1 if qa == qb else 2]:
             (ai, aj), (bi, bj) = corners[a], corners[b]
             back = _slot(-ai, -aj, side)  # texel t is corner a of cell t - o_a

@@ -392,7 +392,7 @@ def test_uncertainty_matches_the_dense_window_inverse():
     window's matrix, and the two agree to float32 round-off and the window's 1e-6 ridge.)"""
     truth = _checker()
     obs = _noisy_checker_obs(truth, seed=3)
-    blocks = pbrfit.fitting.runner.jitted_normal_blocks
+    blocks = pbrfit.fitting.runner._data_blocks  # (the program behind jitted_normal_blocks)
     blocks.clear_cache()
     res = fit_observations(obs, resolution=8, fixed={"metallic": 0}, uniform_check=False, max_steps=20)
     assert res.report["fitted"] == ["base_r", "base_g", "base_b", "roughness"] and np.all(res.coverage > 0)
@@ -440,7 +440,7 @@ def test_the_sandwichs_meat_shares_the_jacobians_program(committed):
     if committed:
         jac = jax.device_put(jac, jax.devices()[0])
     assert jac.committed == committed
-    blocks = pbrfit.fitting.runner.jitted_normal_blocks
+    blocks = pbrfit.fitting.runner._data_blocks  # (the program behind jitted_normal_blocks)
     blocks.clear_cache()
     seen = np.ones(problem.num_texels, bool)
     ratios = pbrfit.fitting.result.misfit_ratios(problem, np.asarray(x), r, jac, 1e-4, np.ones(5), seen,

@@ -23,7 +23,8 @@ from pbrfit.fitting.observations import PIXEL_FIELDS, coverage_counts, observati
 from pbrfit.scene.camera import pixel_offsets, sample_camera
 from pbrfit.scene.capture import load_capture
 from pbrfit.fitting.sharding import pad_observations, pad_pixel_rows
-from pbrfit.fitting.objective import Problem, linearize, pixel_residuals
+from pbrfit.fitting.objective import Problem, linearize, pixel_residuals, texel_grid
+from pbrfit.fitting.stencil import data_blocks, data_neighbour_blocks, stencil_covers, with_stencil
 from pbrfit.fitting.normal_matrix import (NEIGHBOUR_OFFSETS, gauss_newton_factors, gn_product, gradient, neighbour_blocks,
                                   normal_blocks)
 
@@ -178,6 +179,16 @@ def test_neighbour_blocks_are_those_of_the_dense_matrix(capture, samples, shape,
     assert blocks[~near].max() <= (1e-6 if samples == 1 else 1e-2) * scale
     if wrap == "clamp":  # no pixel reads across the edge: the wrapped neighbours' blocks are zero
         assert np.all(got[w - 1::w, 0] == 0.0) and np.all(got[(h - 1) * w:, 2] == 0.0)
+    # the same blocks read from the stencil's assembly (`pbrfit.fitting.stencil`), and the diagonal ones
+    gridded = with_stencil(dataclasses.replace(problem, grid=texel_grid(shape, t)))
+    assert stencil_covers(gridded) and stencil_covers(gridded, shape)
+    assert not stencil_covers(gridded, (2 * gridded.stencil.side - 2, 8))  # offsets that meet: through the pixels
+    np.testing.assert_allclose(np.asarray(jax.jit(data_neighbour_blocks, static_argnums=2)(jac, gridded, shape)), want,
+                               atol=1e-6 * scale)
+    diagonal = np.stack([jtj[5 * s:5 * s + 5, 5 * s:5 * s + 5] for s in range(t)])
+    for by_stencil in (True, False):
+        np.testing.assert_allclose(np.asarray(jax.jit(data_blocks, static_argnums=2)(jac, gridded, by_stencil)),
+                                   diagonal, atol=1e-6 * scale)
 
 
 _FITS = {}
