@@ -292,8 +292,8 @@ def compute_gbuffer(
     cache_dir: when given, the result is read from / written to
     ``cache_dir/gbuffer-<hash>.npz``, the hash covering the mesh (vertices, faces, uv,
     normals, tangents), the camera and the lights' kinds, positions and directions. With or
-    without it, the process keeps the latest G-buffers under that hash (`MEMO_BYTES`): the
-    arrays of a result are read-only.
+    without it, the process keeps the latest G-buffers under that hash and the backend
+    (`MEMO_BYTES`): the arrays of a result are read-only.
     backend: "embree" (embreex via trimesh, float32 traversal), "numpy" (box-culled exact
     tests, float64, slower) or "auto" (embree when installed). Either way the hit on the reported face is recomputed in
     float64, so positions lie on the mesh to float64 rounding.
@@ -308,15 +308,17 @@ def compute_gbuffer(
     normals_v = np.asarray(mesh.vertex_normals, dtype=np.float64)
     key = _cache_key(mesh, uv_v, normals_v, tan_v, camera, lights)
     path = None if cache_dir is None else Path(cache_dir) / f"gbuffer-{key}.npz"
-    if key in _memo:
-        _memo.move_to_end(key)
+    # the memo keeps each intersector's own (the files, either: they agree to float64 refinement)
+    remembered = f"{key}-{('embree' if has_embree else 'numpy') if backend == 'auto' else backend}"
+    if remembered in _memo:
+        _memo.move_to_end(remembered)
         if path is not None and not path.exists():
-            _save_cached(path, _memo[key])
-        return _memo[key]
+            _save_cached(path, _memo[remembered])
+        return _memo[remembered]
     if path is not None:
         cached = _load_cached(path)
         if cached is not None:
-            return _remembered(key, cached)
+            return _remembered(remembered, cached)
 
     H, W = camera.height, camera.width
     faces_v = np.asarray(mesh.faces, dtype=np.int64)
@@ -384,4 +386,4 @@ def compute_gbuffer(
     )
     if path is not None:
         _save_cached(path, gbuffer)
-    return _remembered(key, gbuffer)
+    return _remembered(remembered, gbuffer)

@@ -380,6 +380,11 @@ def test_the_process_remembers_the_latest_gbuffers(tmp_path, monkeypatch):
     np.testing.assert_array_equal(np.load(next(tmp_path.iterdir()))["position"], g1.position)
     with pytest.raises(ValueError):  # shared: read-only
         g1.position[0, 0, 0] = 1.0
+    if gb.has_embree:  # each intersector's own: the other one casts
+        other = "numpy" if compute_gbuffer(mesh, SHADOW_CAM, SHADOW_LIGHTS, backend="embree") is g1 else "embree"
+        assert compute_gbuffer(mesh, SHADOW_CAM, SHADOW_LIGHTS, backend=other) is not g1
+        gb._memo.clear()
+        g1 = compute_gbuffer(mesh, SHADOW_CAM, SHADOW_LIGHTS)
     # room for one: the next view's G-buffer takes its place, and the first is cast again
     monkeypatch.setattr(gb, "MEMO_BYTES", size)
     moved = Camera.from_fov(look_at((0.0, -0.01, 4.1), (0.0, 0.0, 0.0)), 0.6, 48, 48)
