@@ -365,6 +365,7 @@ def test_cache_round_trip_and_invalidation(tmp_path, monkeypatch):
     g4 = compute_gbuffer(mesh, SHADOW_CAM, SHADOW_LIGHTS, cache_dir=tmp_path)
     np.testing.assert_array_equal(g4.position, g1.position)
     np.testing.assert_array_equal(np.load(files[0])["position"], g1.position)
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary file left
 
 
 def test_the_process_remembers_the_latest_gbuffers(tmp_path, monkeypatch):
@@ -397,7 +398,6 @@ def test_the_process_remembers_the_latest_gbuffers(tmp_path, monkeypatch):
     gb._memo.clear()
     compute_gbuffer(mesh, moved, SHADOW_LIGHTS)
     assert not gb._memo
-    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary file left
 
 
 def test_real_light_objects_when_available():
