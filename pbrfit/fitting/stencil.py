@@ -196,7 +196,7 @@ def stencil_blocks(jac: Float[Array, "R 3 K"], problem: Problem, st: Stencil) ->
     smooth w (e_a - e_b)(e_a - e_b)ᵀ ⊗ diag(freed channels) for each pair (a, b) of weight w."""
     t = problem.num_texels
     cells = _pair_cells(jac, problem, st, _corner_pairs(st.side))  # (pairs, T, K, K)
-    blocks = _by_offset(cells, st, lambda block: jnp.swapaxes(block, 1, 2))
+    blocks = _by_offset(cells, st, _swap)
     a, b = problem.pairs[:, 0], problem.pairs[:, 1]
     sw = problem.smooth * problem.pair_weight
     n = st.neighbours.shape[1]
@@ -225,11 +225,9 @@ def data_blocks(jac: Float[Array, "R 3 K"], problem: Problem, by_stencil: bool) 
     the flash scene's 2 × 2 samples a sort and two segment sums over its 552k sample rows)."""
     if not by_stencil:
         return normal_blocks(jac, problem)
-    st, side = problem.stencil, problem.stencil.side
-    corners = [(i, j) for i in range(side) for j in range(side)]
-    cells = _pair_cells(jac, problem, st, [(a, a) for a in range(len(corners))])
-    back = [_slot(-i, -j, side) for i, j in corners]  # texel t is corner a of cell t - o_a
-    return sum(cells[a] if back[a] == st.centre else cells[a][st.neighbours[:, back[a]]] for a in range(len(corners)))
+    st = problem.stencil
+    pairs = [(a, a) for a in range(st.side * st.side)]
+    return _by_offset(_pair_cells(jac, problem, st, pairs), st, _swap, pairs)[:, st.centre]
 
 
 def data_neighbour_blocks(jac: Float[Array, "R 3 K"], problem: Problem, shape: tuple[int, int]) -> Float[Array, "T 4 K K"]:
@@ -240,12 +238,22 @@ def data_neighbour_blocks(jac: Float[Array, "R 3 K"], problem: Problem, shape: t
     if not stencil_covers(problem, shape):
         return neighbour_blocks(jac, problem, shape)
     st, side = problem.stencil, problem.stencil.side
-    corners = [(i, j) for i in range(side) for j in range(side)]
+    corners = _corners(side)
     steps = {o for di, dj in NEIGHBOUR_OFFSETS for o in ((di, dj), (-di, -dj))}
     pairs = [(a, b) for a, b in _corner_pairs(side)
              if (corners[b][0] - corners[a][0], corners[b][1] - corners[a][1]) in steps]  # (b, a): the reverse
-    blocks = _by_offset(_pair_cells(jac, problem, st, pairs), st, lambda block: jnp.swapaxes(block, 1, 2), pairs)
+    blocks = _by_offset(_pair_cells(jac, problem, st, pairs), st, _swap, pairs)
     return jnp.stack([blocks[:, _slot(di, dj, side)] for di, dj in NEIGHBOUR_OFFSETS], axis=1)
+
+
+def _corners(side: int) -> list[tuple[int, int]]:
+    """The (i, j) offsets of a cell's corners from its first, numbered row by row."""
+    return [(i, j) for i in range(side) for j in range(side)]
+
+
+def _swap(block):
+    """A stack of K × K blocks, each transposed: the block of a pair taken the other way round."""
+    return jnp.swapaxes(block, 1, 2)
 
 
 def _corner_pairs(side: int) -> list[tuple[int, int]]:
@@ -259,7 +267,7 @@ def _by_offset(cells, st: Stencil, transpose, pairs=None):
     (t, t + o) adds pair (a, b)'s sum over the cell t is corner a of, for o_b - o_a = o, and
     ``transpose`` of it for the pair the other way round."""
     side = st.side
-    corners = [(i, j) for i in range(side) for j in range(side)]
+    corners = _corners(side)
     slots = [[] for _ in range(st.neighbours.shape[1])]
     for q, (qa, qb) in enumerate(_corner_pairs(side) if pairs is None else pairs):
         for a, b, flip in ((qa, qb, False), (qb, qa, True))[: 1 if qa == qb else 2]:
