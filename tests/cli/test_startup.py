@@ -64,6 +64,35 @@ def test_usage_errors_are_one_line_and_load_no_jax(argv):
     assert len(lines) == 1 and lines[0].startswith("pbrfit: error: "), run
 
 
+# the console script's way: main() on the process's own command line, in the main thread
+_SCRIPT = """
+import atexit, json, sys
+atexit.register(lambda: print("teardown", flush=True))
+sys.argv = ["pbrfit"] + json.loads(sys.argv[1])
+from pbrfit.cli.main import main
+sys.exit(main())
+"""
+
+
+@pytest.mark.parametrize("argv, status", [
+    (["fit", "--help"], 0),                                  # answered by the parser
+    (["fit", "no-such-capture", "--out", "o"], 2),           # the command's own error, in its worker
+])
+def test_the_command_ends_the_process_once_its_output_is_flushed(argv, status, tmp_path):
+    """The process ends with the command's status and every line it wrote, without the
+    interpreter's teardown (the atexit hook here never runs)."""
+    proc = subprocess.run([sys.executable, "-c", _SCRIPT, json.dumps(argv)], capture_output=True, text=True,
+                          timeout=120, cwd=tmp_path)
+    assert proc.returncode == status, proc.stderr[-3000:]
+    assert "teardown" not in proc.stdout
+    if status == 0:
+        assert proc.stdout.startswith("usage: pbrfit fit") and proc.stderr == "", proc
+    else:
+        lines = proc.stderr.splitlines()
+        assert len(lines) == 1 and lines[0].startswith("pbrfit: error: ") and "no-such-capture" in lines[0], proc
+        assert not (tmp_path / "o").exists()
+
+
 def test_the_parser_shows_the_rooms_defaults_and_choices(capsys):
     # the numbers come from the rooms' JAX-free modules, the ones the fit itself uses
     assert main(["fit", "--help"]) == 0
