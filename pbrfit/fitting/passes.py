@@ -289,7 +289,7 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
             history.append(dict(resolution=list(shape), **info))
             x = xs[:t].reshape(shape + (k,))
         state = StageState(options, runner, compiler, problem, xs, linearization, final, seen, channels, num_free,
-                           obs.num_pixels, where)
+                           obs.num_pixels, where, search_on=early)
         entries, stages = run_stages(STAGES, state, clock)
         x = state.xs[:t_final].reshape(final + (k,))
     finally:

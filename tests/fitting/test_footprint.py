@@ -301,6 +301,20 @@ def test_auto_footprint_keeps_samples_for_a_supersampled_capture(capture):
     _same_fit(auto, _footprint_fit(capture))
 
 
+def test_the_repair_searches_a_samples_fit_at_pixel_centres(tmp_path):
+    """A noisy 2 × 2 supersampled sRGB capture: ``"auto"`` keeps the samples, and the repair's
+    outlier pass searches at pixel centres, as the fit's own search does (with its program),
+    its steps and its judging on the samples."""
+    from data_synth.presets import make_scene
+    from data_synth.writer import synthesize
+
+    synthesize(make_scene("plane-flash", seed=3, size=32, views=4, texture_size=MAP[0]), tmp_path / "cap")
+    res = fit(load_capture(tmp_path / "cap"), resolution=MAP[0])
+    assert res.report["footprint"]["selected"] == 2 and res.report["pixel_samples"] == 2
+    searched = [p for p in res.report["repair"]["passes"] if "searched_samples" in p]
+    assert searched and all(p["searched_samples"] == 1 for p in searched), res.report["repair"]
+
+
 def test_auto_footprint_keeps_centres_for_a_capture_rendered_at_centres(tmp_path):
     """A plane rendered at pixel centres into 16-bit sRGB PNGs, its edges in view (pixels there
     that some sample misses are used by the centres only): ``"auto"`` keeps the centres' fit,

@@ -40,8 +40,10 @@ class StageState:
     compiler, the problem of the final level and its texel values ``xs`` (T, K) with the
     linearisation at them (residuals, Jacobians), the final map shape, the texels seen, the
     channels fitted (K,), the free parameters, the pixels, the progress callback's ``where``,
-    the channels the uniform check made one value ({channel: value}), and the standard errors
-    at ``xs`` where the last stage computed them for the result (σ, σ̂²), else None."""
+    the channels the uniform check made one value ({channel: value}), the standard errors
+    at ``xs`` where the last stage computed them for the result (σ, σ̂²), else None, and the
+    problem the fit's search ran on (its pixel centres where the final level has samples), for
+    the repair's searches."""
 
     options: Any
     runner: Any
@@ -57,6 +59,7 @@ class StageState:
     where: dict
     uniform: dict = dataclasses.field(default_factory=dict)
     errors: Optional[tuple] = None
+    search_on: Optional[Problem] = None
 
 
 class Stage(Protocol):
@@ -90,7 +93,7 @@ class Repair:
     def run(self, state: StageState) -> dict:
         state.xs, state.linearization, found = run_repair(
             state.runner, state.compiler, state.problem, state.xs, state.linearization, state.final, state.seen,
-            state.channels, state.num_free, state.where)
+            state.channels, state.num_free, state.where, state.search_on)
         return found
 
 
