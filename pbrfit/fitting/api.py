@@ -295,8 +295,8 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
         pixel_samples: n: shade n × n samples per pixel and compare their mean radiance with the
             pixel (`pbrfit.fitting.observations`, pixel footprints): the model of an antialiased or
             supersampled capture (1: pixel centres). The grid start, the continuation's first
-            steps and the search run on pixel centres, the settling and released steps on the
-            samples (`fit_observations`). ``"auto"`` (default, `footprint_choice`): pixel
+            steps and the searches (the fit's and the repair's) run on pixel centres, the
+            settling, released and repair steps on the samples (`fit_observations`). ``"auto"`` (default, `footprint_choice`): pixel
             centres with precomputed ``views``; for linear HDR images pixel centres, then both
             ways as below, with 3 × 3 samples (a path tracer's box is finer than 2 × 2's
             quadrature), only where the centres' residuals show a box's blur
