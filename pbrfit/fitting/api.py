@@ -298,8 +298,9 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
             steps and the searches (the fit's and the repair's) run on pixel centres, the
             settling, released and repair steps on the samples (`fit_observations`).
             ``"auto"`` (default, `footprint_choice`): pixel centres with precomputed ``views``;
-            for linear HDR images pixel centres, then both ways as below, with 3 × 3 samples (a path tracer's box is finer than 2 × 2's
-            quadrature), only where the centres' residuals show a box's blur
+            for linear HDR images pixel centres, then both ways as below, with 3 × 3 samples
+            (a path tracer's box is finer than 2 × 2's quadrature), only where the centres'
+            residuals show a box's blur
             (`pbrfit.fitting.stages.footprint.footprint_evidence`, the report's
             "footprint" "evidence"); for display-referred
             ones (sRGB, tone mapped) the last steps run both ways, at centres and with 2 × 2
