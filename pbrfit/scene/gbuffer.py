@@ -51,7 +51,7 @@ from jaxtyping import Bool, Float, Int
 from ..io.atomic import write_cache_file
 from .camera import Camera
 from ..errors import CaptureError
-from .raycast import PARALLEL_EPS, any_perpendicular, cast, has_embree, make_first_hit, normalize
+from .raycast import PARALLEL_EPS, any_perpendicular, cast, has_embree, make_first_hit, normalize, resolved_backend
 
 __all__ = [
     "GBuffer",
@@ -309,7 +309,7 @@ def compute_gbuffer(
     key = _cache_key(mesh, uv_v, normals_v, tan_v, camera, lights)
     path = None if cache_dir is None else Path(cache_dir) / f"gbuffer-{key}.npz"
     # the memo keeps each intersector's own (the files, either: they agree to float64 refinement)
-    remembered = f"{key}-{('embree' if has_embree else 'numpy') if backend == 'auto' else backend}"
+    remembered = f"{key}-{resolved_backend(backend)}"
     if remembered in _memo:
         _memo.move_to_end(remembered)
         if path is not None and not path.exists():

@@ -23,8 +23,8 @@ import numpy as np
 import trimesh
 from jaxtyping import Float, Int
 
-__all__ = ["has_embree", "make_first_hit", "cast", "moller_trumbore", "any_hit_along", "normalize", "any_perpendicular",
-           "PARALLEL_EPS",
+__all__ = ["has_embree", "resolved_backend", "make_first_hit", "cast", "moller_trumbore", "any_hit_along", "normalize",
+           "any_perpendicular", "PARALLEL_EPS",
            "BARYCENTRIC_SLACK", "NORM_FLOOR"]
 
 # Ray/triangle determinant floor, relative to |e1||e2||d|: below it the ray runs parallel to
@@ -123,10 +123,16 @@ def _numpy_first_hit(tri: Float[np.ndarray, "F 3 3"]) -> Callable[[np.ndarray, n
     return first_hit
 
 
+def resolved_backend(backend: str) -> str:
+    """The intersector ``backend`` names: "auto" is "embree" where embreex is installed, else "numpy"."""
+    if backend == "auto":
+        return "embree" if has_embree else "numpy"
+    return backend
+
+
 def make_first_hit(mesh: trimesh.Trimesh, backend: str):
     """A function (origins (N,3), unit directions (N,3)) -> first face hit per ray, -1 if none."""
-    if backend == "auto":
-        backend = "embree" if has_embree else "numpy"
+    backend = resolved_backend(backend)
     if backend == "embree":
         if not has_embree:
             raise RuntimeError("gbuffer: backend 'embree' requested but embreex is not installed")
