@@ -477,6 +477,8 @@ def run_repair(runner, compiler, problem: Problem, xs, linearization, shape, see
     index, weight, free = np.asarray(problem.index), np.asarray(problem.weight), np.asarray(problem.free)
     fitted = np.asarray(channels) > 0
     searching = problem if search_on is None else search_on
+    s_index, s_weight, s_free = ((index, weight, free) if searching is problem else (
+        np.asarray(searching.index), np.asarray(searching.weight), np.asarray(searching.free)))
     key, classes, static = search_inputs(shape, searching, REPAIR_ROUNDS, channels[3] > 0)
     xs = np.asarray(xs, np.float32)
     energy = problem_energy(linearization[0], xs, problem)
@@ -518,9 +520,8 @@ def run_repair(runner, compiler, problem: Problem, xs, linearization, shape, see
         y = fill_from_nearest(xs, flagged, trusted, tuple(shape), free)
         where["repair"] = len(passes)
         searched = region if searching is problem else dataclasses.replace(searching, free=jax.device_put(
-            np.asarray(searching.free) * region_free, searching.free.sharding))  # free where both are
-        searched, search_key = search_problem(searched, moving_pixels(moving, np.asarray(searched.index),
-                                                                      np.asarray(searched.weight), searched.samples),
+            s_free * region_free, searching.free.sharding))  # free where both are
+        searched, search_key = search_problem(searched, moving_pixels(moving, s_index, s_weight, searching.samples),
                                               key, compiler)
         entry.update(searched_pixels=searched.num_pixels, searched_samples=searched.samples)
         y = timed(compiler, search_key, coordinate_search, "repair", to_device(y, np.float32), searched, classes,
