@@ -34,11 +34,17 @@ REFERENCE = {
     1e-3: (0.14778104424476624, (0.57315885, 0.46256703, 0.55512856, 0.0, 0.48584283)),
     0.0: (0.1453242152929306, (0.57316106, 0.46256966, 0.55513156, 0.0, 0.48588503)),
 }
-# ... that stop, as (steps, accepted, CG iterations) and λ: at the fourth step, or at the fifth where
+# ... that stop, as (steps, accepted), CG iterations and λ: at the fourth step, or at the fifth where
 # the fourth, on the floor, still gains more than rtol · E in the last bits (λ a third lower after
 # one more accepted step). Which one depends on the CPU's float32 rounding: an AMD EPYC stopped
-# at the fourth without the prior and at the fifth with it, an Intel Xeon the other way round.
-STOPS = (((4, 3, 48), 7.40740797482431e-05), ((5, 4, 62), 2.4691360522410832e-05))
+# at the fourth without the prior and at the fifth with it, an Intel Xeon the other way round. On
+# the floor the last step's CG iterations depend on that rounding too (the fifth: 60 to 62).
+STOPS = {(4, 3): ((48, 48), 7.40740797482431e-05), (5, 4): ((60, 62), 2.4691360522410832e-05)}
+
+
+def _stopped_as_before(steps, accepted, cg_iterations) -> bool:
+    stop = STOPS.get((int(steps), int(accepted)))
+    return stop is not None and stop[0][0] <= int(cg_iterations) <= stop[0][1]
 
 
 @pytest.fixture(scope="module", params=sorted(REFERENCE))
@@ -84,8 +90,8 @@ def test_structured_lm_steps_as_the_loop_it_replaced(start):
     jax.block_until_ready(sol.value)
     s = sol.stats
     counts = (int(s["steps"]), int(s["accepted"]), int(s["cg_iterations"]))
-    assert counts in [c for c, _ in STOPS], counts
-    damping = dict(STOPS)[counts]
+    assert _stopped_as_before(*counts), counts
+    damping = STOPS[counts[:2]][1]
     steps = counts[0]
     assert int(s["num_steps"]) == steps + 1  # optimistix counts the first call, which only linearises
     assert float(s["loss"]) == pytest.approx(loss, rel=1e-5) and float(s["damping"]) == pytest.approx(damping, rel=1e-3)
@@ -135,7 +141,7 @@ def test_one_program_serves_every_step_budget(start):
     x2, stats2, *_ = compiled(x0, problem, solver, jnp.asarray(2, jnp.int32))
     assert int(stats2.steps) == 2 and float(stats2.loss) < float(stats.loss)
     _, stats30, *_ = compiled(x0, problem, solver, jnp.asarray(30, jnp.int32))
-    assert (int(stats30.steps), int(stats30.accepted), int(stats30.cg_iterations)) in [c for c, _ in STOPS]
+    assert _stopped_as_before(stats30.steps, stats30.accepted, stats30.cg_iterations)
     assert float(stats30.loss) == pytest.approx(REFERENCE[smooth][0], rel=1e-5)
 
 

@@ -22,7 +22,10 @@ texel's neighbours and their K × K products, whatever the number of pixels (on 
 64 × 64, 60k pixels: an iteration 0.5 ms against 3.2 ms through the pixels, a step about 30 ms
 against 90 on a 2-core CPU, where the linearisation and the assembly now take 9 ms each).
 Without one, each product goes through the pixels (`pbrfit.fitting.normal_matrix.gn_product`: a
-gather, a K × K product and a scatter per pixel row).
+gather, a K × K product and a scatter per pixel row). Either way JᵀJ and the gradient are made
+once per iterate, by the first step from it (`_StructuredLMState.stale`): a rejected step keeps
+them, and the next one only damps them more (on the flash scene's 2 × 2 samples an assembly costs
+about 0.2 s, as much as the linearisation, and a quarter of the steps are rejected).
 
 Why its own step: optimistix's LM and Gauss-Newton take a lineax solver for the step, but they
 do not support bounds (the active set and the projection live between the linear solve and the
@@ -50,6 +53,7 @@ from __future__ import annotations
 from typing import Any, Callable
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import optimistix as optx
 from jax import lax
@@ -57,7 +61,7 @@ from jaxtyping import Array, Float
 
 from ..defaults import ATOL, CG_RTOL, RTOL
 from ..normal_matrix import gradient, spd_block_inverse
-from ..stencil import gauss_newton_operator, stencil_product
+from ..stencil import gauss_newton_factors_of, gauss_newton_product, stencil_product
 from ..objective import Problem, linearize, residuals, rounding_floor
 from ..parameters import lower, upper
 
@@ -164,14 +168,21 @@ def _active(x, g, free):
 
 
 class _StructuredLMState(eqx.Module):
-    """The iterate's residuals r (P, 3), per-row Jacobians (R, 3, K) and E, the damping λ and
-    Nielsen's factor ν, the count k of calls to `step` (step 0 only linearises), whether the last
-    step ended the solve, the steps accepted, the CG iterations, the step budget, E after each
-    step (`HISTORY`), and whether the next call to `step` only linearises (the first of a run)."""
+    """The iterate's residuals r (P, 3), per-row Jacobians (R, 3, K) and E; its gradient g, the
+    diagonal blocks of JᵀJ + smooth L and that matrix's factors (`gauss_newton_factors_of`), made
+    by the first step from the iterate and kept over rejected steps, and whether they are stale
+    (the iterate moved since); the damping λ and Nielsen's factor ν, the count k of calls to
+    `step` (step 0 only linearises), whether the last step ended the solve, the steps accepted,
+    the CG iterations, the step budget, E after each step (`HISTORY`), and whether the next call
+    to `step` only linearises (the first of a run)."""
 
     r: Array
     jac: Array
     loss: Array
+    g: Array
+    blocks: Array
+    factors: Any
+    stale: Array
     lam: Array
     nu: Array
     k: Array
@@ -225,9 +236,14 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         budget = jnp.asarray(_NO_BUDGET if budget is None else budget, jnp.int32)
         carry = options.get("carry")
         carry = LMCarry.start(y.dtype) if carry is None else carry
+        r = jnp.zeros((args.num_pixels, 3), y.dtype)
+        jac = jnp.zeros((args.index.shape[0], 3, k), y.dtype)
+        # JᵀJ's blocks and factors are made by the first step from the iterate (`stale`)
+        shapes = jax.eval_shape(lambda j: gauss_newton_factors_of(j, args, args.stencil), jac)
+        blocks, factors = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
         return _StructuredLMState(
-            r=jnp.zeros((args.num_pixels, 3), y.dtype), jac=jnp.zeros((args.index.shape[0], 3, k), y.dtype),
-            loss=jnp.asarray(jnp.inf, y.dtype), lam=jnp.asarray(carry.lam, y.dtype), nu=jnp.asarray(carry.nu, y.dtype),
+            r=r, jac=jac, loss=jnp.asarray(jnp.inf, y.dtype), g=jnp.zeros_like(y), blocks=blocks, factors=factors,
+            stale=jnp.asarray(True), lam=jnp.asarray(carry.lam, y.dtype), nu=jnp.asarray(carry.nu, y.dtype),
             k=jnp.asarray(carry.k, jnp.int32), done=jnp.asarray(False),
             accepted=jnp.asarray(carry.accepted, jnp.int32), cg=jnp.asarray(carry.cg, jnp.int32), budget=budget,
             history=jnp.asarray(carry.history, y.dtype), fresh=jnp.asarray(True))
@@ -238,17 +254,23 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         k = x.shape[-1]
         lo, hi = jnp.asarray(lower(k), x.dtype), jnp.asarray(upper(k), x.dtype)
         eye = jnp.eye(k, dtype=x.dtype)
-        r, jac, loss, lam, nu = state.r, state.jac, state.loss, state.lam, state.nu
+        loss, lam, nu = state.loss, state.lam, state.nu
         # the first call of a run only linearises at its start: the solve's start (k = 0), or
         # where an earlier run of it stopped (k > 0: then it counts no call and keeps no E)
         first = state.fresh
         again = first & (state.k > 0)
         st = args.stencil
 
+        def assemble():  # JᵀJ and g at the iterate, once: a rejected step leaves them as they are
+            blocks, factors = gauss_newton_factors_of(state.jac, problem, st)
+            return gradient(state.r, state.jac, x, problem), blocks, factors
+
         def take_step():
-            # through the pixels, or by stencil: JᵀJ + smooth L assembled once for the step's products
-            blocks, product, full = gauss_newton_operator(jac, problem, st)
-            g = gradient(r, jac, x, problem)
+            g, blocks, factors = lax.cond(state.stale, assemble, lambda: (state.g, state.blocks, state.factors))
+
+            def product(v):
+                return gauss_newton_product(factors, v, problem, st)
+
             a = _active(x, g, problem.free)
             diag = jnp.diagonal(blocks, axis1=1, axis2=2)
             mean_diag = jnp.sum(diag * problem.free) / jnp.maximum(jnp.sum(problem.free), 1.0)
@@ -261,6 +283,7 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
                     av = a * v
                     return a * (product(av) + lam * damp * av) + (1.0 - a) * v
             else:  # the same operator by stencil: its blocks masked to the active channels, M's on the diagonal
+                full = factors
                 masked = (a[:, None, :, None] * full * a[st.neighbours][:, :, None, :]).at[:, st.centre].set(m_blocks)
 
                 def matvec(v):
@@ -273,19 +296,23 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
             x_new = jnp.clip(x + a * delta, lo, hi)
             step = x_new - x
             predicted = -(_vdot(g, step) + 0.5 * _vdot(step, product(step)))
-            return x_new, predicted, jnp.asarray(iters, jnp.int32)
+            return x_new, predicted, jnp.asarray(iters, jnp.int32), (g, blocks, factors)
 
         def stay():  # the first call: every channel inactive, no products (x clipped into the box)
-            return jnp.clip(x, lo, hi), jnp.zeros((), x.dtype), jnp.asarray(0, jnp.int32)
+            return (jnp.clip(x, lo, hi), jnp.zeros((), x.dtype), jnp.asarray(0, jnp.int32),
+                    (state.g, state.blocks, state.factors))
 
-        x_new, predicted, iters = lax.cond(first, stay, take_step)
+        x_new, predicted, iters, (g_new, blocks_new, factors_new) = lax.cond(first, stay, take_step)
         step = x_new - x
-        r_new, jac_new, loss_new = linearize(x_new, problem)
-        actual = jnp.where(first, 0.0, loss - loss_new)
+        r_new, jac_new, trial = linearize(x_new, problem)
         # step 0 only linearises at the start: kept even where the loss is not finite (an
         # overflow), so that the returned residuals and loss are the start's and the caller sees
         # it, not zeros and inf
-        accept = first | (jnp.isfinite(loss_new) & (loss_new < loss))
+        accept = first | (jnp.isfinite(trial) & (trial < loss))
+
+        pick = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
+        r_new, jac_new, loss_new = pick(r_new, state.r), pick(jac_new, state.jac), pick(trial, loss)
+        actual = jnp.where(first, 0.0, loss - trial)
         rho = actual / jnp.maximum(predicted, jnp.finfo(x.dtype).tiny)
         lam_new = jnp.where(accept, lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), lam * nu)
         nu_new = jnp.where(accept, 2.0, 2.0 * nu)
@@ -296,19 +323,17 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         tol = self.rtol * loss
         floor = (predicted <= tol) & (jnp.abs(actual) <= tol)
         # E at the targets' float32 rounding: no step can tell anything more from the images
-        rounded = jnp.where(accept, loss_new, loss) <= rounding_floor(problem)
+        rounded = loss_new <= rounding_floor(problem)
         done = ~first & ((accept & (actual <= tol)) | floor | rounded | (moved <= self.atol) | (lam_new > LAMBDA_MAX))
         lam_new = jnp.where(first, lam, lam_new)
         nu_new = jnp.where(first, nu, nu_new)
-        history = jnp.where(again, state.history,
-                            state.history.at[state.k].set(jnp.where(accept, loss_new, loss), mode="drop"))
-        pick = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
+        history = jnp.where(again, state.history, state.history.at[state.k].set(loss_new, mode="drop"))
         new_state = _StructuredLMState(
-            r=pick(r_new, r), jac=pick(jac_new, jac), loss=pick(loss_new, loss), lam=lam_new, nu=nu_new,
-            k=state.k + (~again).astype(state.k.dtype), done=done,
+            r=r_new, jac=jac_new, loss=loss_new, g=g_new, blocks=blocks_new, factors=factors_new, stale=accept,
+            lam=lam_new, nu=nu_new, k=state.k + (~again).astype(state.k.dtype), done=done,
             accepted=state.accepted + (accept & ~first).astype(jnp.int32), cg=state.cg + iters, budget=state.budget,
             history=history, fresh=jnp.asarray(False))
-        return pick(x_new, x), new_state, None
+        return jnp.where(accept, x_new, x), new_state, None
 
     def terminate(self, fn, y, args, options, state: _StructuredLMState, tags):
         del fn, y, args, options, tags
