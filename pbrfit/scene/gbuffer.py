@@ -40,6 +40,7 @@ import collections
 import dataclasses
 import hashlib
 import os
+import threading
 import zipfile
 from pathlib import Path
 from typing import Sequence
@@ -79,6 +80,7 @@ UV_CONVENTIONS = ("gltf", "trimesh")
 #: file (the peer scene's six 128² views: 12 MB, 0.13 s of a 2 s fit).
 MEMO_BYTES = 128 << 20
 _memo: "collections.OrderedDict[str, GBuffer]" = collections.OrderedDict()
+_memo_lock = threading.Lock()  # views are cast in threads (`pbrfit.render.views.capture_gbuffers`)
 
 
 # ------------------------------------------------------------------------------------ gbuffer
@@ -207,10 +209,11 @@ def _remembered(key: str, gbuffer: GBuffer) -> GBuffer:
         a.flags.writeable = False
     size = lambda g: sum(a.nbytes for a in g._arrays().values())  # noqa: E731
     if size(gbuffer) <= MEMO_BYTES:
-        _memo[key] = gbuffer
-        total = sum(size(g) for g in _memo.values())
-        while total > MEMO_BYTES:
-            total -= size(_memo.popitem(last=False)[1])
+        with _memo_lock:
+            _memo[key] = gbuffer
+            total = sum(size(g) for g in _memo.values())
+            while total > MEMO_BYTES:
+                total -= size(_memo.popitem(last=False)[1])
     return gbuffer
 
 
@@ -310,11 +313,14 @@ def compute_gbuffer(
     path = None if cache_dir is None else Path(cache_dir) / f"gbuffer-{key}.npz"
     # the memo keeps each intersector's own (the files, either: they agree to float64 refinement)
     remembered = f"{key}-{resolved_backend(backend)}"
-    if remembered in _memo:
-        _memo.move_to_end(remembered)
+    with _memo_lock:
+        known = _memo.get(remembered)
+        if known is not None:
+            _memo.move_to_end(remembered)
+    if known is not None:
         if path is not None and not path.exists():
-            _save_cached(path, _memo[remembered])
-        return _memo[remembered]
+            _save_cached(path, known)
+        return known
     if path is not None:
         cached = _load_cached(path)
         if cached is not None:

@@ -418,3 +418,33 @@ def test_silhouette_marks_hit_pixels_beside_a_miss():
     expected = hit.copy()
     expected[2, 2:6] = False  # interior: every neighbour hits
     np.testing.assert_array_equal(ring, expected)
+
+
+def test_a_captures_frames_are_cast_in_threads_in_frame_order(monkeypatch):
+    """`capture_gbuffers` casts the frames in a thread per core: each frame's G-buffer is the
+    one cast alone, in the frames' order, and a frame that cannot be cast raises its error."""
+    from types import SimpleNamespace
+
+    from pbrfit.render.views import capture_gbuffers
+
+    monkeypatch.setattr(gb, "_memo", type(gb._memo)())
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    mesh, _ = _occluded_scene()
+    cams = [Camera.from_fov(look_at((0.3 * k, -0.01, 4.0 + 0.1 * k), (0.0, 0.0, 0.0)), 0.6, 32, 32) for k in range(5)]
+    frames = [SimpleNamespace(camera=c, lights=SHADOW_LIGHTS[: 1 + k % 3]) for k, c in enumerate(cams)]
+    got = capture_gbuffers(SimpleNamespace(mesh=mesh, frames=frames))
+    gb._memo.clear()
+    for g, f in zip(got, frames, strict=True):
+        alone = compute_gbuffer(mesh, f.camera, f.lights)
+        for name, a in alone._arrays().items():
+            np.testing.assert_array_equal(getattr(g, name), a, err_msg=name)
+    import pbrfit.render.views as views
+
+    def cast(mesh, camera, lights, cache_dir):
+        if camera is cams[3]:
+            raise CaptureError("frame 3: broken")
+        return compute_gbuffer(mesh, camera, lights, cache_dir)
+
+    monkeypatch.setattr(views, "compute_gbuffer", cast)
+    with pytest.raises(CaptureError, match="frame 3: broken"):
+        capture_gbuffers(SimpleNamespace(mesh=mesh, frames=frames))
