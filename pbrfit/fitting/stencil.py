@@ -13,7 +13,7 @@ corner and o_a the offset of corner a,
 
 where B_pa = Σ_(taps j of p on corner a) w_j J_(p,s_j) is pixel p's 3 × K Jacobian towards corner
 a (w_pa J_p at pixel centres; taps on one texel add up, so clamped edges are exact too).
-`stencil_blocks` assembles it once per solver step (a segment sum over the pixels' cells per
+`stencil_blocks` assembles it once per iterate of the solver (a segment sum over the pixels' cells per
 corner pair, 10 or 45 of them, then a gather per pair, and the prior's smooth L, whose pairs are
 grid neighbours); a product (`stencil_product`) is then a gather of each texel's neighbours and
 their K × K products, with no gather, product and scatter per pixel row as

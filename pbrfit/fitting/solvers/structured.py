@@ -15,9 +15,9 @@ IMM-REP-1999-05). This is a projected Levenberg-Marquardt method (as in e.g. C. 
 equations with convex constraints", 2004).
 
 The products: where the problem says so (``Problem.stencil``: each pixel's taps in one cell of
-the map, always at pixel centres; `pbrfit.fitting.stencil`), each step assembles JᵀJ + smooth L
-by stencil once (`pbrfit.fitting.stencil.stencil_blocks`, its diagonal blocks the
-preconditioner's) and masks and damps the blocks, and each CG iteration is a gather of every
+the map, always at pixel centres; `pbrfit.fitting.stencil`), JᵀJ + smooth L is assembled
+by stencil once per iterate (`pbrfit.fitting.stencil.stencil_blocks`, its diagonal blocks the
+preconditioner's), each step masks and damps the blocks, and each CG iteration is a gather of every
 texel's neighbours and their K × K products, whatever the number of pixels (on the peer scene at
 64 × 64, 60k pixels: an iteration 0.5 ms against 3.2 ms through the pixels, a step about 30 ms
 against 90 on a 2-core CPU, where the linearisation and the assembly now take 9 ms each).
