@@ -49,7 +49,7 @@ from .objective import Problem, by_pixel, offset_texels, prior_degree
 from ..transfer import to_device
 
 __all__ = ["Stencil", "cell_side", "offsets", "cells_fit", "with_stencil", "stencil_blocks", "stencil_product", "channel_blocks",
-           "channel_product", "gauss_newton_operator", "gauss_newton_factors_of", "gauss_newton_product", "stencil_covers",
+           "channel_product", "gauss_newton_operator", "gauss_newton_product", "stencil_covers",
            "data_blocks", "data_neighbour_blocks"]
 
 #: A grid step beyond every stencil (its cell cannot hold the pixel).
@@ -306,10 +306,10 @@ def stencil_product(blocks: Float[Array, "T N K K"], neighbours: Int[Array, "T N
     return jnp.sum(blocks * v[neighbours][:, :, None, :], axis=(1, 3))
 
 
-def gauss_newton_factors_of(jac: Float[Array, "R 3 K"], problem: Problem, st: Optional[Stencil]):
-    """JᵀJ + smooth L at the per-row Jacobians ``jac`` as arrays a solver can keep across steps:
-    (its diagonal blocks (T, K, K), its factors for `gauss_newton_product`): the blocks by
-    stencil (T, N, K, K) where ``st`` (the problem's `Stencil`) is given, else
+def gauss_newton_operator(jac: Float[Array, "R 3 K"], problem: Problem, st: Optional[Stencil]):
+    """JᵀJ + smooth L at the per-row Jacobians ``jac``, as arrays a solver can keep across steps:
+    (its diagonal blocks (T, K, K), its factors for `gauss_newton_product`). The factors are its
+    blocks by stencil (T, N, K, K) where ``st`` (the problem's `Stencil`) is given, else
     `pbrfit.fitting.normal_matrix.gauss_newton_factors` (the products go through the pixels)."""
     if st is None:
         eye = jnp.eye(jac.shape[-1], dtype=jac.dtype)
@@ -320,16 +320,8 @@ def gauss_newton_factors_of(jac: Float[Array, "R 3 K"], problem: Problem, st: Op
 
 
 def gauss_newton_product(factors, v: Float[Array, "T K"], problem: Problem, st: Optional[Stencil]):
-    """(JᵀJ + smooth L) v from the factors of `gauss_newton_factors_of`."""
+    """(JᵀJ + smooth L) v from the factors of `gauss_newton_operator`: by stencil where ``st``
+    is given, else through the pixels (`pbrfit.fitting.normal_matrix.gn_product`)."""
     if st is None:
         return gn_product(factors, v, problem)
     return stencil_product(factors, st.neighbours, v)
-
-
-def gauss_newton_operator(jac: Float[Array, "R 3 K"], problem: Problem, st: Optional[Stencil]):
-    """JᵀJ + smooth L at the per-row Jacobians ``jac``, as the solvers use it: (its diagonal
-    blocks (T, K, K), the product v ↦ (JᵀJ + smooth L) v, and its blocks by stencil (T, N, K, K)).
-    By stencil where ``st`` (the problem's `Stencil`) is given, else through the pixels
-    (`pbrfit.fitting.normal_matrix.gn_product`; no stencil blocks then, None)."""
-    blocks, factors = gauss_newton_factors_of(jac, problem, st)
-    return blocks, lambda v: gauss_newton_product(factors, v, problem, st), None if st is None else factors

@@ -109,11 +109,15 @@ def capture_gbuffers(capture, cache_dir: Optional[os.PathLike] = None) -> list[G
     in a thread per core: the intersector and numpy's array operations release the GIL (the flash
     scene's 12 views of 128²: 0.16 s against 0.26 s one after another on 2 cores)."""
     frames = capture.frames
+
+    def cast(frame):
+        return compute_gbuffer(capture.mesh, frame.camera, frame.lights, cache_dir)
+
     workers = min(len(frames), os.cpu_count() or 1)
     if workers < 2:
-        return [compute_gbuffer(capture.mesh, f.camera, f.lights, cache_dir) for f in frames]
+        return [cast(f) for f in frames]
     with ThreadPoolExecutor(workers, thread_name_prefix="pbrfit-gbuffer") as pool:
-        return list(pool.map(lambda f: compute_gbuffer(capture.mesh, f.camera, f.lights, cache_dir), frames))
+        return list(pool.map(cast, frames))
 
 
 def capture_views(capture, gbuffers: Sequence[GBuffer], use_masks: bool = True) -> list[ViewInputs]:

@@ -61,7 +61,7 @@ from jaxtyping import Array, Float
 
 from ..defaults import ATOL, CG_RTOL, RTOL
 from ..normal_matrix import gradient, spd_block_inverse
-from ..stencil import gauss_newton_factors_of, gauss_newton_product, stencil_product
+from ..stencil import gauss_newton_operator, gauss_newton_product, stencil_product
 from ..objective import Problem, linearize, residuals, rounding_floor
 from ..parameters import lower, upper
 
@@ -169,7 +169,7 @@ def _active(x, g, free):
 
 class _StructuredLMState(eqx.Module):
     """The iterate's residuals r (P, 3), per-row Jacobians (R, 3, K) and E; its gradient g, the
-    diagonal blocks of JᵀJ + smooth L and that matrix's factors (`gauss_newton_factors_of`), made
+    diagonal blocks of JᵀJ + smooth L and that matrix's factors (`gauss_newton_operator`), made
     by the first step from the iterate and kept over rejected steps, and whether they are stale
     (the iterate moved since); the damping λ and Nielsen's factor ν, the count k of calls to
     `step` (step 0 only linearises), whether the last step ended the solve, the steps accepted,
@@ -239,7 +239,7 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         r = jnp.zeros((args.num_pixels, 3), y.dtype)
         jac = jnp.zeros((args.index.shape[0], 3, k), y.dtype)
         # JᵀJ's blocks and factors are made by the first step from the iterate (`stale`)
-        shapes = jax.eval_shape(lambda j: gauss_newton_factors_of(j, args, args.stencil), jac)
+        shapes = jax.eval_shape(lambda j: gauss_newton_operator(j, args, args.stencil), jac)
         blocks, factors = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
         return _StructuredLMState(
             r=r, jac=jac, loss=jnp.asarray(jnp.inf, y.dtype), g=jnp.zeros_like(y), blocks=blocks, factors=factors,
@@ -262,7 +262,7 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         st = args.stencil
 
         def assemble():  # JᵀJ and g at the iterate, once: a rejected step leaves them as they are
-            blocks, factors = gauss_newton_factors_of(state.jac, problem, st)
+            blocks, factors = gauss_newton_operator(state.jac, problem, st)
             return gradient(state.r, state.jac, x, problem), blocks, factors
 
         def take_step():
@@ -283,8 +283,7 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
                     av = a * v
                     return a * (product(av) + lam * damp * av) + (1.0 - a) * v
             else:  # the same operator by stencil: its blocks masked to the active channels, M's on the diagonal
-                full = factors
-                masked = (a[:, None, :, None] * full * a[st.neighbours][:, :, None, :]).at[:, st.centre].set(m_blocks)
+                masked = (a[:, None, :, None] * factors * a[st.neighbours][:, :, None, :]).at[:, st.centre].set(m_blocks)
 
                 def matvec(v):
                     return stencil_product(masked, st.neighbours, v)

@@ -64,7 +64,7 @@ from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ..objective import Problem
 from ..normal_matrix import gradient, spd_block_inverse
 from ..solvers.structured import pcg
-from ..stencil import gauss_newton_operator
+from ..stencil import gauss_newton_operator, gauss_newton_product
 from ...transfer import to_device
 from ..uncertainty import block_standard_errors, residual_variance
 
@@ -124,7 +124,11 @@ def profile_hessian(r: Float[Array, "P 3"], jac: Float[Array, "R 3 K"], x: Float
     others stopped short of their optimum."""
     free = problem.free
     k = free.shape[1]
-    blocks, product, _ = gauss_newton_operator(jac, problem, problem.stencil)
+    blocks, factors = gauss_newton_operator(jac, problem, problem.stencil)
+
+    def product(v):
+        return gauss_newton_product(factors, v, problem, problem.stencil)
+
     diag = jnp.diagonal(blocks, axis1=1, axis2=2)
     ridge = (PRECONDITIONER_RIDGE * jnp.max(diag * free, axis=1)
              + PRECONDITIONER_FLOOR * jnp.sum(diag * free) / jnp.maximum(jnp.sum(free), 1.0))
