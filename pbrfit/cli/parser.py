@@ -153,7 +153,7 @@ def add_fit(sub) -> None:
         p.add_argument(f"--{flag}-from", metavar="DIR", help=f"hold {name} fixed at the map in a material folder")
     p.add_argument("--quality", choices=tuple(QUALITY), default="default",
                    help="the speed ladder: draft previews in a fraction of the time (no search, repair, uniform check "
-                        "or continuation; looser conjugate gradients; pixel centres), best solves to tighter tolerances; flags given "
+                        "or continuation; looser conjugate gradients and stopping; pixel centres), best solves to tighter tolerances; flags given "
                         "with it win (default: default; docs/options.md)")
     p.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER, help=f"default {DEFAULT_SOLVER}")
     p.add_argument("--max-steps", type=int, help=f"solver steps at the final resolution (default {MAX_STEPS}); the repair's and the "
