@@ -23,6 +23,9 @@ times:
   compile overlapped in the background, init, search, solve, repair, uniform_check,
   unconstrained, post, other), the steps and the per-map RMSE against ``truth/`` (``truth_rmse``).
 
+With more than one rung, each later rung's cold, warm and script times as fractions of the first
+rung's (``ladder`` in the JSON, and printed): the speed ladder's ratios.
+
 Once per run: ``pbrfit --help``, ``pbrfit fit --help``, ``python -c "import pbrfit"`` and
 ``python -c "import pbrfit.cli.main"`` wall times, and the machine's dense float32 rate (a numpy
 matrix product, `machine_rate`).
@@ -380,6 +383,24 @@ def table_line(scene: str, rung: str, rows: list) -> str:
     return "| " + " | ".join(cells) + " |"
 
 
+#: The three times `ladder` compares: the cold command, the warm command, a second call in a script.
+TIMES = {"cold": lambda r: r["cold"]["wall_s"], "warm": lambda r: r["warm"]["wall_s"],
+         "script": lambda r: r["script"]["second_s"]}
+
+
+def ladder(results: dict) -> dict:
+    """Per scene and rung after the first, each of its `TIMES` (median over the repeats) as a
+    fraction of the first rung's: the speed ladder's ratios (the issue's target for draft: a
+    quarter)."""
+    med = lambda rows, f: statistics.median(f(r) for r in rows)  # noqa: E731
+    out = {}
+    for scene, entry in results["scenes"].items():
+        rungs = list(entry["rungs"].items())
+        (_, base), rest = rungs[0], rungs[1:]
+        out[scene] = {rung: {k: med(rows, f) / med(base, f) for k, f in TIMES.items()} for rung, rows in rest}
+    return out
+
+
 def plot(results: dict, path: Path) -> None:
     """Left: cold, warm and in-process second-call wall time per scene and rung; right: the cold
     run's time split."""
@@ -451,6 +472,12 @@ def main(argv=None) -> int:
             entry["rungs"][rung] = rows
             print(table_line(name, rung, rows), flush=True)
             write_json(results, out)
+    results["ladder"] = ladder(results)
+    first = next(iter(args.rung_args))
+    for scene, rungs in results["ladder"].items():
+        for rung, ratio in rungs.items():
+            print(f"{scene}: {rung} takes " + " / ".join(f"{ratio[k]:.2f}" for k in TIMES)
+                  + f" of {first}'s {' / '.join(TIMES)} time", flush=True)
     write_json(results, out)
     if importlib.util.find_spec("matplotlib") is None:
         print(f"wrote {out}; no chart: matplotlib is not installed (pip install -e '.[experiments]')")

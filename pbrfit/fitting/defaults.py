@@ -55,12 +55,12 @@ STRUCTURED_ONLY = ("cg_rtol", "continuation")
 #: The speed ladder (``quality=``, ``--quality``): per rung, the options it sets where they are
 #: left at their defaults. "draft" previews in a fraction of the default's time (no search,
 #: repair, uniform check or continuation; each step's conjugate gradients to 0.1; stops at a step
-#: that lowers the loss by less than 0.1% of it; pixel centres, not the automatic footprint's two
-#: fits); "best" runs
+#: that lowers the loss by less than 0.1% of it, or after half the default's steps; pixel centres,
+#: not the automatic footprint's two fits); "best" runs
 #: the solve to tighter tolerances and a larger step budget. `experiments/speed.md` measures each.
 QUALITY = {
     "draft": dict(search=False, repair=False, uniform_check=False, continuation=None, cg_rtol=0.1, rtol=1e-3,
-                  pixel_samples=1),
+                  max_steps=MAX_STEPS // 2, pixel_samples=1),
     "default": {},
     "best": dict(cg_rtol=1e-4, rtol=1e-8, max_steps=4 * MAX_STEPS),
 }

@@ -831,5 +831,5 @@ def test_a_draft_fit_runs_no_stage_and_says_so(capture, tmp_path, monkeypatch):
     assert main(["fit", str(capture), "--out", str(out), "--resolution", "8", "--quality", "draft", "--quiet"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["quality"] == "draft" and report["cg_rtol"] == 0.1 and report["continuation"] is None
-    assert report["stopping"]["rtol"] == 1e-3
+    assert report["stopping"]["rtol"] == 1e-3 and report["stopping"]["max_steps"] == 20
     assert [s["ran"] for s in report["stages"]] == [False, False, True], report["stages"]
