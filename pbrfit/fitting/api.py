@@ -62,6 +62,7 @@ import numpy as np
 from ..errors import CaptureError, listed
 from .options import IBL_MODES, FitOptions, check_model, check_normals, held_report, occlusion_mode, options_from
 from .passes import PassInputs, fit_pass
+from .runner import PendingTables
 from .result import FitResult, closed_times, map_rmse
 from .stages.footprint import (AUTO_LINEAR_PIXEL_SAMPLES, box_plausible, footprint_choice, footprint_evidence,
                                probes_footprint)
@@ -418,7 +419,9 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
             background thread as soon as their shapes are known, overlapping the grid start and
             the steps before their first use (default on; the report's ``times["compile"]`` is
             the time the fit waited for compiles, ``times["compile_background"]`` what was
-            compiled meanwhile). Off: every compile runs where it is first needed.
+            compiled meanwhile), and build the split sum's tables in a thread of their own
+            while the grid start compiles (`pbrfit.fitting.runner.PendingTables`). Off: every
+            compile runs where it is first needed, the tables before the fit.
         progress: called with {stage: "ibl", done, total} (pixels) while per-pixel IBL integrals
             are computed, then with {level, resolution, stage} as each stage begins ("grid
             start", "solving", "search", each stage after the solve that runs by its name,
@@ -590,6 +593,9 @@ def _fit_footprint(capture, options: FitOptions, model: Model, views, pixel_samp
         if bounced is None or options.occlusion_settings.bounce != "auto":
             direct = None  # (kept only for the fit without the bounce)
         tables = dataclasses.replace(both, table=both.table[rows[-2]:])
+    elif visibility is None and model.ibl is not None and options.background_compile:
+        # built in a thread while the fit compiles its programs (`PendingTables`)
+        tables = PendingTables.start(lambda: _ibl_for_capture(capture, model, env))
     else:
         tables = _ibl_for_capture(capture, model, env)
         if visibility is not None:  # the split sum's occlusion factors, one row per observation row
@@ -617,6 +623,8 @@ def _fit_footprint(capture, options: FitOptions, model: Model, views, pixel_samp
         probe.report["wall_time"] -= setup
         result = _spent_before(result if kept else dark, probe, "bounce_probe")
         occlusion["bounce"].update(used=kept, residual_sigma=sigma)
+    if isinstance(tables, PendingTables):
+        t_ibl = tables.seconds  # (in its thread, beside the fit)
     if model.ibl is not None:
         result.report["ibl"] = dict(mode=model.ibl, seconds=t_ibl, **(
             dataclasses.asdict(options.pixel_ibl_settings) if model.ibl == "per_pixel" else {}))

@@ -28,7 +28,7 @@ from .initialisation import coordinate_search, grid_initialise
 from .observations import Observations, coverage_counts, layout_for, neighbour_pairs
 from .parameters import FIT_GROUPS, channel_mask, prior
 from .resolution import default_resolution, schedule
-from .runner import Compiler, Runner, announce, jitted_normal_blocks, problem_key, search_inputs, timed
+from .runner import Compiler, PendingTables, Runner, announce, jitted_normal_blocks, problem_key, search_inputs, timed
 from .stages.pipeline import STAGES, StageState, run_stages
 from .stages.selection import SELECTABLE
 from .sharding import pixel_mesh, shard_problem
@@ -148,6 +148,10 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
     x = None if inputs.start is None else np.asarray(inputs.start, np.float32).reshape(final + (k,))
     history = []
     annealed = footprint = None
+    # tables still being built (`PendingTables`): the problems hold their placeholder until the
+    # programs the level needs first are compiling
+    pending = inputs.ibl if isinstance(inputs.ibl, PendingTables) else None
+    tables = inputs.ibl if pending is None else pending.placeholder
     if shared is None:
         shared = {}
     if "runner" not in shared:
@@ -190,7 +194,7 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
             pairs, pw = _neighbour_weights(shape, seen, e_final, prior_on)
             problem = with_stencil(Problem(
                 obs, layout.index, layout.weight, to_device(free), to_device(pairs), to_device(pw),
-                to_device(options.smooth, np.float32), to_device(options.loss_scale, np.float32), inputs.ibl,
+                to_device(options.smooth, np.float32), to_device(options.loss_scale, np.float32), tables,
                 inputs.model, options.loss, texel_grid(shape, t_final)))
             if mesh is not None:
                 problem = shard_problem(problem, mesh)
@@ -208,7 +212,7 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
                 early = with_stencil(dataclasses.replace(
                     problem, obs=inputs.centres, index=lay.index, weight=lay.weight, free=to_device(centre_free),
                     pairs=to_device(c_pairs), pair_weight=to_device(c_pw),
-                    ibl=inputs.centre_ibl if per_row(inputs.ibl) else inputs.ibl))
+                    ibl=inputs.centre_ibl if per_row(tables) else tables))
                 if mesh is not None:
                     early = shard_problem(early, mesh)
             num_free = int(np.sum(free))
@@ -223,6 +227,13 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
                 compiler.prefetch(searched, coordinate_search, x0, early, classes, *search_args)
             if early is not problem:
                 runner.prefetch(x0, problem, num_free)
+            if pending is not None:  # the grid start's program compiles while the tables are built
+                if grid_start:
+                    compiler.get(("grid",) + problem_key(early), grid_initialise, x0, early)
+                tables, pending = pending.result(), None
+                same = early is problem
+                problem = dataclasses.replace(problem, ibl=tables)
+                early = problem if same else dataclasses.replace(early, ibl=tables)
             if grid_start:
                 announce(options.progress, where, "grid start")
                 x0 = to_device(np.asarray(timed(compiler, ("grid",) + problem_key(early), grid_initialise, "init",

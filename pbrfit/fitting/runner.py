@@ -32,7 +32,8 @@ from .initialisation import classes_share_no_pixel, parity_classes
 from ..io.atomic import hold_on_abandon
 from ..transfer import to_device
 
-__all__ = ["announce", "enable_compilation_cache", "stamp_cache_entries", "Compiler", "Runner", "timed", "timed_rest", "thread_time", "problem_key",
+__all__ = ["announce", "enable_compilation_cache", "stamp_cache_entries", "Compiler", "PendingTables", "Runner",
+           "timed", "timed_rest", "thread_time", "problem_key",
            "compile_summary", "jitted_normal_blocks", "jitted_neighbour_blocks", "problem_energy"]
 
 #: With a checkpoint, the structured solver's runs go in parts of about
@@ -139,12 +140,10 @@ class Compiler:
             return
         if self.executor is None:
             self.executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pbrfit-compile")
-        config = jax.config
-        device, precision, x64 = (config.jax_default_device, config.jax_default_matmul_precision,
-                                  config.jax_enable_x64)
+        context = _caller_context()
 
         def work():
-            with jax.default_device(device), jax.default_matmul_precision(precision), jax.enable_x64(x64):
+            with context():
                 t0 = time.perf_counter()
                 compiled = fn.lower(*args, **kwargs).compile()
                 return compiled, time.perf_counter() - t0
@@ -172,6 +171,66 @@ class Compiler:
             self.executor.shutdown(wait=False, cancel_futures=True)
             self.executor = None
         self.pending.clear()
+
+
+def _caller_context():
+    """A context manager factory that sets, in another thread, the calling thread's default device,
+    matmul precision and x64 setting (JAX's contexts for them are thread-local)."""
+    config = jax.config
+    device, precision, x64 = (config.jax_default_device, config.jax_default_matmul_precision,
+                              config.jax_enable_x64)
+
+    @contextlib.contextmanager
+    def context():
+        with jax.default_device(device), jax.default_matmul_precision(precision), jax.enable_x64(x64):
+            yield
+
+    return context
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PendingTables:
+    """Tables (a pytree of arrays: the split sum's, `pbrfit.render.views.capture_ibl`) being built
+    in a thread of their own, so that a fit compiles its programs meanwhile: their structure and
+    shapes are known at once (`jax.eval_shape`), and ``placeholder`` (zeros of those shapes) serves
+    to lower and compile the programs that read them; `result` waits for the tables. On `pbrfit
+    demo`'s capture the tables took 3.9 s of a cold fit (1.5 + 0.5 s of it compiling) before
+    the fit's first compile started (experiments/speed.md)."""
+
+    placeholder: object
+    future: concurrent.futures.Future
+
+    @classmethod
+    def start(cls, build) -> "PendingTables":
+        """Build ``build()`` in a thread; returns once its shapes are known. An error in ``build``
+        is raised here when tracing finds it, else by `result`."""
+        context = _caller_context()
+        shapes = concurrent.futures.Future()
+
+        def work():
+            with context():
+                try:
+                    shapes.set_result(jax.eval_shape(build))
+                except BaseException as err:
+                    shapes.set_exception(err)
+                    raise
+                t0 = time.perf_counter()
+                return jax.block_until_ready(build()), time.perf_counter() - t0
+
+        executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pbrfit-tables")
+        future = executor.submit(work)
+        executor.shutdown(wait=False)
+        placeholder = jax.tree.map(lambda a: np.zeros(a.shape, a.dtype), shapes.result())
+        return cls(placeholder, future)
+
+    def result(self):
+        """The tables, once built."""
+        return self.future.result()[0]
+
+    @property
+    def seconds(self) -> float:
+        """How long the build took in its thread (once `result` has returned)."""
+        return self.future.result()[1]
 
 
 def compile_summary(times: Mapping[str, float]) -> str:
