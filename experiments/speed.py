@@ -369,9 +369,19 @@ COLUMNS = ("scene", "rung", "cold s", "warm s", "script 2nd s", "peak MiB", "ste
            "solve", "s/step", "floor s/step", "base", "rough")
 
 
+def median_of(rows: list, f) -> float:
+    """The median of ``f`` over the repeats ``rows``."""
+    return statistics.median(f(r) for r in rows)
+
+
+#: The three wall times of a run: the cold command, the warm command, a second call in a script.
+TIMES = {"cold": lambda r: r["cold"]["wall_s"], "warm": lambda r: r["warm"]["wall_s"],
+         "script": lambda r: r["script"]["second_s"]}
+
+
 def table_line(scene: str, rung: str, rows: list) -> str:
     """One markdown table line: medians over the repeats."""
-    med = lambda f: statistics.median(f(r) for r in rows)  # noqa: E731
+    med = lambda f: median_of(rows, f)  # noqa: E731
     rmse = rows[0]["truth_rmse"] or {}
     cells = (scene, rung, f"{med(lambda r: r['cold']['wall_s']):.1f}", f"{med(lambda r: r['warm']['wall_s']):.1f}",
              f"{med(lambda r: r['script']['second_s']):.1f}", f"{med(lambda r: r['cold']['peak_rss_mib']):.0f}",
@@ -383,21 +393,16 @@ def table_line(scene: str, rung: str, rows: list) -> str:
     return "| " + " | ".join(cells) + " |"
 
 
-#: The three times `ladder` compares: the cold command, the warm command, a second call in a script.
-TIMES = {"cold": lambda r: r["cold"]["wall_s"], "warm": lambda r: r["warm"]["wall_s"],
-         "script": lambda r: r["script"]["second_s"]}
-
-
 def ladder(results: dict) -> dict:
     """Per scene and rung after the first, each of its `TIMES` (median over the repeats) as a
     fraction of the first rung's: the speed ladder's ratios (the issue's target for draft: a
     quarter)."""
-    med = lambda rows, f: statistics.median(f(r) for r in rows)  # noqa: E731
     out = {}
     for scene, entry in results["scenes"].items():
         rungs = list(entry["rungs"].items())
         (_, base), rest = rungs[0], rungs[1:]
-        out[scene] = {rung: {k: med(rows, f) / med(base, f) for k, f in TIMES.items()} for rung, rows in rest}
+        out[scene] = {rung: {k: median_of(rows, f) / median_of(base, f) for k, f in TIMES.items()}
+                      for rung, rows in rest}
     return out
 
 
@@ -410,13 +415,13 @@ def plot(results: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     keys = [(s, r) for s in results["scenes"] for r in results["scenes"][s]["rungs"]]
-    med = lambda rows, f: statistics.median(f(x) for x in rows)  # noqa: E731
+    med = median_of
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.5))
     x = np.arange(len(keys))
-    for i, (label, f) in enumerate((("cold command", lambda r: r["cold"]["wall_s"]),
-                                    ("warm command", lambda r: r["warm"]["wall_s"]),
-                                    ("pbrfit.fit, 2nd call", lambda r: r["script"]["second_s"]))):
-        a.bar(x + (i - 1) * 0.27, [med(results["scenes"][s]["rungs"][r], f) for s, r in keys], 0.27, label=label)
+    labels = dict(cold="cold command", warm="warm command", script="pbrfit.fit, 2nd call")
+    for i, (name, f) in enumerate(TIMES.items()):
+        a.bar(x + (i - 1) * 0.27, [med(results["scenes"][s]["rungs"][r], f) for s, r in keys], 0.27,
+              label=labels[name])
     names = [f"{s}\n{r}" if len(results["rungs"]) > 1 else s for s, r in keys]
     a.set_xticks(x, names, rotation=20, fontsize=8)
     a.set_ylabel("wall time (s)")

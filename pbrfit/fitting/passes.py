@@ -227,16 +227,17 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
                 compiler.prefetch(searched, coordinate_search, x0, early, classes, *search_args)
             if early is not problem:
                 runner.prefetch(x0, problem, num_free)
+            grid_key = ("grid",) + problem_key(early)  # (the tables do not change it)
             if pending is not None:  # the grid start's program compiles while the tables are built
                 if grid_start:
-                    compiler.get(("grid",) + problem_key(early), grid_initialise, x0, early)
+                    compiler.get(grid_key, grid_initialise, x0, early)
                 tables, pending = pending.result(), None
                 same = early is problem
                 problem = dataclasses.replace(problem, ibl=tables)
                 early = problem if same else dataclasses.replace(early, ibl=tables)
             if grid_start:
                 announce(options.progress, where, "grid start")
-                x0 = to_device(np.asarray(timed(compiler, ("grid",) + problem_key(early), grid_initialise, "init",
+                x0 = to_device(np.asarray(timed(compiler, grid_key, grid_initialise, "init",
                                                  x0, early)), np.float32)
             xs, info = x0, None
             announce(options.progress, where, "solving")
