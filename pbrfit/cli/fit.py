@@ -115,8 +115,8 @@ def fit_options(args):
     continuation = _continuation(default_continuation() if args.continuation is None else args.continuation)
     # a flag a mode does not read is refused even at its default value (check_options, which sees
     # values only, refuses values other than the default)
-    for flag, given in (("--cg-rtol", args.cg_rtol is not None), ("--continuation", args.continuation is not None
-                                                                   and bool(continuation))):
+    for flag, given in (("--cg-rtol", args.cg_rtol is not None), ("--noise-rtol", args.noise_rtol is not None),
+                        ("--continuation", args.continuation is not None and bool(continuation))):
         if given and args.solver != DEFAULT_SOLVER:
             raise CaptureError(f"{flag}: only the {DEFAULT_SOLVER} solver uses it, not --solver {args.solver}")
         if given and flag == "--continuation" and args.maps == "none":
@@ -152,7 +152,8 @@ def fit_options(args):
         occlusion_settings=OcclusionSettings(bounce=args.bounce or OcclusionSettings.bounce),
         continuation=None if args.continuation is None else continuation,
         pixel_samples=pixel_samples,
-        cg_rtol=args.cg_rtol, loss_scale=args.loss_scale, uncertainty_radius=args.uncertainty_radius,
+        cg_rtol=args.cg_rtol, noise_rtol=args.noise_rtol, loss_scale=args.loss_scale,
+        uncertainty_radius=args.uncertainty_radius,
         unconstrained_sigma=args.unconstrained_sigma, model=model_changes(args.model) or None, quality=args.quality)
     # an option left out is the --quality rung's, else its default
     try:  # checked as `pbrfit.fit` checks them, worded with the flags

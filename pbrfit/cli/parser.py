@@ -18,7 +18,8 @@ from data_synth.presets import IMAGE_FORMATS, INTERREFLECTION_DEPTH, MIN_DEPTH, 
 
 from .model_flag import add_model_argument
 from ..fitting.defaults import (ATOL, CG_RTOL, CONTINUATION, DEFAULT_SOLVER, IBL_MODES, LOSS_SCALE, LOSSES,
-                                MATERIAL_MAPS, MAX_PIXEL_SAMPLES, MAX_STEPS, NOISE_LEVELS, QUALITY, RTOL, SOLVERS)
+                                MATERIAL_MAPS, MAX_PIXEL_SAMPLES, MAX_STEPS, NOISE_LEVELS, NOISE_RTOL, QUALITY, RTOL,
+                                SOLVERS)
 from ..lighting.settings import BOUNCE_MODES, OCCLUSION_MODES, PixelIBLSettings
 
 __all__ = ["build_parser", "add_fit", "default_continuation", "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "MAX_SIZE",
@@ -167,6 +168,10 @@ def add_fit(sub) -> None:
     p.add_argument("--cg-rtol", type=float, default=None, metavar="TOL",
                    help="structured solver: relative tolerance of each step's conjugate gradients, in (0, 1) "
                         f"(default {CG_RTOL:g}; 1e-2 solves about a quarter faster, see docs/results.md)")
+    p.add_argument("--noise-rtol", type=float, default=None, metavar="TOL",
+                   help="structured solver: stop at an accepted step that gains less than TOL p s^2 / 2 (p free "
+                        "channels, s^2 the residuals' variance): the maps then move by less than their noise "
+                        f"(default {NOISE_RTOL:g}: 0.1 standard error; 0: off)")
     p.add_argument("--loss", choices=LOSSES, default="l2", help="robust loss (default l2: off)")
     p.add_argument("--loss-scale", type=float, default=None, metavar="S",
                    help="the robust loss's scale, in image units: residuals past it count less "

@@ -351,6 +351,9 @@ def fit(capture, options: Optional[FitOptions] = None, *, views=None, **override
             `pbrfit.fitting.solvers.structured.RTOL` and `ATOL` for a named one).
         cg_rtol: the structured solver's conjugate-gradient tolerance per step (in (0, 1),
             default `pbrfit.fitting.solvers.structured.CG_RTOL`): looser takes fewer CG iterations per step.
+        noise_rtol: the structured solver's noise-relative stop (>= 0, default
+            `pbrfit.fitting.defaults.NOISE_RTOL`; 0: off): it stops at an accepted step that gains
+            less than noise_rtol · p σ̂² / 2, where the maps move by less than their noise.
         loss: "l2", "huber" or "cauchy" (scale `loss_scale`, image units); smooth: weight of the
             neighbour-difference prior (0 = off).
         coarse_to_fine: run the levels of `schedule`, or (default) the final resolution only.

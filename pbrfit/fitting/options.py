@@ -24,7 +24,7 @@ from .parameters import FIT_GROUPS, prior
 from .resolution import LEVEL_FACTOR
 from .objective import LOSSES
 from .solvers.names import DEFAULT_SOLVER, SOLVERS, is_structured, solver_for, solver_name
-from .solvers.structured import CG_RTOL, StructuredLM
+from .solvers.structured import CG_RTOL, NOISE_RTOL, StructuredLM
 from .checkpoint import Checkpoint
 from .stages.unconstrained import UNCONSTRAINED_SIGMA
 from .uncertainty import MAX_UNCERTAINTY_RADIUS, WINDOW_RADIUS
@@ -141,10 +141,11 @@ def check_options(options: "FitOptions") -> None:
     """`ValueError` (worded with ``options.names``) for option values out of range, or given to a
     mode that does not read them: `fit`, `pbrfit.fitting.api.fit_observations` and the command
     line refuse alike. ``solver`` is a name of `SOLVERS` or an optimistix solver; ``rtol``,
-    ``atol`` and ``cg_rtol`` None stand for the solver's own (a `StructuredLM`'s are checked as if
-    given)."""
-    (resolution, maps, solver, max_steps, coarse_steps, rtol, atol, cg_rtol, loss_scale, smooth, coarse_to_fine,
-     continuation, uncertainty_radius, unconstrained_sigma) = (getattr(options, name) for name in _CHECKED)
+    ``atol``, ``cg_rtol`` and ``noise_rtol`` None stand for the solver's own (a `StructuredLM`'s are
+    checked as if given)."""
+    (resolution, maps, solver, max_steps, coarse_steps, rtol, atol, cg_rtol, noise_rtol, loss_scale, smooth,
+     coarse_to_fine, continuation, uncertainty_radius, unconstrained_sigma) = (
+        getattr(options, name) for name in _CHECKED)
     names = options.names
     say = names.option
     if not _solver_object(solver) and (not isinstance(solver, str) or solver not in SOLVERS):
@@ -154,6 +155,7 @@ def check_options(options: "FitOptions") -> None:
         rtol, atol = (solver.rtol if rtol is None else rtol), (solver.atol if atol is None else atol)
         if cg_rtol is None and _real(solver.cg_rtol):  # (an array: a runner's, not checked)
             cg_rtol = solver.cg_rtol
+        noise_rtol = solver.noise_rtol if noise_rtol is None else noise_rtol
     if maps not in ("texture", "none"):
         raise ValueError(f"{say('maps')}: must be 'texture' or 'none', got {maps!r}")
     if resolution is not None:
@@ -169,7 +171,7 @@ def check_options(options: "FitOptions") -> None:
             continue
         if not _integer(value) or not least <= value <= most:
             raise ValueError(f"{say(name)}: must be an integer from {least} to {most}, got {value!r}")
-    for name, value in (("rtol", rtol), ("atol", atol), ("smooth", smooth)):
+    for name, value in (("rtol", rtol), ("atol", atol), ("noise_rtol", noise_rtol), ("smooth", smooth)):
         if value is None and name != "smooth":  # the solver's own
             continue
         if not (_real(value) and math.isfinite(value) and value >= 0):
@@ -190,6 +192,7 @@ def check_options(options: "FitOptions") -> None:
         and tuple(np.ravel(continuation)) != CONTINUATION
     if not is_structured(solver):  # options only the structured solver reads
         for name, given in (("cg_rtol", cg_rtol is not None and cg_rtol != CG_RTOL),
+                            ("noise_rtol", noise_rtol is not None and noise_rtol != NOISE_RTOL),
                             ("continuation", given_continuation)):
             if given:
                 raise ValueError(f"{say(name)}: only the {DEFAULT_SOLVER} solver uses it, "
@@ -220,13 +223,14 @@ class FitOptions:
     maps: str = "texture"
     model: Union[None, Model, Mapping[str, Any]] = None
     # the solver and when it stops: an optimistix solver, or its name in `SOLVERS` (made by
-    # `solver_for`); rtol, atol and cg_rtol, when given, set the solver's (None: its own)
+    # `solver_for`); rtol, atol, cg_rtol and noise_rtol, when given, set the solver's (None: its own)
     solver: Any = dataclasses.field(default_factory=StructuredLM)
     max_steps: Optional[int] = None
     coarse_steps: int = COARSE_STEPS
     rtol: Optional[float] = None
     atol: Optional[float] = None
     cg_rtol: Optional[float] = None
+    noise_rtol: Optional[float] = None
     # the objective
     loss: str = "l2"
     loss_scale: float = LOSS_SCALE
@@ -271,7 +275,8 @@ class FitOptions:
         object.__setattr__(self, "_fitted", fit)
         object.__setattr__(self, "_held", fixed)
         check_options(self)
-        object.__setattr__(self, "solver", with_tolerances(self.solver, self.rtol, self.atol, self.cg_rtol))
+        object.__setattr__(self, "solver", with_tolerances(self.solver, self.rtol, self.atol, self.cg_rtol,
+                                                                     self.noise_rtol))
         check_kinds(**{name: getattr(self, name) for name in _KINDS})
         check_names(noise_level=self.noise_level, loss=self.loss, init=self.init, wrap=self.wrap,
                     pixel_samples=self.pixel_samples)
@@ -315,7 +320,8 @@ class FitOptions:
 
 
 #: The options `check_options` checks, and those `check_kinds` checks.
-_CHECKED = ("resolution", "maps", "solver", "max_steps", "coarse_steps", "rtol", "atol", "cg_rtol", "loss_scale",
+_CHECKED = ("resolution", "maps", "solver", "max_steps", "coarse_steps", "rtol", "atol", "cg_rtol", "noise_rtol",
+            "loss_scale",
             "smooth", "coarse_to_fine", "continuation", "uncertainty_radius", "unconstrained_sigma")
 _KINDS = ("coarse_to_fine", "search", "background_compile", "uniform_check", "repair", "progress", "level_factor",
           "devices")
@@ -327,13 +333,14 @@ def _solver_object(solver) -> bool:
     return isinstance(solver, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser))
 
 
-def with_tolerances(solver, rtol=None, atol=None, cg_rtol=None):
+def with_tolerances(solver, rtol=None, atol=None, cg_rtol=None, noise_rtol=None):
     """The solver object of ``solver`` (a name of `SOLVERS`, made by `solver_for`, or an object)
-    with the tolerances given set (None: its own; ``cg_rtol`` is the structured solver's alone)."""
+    with the tolerances given set (None: its own; ``cg_rtol`` and ``noise_rtol`` are the structured
+    solver's alone)."""
     if isinstance(solver, str):
-        return solver_for(solver, rtol, atol, cg_rtol)
-    for name, value in (("rtol", rtol), ("atol", atol), ("cg_rtol", cg_rtol)):
-        if value is not None and (name != "cg_rtol" or isinstance(solver, StructuredLM)):
+        return solver_for(solver, rtol, atol, cg_rtol, noise_rtol)
+    for name, value in (("rtol", rtol), ("atol", atol), ("cg_rtol", cg_rtol), ("noise_rtol", noise_rtol)):
+        if value is not None and (name in ("rtol", "atol") or isinstance(solver, StructuredLM)):
             solver = eqx.tree_at(lambda s: getattr(s, name), solver, float(value))
     return solver
 

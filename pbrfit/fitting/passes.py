@@ -324,6 +324,7 @@ def fit_pass(obs: Observations, options, inputs: PassInputs,
     result.report["continuation"] = annealed
     if runner.structured:
         result.report["cg_rtol"] = float(options.solver.cg_rtol)
+        result.report["noise_rtol"] = float(options.solver.noise_rtol)
     if footprint is not None:
         result.report["footprint"] = footprint
     return result, np.asarray(xs, np.float32)[:t_final]

@@ -7,6 +7,7 @@ import pytest
 
 from pbrfit import FitOptions
 from pbrfit.cli.main import main
+from pbrfit.fitting.defaults import NOISE_RTOL
 from pbrfit.io.images import read_image
 
 SPEC_FILES = (
@@ -224,6 +225,9 @@ def test_fit_with_a_broken_truth_folder_warns_and_fits(capture, tmp_path, capsys
         (["--cg-rtol", "1.5"], "--cg-rtol: must be a number in (0, 1), got 1.5"),
         (["--cg-rtol", "nan"], "--cg-rtol: must be a number in (0, 1), got nan"),
         (["--cg-rtol", "0.01", "--solver", "lm"], "--cg-rtol: only the structured solver uses it, not --solver lm"),
+        (["--noise-rtol", "-0.5"], "--noise-rtol: must be a finite number >= 0, got -0.5"),
+        (["--noise-rtol", "nan"], "--noise-rtol: must be a finite number >= 0, got nan"),
+        (["--noise-rtol", "0.01", "--solver", "gn"], "--noise-rtol: only the structured solver uses it"),
         (["--unconstrained-sigma", "0"], "--unconstrained-sigma: must be a number > 0 (inf: hold no texel), got 0.0"),
         (["--unconstrained-sigma", "nan"], "--unconstrained-sigma: must be a number > 0 (inf: hold no texel), got nan"),
         (["--uncertainty-radius", "-1"], "--uncertainty-radius: must be an integer from 0 to 2, got -1"),
@@ -668,6 +672,8 @@ def test_cg_rtol_option_reaches_the_fit():
 
     assert options("--cg-rtol", "0.01").cg_rtol == 0.01
     assert options().cg_rtol == FitOptions().cg_rtol  # the library's default, CG_RTOL
+    assert options("--noise-rtol", "0").solver.noise_rtol == 0.0 and options("--noise-rtol", "0.1").noise_rtol == 0.1
+    assert options().solver.noise_rtol == FitOptions().solver.noise_rtol == NOISE_RTOL
 
 
 def test_loss_scale_option_reaches_the_fit():
@@ -816,6 +822,7 @@ def test_quality_rungs_set_the_options_not_given():
     best = options("--quality", "best")
     assert (best.max_steps, best.solver.rtol) == (QUALITY["best"]["max_steps"], QUALITY["best"]["rtol"])
     assert options("--quality", "best", "--max-steps", "7").max_steps == 7
+    assert best.solver.noise_rtol == 0.0 and options("--quality", "best", "--noise-rtol", "0.1").noise_rtol == 0.1
     lm = options("--quality", "draft", "--solver", "lm")
     assert lm.search is False and lm.cg_rtol is None and lm.continuation == FitOptions().continuation
     # the Python API: keywords given win, a copy keeps its values, an unknown rung is refused
@@ -832,4 +839,5 @@ def test_a_draft_fit_runs_no_stage_and_says_so(capture, tmp_path, monkeypatch):
     report = json.loads((out / "report.json").read_text())
     assert report["quality"] == "draft" and report["cg_rtol"] == 0.1 and report["continuation"] is None
     assert report["stopping"]["rtol"] == 1e-3 and report["stopping"]["max_steps"] == 20
+    assert report["noise_rtol"] == NOISE_RTOL
     assert [s["ran"] for s in report["stages"]] == [False, False, True], report["stages"]

@@ -22,10 +22,13 @@ from pbrfit.fitting.objective import linearize, pixel_residuals, residuals, roun
 from pbrfit.fitting.options import FitOptions
 from pbrfit.fitting.parameters import lower, upper
 from pbrfit.fitting.solvers.names import SOLVERS, is_structured, solver_for, solver_name
-from pbrfit.fitting.solvers.structured import ATOL, CG_RTOL, HISTORY, RTOL, LMCarry, StructuredLM, solve
+from pbrfit.fitting.solvers.structured import (ATOL, CG_RTOL, HISTORY, NOISE_RTOL, RTOL, LMCarry, StructuredLM,
+                                                  solve)
 from test_sharding import _problem, _start
 
-# The solver on `_problem` from the grid start with rtol 1e-7 and atol 1e-6, 30 steps at most: E
+# The solver on `_problem` from the grid start with rtol 1e-7 and atol 1e-6 and no noise-relative
+# stop (the loop it replaced had none; `test_a_noisy_solve_stops_once_a_step_gains_less_than_its_noise`
+# has it), 30 steps at most: E
 # and the mean of each channel of x (CPU, float32). Both reach E's float32 floor at the third step
 # and stop at the first step, accepted or refused, whose predicted and actual gains are both within
 # rtol · E (before that test, the refused steps went on until λ passed LAMBDA_MAX: 11 steps with
@@ -57,15 +60,16 @@ def test_the_fit_options_hold_optimistix_solvers():
     solver = FitOptions().solver
     assert isinstance(solver, optx.AbstractLeastSquaresSolver) and isinstance(solver, StructuredLM)
     assert pbrfit.StructuredLM is StructuredLM and is_structured(solver)
-    assert (solver.rtol, solver.atol, solver.cg_rtol) == (RTOL, ATOL, CG_RTOL)
+    assert (solver.rtol, solver.atol, solver.cg_rtol, solver.noise_rtol) == (RTOL, ATOL, CG_RTOL, NOISE_RTOL)
     for name in SOLVERS:  # every name is an optimistix solver, and the report names it again
         made = FitOptions(solver=name).solver
         assert isinstance(made, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser)), name
         assert solver_name(made) == name and (made.rtol, made.atol) == (RTOL, ATOL)
         assert is_structured(made) == (name == "structured")
     # the tolerance options set the solver's; a user's solver keeps its own unless they are given
-    tuned = FitOptions(rtol=1e-7, atol=1e-4, cg_rtol=0.01).solver
-    assert (tuned.rtol, tuned.atol, tuned.cg_rtol) == (1e-7, 1e-4, 0.01)
+    tuned = FitOptions(rtol=1e-7, atol=1e-4, cg_rtol=0.01, noise_rtol=0.1).solver
+    assert (tuned.rtol, tuned.atol, tuned.cg_rtol, tuned.noise_rtol) == (1e-7, 1e-4, 0.01, 0.1)
+    assert FitOptions(quality="best").solver.noise_rtol == 0.0 and FitOptions(solver="lm").noise_rtol is None
     assert FitOptions(solver="lm", atol=1e-3).solver == solver_for("lm", RTOL, 1e-3)
     own = optx.LevenbergMarquardt(rtol=1e-3, atol=1e-2)
     options = FitOptions(solver=own)
@@ -75,6 +79,9 @@ def test_the_fit_options_hold_optimistix_solvers():
     assert FitOptions(solver=StructuredLM(cg_rtol=0.1)).solver.cg_rtol == 0.1
     for bad, match in ((dict(solver=optx.Bisection(1e-6, 1e-6)), "solver: must be one of structured, lm"),
                        (dict(solver=StructuredLM(cg_rtol=2.0)), "cg_rtol: must be a number in"),
+                       (dict(solver=StructuredLM(noise_rtol=-0.1)), "noise_rtol: must be a finite number >= 0"),
+                       (dict(noise_rtol=float("inf")), "noise_rtol: must be a finite number >= 0"),
+                       (dict(solver="lm", noise_rtol=0.1), "noise_rtol: only the structured solver uses it"),
                        (dict(solver=own, cg_rtol=0.1), "cg_rtol: only the structured solver uses it, not "
                                                        "solver='LevenbergMarquardt'")):
         with pytest.raises(ValueError, match=match):
@@ -84,7 +91,8 @@ def test_the_fit_options_hold_optimistix_solvers():
 def test_structured_lm_steps_as_the_loop_it_replaced(start):
     smooth, problem, x0 = start
     loss, mean = REFERENCE[smooth]
-    sol = optx.least_squares(lambda x, p: residuals(x, p), StructuredLM(rtol=1e-7, atol=1e-6), x0, args=problem,
+    sol = optx.least_squares(lambda x, p: residuals(x, p), StructuredLM(rtol=1e-7, atol=1e-6, noise_rtol=0.0), x0,
+                             args=problem,
                              options=dict(max_steps=jnp.asarray(30, jnp.int32)),
                              max_steps=None, throw=False)
     jax.block_until_ready(sol.value)
@@ -128,9 +136,30 @@ def test_a_noiseless_solve_stops_once_e_is_within_the_targets_rounding():
     assert float(jax.jit(linearize)(x0, noisy)[2]) > 1e6 * float(rounding_floor(noisy))
 
 
+def test_a_noisy_solve_stops_once_a_step_gains_less_than_its_noise():
+    """Noisy targets (σ 0.01), no rtol or atol: without the noise-relative stop the solve goes on
+    with refused steps at E's float32 floor; with it (the default) it stops at the first
+    accepted step whose actual and predicted gains are within NOISE_RTOL · E · p / (n - p), where
+    E and x are those of the longer solve to well within that tolerance and the noise."""
+    problem, truth = _problem(smooth=0.0)
+    x0 = grid_initialise(_start(problem), problem)
+    runs = {nr: solve(x0, problem, StructuredLM(rtol=0.0, atol=0.0, noise_rtol=nr), 40) for nr in (0.0, NOISE_RTOL)}
+    (x_all, all_, _, _), (x_stop, stop, _, _) = runs[0.0], runs[NOISE_RTOL]
+    assert int(stop.steps) < int(all_.steps) and int(stop.accepted) == int(stop.steps), (stop.steps, all_.steps)
+    p = float(np.sum(np.asarray(problem.free)))
+    n = 3 * problem.num_pixels
+    tol = NOISE_RTOL * float(stop.loss) * p / (n - p)
+    history = np.asarray(stop.history)[: int(stop.steps) + 1]
+    assert history[-2] - history[-1] <= tol < history[-3] - history[-2], (history, tol)  # the last step's gain
+    assert 0.0 <= float(stop.loss) - float(all_.loss) <= tol
+    # the noise moves x by about 0.01 / sqrt(pixels per texel); the stop leaves far less than that
+    assert np.max(np.abs(np.asarray(x_stop) - np.asarray(x_all))) < 1e-4
+    assert np.max(np.abs(np.asarray(x_stop) - truth)) > 1e-3
+
+
 def test_one_program_serves_every_step_budget(start):
     smooth, problem, x0 = start
-    solver = StructuredLM(rtol=1e-7, atol=1e-6)
+    solver = StructuredLM(rtol=1e-7, atol=1e-6, noise_rtol=0.0)
     compiled = solve.lower(x0, problem, solver, jnp.asarray(0, jnp.int32)).compile()
     x, stats, r, jac = compiled(x0, problem, solver, jnp.asarray(0, jnp.int32))
     # 0 steps only linearises, at the start clipped into the box (the runner's Jacobian)
@@ -153,7 +182,7 @@ def test_a_solve_run_in_parts_takes_the_steps_of_one_run_bit_for_bit(start, step
     first call only linearises again). A stopping test ends the solve in 30 steps (`STOPS`),
     the budget in 3."""
     _, problem, x0 = start
-    solver = StructuredLM(rtol=1e-7, atol=1e-6)
+    solver = StructuredLM(rtol=1e-7, atol=1e-6, noise_rtol=0.0)
     budget = jnp.asarray(steps, jnp.int32)
     compiled = solve.lower(x0, problem, solver, budget, LMCarry.start()).compile()
     whole = compiled(x0, problem, solver, budget, LMCarry.start())
@@ -172,7 +201,8 @@ def test_a_solve_run_in_parts_takes_the_steps_of_one_run_bit_for_bit(start, step
 
 def test_without_a_budget_optimistix_max_steps_bounds_the_solve(start):
     _, problem, x0 = start
-    sol = optx.least_squares(lambda x, p: residuals(x, p), StructuredLM(rtol=1e-7, atol=1e-6), x0, args=problem,
+    sol = optx.least_squares(lambda x, p: residuals(x, p), StructuredLM(rtol=1e-7, atol=1e-6, noise_rtol=0.0), x0,
+                             args=problem,
                              max_steps=3, throw=False)
     assert int(sol.stats["num_steps"]) == 3 and int(sol.stats["steps"]) == 2
     assert sol.result == optx.RESULTS.nonlinear_max_steps_reached

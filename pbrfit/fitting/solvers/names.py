@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Optional
 
-from ..defaults import ATOL, CG_RTOL, DEFAULT_SOLVER, OPTX_SOLVERS, RTOL, SOLVERS
+from ..defaults import ATOL, CG_RTOL, DEFAULT_SOLVER, NOISE_RTOL, OPTX_SOLVERS, RTOL, SOLVERS
 from .optx import make_solver
 from .structured import StructuredLM
 
@@ -19,12 +19,14 @@ __all__ = ["DEFAULT_SOLVER", "SOLVERS", "solver_for", "solver_name", "is_structu
 
 
 def solver_for(name: str, rtol: Optional[float] = None, atol: Optional[float] = None,
-               cg_rtol: Optional[float] = None):
+               cg_rtol: Optional[float] = None, noise_rtol: Optional[float] = None):
     """The solver named `name` (one of `SOLVERS`), with the tolerances given (None: `RTOL`,
-    `ATOL`, `CG_RTOL`; ``cg_rtol`` is the structured solver's alone)."""
+    `ATOL`, `CG_RTOL`, `NOISE_RTOL`; ``cg_rtol`` and ``noise_rtol`` are the structured solver's
+    alone)."""
     rtol, atol = RTOL if rtol is None else float(rtol), ATOL if atol is None else float(atol)
     if name == DEFAULT_SOLVER:
-        return StructuredLM(rtol, atol, CG_RTOL if cg_rtol is None else float(cg_rtol))
+        return StructuredLM(rtol, atol, CG_RTOL if cg_rtol is None else float(cg_rtol),
+                            NOISE_RTOL if noise_rtol is None else float(noise_rtol))
     return make_solver(name, rtol, atol)
 
 

@@ -59,13 +59,14 @@ import optimistix as optx
 from jax import lax
 from jaxtyping import Array, Float
 
-from ..defaults import ATOL, CG_RTOL, RTOL
+from ..defaults import ATOL, CG_RTOL, NOISE_RTOL, RTOL
 from ..normal_matrix import gradient, spd_block_inverse
 from ..stencil import gauss_newton_operator, gauss_newton_product, stencil_product
 from ..objective import Problem, linearize, residuals, rounding_floor
 from ..parameters import lower, upper
 
-__all__ = ["StructuredLM", "solve", "pcg", "LMStats", "LMCarry", "RTOL", "ATOL", "CG_RTOL", "CG_MAX_STEPS",
+__all__ = ["StructuredLM", "solve", "pcg", "LMStats", "LMCarry", "RTOL", "ATOL", "NOISE_RTOL", "CG_RTOL",
+           "CG_MAX_STEPS",
            "DAMPING_FLOOR", "LAMBDA_INIT", "LAMBDA_MAX", "HISTORY"]
 
 #: Relative floor on the damping diagonal, times the mean diagonal of the free channels: keeps the
@@ -203,7 +204,10 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
     Stops at an accepted step that lowers E by less than ``rtol · E``, at a step, accepted or
     not, whose predicted and actual changes of E are both within ``rtol · E`` (MINPACK's ftol
     test: J. J. Moré, B. S. Garbow, K. E. Hillstrom, "User guide for MINPACK-1", ANL-80-74, 1980)
-    or that moves no value by more than `atol` (in `norm`, the max norm by default), once E is
+    or that moves no value by more than `atol` (in `norm`, the max norm by default), at an
+    accepted step whose predicted and actual decreases of E are both within
+    ``noise_rtol · E · p / (n - p)`` (p free channels, n pixel residuals: ``noise_rtol`` times
+    p σ̂² / 2, σ̂² the residuals' variance; `pbrfit.fitting.defaults.NOISE_RTOL` says why), once E is
     within the targets' float32 rounding (`pbrfit.fitting.objective.rounding_floor`: there E's
     changes are rounding, larger than ``rtol · E``, and the tests above wait for λ), when λ
     passes `LAMBDA_MAX`, or after ``options["max_steps"]`` steps (an int32 array, so that one compiled
@@ -223,6 +227,7 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
     rtol: float = RTOL
     atol: float = ATOL
     cg_rtol: Any = CG_RTOL
+    noise_rtol: float = NOISE_RTOL
     cg_max_steps: int = eqx.field(static=True, default=CG_MAX_STEPS)
     norm: Callable = optx.max_norm
 
@@ -323,7 +328,12 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         floor = (predicted <= tol) & (jnp.abs(actual) <= tol)
         # E at the targets' float32 rounding: no step can tell anything more from the images
         rounded = loss_new <= rounding_floor(problem)
-        done = ~first & ((accept & (actual <= tol)) | floor | rounded | (moved <= self.atol) | (lam_new > LAMBDA_MAX))
+        # a step that gains less than noise_rtol · p σ̂² / 2: the maps move by less than their noise
+        free = jnp.sum(problem.free)
+        noise_tol = self.noise_rtol * loss * free / jnp.maximum(3.0 * problem.num_pixels - free, 1.0)
+        noise = accept & (actual <= noise_tol) & (predicted <= noise_tol)
+        done = ~first & ((accept & (actual <= tol)) | noise | floor | rounded | (moved <= self.atol)
+                         | (lam_new > LAMBDA_MAX))
         lam_new = jnp.where(first, lam, lam_new)
         nu_new = jnp.where(first, nu, nu_new)
         history = jnp.where(again, state.history, state.history.at[state.k].set(loss_new, mode="drop"))
