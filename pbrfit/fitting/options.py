@@ -275,8 +275,8 @@ class FitOptions:
         object.__setattr__(self, "_fitted", fit)
         object.__setattr__(self, "_held", fixed)
         check_options(self)
-        object.__setattr__(self, "solver", with_tolerances(self.solver, self.rtol, self.atol, self.cg_rtol,
-                                                                     self.noise_rtol))
+        solver = with_tolerances(self.solver, self.rtol, self.atol, self.cg_rtol, self.noise_rtol)
+        object.__setattr__(self, "solver", solver)
         check_kinds(**{name: getattr(self, name) for name in _KINDS})
         check_names(noise_level=self.noise_level, loss=self.loss, init=self.init, wrap=self.wrap,
                     pixel_samples=self.pixel_samples)
@@ -321,8 +321,7 @@ class FitOptions:
 
 #: The options `check_options` checks, and those `check_kinds` checks.
 _CHECKED = ("resolution", "maps", "solver", "max_steps", "coarse_steps", "rtol", "atol", "cg_rtol", "noise_rtol",
-            "loss_scale",
-            "smooth", "coarse_to_fine", "continuation", "uncertainty_radius", "unconstrained_sigma")
+            "loss_scale", "smooth", "coarse_to_fine", "continuation", "uncertainty_radius", "unconstrained_sigma")
 _KINDS = ("coarse_to_fine", "search", "background_compile", "uniform_check", "repair", "progress", "level_factor",
           "devices")
 

@@ -66,8 +66,7 @@ from ..objective import Problem, linearize, residuals, rounding_floor
 from ..parameters import lower, upper
 
 __all__ = ["StructuredLM", "solve", "pcg", "LMStats", "LMCarry", "RTOL", "ATOL", "NOISE_RTOL", "CG_RTOL",
-           "CG_MAX_STEPS",
-           "DAMPING_FLOOR", "LAMBDA_INIT", "LAMBDA_MAX", "HISTORY"]
+           "CG_MAX_STEPS", "DAMPING_FLOOR", "LAMBDA_INIT", "LAMBDA_MAX", "HISTORY"]
 
 #: Relative floor on the damping diagonal, times the mean diagonal of the free channels: keeps the
 #: damped blocks invertible for channels the images barely constrain (roughness without highlights).
