@@ -415,12 +415,11 @@ def plot(results: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     keys = [(s, r) for s in results["scenes"] for r in results["scenes"][s]["rungs"]]
-    med = median_of
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.5))
     x = np.arange(len(keys))
     labels = dict(cold="cold command", warm="warm command", script="pbrfit.fit, 2nd call")
     for i, (name, f) in enumerate(TIMES.items()):
-        a.bar(x + (i - 1) * 0.27, [med(results["scenes"][s]["rungs"][r], f) for s, r in keys], 0.27,
+        a.bar(x + (i - 1) * 0.27, [median_of(results["scenes"][s]["rungs"][r], f) for s, r in keys], 0.27,
               label=labels[name])
     names = [f"{s}\n{r}" if len(results["rungs"]) > 1 else s for s, r in keys]
     a.set_xticks(x, names, rotation=20, fontsize=8)
@@ -430,7 +429,8 @@ def plot(results: dict, path: Path) -> None:
     for part in SPLIT:
         if part == "compile_background":  # overlapped: not part of the wall time
             continue
-        h = np.array([med(results["scenes"][s]["rungs"][r], lambda q: q["cold"]["times"].get(part, 0.0)) for s, r in keys])
+        h = np.array([median_of(results["scenes"][s]["rungs"][r], lambda q: q["cold"]["times"].get(part, 0.0))
+                      for s, r in keys])
         b.bar(x, h, 0.6, bottom=bottom, label=part)
         bottom += h
     b.set_xticks(x, names, rotation=20, fontsize=8)

@@ -328,8 +328,10 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         # E at the targets' float32 rounding: no step can tell anything more from the images
         rounded = loss_new <= rounding_floor(problem)
         # a step that gains less than noise_rtol · p σ̂² / 2: the maps move by less than their noise
+        # (σ̂² = 2 E / (n - p), as the host's `pbrfit.fitting.uncertainty.residual_variance`)
         free = jnp.sum(problem.free)
-        noise_tol = self.noise_rtol * loss * free / jnp.maximum(3.0 * problem.num_pixels - free, 1.0)
+        sigma2 = 2.0 * loss / jnp.maximum(3.0 * problem.num_pixels - free, 1.0)
+        noise_tol = self.noise_rtol * free * sigma2 / 2.0
         noise = accept & (actual <= noise_tol) & (predicted <= noise_tol)
         done = ~first & ((accept & (actual <= tol)) | noise | floor | rounded | (moved <= self.atol)
                          | (lam_new > LAMBDA_MAX))
