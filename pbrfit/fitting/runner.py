@@ -14,6 +14,7 @@ import concurrent.futures
 import contextlib
 import dataclasses
 import itertools
+import operator
 import time
 from pathlib import Path
 from typing import Mapping, Optional
@@ -294,6 +295,10 @@ def timed(compiler: Compiler, key, fn, name: str, *args):
     return out
 
 
+#: The structured solver's tolerances, which its runs take as arrays (not static values).
+_TOLERANCES = operator.attrgetter("rtol", "atol", "cg_rtol", "noise_rtol")
+
+
 class Runner:
     """Runs a solver (an optimistix solver object), compiled ahead of time once per problem shape
     (`Compiler`): once per fit, or twice when the start runs on pixel centres
@@ -310,8 +315,8 @@ class Runner:
 
     def __init__(self, solver, progress, compiler: Compiler, checkpoint=None, where=None):
         if isinstance(solver, structured.StructuredLM):
-            # cg_rtol as an array: one executable serves every tolerance
-            solver = eqx.tree_at(lambda s: s.cg_rtol, solver, to_device(solver.cg_rtol, np.float32))
+            # the tolerances as arrays: one executable serves every tolerance (each quality rung)
+            solver = eqx.tree_at(_TOLERANCES, solver, [to_device(t, np.float32) for t in _TOLERANCES(solver)])
         self.solver, self.progress, self.compiler = solver, progress, compiler
         self.checkpoint, self.where = checkpoint, {} if where is None else where
         self.clock = compiler.clock

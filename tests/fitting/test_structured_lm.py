@@ -175,6 +175,26 @@ def test_one_program_serves_every_step_budget(start):
     assert float(stats30.loss) == pytest.approx(REFERENCE[smooth][0], rel=1e-5)
 
 
+def test_the_runner_gives_every_tolerance_one_program():
+    """The runner passes the structured solver's tolerances (rtol, atol, cg_rtol, noise_rtol) as
+    arrays: solvers that differ only in them, as the quality rungs do, lower to the same program,
+    and the program stops each solve at its own tolerances."""
+    from pbrfit.fitting.runner import Compiler, Runner
+
+    problem, _ = _problem()
+    x0 = grid_initialise(_start(problem), problem)
+    budget = jnp.asarray(30, jnp.int32)
+    tight, loose = (Runner(StructuredLM(rtol, atol, cg_rtol, noise_rtol), None, Compiler({})).solver
+                    for rtol, atol, cg_rtol, noise_rtol in ((1e-7, 1e-6, 1e-3, 0.0), (1e-2, 1e-3, 0.1, 1.0)))
+    lowered = solve.lower(x0, problem, tight, budget)
+    assert lowered.as_text() == solve.lower(x0, problem, loose, budget).as_text()
+    compiled = lowered.compile()
+    _, stats_tight, *_ = compiled(x0, problem, tight, budget)
+    _, stats_loose, *_ = compiled(x0, problem, loose, budget)
+    assert int(stats_loose.steps) < int(stats_tight.steps), (stats_loose.steps, stats_tight.steps)
+    assert float(stats_tight.loss) <= float(stats_loose.loss)
+
+
 @pytest.mark.parametrize("steps", [30, 3])
 def test_a_solve_run_in_parts_takes_the_steps_of_one_run_bit_for_bit(start, steps):
     """A solve cut into parts of 1, 2, 3, ... steps, each going on from the last one's x and
