@@ -430,9 +430,4 @@ def _four_device_env() -> dict:
 
 
 if __name__ == "__main__":
-    # the run's persistent compilation cache (tests/conftest.py): the fits below load the programs
-    # the checks before them compiled at the same shapes
-    from pbrfit.fitting.runner import enable_compilation_cache
-
-    enable_compilation_cache(os.path.join(os.environ["PBRFIT_CACHE"], "xla"))
     print(json.dumps(_multi_device_report()))

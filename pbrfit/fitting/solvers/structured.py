@@ -215,18 +215,19 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
     The final state holds the residuals ``r`` and Jacobians ``jac`` at the returned x, and
     `postprocess` the stats of `LMStats`, E at each step among them (`solve` gathers both).
 
-    ``cg_rtol``: the relative residual at which each step's conjugate gradients stop (an array
-    too, where one program should serve every tolerance); ``cg_max_steps``: their most iterations.
+    ``cg_rtol``: the relative residual at which each step's conjugate gradients stop;
+    ``cg_max_steps``: their most iterations (static). The four tolerances may be arrays, as
+    `pbrfit.fitting.runner.Runner` passes them, so that one program serves every tolerance.
 
     ``options["carry"]``, an `LMCarry`, goes on from where an earlier run of the same solve
     stopped (its x is the start): the run's first call to `step` linearises there and takes no
     step, and the budget still counts the steps from the solve's start.
     """
 
-    rtol: float = RTOL
-    atol: float = ATOL
+    rtol: Any = RTOL
+    atol: Any = ATOL
     cg_rtol: Any = CG_RTOL
-    noise_rtol: float = NOISE_RTOL
+    noise_rtol: Any = NOISE_RTOL
     cg_max_steps: int = eqx.field(static=True, default=CG_MAX_STEPS)
     norm: Callable = optx.max_norm
 
