@@ -11,6 +11,7 @@ once. A command's own module, which loads the fit's stack, is imported after par
 from __future__ import annotations
 
 import argparse
+import math
 
 from data_synth.mitsuba_render import NOISE_TARGET
 from data_synth.noise import NOISE_MODELS
@@ -171,7 +172,7 @@ def add_fit(sub) -> None:
     p.add_argument("--noise-rtol", type=float, default=None, metavar="TOL",
                    help="structured solver: stop at an accepted step that gains less than TOL p s^2 / 2 (p free "
                         "channels, s^2 the residuals' variance): the maps then move by less than their noise "
-                        f"(default {NOISE_RTOL:g}: 0.1 standard error; 0: off)")
+                        f"(default {NOISE_RTOL:g}: {math.sqrt(NOISE_RTOL):g} standard error; 0: off)")
     p.add_argument("--loss", choices=LOSSES, default="l2", help="robust loss (default l2: off)")
     p.add_argument("--loss-scale", type=float, default=None, metavar="S",
                    help="the robust loss's scale, in image units: residuals past it count less "
