@@ -39,11 +39,16 @@ __all__ = [
     "shading_inputs",
     "render_view",
     "RENDER_CHUNK",
+    "RENDER_MIN_ROWS",
+    "render_rows",
 ]
 
 #: Pixels shaded per compiled call in `render_view`: bounds memory for large views (the IBL and
 #: Monte Carlo paths hold per-pixel sample arrays) while keeping one compilation per chunk size.
 RENDER_CHUNK = 65536
+#: A view of one chunk is padded to the next of 2^k and 1.5 · 2^k rows, at least these: the views of
+#: a capture, whose hit counts all differ, share a compile or two (`render_rows`).
+RENDER_MIN_ROWS = 256
 
 
 class ViewInputs(eqx.Module):
@@ -242,9 +247,31 @@ def _slice(view: ViewInputs, start: int, stop: int) -> ViewInputs:
     return jax.tree_util.tree_map(lambda a: a[start:stop], view)
 
 
+def render_rows(count: int, chunk: int = RENDER_CHUNK) -> int:
+    """The rows `radiance_view` shades a view of ``count`` pixels in, per call: the least of
+    `RENDER_MIN_ROWS` · 2^k and 1.5 · `RENDER_MIN_ROWS` · 2^k that holds them (a third of the rows
+    padding at most), or ``chunk``. The demo's 8 views of 4,288 to 5,761 pixels: one compile of
+    6,144 rows instead of 8, 0.8 s each."""
+    size = RENDER_MIN_ROWS
+    while size < count:
+        size = size * 3 // 2 if size & (size - 1) == 0 else size * 4 // 3
+    return min(size, chunk)
+
+
+def _pad_rows(a, size: int, fill=None):
+    """``a``'s rows followed by copies of its last row (or rows of ``fill``) up to ``size`` rows: on
+    the host, as a pad run eagerly compiles once per shape; traced where ``a`` is (under a jit)."""
+    traced = isinstance(a, jax.core.Tracer)
+    xp, a = (jnp, a) if traced else (np, np.asarray(a))
+    extra = size - a.shape[0]
+    tail = xp.repeat(a[-1:], extra, 0) if fill is None else xp.full((extra,) + a.shape[1:], fill, a.dtype)
+    out = xp.concatenate([a, tail])
+    return out if traced else to_device(out)
+
+
 def _pad(view: ViewInputs, size: int) -> ViewInputs:
-    extra = size - view.num_pixels
-    return jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)]), view)
+    """``view`` with its last row repeated up to ``size`` rows."""
+    return jax.tree_util.tree_map(lambda a: _pad_rows(a, size), view)
 
 
 def radiance_view(
@@ -262,20 +289,18 @@ def radiance_view(
     if count == 0:
         return jnp.zeros((0, 3), jnp.float32)
     per_pixel = per_row(ibl)
-    # a view of one chunk goes as it is: a slice, pad or concatenation run eagerly compiles once
-    # per shape (the test suite compiled hundreds)
+    # a view of one chunk is not sliced (a slice run eagerly compiles once per shape)
     whole = count <= chunk
     pieces = []
     for start in range(0, count, chunk):
         part = view if whole else _slice(view, start, min(start + chunk, count))
         rows = dataclasses.replace(ibl, table=ibl.table[start:start + chunk]) if per_pixel and not whole else ibl
         n = part.num_pixels
-        size = n if whole else chunk  # pad the tail so every chunk reuses one compilation
+        size = render_rows(n, chunk)  # padded: views and chunks of nearby sizes reuse one compilation
         if n < size:
             part = _pad(part, size)
             if per_pixel:
-                rows = dataclasses.replace(rows, table=jnp.concatenate(
-                    [rows.table, jnp.zeros((size - n,) + rows.table.shape[1:], rows.table.dtype)]))
+                rows = dataclasses.replace(rows, table=_pad_rows(rows.table, size, fill=0.0))
         out = _radiance_chunk_jit(part, material, model, rows, wrap, normal_convention)
         pieces.append(out if n == size else out[:n])
     return pieces[0] if len(pieces) == 1 else jnp.concatenate(pieces, axis=0)

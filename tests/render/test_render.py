@@ -12,7 +12,8 @@ from pbrfit import brdf
 from pbrfit.physics.lights import point_light
 from pbrfit.physics.material import Material, apply_normal_map, material_at
 from pbrfit.physics.model import Model
-from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view, render_view, shade
+from pbrfit.render.shade import (RENDER_CHUNK, ViewInputs, light_arrays, radiance_view, render_rows, render_view,
+                                 shade)
 from pbrfit.physics.textures import bilinear_weights, build_mips, sample_bilinear
 
 
@@ -91,6 +92,28 @@ def test_chunked_radiance_equals_whole():
     # equal to float32 rounding: the two programs are compiled for different shapes, and near a
     # highlight's peak one ulp of n·h moves D by 2e-5 relative (roughness 0.3)
     np.testing.assert_allclose(np.asarray(chunked), np.asarray(whole), rtol=1e-4)
+
+
+def test_views_of_nearby_sizes_share_one_compile():
+    """A capture's views hit different numbers of pixels: each is padded to the next of 2^k and
+    1.5 · 2^k rows (`render_rows`), so views of 400 to 512 pixels compile once, and each view's
+    radiance is that of its own pixels alone."""
+    from pbrfit.render import shade as shade_module
+    from pbrfit.render.views import view_rows
+
+    assert [render_rows(n) for n in (1, 256, 257, 385, 513, 769, 5761, 40_000, 10**6)] == [
+        256, 256, 384, 512, 768, 1024, 6144, 49_152, RENDER_CHUNK]
+    vi, *_ = _plane_view(n=24)  # 576 pixels
+    mat = Material.uniform((0.2, 0.6, 0.9), 0.5, 0.3, size=4)
+    model = Model(diffuse="burley")
+    whole = np.asarray(radiance_view(vi, mat, model))
+    compiled = shade_module._radiance_chunk_jit._cache_size()
+    for n in (400, 487, 512):
+        rows = np.sort(np.random.default_rng(n).choice(576, n, replace=False))
+        got = radiance_view(view_rows(vi, rows), mat, model)
+        assert got.shape == (n, 3)
+        np.testing.assert_allclose(np.asarray(got), whole[rows], rtol=1e-6, atol=1e-7)
+    assert shade_module._radiance_chunk_jit._cache_size() <= compiled + 1  # one program of 512 rows (or none: cached)
 
 
 def test_shade_gradients_finite_at_extremes():
