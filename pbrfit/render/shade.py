@@ -248,10 +248,12 @@ def _slice(view: ViewInputs, start: int, stop: int) -> ViewInputs:
 
 
 def render_rows(count: int, chunk: int = RENDER_CHUNK) -> int:
-    """The rows `radiance_view` shades a view of ``count`` pixels in, per call: the least of
-    `RENDER_MIN_ROWS` · 2^k and 1.5 · `RENDER_MIN_ROWS` · 2^k that holds them (a third of the rows
-    padding at most), or ``chunk``. The demo's 8 views of 4,288 to 5,761 pixels: one compile of
-    6,144 rows instead of 8, 0.8 s each."""
+    """The rows a view of ``count`` pixels is shaded in: the least of `RENDER_MIN_ROWS` · 2^k and
+    1.5 · `RENDER_MIN_ROWS` · 2^k that holds them, up to ``chunk`` (a third of the rows padding at
+    most), past it a multiple of ``chunk``. The demo's 8 views of 4,288 to 5,761 pixels: one
+    compile of 6,144 rows instead of 8, 0.8 s each."""
+    if count > chunk:
+        return -(-count // chunk) * chunk
     size = RENDER_MIN_ROWS
     while size < count:
         size = size * 3 // 2 if size & (size - 1) == 0 else size * 4 // 3
@@ -296,7 +298,7 @@ def radiance_view(
         part = view if whole else _slice(view, start, min(start + chunk, count))
         rows = dataclasses.replace(ibl, table=ibl.table[start:start + chunk]) if per_pixel and not whole else ibl
         n = part.num_pixels
-        size = render_rows(n, chunk)  # padded: views and chunks of nearby sizes reuse one compilation
+        size = render_rows(n, chunk) if whole else chunk  # padded: views of nearby sizes and chunks reuse a compilation
         if n < size:
             part = _pad(part, size)
             if per_pixel:

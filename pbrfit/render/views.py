@@ -25,7 +25,7 @@ from ..scene.gbuffer import GBuffer, compute_gbuffer, silhouette
 from ..io.json_fields import JSONError, parse_json
 from ..physics.material import Material
 from ..physics.model import Model
-from .shade import ViewInputs, prepare_view, render_view
+from .shade import ViewInputs, prepare_view, render_rows, render_view
 from ..lighting.environment import environment_lookup, load_environment
 from ..lighting.ibl import IBLSettings, brdf_tables, build_ibl
 from ..scene.capture import Capture, EnvironmentSpec, load_capture
@@ -36,6 +36,7 @@ from ..io.lights import light_from_json
 
 __all__ = [
     "view_rows",
+    "padded_view",
     "default_cache_dir",
     "model_for_capture",
     "capture_environment", "environment_is_dark",
@@ -195,18 +196,11 @@ def render_capture(
 
             background = encode(_sky(environment, frame.camera), frame.exposure, capture.tonemap, frame.color_space)
         image, alpha = render_view(
-            view, material, model, ibl, frame.exposure, capture.tonemap, frame.color_space, background=background
+            padded_view(view), material, model, ibl, frame.exposure, capture.tonemap, frame.color_space,
+            background=background
         )
         out.append((np.asarray(image), np.asarray(alpha)))
     return out
-
-
-#: `render --supersample` pads each sample's hit pixels to a multiple of 1/PAD_BUCKETS of the frame
-#: (at least PAD_ROWS rows): the shading compiles once per padded size, and the hit count of a
-#: sample differs from the next by the few pixels its silhouette moves (a compile per sample
-#: took 84 s for 256 samples of a 96 x 96 frame, against 10 s).
-PAD_BUCKETS = 16
-PAD_ROWS = 256
 
 
 def _sky(environment, camera):
@@ -224,7 +218,6 @@ def _render_supersampled(frame, capture, material, model, ibl, environment, k: i
 
     c = frame.camera
     pixels = c.height * c.width
-    step = max(PAD_ROWS, pixels // PAD_BUCKETS)  # hit counts padded to a multiple: one compile serves most samples
     total = np.zeros((pixels, 3), np.float64)
     every = np.ones(pixels, bool)
     for offset in pixel_offsets(k):
@@ -232,9 +225,8 @@ def _render_supersampled(frame, capture, material, model, ibl, environment, k: i
         view = prepare_view(compute_gbuffer(capture.mesh, camera, frame.lights, cache_dir), frame.lights, None)
         hits = np.asarray(view.pixel)
         sky = None if environment is None else _sky(environment, camera)
-        if len(hits):  # padded with repeats of the first hit, which write the same value again
-            view = view_rows(view, np.concatenate([hits, np.full(-len(hits) % step, hits[0])]))
-            radiance, _ = render_view(view, material, model, ibl, background=sky)  # linear, exposure 0
+        if len(hits):
+            radiance, _ = render_view(padded_view(view), material, model, ibl, background=sky)  # linear, exposure 0
         else:
             radiance = np.zeros((pixels, 3)) if sky is None else sky
         total += np.asarray(radiance, np.float64).reshape(-1, 3)
@@ -300,6 +292,19 @@ def apply_overrides(capture, environment_file: Optional[os.PathLike] = None, lig
         changes["frames"] = frames
         changes["lights"] = new_global
     return dataclasses.replace(capture, **changes) if changes else capture
+
+
+def padded_view(view):
+    """``view`` with its hit pixels padded to `pbrfit.render.shade.render_rows` of them by repeats
+    of the first, which write the same value again: `render_view`'s programs (the shading, the
+    encoding, the scatter into the image) compile once per padded size, not once per view or
+    sample, whose hit counts all differ (a compile per sample took 84 s for `render --supersample
+    16` of a 96 x 96 frame, against 10 s; `render --supersample 4` of the demo's capture 45 s
+    against 11.5)."""
+    hits = np.asarray(view.pixel)
+    if not len(hits):
+        return view
+    return view_rows(view, np.concatenate([hits, np.full(render_rows(len(hits)) - len(hits), hits[0])]))
 
 
 def view_rows(view, pixels: np.ndarray):

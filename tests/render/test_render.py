@@ -101,8 +101,8 @@ def test_views_of_nearby_sizes_share_one_compile():
     from pbrfit.render import shade as shade_module
     from pbrfit.render.views import view_rows
 
-    assert [render_rows(n) for n in (1, 256, 257, 385, 513, 769, 5761, 40_000, 10**6)] == [
-        256, 256, 384, 512, 768, 1024, 6144, 49_152, RENDER_CHUNK]
+    assert [render_rows(n) for n in (1, 256, 257, 385, 513, 769, 5761, 40_000, 65_536, 65_537, 10**6)] == [
+        256, 256, 384, 512, 768, 1024, 6144, 49_152, RENDER_CHUNK, 2 * RENDER_CHUNK, 16 * RENDER_CHUNK]
     vi, *_ = _plane_view(n=24)  # 576 pixels
     mat = Material.uniform((0.2, 0.6, 0.9), 0.5, 0.3, size=4)
     model = Model(diffuse="burley")
@@ -114,6 +114,21 @@ def test_views_of_nearby_sizes_share_one_compile():
         assert got.shape == (n, 3)
         np.testing.assert_allclose(np.asarray(got), whole[rows], rtol=1e-6, atol=1e-7)
     assert shade_module._radiance_chunk_jit._cache_size() <= compiled + 1  # one program of 512 rows (or none: cached)
+
+
+def test_a_padded_view_renders_the_same_image():
+    """`padded_view`: a view's hits padded to `render_rows` of them by repeats of the first, which
+    write the same value again: the image and alpha are the view's."""
+    from pbrfit.render.views import padded_view, view_rows
+
+    vi, *_ = _plane_view(n=24)
+    view = view_rows(vi, np.sort(np.random.default_rng(1).choice(576, 400, replace=False)))
+    padded = padded_view(view)
+    assert padded.num_pixels == render_rows(400) == 512 and padded.shape == view.shape
+    mat = Material.uniform((0.2, 0.6, 0.9), 0.5, 0.3, size=4)
+    for got, want in zip(render_view(padded, mat, exposure=0.5, tonemap="aces_hill", color_space="srgb"),
+                         render_view(view, mat, exposure=0.5, tonemap="aces_hill", color_space="srgb")):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-6, atol=1e-7)
 
 
 def test_shade_gradients_finite_at_extremes():
