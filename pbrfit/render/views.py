@@ -25,7 +25,7 @@ from ..scene.gbuffer import GBuffer, compute_gbuffer, silhouette
 from ..io.json_fields import JSONError, parse_json
 from ..physics.material import Material
 from ..physics.model import Model
-from .shade import ViewInputs, prepare_view, render_rows, render_view
+from .shade import ViewInputs, prepare_view, render_view
 from ..lighting.environment import environment_lookup, load_environment
 from ..lighting.ibl import IBLSettings, brdf_tables, build_ibl
 from ..scene.capture import Capture, EnvironmentSpec, load_capture
@@ -36,7 +36,6 @@ from ..io.lights import light_from_json
 
 __all__ = [
     "view_rows",
-    "padded_view",
     "default_cache_dir",
     "model_for_capture",
     "capture_environment", "environment_is_dark",
@@ -196,8 +195,7 @@ def render_capture(
 
             background = encode(_sky(environment, frame.camera), frame.exposure, capture.tonemap, frame.color_space)
         image, alpha = render_view(
-            padded_view(view), material, model, ibl, frame.exposure, capture.tonemap, frame.color_space,
-            background=background
+            view, material, model, ibl, frame.exposure, capture.tonemap, frame.color_space, background=background
         )
         out.append((np.asarray(image), np.asarray(alpha)))
     return out
@@ -226,7 +224,7 @@ def _render_supersampled(frame, capture, material, model, ibl, environment, k: i
         hits = np.asarray(view.pixel)
         sky = None if environment is None else _sky(environment, camera)
         if len(hits):
-            radiance, _ = render_view(padded_view(view), material, model, ibl, background=sky)  # linear, exposure 0
+            radiance, _ = render_view(view, material, model, ibl, background=sky)  # linear, exposure 0
         else:
             radiance = np.zeros((pixels, 3)) if sky is None else sky
         total += np.asarray(radiance, np.float64).reshape(-1, 3)
@@ -292,19 +290,6 @@ def apply_overrides(capture, environment_file: Optional[os.PathLike] = None, lig
         changes["frames"] = frames
         changes["lights"] = new_global
     return dataclasses.replace(capture, **changes) if changes else capture
-
-
-def padded_view(view):
-    """``view`` with its hit pixels padded to `pbrfit.render.shade.render_rows` of them by repeats
-    of the first, which write the same value again: `render_view`'s programs (the shading, the
-    encoding, the scatter into the image) compile once per padded size, not once per view or
-    sample, whose hit counts all differ (a compile per sample took 84 s for `render --supersample
-    16` of a 96 x 96 frame, against 10 s; `render --supersample 4` of the demo's capture 45 s
-    against 11.5)."""
-    hits = np.asarray(view.pixel)
-    if not len(hits):
-        return view
-    return view_rows(view, np.concatenate([hits, np.full(render_rows(len(hits)) - len(hits), hits[0])]))
 
 
 def view_rows(view, pixels: np.ndarray):

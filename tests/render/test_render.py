@@ -116,19 +116,32 @@ def test_views_of_nearby_sizes_share_one_compile():
     assert shade_module._radiance_chunk_jit._cache_size() <= compiled + 1  # one program of 512 rows (or none: cached)
 
 
-def test_a_padded_view_renders_the_same_image():
-    """`padded_view`: a view's hits padded to `render_rows` of them by repeats of the first, which
-    write the same value again: the image and alpha are the view's."""
-    from pbrfit.render.views import padded_view, view_rows
+def test_render_view_pads_a_view_and_draws_its_own_pixels_alone():
+    """`render_view` pads a view's rows to `render_rows` of them (repeats of its last hit, which
+    write the same value again): a view of 400 of a frame's 576 hit pixels renders as the whole
+    view does on them, and nothing elsewhere; views of 400 and 487 pixels share one shading
+    program; per-pixel integrals are padded with the rows."""
+    from pbrfit.lighting.pixel_ibl import PixelIBL, lobes_for
+    from pbrfit.render import shade as shade_module
+    from pbrfit.render.views import view_rows
 
     vi, *_ = _plane_view(n=24)
-    view = view_rows(vi, np.sort(np.random.default_rng(1).choice(576, 400, replace=False)))
-    padded = padded_view(view)
-    assert padded.num_pixels == render_rows(400) == 512 and padded.shape == view.shape
     mat = Material.uniform((0.2, 0.6, 0.9), 0.5, 0.3, size=4)
-    for got, want in zip(render_view(padded, mat, exposure=0.5, tonemap="aces_hill", color_space="srgb"),
-                         render_view(view, mat, exposure=0.5, tonemap="aces_hill", color_space="srgb")):
-        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-6, atol=1e-7)
+    encoding = dict(exposure=0.5, tonemap="aces_hill", color_space="srgb")
+    image, alpha = (np.asarray(a) for a in render_view(vi, mat, **encoding))
+    compiled = None
+    for n in (400, 487):
+        rows = np.sort(np.random.default_rng(n).choice(576, n, replace=False))
+        got, got_alpha = (np.asarray(a).reshape(576, -1) for a in render_view(view_rows(vi, rows), mat, **encoding))
+        np.testing.assert_allclose(got[rows], image.reshape(576, 3)[rows], rtol=1e-6, atol=1e-7)
+        assert np.all(got_alpha[rows] == 1.0) and np.sum(got_alpha) == n and np.sum(np.abs(got)) > 0
+        assert np.all(np.delete(got, rows, axis=0) == 0.0)
+        compiled = compiled or shade_module._radiance_chunk_jit._cache_size()
+    assert shade_module._radiance_chunk_jit._cache_size() == compiled  # the 487-pixel view compiled nothing new
+    model = Model(ibl="per_pixel")
+    table = PixelIBL(jnp.ones((400, 3, len(lobes_for(model)), 3), jnp.float32), lobes_for(model))
+    lit, _ = render_view(view_rows(vi, rows[:400]), mat, model, table)
+    assert np.all(np.isfinite(np.asarray(lit)))
 
 
 def test_shade_gradients_finite_at_extremes():
