@@ -21,7 +21,8 @@ from .stages.selection import profile_hessian, uniform_direction
 from .objective import linearize, objective, pixel_residuals
 from ..physics.textures import resample_map
 from ..transfer import to_device
-from .uncertainty import WINDOW_RADIUS, residual_variance, sandwich_ratios, window_radii, window_standard_errors
+from .uncertainty import (WINDOW_RADIUS, WindowCache, residual_variance, sandwich_ratios, window_radii,
+                          window_standard_errors)
 
 __all__ = ["FitResult", "closed_times", "finish", "map_rmse", "texel_standard_errors", "truth_at"]
 
@@ -70,21 +71,23 @@ def closed_times(times: dict, wall: float) -> dict:
 
 
 def texel_standard_errors(problem, x, jac, data_energy: float, final, texel_channels, seen, num_pixels: int,
-                          num_uniform: int = 0, uncertainty_radius: int = WINDOW_RADIUS):
+                          num_uniform: int = 0, uncertainty_radius: int = WINDOW_RADIUS,
+                          cache: Optional[WindowCache] = None):
     """(T, K) standard errors of the texels' channels at x, as uncertainty.exr gives them, and σ̂².
 
     σ̂² is the residual variance of the pixels' ``data_energy`` (½ Σ r²) over 3 × `num_pixels`
     residuals and the seen texels' `texel_channels` (plus `num_uniform` common values); each
     texel's σ comes from its window of ``uncertainty_radius``
-    (`pbrfit.fitting.uncertainty.window_standard_errors`), with the channels that sit on a bound held for
-    the others' errors; 0 for channels not fitted, +inf for texels no view sees."""
+    (`pbrfit.fitting.uncertainty.window_standard_errors`, which keeps its windows in ``cache``
+    for a later call), with the channels that sit on a bound held for the others' errors; 0 for
+    channels not fitted, +inf for texels no view sees."""
     blocks = np.asarray(jitted_normal_blocks(jac, problem))
     n_par = _parameter_count(seen, texel_channels, num_uniform)
     sigma2 = residual_variance(float(data_energy), 3 * int(num_pixels), n_par)
     radius = max(window_radii(tuple(final), uncertainty_radius))
     couplings = np.asarray(jitted_neighbour_blocks(jac, problem, tuple(final))) if radius > 0 else None
     sigma = window_standard_errors(blocks, couplings, tuple(final), np.asarray(texel_channels) > 0, seen, sigma2,
-                                   radius, _on_bounds(x, len(texel_channels)))
+                                   radius, _on_bounds(x, len(texel_channels)), cache)
     return sigma, sigma2
 
 

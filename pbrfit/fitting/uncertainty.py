@@ -46,7 +46,7 @@ import numpy as np
 from .normal_matrix import NEIGHBOUR_OFFSETS
 
 __all__ = ["EIGEN_FLOOR", "MAX_UNCERTAINTY_RADIUS", "WINDOW_RADIUS", "block_standard_errors", "residual_variance",
-           "sandwich_ratios", "window_precisions", "window_radii", "window_standard_errors"]
+           "sandwich_ratios", "window_precisions", "window_radii", "window_standard_errors", "WindowCache"]
 
 #: Eigenvalues below this fraction of a block's largest count as unconstrained (float32 round-off
 #: of JᵀJ sits near 1e-7 relative; 1e-10 in the float64 inversion keeps only exact degeneracies).
@@ -101,12 +101,24 @@ def block_standard_errors(blocks: np.ndarray, channels: np.ndarray, seen: np.nda
     """
     free = np.broadcast_to(np.asarray(channels, bool), np.asarray(blocks).shape[:2])
     seen = np.asarray(seen, bool)
+    return _errors(*_variance_factors(blocks, free, seen), free, seen, sigma2)
+
+
+def _variance_factors(blocks: np.ndarray, free: np.ndarray, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`block_standard_errors` before σ̂²: (T, K) Σ_k V_ck² / e_k of each block restricted to its
+    free channels (+inf along a degenerate direction), and (T,) which blocks are broken; each
+    row a function of its own block, free channels and seen flag alone."""
     e, v, ok, broken, _ = _fitted_eigh(blocks, free, seen)
     inv_e = np.where(ok, 1.0 / np.where(ok, e, 1.0), np.inf)
     # Σ_k V_ck² / e_k, with 0 · inf taken as 0 (a degenerate direction that misses channel c).
-    with np.errstate(invalid="ignore"):  # (and a NaN σ̂² from an overflowed solve: `pbrfit.fit` refuses it)
+    with np.errstate(invalid="ignore"):
         contrib = np.where(v * v > 0, v * v * inv_e[:, None, :], 0.0)
-        total = np.sum(contrib, axis=2)
+        return np.sum(contrib, axis=2), broken
+
+
+def _errors(total, broken, free, seen, sigma2) -> np.ndarray:
+    """`block_standard_errors` from its `_variance_factors`."""
+    with np.errstate(invalid="ignore"):  # (a NaN σ̂² from an overflowed solve: `pbrfit.fit` refuses it)
         # a direction no pixel constrains is unknown even where the fit is exact (σ̂² = 0): +inf, not 0 · inf
         out = np.where(np.isposinf(total), np.inf, np.sqrt(sigma2 * np.where(np.isposinf(total), 0.0, total)))
     out = np.where(seen[:, None], np.where(broken[:, None], np.nan, out), np.inf)
@@ -162,32 +174,34 @@ def window_radii(shape: tuple[int, int], radius: int) -> tuple[int, int]:
 
 
 def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[int, int], channels: np.ndarray,
-                      seen: np.ndarray, radius: int) -> np.ndarray:
+                      seen: np.ndarray, radius: int, texels: np.ndarray | None = None) -> np.ndarray:
     """(T, K, K) precision of each texel's channels with the other texels of its window free:
     P_t = D_t - B_t S_t⁻¹ B_tᵀ (float64), from the diagonal blocks D (T, K, K), the neighbour
     blocks C (T, 4, K, K) of `pbrfit.fitting.normal_matrix.neighbour_blocks`, the (K,) or (T, K) fitted-channel mask and
     the (T,) observed-texel mask. Fixed channels and unobserved texels take no part (their rows
     are replaced by the identity; a channel no texel fits is left out of the matrices). S is
     Jacobi-scaled and gets a `WINDOW_RIDGE` before the solve. (On the peer scene's 4096 texels,
-    metallic uniform: 83 ms, of which the solves 36.)"""
+    metallic uniform: 83 ms, of which the solves 36.) ``texels``: the indices of the texels
+    whose precisions to compute, (len(texels), K, K), each the same numbers as among all of them."""
     h, w = shape
     t, k = blocks.shape[0], blocks.shape[1]
+    wanted = np.arange(t) if texels is None else np.asarray(texels, np.intp)
     free = np.asarray(channels, bool)
     seen = np.asarray(seen, bool)
     taking_part = np.any(seen[:, None] & np.broadcast_to(free, (t, k)), axis=0)
     if not taking_part.all():  # the window matrices of the channels some texel fits (their rows alone)
-        out = np.zeros((t, k, k))
+        out = np.zeros((len(wanted), k, k))
         c = np.flatnonzero(taking_part)
         if c.size:
             out[:, c[:, None], c[None, :]] = window_precisions(blocks[:, c][:, :, c], couplings[:, :, c][:, :, :, c],
-                                                               shape, free[..., c], seen, radius)
+                                                               shape, free[..., c], seen, radius, wanted)
         return out
     ri, rj = window_radii(shape, radius)
     # the texel itself first, so that its channels are the window matrix's first K rows
     offsets = [(0, 0)] + [(di, dj) for di in range(-ri, ri + 1) for dj in range(-rj, rj + 1) if (di, dj) != (0, 0)]
     n = len(offsets)
     if n == 1:
-        return np.asarray(blocks, np.float64)
+        return np.asarray(blocks, np.float64)[wanted]
 
     codes = {o: q for q, o in enumerate(NEIGHBOUR_OFFSETS)}
     # each (a, b) block of a window's matrix: D of texel a, C of texel a towards b, or C of b
@@ -217,11 +231,11 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
     flat = np.where(part[:, None, :, None] & part[towards][:, :, None, :], couplings, 0.0).reshape(t * q, k, k)
     # every block a window matrix can hold, in float64: D, C, Cᵀ and a zero block (the last)
     source = np.concatenate([blocks, flat, np.swapaxes(flat, 1, 2), np.zeros((1, k, k))]).astype(np.float64)
-    out = np.empty((t, k, k))
+    out = np.empty((len(wanted), k, k))
     chunk = max(1, _WINDOW_CHUNK_BYTES // (8 * n * n * k * k))
     rest = np.arange(k, n * k)
-    for lo in range(0, t, chunk):
-        ts = np.arange(lo, min(t, lo + chunk))
+    for lo in range(0, len(wanted), chunk):
+        ts = wanted[lo:lo + chunk]
         u = texels(ts, offsets)  # (c, n)
         # the (a, b) block of each window: its place in `source`, then one gather
         at = np.full((len(ts), n, n), len(source) - 1)
@@ -243,13 +257,13 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
         p = 0.5 * (p + np.swapaxes(p, 1, 2))
         keep = live[:, :k]
         own = np.where(keep, scale[:, :k], 1.0)
-        out[ts] = np.where(keep[:, :, None] & keep[:, None, :], p / own[:, :, None] / own[:, None, :], 0.0)
+        out[lo:lo + chunk] = np.where(keep[:, :, None] & keep[:, None, :], p / own[:, :, None] / own[:, None, :], 0.0)
     return out
 
 
 def window_standard_errors(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[int, int], channels: np.ndarray,
                            seen: np.ndarray, sigma2: float, radius: int = WINDOW_RADIUS,
-                           pinned: np.ndarray | None = None) -> np.ndarray:
+                           pinned: np.ndarray | None = None, cache: "WindowCache | None" = None) -> np.ndarray:
     """(T, K) one-sigma errors with each texel's (2 r + 1)² window free (`window_precisions`),
     as `block_standard_errors` reads a block; never below the per-texel blocks' own (which
     they bound from below in exact arithmetic: where the neighbour blocks leave out couplings
@@ -259,14 +273,101 @@ def window_standard_errors(blocks: np.ndarray, couplings: np.ndarray, shape: tup
     ``pinned`` (T, K), optional: fitted channels that sit on a bound of their range, where a
     projected solver holds them (metallic at 0 or 1, a base colour at 1). The other channels'
     errors are then those with the pinned ones held, as the solver's estimate is; a pinned
-    channel's own error stays that with every channel free (its estimate is one-sided)."""
+    channel's own error stays that with every channel free (its estimate is one-sided).
+
+    ``cache``: a `WindowCache` that keeps the window precisions from one call to the next, so
+    that a call whose blocks and masks changed at a few texels computes the windows those reach
+    alone (the same numbers)."""
     free = np.broadcast_to(np.asarray(channels, bool), np.asarray(blocks).shape[:2])
     if pinned is not None and np.any(pinned & free):
-        everyone = window_standard_errors(blocks, couplings, shape, free, seen, sigma2, radius)
-        held = window_standard_errors(blocks, couplings, shape, free & ~pinned, seen, sigma2, radius)
+        everyone = _window_errors(blocks, couplings, shape, free, seen, sigma2, radius, cache, "free")
+        held = _window_errors(blocks, couplings, shape, free & ~pinned, seen, sigma2, radius, cache, "held")
         return np.where(pinned & free, everyone, held)
-    own = block_standard_errors(blocks, free, seen, sigma2)
+    return _window_errors(blocks, couplings, shape, free, seen, sigma2, radius, cache, "free")
+
+
+def _window_errors(blocks, couplings, shape, free, seen, sigma2, radius, cache, key):
+    """`window_standard_errors` of the (T, K) ``free`` channels, from ``cache``'s precisions and
+    factors under ``key`` where it is given."""
+    seen = np.asarray(seen, bool)
+
+    def errors(part, matrices):
+        factors = (_variance_factors(matrices, free, seen) if cache is None
+                   else cache.factors((part, key), matrices, free, seen))
+        return _errors(*factors, free, seen, sigma2)
+
+    own = errors("own", blocks)
     if radius <= 0:
         return own
-    precisions = window_precisions(blocks, couplings, shape, free, seen, radius)
-    return np.maximum(block_standard_errors(precisions, free, seen, sigma2), own)
+    if cache is None:
+        precisions = window_precisions(blocks, couplings, shape, free, seen, radius)
+    else:
+        precisions = cache.precisions(key, blocks, couplings, shape, free, seen, radius)
+    return np.maximum(errors("window", precisions), own)
+
+
+class WindowCache:
+    """The window precisions of `window_standard_errors`' last call (one set per choice of the
+    channels held: all free, or those on a bound held) with the blocks and masks they came
+    from. A later call recomputes the windows that hold a texel whose diagonal block, neighbour
+    blocks or channels changed, and keeps the others' precisions, which are the same numbers:
+    the hold of unconstrained roughness (`pbrfit.fitting.stages.unconstrained`) takes the
+    standard errors again after re-fitting a few texels, where every other window is as it was
+    (experiments/speed.md). It keeps the blocks and couplings it is given, not copies: a caller
+    passes new arrays to a later call, not the same ones changed in place."""
+
+    def __init__(self):
+        self._last: dict = {}
+
+    def precisions(self, key, blocks, couplings, shape, free, seen, radius) -> np.ndarray:
+        """`window_precisions` of these arguments, from the last call under ``key`` where it can."""
+        blocks, couplings = np.asarray(blocks), np.asarray(couplings)
+        # (a window reads the texels seen through these alone; which channels take part at all
+        # shapes every window)
+        part = np.asarray(seen, bool)[:, None] & np.broadcast_to(np.asarray(free, bool), blocks.shape[:2])
+        t, (h, w) = blocks.shape[0], shape
+        last = self._last.get(key)
+        same_frame = (last is not None and t == h * w and last["shape"] == tuple(shape) and last["radius"] == radius
+                      and last["blocks"].shape == blocks.shape
+                      and np.array_equal(np.any(last["part"], axis=0), np.any(part, axis=0)))
+        if not same_frame:
+            out = window_precisions(blocks, couplings, shape, free, seen, radius)
+        else:
+            changed = (np.any(blocks != last["blocks"], axis=(1, 2)) | np.any(couplings != last["couplings"],
+                                                                            axis=(1, 2, 3))
+                       | np.any(part != last["part"], axis=1))
+            redo = np.flatnonzero(_windows_holding(changed, shape, radius))
+            out = last["out"].copy()
+            if redo.size:
+                out[redo] = window_precisions(blocks, couplings, shape, free, seen, radius, redo)
+        self._last[key] = dict(shape=tuple(shape), radius=radius, blocks=blocks, couplings=couplings, part=part,
+                               out=out)
+        return out
+
+
+    def factors(self, key, matrices, free, seen) -> tuple[np.ndarray, np.ndarray]:
+        """`_variance_factors` of these arguments, its rows from the last call under ``key`` where
+        the row's matrix, free channels and seen flag are as they were."""
+        last = self._last.get(key)
+        if last is None or last["matrices"].shape != matrices.shape:
+            total, broken = _variance_factors(matrices, free, seen)
+        else:
+            changed = np.flatnonzero(np.any(matrices != last["matrices"], axis=(1, 2))
+                                     | np.any(free != last["free"], axis=1) | (seen != last["seen"]))
+            total, broken = last["total"].copy(), last["broken"].copy()
+            if changed.size:
+                total[changed], broken[changed] = _variance_factors(matrices[changed], free[changed], seen[changed])
+        self._last[key] = dict(matrices=matrices, free=np.array(free), seen=np.array(seen), total=total, broken=broken)
+        return total, broken
+
+
+def _windows_holding(texels: np.ndarray, shape: tuple[int, int], radius: int) -> np.ndarray:
+    """(H W,) the texels whose window (`window_radii`, wrapped around the map) holds one of ``texels``."""
+    h, w = shape
+    ri, rj = window_radii(shape, radius)
+    grid = np.asarray(texels, bool).reshape(h, w)
+    out = np.zeros_like(grid)
+    for di in range(-ri, ri + 1):
+        for dj in range(-rj, rj + 1):
+            out |= np.roll(grid, (di, dj), axis=(0, 1))
+    return out.reshape(-1)

@@ -175,6 +175,59 @@ def test_channels_on_a_bound_are_held_for_the_others():
     np.testing.assert_array_equal(got[far], free[far])  # windows without a pinned channel: unchanged
 
 
+
+def test_a_cache_recomputes_the_windows_that_hold_a_change_and_keeps_the_others(monkeypatch):
+    """With a `WindowCache`, a second call whose blocks, couplings, channels and pinned channels
+    changed at a few texels gives the same errors as a call without one, and computes the
+    windows of the texels within a window's reach of the changes alone."""
+    shape, k = (9, 10), 3
+    t = 90
+    _, diag, coupling = _normal_matrix(shape, k, 900, seed=7)
+    channels, seen = np.ones((t, k), bool), np.ones(t, bool)
+    seen[44] = False
+    pinned = np.zeros((t, k), bool)
+    pinned[[3, 60], 1] = True
+    computed = []
+    real = uncertainty.window_precisions
+
+    def counted(*args, **kwargs):
+        texels = args[6] if len(args) > 6 else kwargs.get("texels")
+        computed.append(t if texels is None else len(texels))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(uncertainty, "window_precisions", counted)
+    factored = []  # the rows whose eigen-decompositions are computed
+    real_factors = uncertainty._variance_factors
+    monkeypatch.setattr(uncertainty, "_variance_factors", lambda m, *a: factored.append(len(m)) or real_factors(m, *a))
+    cache = uncertainty.WindowCache()
+    first = window_standard_errors(diag, coupling, shape, channels, seen, 0.7, 1, pinned, cache)
+    np.testing.assert_array_equal(first, window_standard_errors(diag, coupling, shape, channels, seen, 0.7, 1, pinned))
+    diag2, coupling2, channels2, pinned2 = diag.copy(), coupling.copy(), channels.copy(), pinned.copy()
+    diag2[12] *= 1.5  # a block at (1, 2), a coupling at (8, 0) (its window wraps), a channel at (4, 7)
+    coupling2[80, 2] += 0.1
+    channels2[47, 2] = False
+    pinned2[60, 1] = False  # texel (6, 0) leaves its bound
+    computed.clear()
+    got = window_standard_errors(diag2, coupling2, shape, channels2, seen, 1.3, 1, pinned2, cache)
+    # the 3 × 3 windows around the block, the coupling and the channel (26 texels: two overlap at
+    # (0, 1)), every channel free; with the pinned ones held, those around (6, 0) as well (3 more overlap)
+    assert computed == [26, 32], computed
+    np.testing.assert_array_equal(got, window_standard_errors(diag2, coupling2, shape, channels2, seen, 1.3, 1,
+                                                              pinned2))
+    # nothing changed: nothing computed, the errors scaled by σ̂² alone
+    computed.clear()
+    factored.clear()
+    again = window_standard_errors(diag2, coupling2, shape, channels2, seen, 2.6, 1, pinned2, cache)
+    assert computed == [] and factored == [], (computed, factored)
+    np.testing.assert_allclose(again, got * np.sqrt(2.0), rtol=1e-6)
+    # a texel seen now: the windows around it
+    seen[44] = True
+    computed.clear()
+    got = window_standard_errors(diag2, coupling2, shape, channels2, seen, 1.3, 1, pinned2, cache)
+    assert computed == [9, 9], computed
+    np.testing.assert_array_equal(got, window_standard_errors(diag2, coupling2, shape, channels2, seen, 1.3, 1,
+                                                              pinned2))
+
 def test_non_finite_values_outside_the_fit_do_not_reach_the_others():
     """A fixed channel's derivatives and an unseen texel's blocks take no part: NaN or inf there
     leaves every other texel's precision and error as with zeros."""

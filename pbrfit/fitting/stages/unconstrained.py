@@ -40,6 +40,7 @@ import jax
 import numpy as np
 
 from ..result import texel_standard_errors
+from ..uncertainty import WindowCache
 from ..objective import Problem, linearize
 from ..parameters import FIT_GROUPS, PRIOR
 from ..runner import problem_energy
@@ -104,10 +105,11 @@ def run_hold(runner, problem: Problem, xs, linearization, channels, seen, final,
     energy = problem_energy(r, xs, problem)
     texel_channels = np.asarray(channels, np.float32).copy()
     texel_channels[list(uniform)] = 0.0
+    windows = WindowCache()  # a re-fit moves a few texels: the other windows are kept
 
     def unconstrained(x, jac, energy, problem):
         errors = texel_standard_errors(problem, x[:t], jac, energy, final, texel_channels, seen[:t], num_pixels,
-                                       len(uniform), uncertainty_radius)
+                                       len(uniform), uncertainty_radius, windows)
         out = np.zeros(len(x), bool)
         out[:t] = unconstrained_texels(errors[0], seen[:t], threshold)
         return out, errors
