@@ -742,6 +742,19 @@ def test_the_split_sums_candidates_are_shaded_once_and_unchanged(ibl):
     assert [a.shape for a in _shaded_once(problem, empty, empty)] == [(0, 3), (0, 3)]
 
 
+def test_the_best_candidate_is_the_first_least_score_as_argmin_reads_it():
+    """The grid start and the search keep each texel's best candidate as they score them: the
+    first of the least scores, a NaN counting as least (`jnp.argmin`), with its base colour."""
+    nan = np.nan
+    scores = jnp.asarray([[3.0, 1.0, nan, 2.0, 4.0], [1.0, 1.0, nan, 5.0, nan], [0.0, 2.0, nan, nan, 1.0]])
+    bases = jnp.asarray(np.random.default_rng(0).random((3, 5, 3)), jnp.float32)
+    index, base = pbrfit.fitting.initialisation._best_candidates(lambda k: (bases[k], scores[k]), jnp.arange(3))
+    want = jnp.argmin(scores, axis=0)
+    np.testing.assert_array_equal(index, want)
+    np.testing.assert_array_equal(index, [2, 0, 0, 2, 1])
+    np.testing.assert_array_equal(base, bases[want, jnp.arange(5)])
+
+
 def test_coordinate_search_tries_blended_metallic():
     """Texels of a half-metal square stuck at the metallic bound move to the blend candidate."""
     checker = _checker()
