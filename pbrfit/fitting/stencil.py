@@ -167,16 +167,22 @@ def with_stencil(problem: Problem) -> Problem:
     return dataclasses.replace(problem, stencil=st)
 
 
-def _pair_cells(jac: Float[Array, "R 3 K"], problem: Problem, st: Stencil, pairs) -> Float[Array, "Q T K K"]:
-    """Per corner pair (a, b) of ``pairs``, C_c,ab = Σ_(p in cell c) B_paᵀ B_pb over every cell c
-    (module docstring): a segment sum over the pixels' cells per pair."""
+def _offset_blocks(jac: Float[Array, "R 3 K"], problem: Problem, st: Stencil, pairs) -> Float[Array, "T N K K"]:
+    """`_by_offset` of C_c,ab = Σ_(p in cell c) B_paᵀ B_pb, per corner pair (a, b) of ``pairs``
+    over every cell c (module docstring): a segment sum over the pixels' cells per pair."""
     t = problem.num_texels
     # by elements (`block_gram`; the flash scene's 2 × 2 samples: 184 ms an assembly against 464)
     if problem.samples == 1:
-        gp = block_gram(jac, jac)
+        # J_pᵀJ_p is symmetric: its upper triangle alone is summed, then mirrored (the same sums,
+        # 15 of 25 a pixel for K = 5)
+        k = jac.shape[-1]
+        upper_i, upper_j = np.triu_indices(k)
+        gp = jnp.sum(jac[:, :, upper_i] * jac[:, :, upper_j], axis=1)  # (P, K (K + 1) / 2)
+        place = np.zeros((k, k), np.int32)
+        place[upper_i, upper_j] = place[upper_j, upper_i] = np.arange(len(upper_i))
 
         def pair_rows(a, b):  # w_pa w_pb J_pᵀJ_p
-            return (st.share[:, 0, a] * st.share[:, 0, b])[:, None, None] * gp
+            return (st.share[:, 0, a] * st.share[:, 0, b])[:, None] * gp
     else:
         jb = jnp.sum(st.share[:, :, :, None, None] * by_pixel(jac, problem)[:, :, None], axis=1)  # (P, c², 3, K)
 
@@ -187,7 +193,11 @@ def _pair_cells(jac: Float[Array, "R 3 K"], problem: Problem, st: Stencil, pairs
     # 60k pixels) that the allocator maps afresh at each call, and took five times as long
     _, cells = lax.scan(lambda _, ab: (None, jax.ops.segment_sum(pair_rows(ab[0], ab[1]), st.cell, num_segments=t)),
                         None, jnp.asarray(np.asarray(pairs, np.int32)))
-    return cells
+    if problem.samples > 1:
+        return _by_offset(cells, st, _swap, pairs)
+    # every block is symmetric (a sum of w_pa w_pb J_pᵀJ_p): placed by offset as its upper
+    # triangle, then mirrored once
+    return _by_offset(cells, st, lambda block: block, pairs)[..., place]
 
 
 def stencil_blocks(jac: Float[Array, "R 3 K"], problem: Problem, st: Stencil) -> Float[Array, "T N K K"]:
@@ -195,8 +205,7 @@ def stencil_blocks(jac: Float[Array, "R 3 K"], problem: Problem, st: Stencil) ->
     t and ``st.neighbours[t, n]``, ``st`` the problem's `Stencil`. The prior adds
     smooth w (e_a - e_b)(e_a - e_b)ᵀ ⊗ diag(freed channels) for each pair (a, b) of weight w."""
     t = problem.num_texels
-    cells = _pair_cells(jac, problem, st, _corner_pairs(st.side))  # (pairs, T, K, K)
-    blocks = _by_offset(cells, st, _swap)
+    blocks = _offset_blocks(jac, problem, st, _corner_pairs(st.side))
     a, b = problem.pairs[:, 0], problem.pairs[:, 1]
     sw = problem.smooth * problem.pair_weight
     n = st.neighbours.shape[1]
@@ -227,7 +236,7 @@ def data_blocks(jac: Float[Array, "R 3 K"], problem: Problem, by_stencil: bool) 
         return normal_blocks(jac, problem)
     st = problem.stencil
     pairs = [(a, a) for a in range(st.side * st.side)]
-    return _by_offset(_pair_cells(jac, problem, st, pairs), st, _swap, pairs)[:, st.centre]
+    return _offset_blocks(jac, problem, st, pairs)[:, st.centre]
 
 
 def data_neighbour_blocks(jac: Float[Array, "R 3 K"], problem: Problem, shape: tuple[int, int]) -> Float[Array, "T 4 K K"]:
@@ -242,7 +251,7 @@ def data_neighbour_blocks(jac: Float[Array, "R 3 K"], problem: Problem, shape: t
     steps = {o for di, dj in NEIGHBOUR_OFFSETS for o in ((di, dj), (-di, -dj))}
     pairs = [(a, b) for a, b in _corner_pairs(side)
              if (corners[b][0] - corners[a][0], corners[b][1] - corners[a][1]) in steps]  # (b, a): the reverse
-    blocks = _by_offset(_pair_cells(jac, problem, st, pairs), st, _swap, pairs)
+    blocks = _offset_blocks(jac, problem, st, pairs)
     return jnp.stack([blocks[:, _slot(di, dj, side)] for di, dj in NEIGHBOUR_OFFSETS], axis=1)
 
 
