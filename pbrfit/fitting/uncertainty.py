@@ -333,9 +333,8 @@ class WindowCache:
         if not same_frame:
             out = window_precisions(blocks, couplings, shape, free, seen, radius)
         else:
-            changed = (np.any(blocks != last["blocks"], axis=(1, 2)) | np.any(couplings != last["couplings"],
-                                                                            axis=(1, 2, 3))
-                       | np.any(part != last["part"], axis=1))
+            changed = (_rows_differ(blocks, last["blocks"]) | _rows_differ(couplings, last["couplings"])
+                       | _rows_differ(part, last["part"]))
             redo = np.flatnonzero(_windows_holding(changed, shape, radius))
             out = last["out"].copy()
             if redo.size:
@@ -344,7 +343,6 @@ class WindowCache:
                                out=out)
         return out
 
-
     def factors(self, key, matrices, free, seen) -> tuple[np.ndarray, np.ndarray]:
         """`_variance_factors` of these arguments, its rows from the last call under ``key`` where
         the row's matrix, free channels and seen flag are as they were."""
@@ -352,13 +350,18 @@ class WindowCache:
         if last is None or last["matrices"].shape != matrices.shape:
             total, broken = _variance_factors(matrices, free, seen)
         else:
-            changed = np.flatnonzero(np.any(matrices != last["matrices"], axis=(1, 2))
-                                     | np.any(free != last["free"], axis=1) | (seen != last["seen"]))
+            changed = np.flatnonzero(_rows_differ(matrices, last["matrices"]) | _rows_differ(free, last["free"])
+                                     | (seen != last["seen"]))
             total, broken = last["total"].copy(), last["broken"].copy()
             if changed.size:
                 total[changed], broken[changed] = _variance_factors(matrices[changed], free[changed], seen[changed])
         self._last[key] = dict(matrices=matrices, free=np.array(free), seen=np.array(seen), total=total, broken=broken)
         return total, broken
+
+
+def _rows_differ(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(T,) whether row t of ``a`` differs from row t of ``b`` anywhere (a NaN always does)."""
+    return np.any(a != b, axis=tuple(range(1, a.ndim)))
 
 
 def _windows_holding(texels: np.ndarray, shape: tuple[int, int], radius: int) -> np.ndarray:

@@ -335,8 +335,9 @@ def render_view(
     frame, against 10 s; `render --supersample 4` of the demo's capture 45 s against 11.5.
     """
     height, width = view.shape
-    if 0 < view.num_pixels < render_rows(view.num_pixels):
-        view, ibl = _pad(view, ibl, render_rows(view.num_pixels))
+    size = render_rows(view.num_pixels)
+    if 0 < view.num_pixels < size:
+        view, ibl = _pad(view, ibl, size)
     radiance = radiance_view(view, material, model, ibl, wrap, normal_convention)
     values = encode(radiance, exposure, tonemap, color_space)
     image = jnp.zeros((height * width, 3), jnp.float32) if background is None else jnp.asarray(
