@@ -167,7 +167,7 @@ def _per_texel_base(l0, a, y, weight, problem: Problem, num=None):
     return num / jnp.maximum(den, _NORMAL_FLOOR)
 
 
-def _solve_base_joint(l0, a, y, problem: Problem, steps: Optional[int] = None):
+def _solve_base_joint(l0, a, y, problem: Problem, steps: Optional[int] = None, blocks=None):
     """(T, 3) base colours b of all texels minimising Σ_p ||y_p - l0_p - a_p Σ_k w_pk b_(t_pk)||²
     channel by channel (every pixel's bilinear mix of its texels; linear radiance), clipped to
     [0, 1]: `steps` iterations of Jacobi-preconditioned conjugate gradients on the normal
@@ -180,13 +180,14 @@ def _solve_base_joint(l0, a, y, problem: Problem, steps: Optional[int] = None):
     it once (`pbrfit.fitting.stencil.channel_blocks`) and each product is a gather of 9 texels:
     on the peer scene the grid start took 290 ms against 480 through the pixels, where each
     product is a gather and a scatter of every pixel's taps (the preconditioner there is
-    Σ_pk w_pk² a_p², the diagonal where a pixel's taps read distinct texels)."""
+    Σ_pk w_pk² a_p², the diagonal where a pixel's taps read distinct texels). ``blocks``: that
+    AᵀA by stencil, when the caller has it (`_slope_blocks_shared`)."""
     steps = GRID_BASE_CG_STEPS if steps is None else steps
     w = problem.weight[:, :, None]
     rhs = scatter_texels(w * (a * (y - l0))[:, None, :], problem)  # also the per-texel solve's numerator
-    if problem.stencil is not None and problem.samples == 1:
+    if _by_stencil(problem):
         st = problem.stencil
-        blocks = channel_blocks(a * a, problem, st)
+        blocks = channel_blocks(a * a, problem, st) if blocks is None else blocks
 
         def normal_op(b):  # AᵀA b
             return channel_product(blocks, st.neighbours, b)
@@ -212,24 +213,41 @@ def _solve_base_joint(l0, a, y, problem: Problem, steps: Optional[int] = None):
     return jnp.clip(b, 0.0, 1.0)
 
 
-def _best_candidates(candidate, cands):
+def _by_stencil(problem: Problem) -> bool:
+    """Whether `_solve_base_joint` assembles AᵀA by stencil (at pixel centres, with a stencil)."""
+    return problem.stencil is not None and problem.samples == 1
+
+
+def _slope_blocks_shared(problem: Problem) -> bool:
+    """Whether the grid start's candidates at metallic 0 share one AᵀA (`_solve_base_joint`): by
+    stencil, under punctual lights alone, with a diffuse lobe that does not depend on roughness
+    (Lambert's, or none). There a pixel's slope in base colour is the diffuse lobe's,
+    (1 - F(v·h)) / π Σ_l E_l (n·l_l) with F at the dielectric f0: the specular lobe's F D V enters
+    only through f0 = mix(0.04, b, metallic), whose slope in b is metallic, 0. So the slope, and
+    AᵀA, are the same at every roughness: the first candidate at metallic 0 assembles it (half
+    of a candidate's time at 512² maps) and the others take it."""
+    return _by_stencil(problem) and problem.model.ibl is None and problem.model.diffuse in ("lambert", "none")
+
+
+def _best_candidates(candidate, cands, memo=None):
     """Per texel, the first of the candidates ``cands`` (C, ...) whose score is least (a NaN score
     counting as least, as `jnp.argmin` reads it) and its base colour: (index (T,), base (T, 3)),
     ``candidate(row)`` giving every texel's (base (T, 3), score (T,)) for one row. Scored one
     candidate at a time and the best kept as they go, not all candidates' base colours stacked
     and then chosen from: (C, T, 3) floats, 350 MB for the grid start's 110 candidates on a 512²
-    map."""
+    map. With ``memo`` (arrays) ``candidate(row, memo)`` also returns the memo the next row gets."""
     def keep(best, row_k):
         row, k = row_k
-        index, base, score = best
-        b, s = candidate(row)
+        index, base, score, kept = best
+        b, s, kept = (candidate(row) + (None,)) if memo is None else candidate(row, kept)
         better = (k == 0) | (s < score) | (jnp.isnan(s) & ~jnp.isnan(score))
-        return (jnp.where(better, k, index), jnp.where(better[:, None], b, base), jnp.where(better, s, score)), None
+        kept_best = (jnp.where(better, k, index), jnp.where(better[:, None], b, base), jnp.where(better, s, score))
+        return kept_best + (kept,), None
 
-    shapes = jax.eval_shape(candidate, cands[0])
+    shapes = jax.eval_shape(candidate, cands[0], *(() if memo is None else (memo,)))
     start = (jnp.zeros(shapes[1].shape, jnp.int32), jnp.zeros(shapes[0].shape, shapes[0].dtype),
-             jnp.zeros(shapes[1].shape, shapes[1].dtype))
-    (index, base, _), _ = jax.lax.scan(keep, start, (cands, jnp.arange(cands.shape[0], dtype=jnp.int32)))
+             jnp.zeros(shapes[1].shape, shapes[1].dtype), memo)
+    (index, base, _, _), _ = jax.lax.scan(keep, start, (cands, jnp.arange(cands.shape[0], dtype=jnp.int32)))
     return index, base
 
 
@@ -249,7 +267,10 @@ def grid_initialise(x_fixed, problem: Problem):
     base_free = jnp.max(free[:, 0]) > 0
     normal = shading_normal(fixed_m, obs.normal, obs.tangent)
 
-    def candidate(metal, rough):
+    per_texel = x_fixed.shape[1] > 5  # normals fitted: see the module docstring
+    sharing = not per_texel and _slope_blocks_shared(problem)
+
+    def candidate(metal, rough, memo=None):
         m_p = jnp.where(metal_free, metal, fixed_m[:, 3:4])
         r_p = jnp.where(rough_free, rough, fixed_m[:, 4:5])
 
@@ -261,19 +282,31 @@ def grid_initialise(x_fixed, problem: Problem):
         l0, a = _shaded_once(problem, *jax.jvp(render, (zero,), (jnp.ones_like(zero),)))
         # with a tone map, least squares in (linearised) tone-mapped values: the rows times its slope
         lw, aw, yw = (l0, a, y) if slope is None else (l0 * slope, a * slope, y * slope)
-        if x_fixed.shape[1] > 5:  # normals fitted: see the module docstring
+        if per_texel:
             base_t = _solve_base(lw, aw, yw, problem.weight, problem)
-        else:
+        elif not sharing:
             base_t = _solve_base_joint(lw, aw, yw, problem)
+        else:  # every pixel at metallic 0: AᵀA as the first such candidate assembled it (memo)
+            blocks, done = memo
+            at_0 = jnp.all(m_p == 0)
+            blocks = jax.lax.cond(at_0 & done, lambda: blocks,
+                                  lambda: channel_blocks(aw * aw, problem, problem.stencil))
+            memo = (blocks, done | at_0)
+            base_t = _solve_base_joint(lw, aw, yw, problem, blocks=blocks)
         base_t = jnp.where(base_free, base_t, x_fixed[:, :3])
         b_p = sample_texels(jnp.concatenate([base_t, x_fixed[:, 3:]], axis=1), problem)[:, :3]
         value = encode(l0 + b_p * a, obs.exposure[:, None], obs.tonemap, obs.color_space)
         err = jnp.sum(((value - obs.target) * obs.residual_weight) ** 2, axis=1)
         score = scatter_texels((problem.weight * err[:, None])[:, :, None], problem)[:, 0]
-        return base_t, score
+        return (base_t, score) + ((memo,) if sharing else ())
 
     cands = _candidates(ROUGHNESS_CANDIDATES, x_fixed.dtype)
-    best, base = _best_candidates(lambda mr: candidate(mr[0], mr[1]), cands)
+    if sharing:
+        blocks = jax.eval_shape(lambda a: channel_blocks(a, problem, problem.stencil), obs.target)
+        memo = (jnp.zeros(blocks.shape, blocks.dtype), jnp.asarray(False))
+        best, base = _best_candidates(lambda mr, memo: candidate(mr[0], mr[1], memo), cands, memo)
+    else:
+        best, base = _best_candidates(lambda mr: candidate(mr[0], mr[1]), cands)
     x = jnp.concatenate([base, cands[best], x_fixed[:, 5:]], axis=1)
     x = jnp.where(free > 0, x, x_fixed)
     return jnp.where(seen[:, None], x, x_fixed)

@@ -667,6 +667,47 @@ def test_joint_base_colour_solve_matches_a_dense_solve(monkeypatch, on_grid):
     assert np.abs(by_default - out).max() > 1e-3
 
 
+def test_grid_start_assembles_one_normal_matrix_for_the_candidates_at_metallic_0(monkeypatch):
+    """Under punctual lights with Lambert's diffuse lobe, a pixel's slope in base colour at
+    metallic 0 is the same at every roughness, and Burley's is not; so the grid start's
+    candidates at metallic 0 share one AᵀA, and start where each candidate assembling its own
+    starts: with metallic free (half the texels metal; texels start at metallic 1), and held at
+    0.5 (no candidate at metallic 0 then)."""
+    from pbrfit.fitting.initialisation import _slope_blocks_shared
+    from pbrfit.render.shade import shade
+
+    checker = _checker()
+    truth = Material(checker.base_color, (checker.roughness > 0.4).astype(jnp.float32), checker.roughness)  # half metal
+    problem = _texel_problem(truth, on_grid=True)
+    obs, p = problem.obs, problem.num_pixels
+    zero = jnp.zeros((p, 3))
+
+    def slope(model, roughness):
+        render = lambda b: shade(obs.normal, obs.view, obs.light_l, obs.light_radiance, b,  # noqa: E731
+                                 jnp.zeros((p, 1)), jnp.full((p, 1), roughness), model)
+        return np.asarray(jax.jvp(render, (zero,), (jnp.ones_like(zero),))[1])
+
+    assert np.any(slope(Model(), 0.2) > 0)
+    np.testing.assert_array_equal(slope(Model(), 0.2), slope(Model(), 0.9))
+    assert np.abs(slope(Model(diffuse="burley"), 0.2) - slope(Model(diffuse="burley"), 0.9)).max() > 1e-3
+    assert _slope_blocks_shared(problem)
+    assert not _slope_blocks_shared(dataclasses.replace(problem, model=Model(diffuse="burley")))
+    assert not _slope_blocks_shared(dataclasses.replace(problem, stencil=None))
+
+    x_true = np.asarray(_stack(truth))
+    held = x_true.copy()
+    held[:, 3] = 0.5
+    # traced afresh each time (a new function), so that the second trace reads the patch
+    start = jax.jit(lambda x, pr: pbrfit.fitting.initialisation.grid_initialise.__wrapped__(x, pr))
+    cases = [(x_true, problem), (held, dataclasses.replace(problem, free=problem.free.at[:, 3].set(0.0)))]
+    shared = [np.asarray(start(jnp.asarray(x), pr)) for x, pr in cases]
+    monkeypatch.setattr(pbrfit.fitting.initialisation, "_slope_blocks_shared", lambda problem: False)
+    start = jax.jit(lambda x, pr: pbrfit.fitting.initialisation.grid_initialise.__wrapped__(x, pr))
+    for (x, pr), one in zip(cases, shared):
+        np.testing.assert_allclose(one, np.asarray(start(jnp.asarray(x), pr)), rtol=0, atol=1e-6)
+    assert np.any(shared[0][:, 3] == 1.0) and np.all(shared[1][:, 3] == 0.5)
+
+
 @pytest.mark.parametrize("tonemap,ev,bits", [("reinhard", 1.0, None), ("aces_hill", 1.0, None),
                                              ("khronos_neutral", 1.0, None), ("aces_narkowicz", 3.0, 8),
                                              ("reinhard", 3.0, 8)])
