@@ -42,6 +42,8 @@ from pbrfit.fitting.sharding import take_pixels
 from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view
 from pbrfit.fitting.objective import Problem, objective, texel_grid
 from pbrfit.fitting.solvers.structured import StructuredLM, solve
+from pbrfit.fitting.normal_matrix import normal_blocks
+from pbrfit.xla import FAST_COMPILE
 
 RES = 24  # pixels per view side
 
@@ -392,7 +394,7 @@ def test_uncertainty_matches_the_dense_window_inverse():
     window's matrix, and the two agree to float32 round-off and the window's 1e-6 ridge.)"""
     truth = _checker()
     obs = _noisy_checker_obs(truth, seed=3)
-    blocks = pbrfit.fitting.runner._data_blocks  # (the program behind jitted_normal_blocks)
+    blocks = pbrfit.fitting.runner._data_blocks.variants[1]  # (the program behind jitted_normal_blocks, small problems)
     blocks.clear_cache()
     res = fit_observations(obs, resolution=8, fixed={"metallic": 0}, uniform_check=False, max_steps=20)
     assert res.report["fitted"] == ["base_r", "base_g", "base_b", "roughness"] and np.all(res.coverage > 0)
@@ -440,7 +442,7 @@ def test_the_sandwichs_meat_shares_the_jacobians_program(committed):
     if committed:
         jac = jax.device_put(jac, jax.devices()[0])
     assert jac.committed == committed
-    blocks = pbrfit.fitting.runner._data_blocks  # (the program behind jitted_normal_blocks)
+    blocks = pbrfit.fitting.runner._data_blocks.variants[1]  # (the program behind jitted_normal_blocks, small problems)
     blocks.clear_cache()
     seen = np.ones(problem.num_texels, bool)
     ratios = pbrfit.fitting.result.misfit_ratios(problem, np.asarray(x), r, jac, 1e-4, np.ones(5), seen,
@@ -995,6 +997,39 @@ def test_compiler_prefetches_waits_and_reraises():
     off = pbrfit.fitting.runner.Compiler({}, background=False)
     off.prefetch("square", square, x)
     assert not off.pending and off.executor is None
+
+
+def test_small_problems_compile_with_the_options_that_compile_sooner(monkeypatch):
+    """A fit program on a problem of fewer than `FAST_COMPILE_ROWS` sample rows (the search:
+    `SEARCH_FAST_COMPILE_ROWS`) compiles with `pbrfit.xla.FAST_COMPILE`, ahead of time
+    (`Compiler`) or jitted (`fit_jit`), and one on a larger problem with XLA's defaults; both give
+    the same start."""
+    runner = pbrfit.fitting.runner
+    problem = _texel_problem(_checker(4))
+    x = jnp.full((16, 5), 0.5, jnp.float32)
+    seen = []
+    compile_lowered = runner.compile_lowered
+    monkeypatch.setattr(runner, "compile_lowered",
+                        lambda lowered, options: seen.append(dict(options)) or compile_lowered(lowered, options))
+    small = runner.Compiler({}, background=False).get("grid", grid_initialise, x, problem)(x, problem)
+    blocks = runner.fit_jit(lambda jac, p: normal_blocks(jac, p))
+    jac = jax.jit(pbrfit.fitting.objective.linearize)(x, problem)[1]
+    blocks(jac, problem)
+    monkeypatch.setattr(runner, "FAST_COMPILE_ROWS", problem.obs.num_rows)  # the same problem, now large
+    large = runner.Compiler({}, background=False).get("grid", grid_initialise, x, problem)(x, problem)
+    blocks(jac, problem)
+    assert seen == [dict(FAST_COMPILE), {}]
+    # the coordinate search, which runs slower without XLA's defaults, from fewer rows
+    rows = problem.obs.num_rows
+    monkeypatch.setattr(runner, "FAST_COMPILE_ROWS", rows + 1)
+    monkeypatch.setattr(runner, "SEARCH_FAST_COMPILE_ROWS", rows)
+    assert runner.compile_options(grid_initialise, (x, problem)) == dict(FAST_COMPILE)
+    assert runner.compile_options(coordinate_search, (x, problem)) == {}
+    monkeypatch.setattr(runner, "SEARCH_FAST_COMPILE_ROWS", rows + 1)
+    assert runner.compile_options(coordinate_search, (x, problem)) == dict(FAST_COMPILE)
+    full, fast = blocks.variants
+    assert fast._cache_size() == 1 and full._cache_size() == 1
+    np.testing.assert_allclose(small, large, atol=1e-5)
 
 
 def test_continuation_is_reported_scales_with_the_data_and_is_released(monkeypatch):

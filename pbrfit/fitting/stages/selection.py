@@ -51,7 +51,6 @@ import dataclasses
 import math
 from typing import Optional
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -59,7 +58,7 @@ from jax import lax
 from jaxtyping import Array, Float
 
 from ..parameters import lower, upper
-from ..runner import jitted_normal_blocks, problem_energy
+from ..runner import fit_jit, jitted_normal_blocks, problem_energy
 from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ..objective import Problem
 from ..normal_matrix import gradient, spd_block_inverse
@@ -109,7 +108,7 @@ def texel_precisions(blocks: np.ndarray, channels: np.ndarray, seen: np.ndarray)
     return np.where(ok, 1.0 / np.where(ok, sigma, 1.0) ** 2, 0.0)
 
 
-@eqx.filter_jit
+@fit_jit
 def profile_hessian(r: Float[Array, "P 3"], jac: Float[Array, "R 3 K"], x: Float[Array, "T K"], problem: Problem,
                     directions: Float[Array, "U T K"]):
     """((U, U), (U,)): the Gauss-Newton curvature and the slope of E along `directions` with the
