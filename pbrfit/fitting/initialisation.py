@@ -351,7 +351,7 @@ def _energies(x, problem: Problem):
     pair = jnp.sum(s * s, axis=1)
     # with several samples per pixel, a pixel's error counts once per sample reading the texel
     local = _texel_scores(to_rows(err, problem), problem)
-    return local + _pair_scores(pair, problem), 0.5 * (jnp.sum(err) + jnp.sum(pair))
+    return local + _pair_scores(pair, problem), 0.5 * (jnp.sum(err) + jnp.sum(pair)) + problem.left("energy")
 
 
 def _local_energy(x, problem: Problem):

@@ -47,7 +47,8 @@ from ..render.shade import shade
 from ..lighting.pixel_ibl import per_row
 from ..transfer import to_device
 
-__all__ = ["Problem", "LOSSES", "robust_residual", "shading_normal", "sample_texels", "sample_material", "pixel_residuals", "residuals",
+__all__ = ["Problem", "LeftOut", "LOSSES", "robust_residual", "shading_normal", "sample_texels", "sample_material",
+           "pixel_residuals", "residuals",
            "objective", "linearize", "by_pixel", "to_rows", "scatter_texels", "TexelGrid", "texel_grid", "offset_texels", "laplacian",
            "prior_degree", "smooth_residuals"]
 
@@ -90,6 +91,19 @@ def texel_grid(shape: tuple[int, int], num_texels: int) -> TexelGrid:
     return TexelGrid(to_device(np.asarray(shape, np.int32)), to_device(corners), to_device(corner_of))
 
 
+class LeftOut(eqx.Module):
+    """The pixels a problem over some of another's pixels leaves out
+    (`pbrfit.fitting.sharding.take_pixels`), where none of them reads a texel that moves: their
+    data term ``energy`` (½ Σ ||r_p||², constant while those texels are held), their number
+    ``pixels`` and their share ``floor`` of `rounding_floor`. With them the objective, the
+    residual variance and the rounding floor are the whole problem's, so a solve over the pixels
+    that move stops where one over every pixel would."""
+
+    energy: Float[Array, ""]
+    pixels: Float[Array, ""]
+    floor: Float[Array, ""]
+
+
 class Problem(eqx.Module):
     """One fitting problem: observations, the texels each pixel reads, which channels move.
 
@@ -112,6 +126,7 @@ class Problem(eqx.Module):
             (`pbrfit.fitting.stencil.with_stencil`), which needs a grid, every pixel's taps in
             one cell (`pbrfit.fitting.stencil.cells_fit`) and the prior's pairs grid neighbours;
             else None, and its products go through the pixels.
+        left_out: the pixels of a larger problem this one leaves out (`LeftOut`), or None.
     """
 
     obs: Observations
@@ -127,6 +142,7 @@ class Problem(eqx.Module):
     loss: str = eqx.field(static=True, default="l2")
     grid: Optional[TexelGrid] = None
     stencil: object = None
+    left_out: Optional[LeftOut] = None
 
     @property
     def num_texels(self) -> int:
@@ -140,6 +156,10 @@ class Problem(eqx.Module):
     @property
     def num_pixels(self) -> int:
         return int(self.index.shape[0]) // self.obs.samples
+
+    def left(self, name: str):
+        """``left_out``'s ``name`` (energy, pixels or floor), 0 where it leaves none out."""
+        return 0.0 if self.left_out is None else getattr(self.left_out, name)
 
 
 def robust_residual(r, loss: str, scale):
@@ -285,13 +305,13 @@ def rounding_floor(problem: Problem) -> Float[Array, ""]:
     obs = problem.obs
     target, weight = obs.pixel_rows(obs.target), obs.pixel_rows(obs.residual_weight)
     eps = jnp.finfo(jnp.float32).eps
-    return 0.5 * jnp.sum((eps * weight * target) ** 2)
+    return 0.5 * jnp.sum((eps * weight * target) ** 2) + problem.left("floor")
 
 
 def objective(x: Float[Array, "T K"], problem: Problem) -> Float[Array, ""]:
-    """E(x) = 1/2 Σ residuals²."""
+    """E(x) = 1/2 Σ residuals² (and the term of the pixels the problem leaves out, `LeftOut`)."""
     r, s = residuals(x, problem)
-    return 0.5 * (jnp.sum(r * r) + jnp.sum(s * s))
+    return 0.5 * (jnp.sum(r * r) + jnp.sum(s * s)) + problem.left("energy")
 
 
 def linearize(x: Float[Array, "T K"], problem: Problem):
@@ -305,7 +325,7 @@ def linearize(x: Float[Array, "T K"], problem: Problem):
     else:
         r, jac = _linearize_samples(m, problem)
     s = smooth_residuals(x, problem)
-    loss = 0.5 * (jnp.sum(r * r) + jnp.sum(s * s))
+    loss = 0.5 * (jnp.sum(r * r) + jnp.sum(s * s)) + problem.left("energy")
     return r, jac, loss
 
 

@@ -26,6 +26,7 @@ import numpy as np
 
 from .solvers.optx import for_size, optx_solve
 from .objective import Problem, objective
+from .sharding import halving_sizes, mesh_size, moving_pixels, take_pixels
 from .stencil import data_blocks, data_neighbour_blocks, stencil_covers
 from .solvers import structured
 from .checkpoint import call_id
@@ -282,13 +283,16 @@ def compile_summary(times: Mapping[str, float]) -> str:
     return text
 
 
-def problem_key(problem: Problem, pixels: Optional[int] = None) -> tuple:
+def problem_key(problem: Problem, pixels: Optional[int] = None, left_out: bool = False) -> tuple:
     """What an executable over `problem` is specialised to: rows per pixel, the shapes, whether it
-    has a ``grid`` and whether the structured solver's products go by stencil; with ``pixels``,
-    that of `problem` over so many pixels (`pbrfit.fitting.sharding.take_pixels`)."""
+    has a ``grid``, whether the structured solver's products go by stencil and whether it leaves
+    pixels out (`pbrfit.fitting.objective.LeftOut`); with ``pixels``, that of `problem` over so
+    many pixels (`pbrfit.fitting.sharding.take_pixels`, its other pixels kept as a term with
+    ``left_out``)."""
     rows = problem.index.shape[0] if pixels is None else pixels * problem.samples
     return (problem.obs.samples, (rows,) + tuple(problem.index.shape[1:]), tuple(problem.free.shape),
-            tuple(problem.pairs.shape), problem.grid is not None, problem.stencil is not None)
+            tuple(problem.pairs.shape), problem.grid is not None, problem.stencil is not None,
+            left_out or problem.left_out is not None)
 
 
 def search_inputs(shape, problem: Problem, rounds: int, blend: bool) -> tuple:
@@ -302,6 +306,13 @@ def search_inputs(shape, problem: Problem, rounds: int, blend: bool) -> tuple:
     key = ("coordinate_search", tuple(shape), separable) + problem_key(problem)
     return key, to_device(classes), (to_device(rounds, np.int32), bool(blend), separable)
 
+
+#: A re-fit of a few texels over the pixels that read them (`Runner.refit`) pays for a program of
+#: its own: its compile costs about as much as the solver's steps over this many pixels (on a
+#: 2-core CPU, 3 to 6 s: 90 steps of `pbrfit demo`'s 41,234 pixels, 8 of a 256² map's 636k).
+REFIT_COMPILE_PIXEL_STEPS = 4_000_000
+#: ... and then linearises the whole problem once, at about this share of a step's cost.
+LINEARIZATION_STEPS = 0.3
 
 #: Clock entries that are not time on the fit's own thread (`Compiler`'s overlapped compiles).
 _OFF_THREAD = ("compile_background",)
@@ -488,6 +499,33 @@ class Runner:
                 field.name: getattr(carry, field.name) for field in dataclasses.fields(carry)})
         self._linearization = (out[2], out[3])
         return np.asarray(out[0]), dict(steps=done, accepted=int(s.accepted), cg_iterations=int(s.cg_iterations))
+
+    def refit(self, x0, problem: Problem, moving, steps: int, num_free: int, residuals):
+        """`steps` steps of the structured solver from x0 on ``problem``, whose free channels are
+        those of the texels of ``moving`` (T,) alone, ``residuals`` its (P, 3) pixel residuals
+        where the other texels stand (they stay there): over the pixels that read those texels
+        (`pbrfit.fitting.sharding.moving_pixels`), padded to 1/2, 1/4, ... of them
+        (`pbrfit.fitting.sharding.take_pixels`, the other pixels' term kept, so that the solve
+        stops where one over every pixel would) and then linearised over every pixel, or over
+        every pixel, whichever costs less in pixel-steps: each size's program not compiled yet
+        counts `REFIT_COMPILE_PIXEL_STEPS`. Returns what a call returns; `linearization` is
+        ``problem``'s."""
+        total = problem.num_pixels
+        if not self.structured:
+            return self(x0, problem, steps, num_free)
+        pixels = moving_pixels(np.asarray(moving, bool), np.asarray(problem.index), np.asarray(problem.weight),
+                               problem.samples)
+        sizes = halving_sizes(total, len(pixels), mesh_size(problem))
+        cost = [steps * total] + [
+            steps * size + LINEARIZATION_STEPS * total
+            + (0 if self.compiler.has(("structured",) + problem_key(problem, size, left_out=True))
+               else REFIT_COMPILE_PIXEL_STEPS) for size in sizes[1:]]
+        best = int(np.argmin(cost))
+        if best == 0:
+            return self(x0, problem, steps, num_free)
+        x, info = self(x0, take_pixels(problem, pixels, sizes[best], residuals), steps, num_free)
+        self(to_device(x, np.float32), problem, 0, num_free)  # the whole problem's linearisation at x
+        return x, info
 
     def jacobian(self, x, problem, num_free):
         """Per-pixel Jacobians (P, 3, K) at x: the structured solver's step 0, which only

@@ -55,15 +55,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from .observations import PIXEL_FIELDS, Observations, TexelLayout
-from .objective import Problem
+from .objective import LeftOut, Problem
 from .stencil import with_stencil
 from ..lighting.pixel_ibl import per_row
 
 __all__ = ["PIXEL_AXIS", "PAD_NORMAL", "PAD_VIEW", "PAD_LIGHT", "padded_size", "pad_observations", "pad_pixel_rows",
-           "pad_layout", "pixel_mesh", "pixel_sharding", "shard_problem", "mesh_size", "take_pixels"]
+           "pad_layout", "pixel_mesh", "pixel_sharding", "shard_problem", "mesh_size", "take_pixels", "moving_pixels",
+           "halving_sizes"]
 
 #: Name of the mesh axis the pixels are split over.
 PIXEL_AXIS = "pixels"
@@ -198,14 +199,33 @@ def mesh_size(problem: Problem) -> int:
     return int(sharding.mesh.shape[PIXEL_AXIS]) if isinstance(sharding, NamedSharding) else 1
 
 
-def take_pixels(problem: Problem, pixels: Int[np.ndarray, " N"], size: int) -> Problem:
+def moving_pixels(moving: Bool[np.ndarray, " T"], index, weight, samples: int) -> Int[np.ndarray, " N"]:
+    """The pixels some sample of which reads a texel of ``moving`` (with a weight above 0)."""
+    reads = np.any(moving[np.asarray(index)] & (np.asarray(weight) > 0), axis=1)
+    return np.flatnonzero(reads.reshape(-1, samples).any(axis=1))
+
+
+def halving_sizes(total: int, count: int, devices: int) -> list[int]:
+    """``total`` pixels, then 1/2, 1/4, ... of them (each a multiple of ``devices``) while ``count``
+    pixels fit: the sizes a problem over some of its pixels takes (`take_pixels`), so that a few
+    programs serve every choice of pixels."""
+    sizes = [int(total)]
+    while count <= (half := padded_size(-(-sizes[-1] // 2), devices)) < sizes[-1]:
+        sizes.append(half)
+    return sizes
+
+
+def take_pixels(problem: Problem, pixels: Int[np.ndarray, " N"], size: int, residuals=None) -> Problem:
     """`problem` over some of its pixels: the rows of ``pixels`` (every sample of each, in their
     order), then inert pixels (`pad_observations`'s) up to ``size`` pixels, a multiple of
     `mesh_size`; each per-pixel array placed as `problem`'s is, the rest shared.
 
     Its objective is `problem`'s less the terms of the pixels left out, so where those read no
     texel that moves, a change of the objective is the same on both (what
-    `pbrfit.fitting.stages.repair` searches over the pixels of the texels it moves)."""
+    `pbrfit.fitting.stages.repair` searches over the pixels of the texels it moves). With
+    ``residuals`` (`problem`'s (P, 3) pixel residuals where its texels stand) the pixels left out
+    are kept as a `pbrfit.fitting.objective.LeftOut` term: their part of the objective, their
+    number and their rounding floor, so that the objective is `problem`'s itself."""
     s, n = problem.samples, int(size)
     if n % mesh_size(problem) or n < len(pixels):
         raise ValueError(f"take_pixels: {n} pixels cannot hold {len(pixels)} over {mesh_size(problem)} devices")
@@ -221,4 +241,13 @@ def take_pixels(problem: Problem, pixels: Int[np.ndarray, " N"], size: int) -> P
     if per_row(problem.ibl):
         table = _append(np.asarray(problem.ibl.table)[rows], extra, 0.0)
         changes["ibl"] = dataclasses.replace(problem.ibl, table=place(problem.ibl.table, table))
+    if residuals is not None:
+        out = np.ones(problem.num_pixels, bool)
+        out[np.asarray(pixels, np.int64)] = False
+        r = np.asarray(residuals, np.float64)[: problem.num_pixels][out]
+        eps = float(np.finfo(np.float32).eps)
+        target, w = (np.asarray(obs.pixel_rows(a), np.float64)[out] for a in (obs.target, obs.residual_weight))
+        terms = (0.5 * np.sum(r * r), problem.num_pixels - n, 0.5 * np.sum((eps * w * target) ** 2))
+        changes["left_out"] = LeftOut(*(place(problem.smooth, np.float32(v + problem.left(name))) for v, name in
+                                        zip(terms, ("energy", "pixels", "floor"))))
     return _restenciled(problem, dataclasses.replace(problem, **changes))

@@ -37,8 +37,8 @@ from pbrfit.fitting.observations import (PIXEL_FIELDS, coverage_counts, neighbou
                                         texel_layout)
 from pbrfit.fitting.stencil import with_stencil
 from pbrfit.fitting.parameters import LOWER, UPPER, from_sine, to_sine
-from pbrfit.fitting.stages.repair import REPAIR_PROGRESS, SEARCH_COMPILE_COST, moving_pixels, search_problem
-from pbrfit.fitting.sharding import take_pixels
+from pbrfit.fitting.stages.repair import REPAIR_PROGRESS, SEARCH_COMPILE_COST, search_problem
+from pbrfit.fitting.sharding import moving_pixels, take_pixels
 from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view
 from pbrfit.fitting.objective import Problem, objective, texel_grid
 from pbrfit.fitting.solvers.structured import StructuredLM, solve
@@ -903,6 +903,41 @@ def test_repair_searches_the_moving_texels_pixels_alone_where_that_costs_less():
     assert search_problem(problem, few, key, Compiled(key, size_key(361)))[1] == size_key(361)
     # nothing compiled yet (the repair's problem is not the fit's search's): the smallest size
     assert search_problem(problem, quarter, key, Compiled())[1] == size_key(361)
+
+
+def test_a_refit_runs_over_the_moving_texels_pixels_where_that_costs_less(monkeypatch):
+    """`Runner.refit`: steps over the pixels that read the texels that move (the others' term
+    kept, `LeftOut`) reach the texel values, steps and E that steps over every pixel reach, and
+    leave the whole problem's linearisation; it takes that way where a compile counts for
+    nothing, and on a problem this small (its steps cost less than the compile) every pixel."""
+    truth = _checker()
+    problem = _texel_problem(truth, 1e-3, on_grid=True)
+    moving = np.zeros(problem.num_texels, bool)
+    moving[[9, 10, 17, 18]] = True
+    region = dataclasses.replace(problem, free=problem.free * jnp.asarray(moving[:, None], jnp.float32))
+    x0 = np.asarray(_stack(truth)).copy()
+    x0[moving] = [0.5, 0.5, 0.5, 0.2, 0.6]
+    r0 = jax.jit(pbrfit.fitting.objective.pixel_residuals)(jnp.asarray(x0), problem)
+    num_free = int(np.sum(np.asarray(region.free)))
+
+    def run(refit):
+        runner = pbrfit.fitting.runner.Runner(StructuredLM(), None, pbrfit.fitting.runner.Compiler(
+            dict(compile=0.0, solve=0.0), background=False))
+        x, info = (runner.refit(jnp.asarray(x0), region, moving, 10, num_free, r0) if refit
+                   else runner(jnp.asarray(x0), region, 10, num_free))
+        left_out = [key[-1] for key in runner.compiler.done]
+        return np.asarray(x), info, runner.linearization, left_out
+
+    whole = run(False)
+    assert run(True)[3] == [False]  # the steps of 1444 pixels cost less than a compile
+    monkeypatch.setattr(pbrfit.fitting.runner, "REFIT_COMPILE_PIXEL_STEPS", 0)
+    x, info, (r, jac), left_out = run(True)
+    assert left_out == [True, False]  # the steps over some pixels, then the whole problem at x
+    assert info == whole[1] and info["steps"] > 2
+    np.testing.assert_allclose(x, whole[0], atol=1e-5)
+    assert np.all(x[~moving] == x0[~moving])
+    assert r.shape == whole[2][0].shape and jac.shape == whole[2][1].shape
+    np.testing.assert_allclose(np.asarray(r), np.asarray(whole[2][0]), atol=1e-5)
 
 
 def test_fit_reports_the_search():

@@ -30,7 +30,7 @@ from pbrfit.fitting.observations import PIXEL_FIELDS, Observations, coverage_cou
 from pbrfit.render.shade import shade
 from pbrfit.fitting.sharding import (PAD_LIGHT, PAD_NORMAL, PAD_VIEW, PIXEL_AXIS, pad_layout, pad_observations, pad_pixel_rows,
                              padded_size, pixel_mesh, shard_problem, take_pixels)
-from pbrfit.fitting.objective import Problem, linearize, objective, pixel_residuals
+from pbrfit.fitting.objective import Problem, linearize, objective, pixel_residuals, rounding_floor
 from pbrfit.fitting.normal_matrix import gradient, normal_blocks, spd_block_inverse
 
 DEVICES = 4
@@ -217,6 +217,29 @@ def test_take_pixels_keeps_the_objective_change_of_the_texels_its_pixels_read():
     assert change(sub) == pytest.approx(change(problem), rel=1e-5)
     with pytest.raises(ValueError, match="cannot hold"):
         take_pixels(problem, pixels, len(pixels) - 1)
+
+
+def test_take_pixels_with_residuals_keeps_the_pixels_it_leaves_out_as_a_term():
+    """With the problem's residuals where it stands, the pixels left out stay a term
+    (`LeftOut`): the objective, E of the linearisation, the pixel count and the rounding floor
+    are the whole problem's, at that point and wherever the texels the kept pixels read move."""
+    problem, truth = _problem(pixels=37, render=False)
+    index, weight = np.asarray(problem.index), np.asarray(problem.weight)
+    pixels = np.flatnonzero(np.any((index == 5) & (weight > 0), axis=1))
+    start = np.asarray(truth, np.float32)  # the targets are random: every pixel misfits
+    r = jax.jit(pixel_residuals)(jnp.asarray(start), problem)
+    sub = take_pixels(problem, pixels, 32, residuals=r)
+    assert take_pixels(problem, pixels, 32).left_out is None
+    assert sub.num_pixels + float(sub.left_out.pixels) == problem.num_pixels
+    energy = jax.jit(objective)
+    moved = start.copy()
+    moved[5] = [0.9, 0.1, 0.3, 0.0, 0.8]
+    for x in (start, moved):
+        whole = pytest.approx(float(energy(jnp.asarray(x), problem)), rel=1e-5)
+        assert float(energy(jnp.asarray(x), sub)) == whole
+        assert float(jax.jit(linearize)(jnp.asarray(x), sub)[2]) == whole
+    assert float(sub.left_out.energy) > 0.1 * float(energy(jnp.asarray(start), problem))
+    assert float(rounding_floor(sub)) == pytest.approx(float(rounding_floor(problem)), rel=1e-5)
 
 
 def test_spd_block_inverse_matches_lapack_in_float64():

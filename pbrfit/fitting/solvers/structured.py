@@ -331,7 +331,7 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
         # a step that gains less than noise_rtol · p σ̂² / 2: the maps move by less than their noise
         # (σ̂² = 2 E / (n - p), as the host's `pbrfit.fitting.uncertainty.residual_variance`)
         free = jnp.sum(problem.free)
-        sigma2 = 2.0 * loss / jnp.maximum(3.0 * problem.num_pixels - free, 1.0)
+        sigma2 = 2.0 * loss / jnp.maximum(3.0 * (problem.num_pixels + problem.left("pixels")) - free, 1.0)
         noise_tol = self.noise_rtol * free * sigma2 / 2.0
         noise = accept & (actual <= noise_tol) & (predicted <= noise_tol)
         done = ~first & ((accept & (actual <= tol)) | noise | floor | rounded | (moved <= self.atol)

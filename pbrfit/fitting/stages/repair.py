@@ -106,7 +106,7 @@ from scipy.sparse import csgraph
 from ..initialisation import coordinate_search
 from ..parameters import CHANNELS
 from ..runner import jitted_normal_blocks, problem_energy, problem_key, search_inputs, timed
-from ..sharding import mesh_size, padded_size, take_pixels
+from ..sharding import halving_sizes, mesh_size, moving_pixels, take_pixels
 from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ..objective import Problem
 from ...transfer import to_device
@@ -114,7 +114,7 @@ from ..uncertainty import block_standard_errors, residual_variance
 
 __all__ = ["REPAIR_ROUNDS", "REPAIR_STEPS", "REPAIR_PASSES", "REPAIR_PROGRESS", "OUTLIER_EVIDENCE", "OUTLIER_SPREAD", "NOISE_DEVIATIONS",
            "repair_region", "fill_from_nearest", "improved_clusters", "evidence_variance", "repair_skipped",
-           "run_repair", "moving_pixels", "search_problem", "SEARCH_COMPILE_COST",
+           "run_repair", "search_problem", "SEARCH_COMPILE_COST",
            "MISFIT_FACTOR", "MISFIT_FLOOR", "WELL_SEEN_FRACTION", "OUTLIER_DEVIATION", "OUTLIER_REFERENCES",
            "OUTLIER_PEELS", "OUTLIER_PEEL_SHARE", "texel_misfit", "misfit_texels", "identifiable_texels",
            "well_seen_texels", "outlier_texels"]
@@ -417,12 +417,6 @@ def evidence_variance(energy: float, residual_count: int, parameter_count: int, 
     return max(residual_variance(energy, residual_count, parameter_count), MISFIT_FLOOR * scale)
 
 
-def moving_pixels(moving: Bool[np.ndarray, " T"], index, weight, samples: int) -> Int[np.ndarray, " N"]:
-    """The pixels some sample of which reads a texel of ``moving`` (with a weight above 0)."""
-    reads = np.any(moving[index] & (weight > 0), axis=1)
-    return np.flatnonzero(reads.reshape(-1, samples).any(axis=1))
-
-
 def search_problem(region: Problem, pixels: Int[np.ndarray, " N"], key, compiler) -> tuple:
     """(problem, key) of a repair's search over ``region`` (``key`` its `search_inputs` key):
     ``region`` itself, or ``region`` over ``pixels`` alone (the pixels of the texels it moves,
@@ -430,10 +424,8 @@ def search_problem(region: Problem, pixels: Int[np.ndarray, " N"], key, compiler
     least: a search's time in proportion to its pixels, plus `SEARCH_COMPILE_COST` where its
     size's program is not compiled yet. The pixels left out read no texel that moves, so both
     search alike; their programs do not."""
-    devices, total = mesh_size(region), region.num_pixels
-    sizes = [total]
-    while len(pixels) <= (half := padded_size(-(-sizes[-1] // 2), devices)) < sizes[-1]:
-        sizes.append(half)
+    total = region.num_pixels
+    sizes = halving_sizes(total, len(pixels), mesh_size(region))
     # a size's key: the search's (its name, the map's shape, whether classes share no pixel), the problem's
     keys = [key] + [key[:3] + problem_key(region, size) for size in sizes[1:]]
     cost = [size / total + (0.0 if compiler.has(k) else SEARCH_COMPILE_COST) for size, k in zip(sizes, keys)]
@@ -526,7 +518,7 @@ def run_repair(runner, compiler, problem: Problem, xs, linearization, shape, see
         entry.update(searched_pixels=searched.num_pixels, searched_samples=searched.samples)
         y = timed(compiler, search_key, coordinate_search, "repair", to_device(y, np.float32), searched, classes,
                   *static)
-        y, info = runner(to_device(y, np.float32), region, REPAIR_STEPS, num_free)
+        y, info = runner.refit(to_device(y, np.float32), region, moving, REPAIR_STEPS, num_free, linearization[0])
         # residuals and pixel Jacobians do not depend on which texels move: the full problem's
         after = runner.linearization
         better, clusters, improved = improved_clusters(moving, linearization[0], after[0], index, weight,

@@ -129,9 +129,9 @@ def run_hold(runner, problem: Problem, xs, linearization, channels, seen, final,
         x_held = xs.copy()
         x_held[held, ROUGHNESS] = PRIOR[ROUGHNESS]
         if refit.any():
-            x_held, info = runner(to_device(x_held, np.float32),
-                                  dataclasses.replace(problem, free=jax.device_put(refit, problem.free.sharding)),
-                                  HOLD_STEPS, int(np.sum(refit)))
+            x_held, info = runner.refit(to_device(x_held, np.float32),
+                                        dataclasses.replace(problem, free=jax.device_put(refit, problem.free.sharding)),
+                                        held, HOLD_STEPS, int(np.sum(refit)), r)
             x_held, steps = np.asarray(x_held, np.float32), steps + int(info["steps"])
             r_held, jac_held = runner.linearization
         else:  # base colour held by the caller: nothing to re-fit
