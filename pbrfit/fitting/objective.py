@@ -127,6 +127,8 @@ class Problem(eqx.Module):
             one cell (`pbrfit.fitting.stencil.cells_fit`) and the prior's pairs grid neighbours;
             else None, and its products go through the pixels.
         left_out: the pixels of a larger problem this one leaves out (`LeftOut`), or None.
+        texels: (M,) the texels with a free channel (indices, padded with T), which the structured
+            solver's conjugate gradients run over alone where it has a stencil; None: every texel.
     """
 
     obs: Observations
@@ -143,6 +145,7 @@ class Problem(eqx.Module):
     grid: Optional[TexelGrid] = None
     stencil: object = None
     left_out: Optional[LeftOut] = None
+    texels: Optional[Int[Array, " M"]] = None
 
     @property
     def num_texels(self) -> int:

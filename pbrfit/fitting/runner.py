@@ -283,16 +283,19 @@ def compile_summary(times: Mapping[str, float]) -> str:
     return text
 
 
-def problem_key(problem: Problem, pixels: Optional[int] = None, left_out: bool = False) -> tuple:
+def problem_key(problem: Problem, pixels: Optional[int] = None, left_out: bool = False,
+                texels: Optional[int] = None) -> tuple:
     """What an executable over `problem` is specialised to: rows per pixel, the shapes, whether it
-    has a ``grid``, whether the structured solver's products go by stencil and whether it leaves
-    pixels out (`pbrfit.fitting.objective.LeftOut`); with ``pixels``, that of `problem` over so
-    many pixels (`pbrfit.fitting.sharding.take_pixels`, its other pixels kept as a term with
-    ``left_out``)."""
+    has a ``grid``, whether the structured solver's products go by stencil, whether it leaves
+    pixels out (`pbrfit.fitting.objective.LeftOut`) and how many texels its conjugate gradients
+    run over (`Problem.texels`, None: all); with ``pixels`` (and ``left_out``, ``texels``), that
+    of `problem` over so many pixels (`pbrfit.fitting.sharding.take_pixels`)."""
     rows = problem.index.shape[0] if pixels is None else pixels * problem.samples
+    if texels is None and problem.texels is not None:
+        texels = int(problem.texels.shape[0])
     return (problem.obs.samples, (rows,) + tuple(problem.index.shape[1:]), tuple(problem.free.shape),
             tuple(problem.pairs.shape), problem.grid is not None, problem.stencil is not None,
-            left_out or problem.left_out is not None)
+            left_out or problem.left_out is not None, texels)
 
 
 def search_inputs(shape, problem: Problem, rounds: int, blend: bool) -> tuple:
@@ -508,22 +511,31 @@ class Runner:
         (`pbrfit.fitting.sharding.take_pixels`, the other pixels' term kept, so that the solve
         stops where one over every pixel would) and then linearised over every pixel, or over
         every pixel, whichever costs less in pixel-steps: each size's program not compiled yet
-        counts `REFIT_COMPILE_PIXEL_STEPS`. Returns what a call returns; `linearization` is
+        counts `REFIT_COMPILE_PIXEL_STEPS`. Over some pixels, the conjugate gradients of a problem
+        held by stencil run over the texels with a free channel alone (`Problem.texels`, padded to
+        1/2, 1/4, ... of the texels). Returns what a call returns; `linearization` is
         ``problem``'s."""
         total = problem.num_pixels
         if not self.structured:
             return self(x0, problem, steps, num_free)
-        pixels = moving_pixels(np.asarray(moving, bool), np.asarray(problem.index), np.asarray(problem.weight),
-                               problem.samples)
+        moving = np.asarray(moving, bool)
+        pixels = moving_pixels(moving, np.asarray(problem.index), np.asarray(problem.weight), problem.samples)
         sizes = halving_sizes(total, len(pixels), mesh_size(problem))
+        # the texels its conjugate gradients run over: those with a free channel (by stencil)
+        texels = np.flatnonzero(np.any(np.asarray(problem.free) > 0, axis=1))
+        count = None if problem.stencil is None else halving_sizes(problem.num_texels, len(texels), 1)[-1]
         cost = [steps * total] + [
             steps * size + LINEARIZATION_STEPS * total
-            + (0 if self.compiler.has(("structured",) + problem_key(problem, size, left_out=True))
+            + (0 if self.compiler.has(("structured",) + problem_key(problem, size, True, count))
                else REFIT_COMPILE_PIXEL_STEPS) for size in sizes[1:]]
         best = int(np.argmin(cost))
         if best == 0:
             return self(x0, problem, steps, num_free)
-        x, info = self(x0, take_pixels(problem, pixels, sizes[best], residuals), steps, num_free)
+        sub = take_pixels(problem, pixels, sizes[best], residuals)
+        if count is not None:
+            padded = np.concatenate([texels, np.full(count - len(texels), problem.num_texels)]).astype(np.int32)
+            sub = dataclasses.replace(sub, texels=jax.device_put(padded, problem.free.sharding))
+        x, info = self(x0, sub, steps, num_free)
         self(to_device(x, np.float32), problem, 0, num_free)  # the whole problem's linearisation at x
         return x, info
 

@@ -907,13 +907,14 @@ def test_repair_searches_the_moving_texels_pixels_alone_where_that_costs_less():
 
 def test_a_refit_runs_over_the_moving_texels_pixels_where_that_costs_less(monkeypatch):
     """`Runner.refit`: steps over the pixels that read the texels that move (the others' term
-    kept, `LeftOut`) reach the texel values, steps and E that steps over every pixel reach, and
+    kept, `LeftOut`; conjugate gradients over those texels alone, `Problem.texels`) reach the
+    texel values, steps and E that steps over every pixel reach, and
     leave the whole problem's linearisation; it takes that way where a compile counts for
     nothing, and on a problem this small (its steps cost less than the compile) every pixel."""
     truth = _checker()
     problem = _texel_problem(truth, 1e-3, on_grid=True)
     moving = np.zeros(problem.num_texels, bool)
-    moving[[9, 10, 17, 18]] = True
+    moving[[0, 9, 10, 17, 18, 63]] = True  # a 2 × 2 patch, the first texel and the last
     region = dataclasses.replace(problem, free=problem.free * jnp.asarray(moving[:, None], jnp.float32))
     x0 = np.asarray(_stack(truth)).copy()
     x0[moving] = [0.5, 0.5, 0.5, 0.2, 0.6]
@@ -925,14 +926,16 @@ def test_a_refit_runs_over_the_moving_texels_pixels_where_that_costs_less(monkey
             dict(compile=0.0, solve=0.0), background=False))
         x, info = (runner.refit(jnp.asarray(x0), region, moving, 10, num_free, r0) if refit
                    else runner(jnp.asarray(x0), region, 10, num_free))
-        left_out = [key[-1] for key in runner.compiler.done]
-        return np.asarray(x), info, runner.linearization, left_out
+        programs = [key[-2:] for key in runner.compiler.done]  # (whether it leaves pixels out, its CG's texels)
+        return np.asarray(x), info, runner.linearization, programs
 
     whole = run(False)
-    assert run(True)[3] == [False]  # the steps of 1444 pixels cost less than a compile
+    assert run(True)[3] == [(False, None)]  # the steps of 1444 pixels cost less than a compile
     monkeypatch.setattr(pbrfit.fitting.runner, "REFIT_COMPILE_PIXEL_STEPS", 0)
-    x, info, (r, jac), left_out = run(True)
-    assert left_out == [True, False]  # the steps over some pixels, then the whole problem at x
+    x, info, (r, jac), programs = run(True)
+    # the steps over some pixels, their conjugate gradients over the 6 free texels (8 rows), then the whole
+    # problem at x
+    assert programs == [(True, 8), (False, None)]
     assert info == whole[1] and info["steps"] > 2
     np.testing.assert_allclose(x, whole[0], atol=1e-5)
     assert np.all(x[~moving] == x0[~moving])

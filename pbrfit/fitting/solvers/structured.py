@@ -167,6 +167,31 @@ def _active(x, g, free):
     return free * (~blocked).astype(x.dtype)
 
 
+def _stencil_rows(problem: Problem, st, a):
+    """The texels the stencil's conjugate gradients run over: (rows (M,), their neighbours among
+    them (M, N), the active channels of the texels the neighbours index). Every texel (M = T)
+    where ``problem.texels`` is None, else those texels (indices, padded with T: rows that gather
+    zeros, `_rows`, and are their own neighbour), each neighbour left out pointing at a zero row M."""
+    if problem.texels is None:
+        return slice(None), st.neighbours, a
+    t, m = a.shape[0], problem.texels.shape[0]
+    rows, own = problem.texels, jnp.arange(m, dtype=jnp.int32)
+    slot = jnp.full((t,), m, jnp.int32).at[rows].set(own, mode="drop")
+    nb = slot[_rows(st.neighbours, rows)].at[:, st.centre].set(own)
+    return rows, nb, jnp.concatenate([_rows(a, rows), jnp.zeros_like(a[:1])])
+
+
+def _rows(a, rows):
+    """``a``'s rows ``rows`` (all where a slice), zeros for the indices past its end."""
+    return a[rows] if isinstance(rows, slice) else a.at[rows].get(mode="fill", fill_value=0)
+
+
+def _with_zero_row(v, rows):
+    """``v`` over the conjugate gradients' rows, with the zero row that the texels left out read
+    (none where they run over every texel)."""
+    return v if isinstance(rows, slice) else jnp.concatenate([v, jnp.zeros_like(v[:1])])
+
+
 class _StructuredLMState(eqx.Module):
     """The iterate's residuals r (P, 3), per-row Jacobians (R, 3, K) and E; its gradient g, the
     diagonal blocks of JᵀJ + smooth L and that matrix's factors (`gauss_newton_operator`), made
@@ -280,23 +305,38 @@ class StructuredLM(optx.AbstractLeastSquaresSolver):
             diag = jnp.diagonal(blocks, axis1=1, axis2=2)
             mean_diag = jnp.sum(diag * problem.free) / jnp.maximum(jnp.sum(problem.free), 1.0)
             damp = diag + DAMPING_FLOOR * mean_diag
-            outer = a[:, :, None] * a[:, None, :]
-            m_blocks = outer * (blocks + lam * damp[:, :, None] * eye) + (1.0 - a)[:, :, None] * eye
-            m_inv = spd_block_inverse(m_blocks)
+
+            def m_of(a, blocks, damp):  # M's diagonal blocks: damped where active, the identity's elsewhere
+                outer = a[:, :, None] * a[:, None, :]
+                return outer * (blocks + lam * damp[:, :, None] * eye) + (1.0 - a)[:, :, None] * eye
+
             if st is None:
+                m_inv = spd_block_inverse(m_of(a, blocks, damp))
+
                 def matvec(v):
                     av = a * v
                     return a * (product(av) + lam * damp * av) + (1.0 - a) * v
             else:  # the same operator by stencil: its blocks masked to the active channels, M's on the diagonal
-                masked = (a[:, None, :, None] * factors * a[st.neighbours][:, :, None, :]).at[:, st.centre].set(m_blocks)
+                # (over `Problem.texels` alone where given: every other texel's row is the identity's,
+                # its right-hand side 0, and its solution 0)
+                rows, nb, a_nb = _stencil_rows(problem, st, a)
+                a_rows = _rows(a, rows)
+                m_blocks = m_of(a_rows, _rows(blocks, rows), _rows(damp, rows))
+                m_inv = spd_block_inverse(m_blocks)
+                masked = (a_rows[:, None, :, None] * _rows(factors, rows)
+                          * a_nb[nb][:, :, None, :]).at[:, st.centre].set(m_blocks)
 
                 def matvec(v):
-                    return stencil_product(masked, st.neighbours, v)
+                    return stencil_product(masked, nb, _with_zero_row(v, rows))
 
             def precond(v):
                 return jnp.sum(m_inv * v[:, None, :], axis=2)
 
-            delta, iters = pcg(matvec, -a * g, precond, self.cg_rtol, self.cg_max_steps)
+            if st is None:
+                delta, iters = pcg(matvec, -a * g, precond, self.cg_rtol, self.cg_max_steps)
+            else:
+                delta, iters = pcg(matvec, _rows(-a * g, rows), precond, self.cg_rtol, self.cg_max_steps)
+                delta = delta if problem.texels is None else jnp.zeros_like(x).at[rows].set(delta, mode="drop")
             x_new = jnp.clip(x + a * delta, lo, hi)
             step = x_new - x
             predicted = -(_vdot(g, step) + 0.5 * _vdot(step, product(step)))
