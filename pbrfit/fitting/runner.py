@@ -314,8 +314,12 @@ def search_inputs(shape, problem: Problem, rounds: int, blend: bool) -> tuple:
 #: its own: its compile costs about as much as the solver's steps over this many pixels (on a
 #: 2-core CPU, 3 to 6 s: 90 steps of `pbrfit demo`'s 41,234 pixels, 8 of a 256² map's 636k).
 REFIT_COMPILE_PIXEL_STEPS = 4_000_000
-#: ... and then linearises the whole problem once, at about this share of a step's cost.
-LINEARIZATION_STEPS = 0.3
+
+@jax.jit
+def _put_rows(full, at, part):
+    """``full`` with its rows ``at`` set to ``part``'s (an index past its end: that row dropped)."""
+    return full.at[at].set(part, mode="drop")
+
 
 #: Clock entries that are not time on the fit's own thread (`Compiler`'s overlapped compiles).
 _OFF_THREAD = ("compile_background",)
@@ -503,17 +507,18 @@ class Runner:
         self._linearization = (out[2], out[3])
         return np.asarray(out[0]), dict(steps=done, accepted=int(s.accepted), cg_iterations=int(s.cg_iterations))
 
-    def refit(self, x0, problem: Problem, moving, steps: int, num_free: int, residuals):
+    def refit(self, x0, problem: Problem, moving, steps: int, num_free: int, linearization):
         """`steps` steps of the structured solver from x0 on ``problem``, whose free channels are
-        those of the texels of ``moving`` (T,) alone, ``residuals`` its (P, 3) pixel residuals
-        where the other texels stand (they stay there): over the pixels that read those texels
-        (`pbrfit.fitting.sharding.moving_pixels`), padded to 1/2, 1/4, ... of them
+        those of the texels of ``moving`` (T,) alone, ``linearization`` its (residuals, per-row
+        Jacobians) where the other texels stand (they stay there): over the pixels that read
+        those texels (`pbrfit.fitting.sharding.moving_pixels`), padded to 1/2, 1/4, ... of them
         (`pbrfit.fitting.sharding.take_pixels`, the other pixels' term kept, so that the solve
-        stops where one over every pixel would) and then linearised over every pixel, or over
-        every pixel, whichever costs less in pixel-steps: each size's program not compiled yet
-        counts `REFIT_COMPILE_PIXEL_STEPS`. Over some pixels, the conjugate gradients of a problem
-        held by stencil run over the texels with a free channel alone (`Problem.texels`, padded to
-        1/2, 1/4, ... of the texels). Returns what a call returns; `linearization` is
+        stops where one over every pixel would), or over every pixel, whichever costs fewer
+        pixel-steps: each size's program not compiled yet counts `REFIT_COMPILE_PIXEL_STEPS`.
+        Over some pixels, the conjugate gradients of a problem held by stencil run over the
+        texels with a free channel alone (`Problem.texels`, padded to 1/2, 1/4, ... of the
+        texels), and the whole problem's linearisation at the result is ``linearization`` with
+        those pixels' rows replaced. Returns what a call returns; `linearization` is
         ``problem``'s."""
         total = problem.num_pixels
         if not self.structured:
@@ -525,18 +530,22 @@ class Runner:
         texels = np.flatnonzero(np.any(np.asarray(problem.free) > 0, axis=1))
         count = None if problem.stencil is None else halving_sizes(problem.num_texels, len(texels), 1)[-1]
         cost = [steps * total] + [
-            steps * size + LINEARIZATION_STEPS * total
-            + (0 if self.compiler.has(("structured",) + problem_key(problem, size, True, count))
-               else REFIT_COMPILE_PIXEL_STEPS) for size in sizes[1:]]
+            steps * size + (0 if self.compiler.has(("structured",) + problem_key(problem, size, True, count))
+                            else REFIT_COMPILE_PIXEL_STEPS) for size in sizes[1:]]
         best = int(np.argmin(cost))
         if best == 0:
             return self(x0, problem, steps, num_free)
-        sub = take_pixels(problem, pixels, sizes[best], residuals)
+        size, samples = sizes[best], problem.samples
+        sub = take_pixels(problem, pixels, size, linearization[0])
         if count is not None:
             padded = np.concatenate([texels, np.full(count - len(texels), problem.num_texels)]).astype(np.int32)
             sub = dataclasses.replace(sub, texels=jax.device_put(padded, problem.free.sharding))
         x, info = self(x0, sub, steps, num_free)
-        self(to_device(x, np.float32), problem, 0, num_free)  # the whole problem's linearisation at x
+        # the rows of the pixels taken (padding: past the end, dropped)
+        at = np.concatenate([pixels, np.full(size - len(pixels), total)]).astype(np.int32)
+        rows = (at[:, None] * samples + np.arange(samples, dtype=np.int32)).reshape(-1)
+        r, jac = self.linearization
+        self._linearization = (_put_rows(linearization[0], at, r), _put_rows(linearization[1], rows, jac))
         return x, info
 
     def jacobian(self, x, problem, num_free):

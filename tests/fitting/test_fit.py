@@ -908,9 +908,10 @@ def test_repair_searches_the_moving_texels_pixels_alone_where_that_costs_less():
 def test_a_refit_runs_over_the_moving_texels_pixels_where_that_costs_less(monkeypatch):
     """`Runner.refit`: steps over the pixels that read the texels that move (the others' term
     kept, `LeftOut`; conjugate gradients over those texels alone, `Problem.texels`) reach the
-    texel values, steps and E that steps over every pixel reach, and
-    leave the whole problem's linearisation; it takes that way where a compile counts for
-    nothing, and on a problem this small (its steps cost less than the compile) every pixel."""
+    texel values, steps and E that steps over every pixel reach, and leave the whole problem's
+    linearisation (its start's, those pixels' rows replaced); it takes that way where a compile
+    counts for nothing, and on a problem this small (its steps cost less than the compile) every
+    pixel."""
     truth = _checker()
     problem = _texel_problem(truth, 1e-3, on_grid=True)
     moving = np.zeros(problem.num_texels, bool)
@@ -918,13 +919,13 @@ def test_a_refit_runs_over_the_moving_texels_pixels_where_that_costs_less(monkey
     region = dataclasses.replace(problem, free=problem.free * jnp.asarray(moving[:, None], jnp.float32))
     x0 = np.asarray(_stack(truth)).copy()
     x0[moving] = [0.5, 0.5, 0.5, 0.2, 0.6]
-    r0 = jax.jit(pbrfit.fitting.objective.pixel_residuals)(jnp.asarray(x0), problem)
+    start = jax.jit(pbrfit.fitting.objective.linearize)(jnp.asarray(x0), problem)[:2]
     num_free = int(np.sum(np.asarray(region.free)))
 
     def run(refit):
         runner = pbrfit.fitting.runner.Runner(StructuredLM(), None, pbrfit.fitting.runner.Compiler(
             dict(compile=0.0, solve=0.0), background=False))
-        x, info = (runner.refit(jnp.asarray(x0), region, moving, 10, num_free, r0) if refit
+        x, info = (runner.refit(jnp.asarray(x0), region, moving, 10, num_free, start) if refit
                    else runner(jnp.asarray(x0), region, 10, num_free))
         programs = [key[-2:] for key in runner.compiler.done]  # (whether it leaves pixels out, its CG's texels)
         return np.asarray(x), info, runner.linearization, programs
@@ -933,14 +934,14 @@ def test_a_refit_runs_over_the_moving_texels_pixels_where_that_costs_less(monkey
     assert run(True)[3] == [(False, None)]  # the steps of 1444 pixels cost less than a compile
     monkeypatch.setattr(pbrfit.fitting.runner, "REFIT_COMPILE_PIXEL_STEPS", 0)
     x, info, (r, jac), programs = run(True)
-    # the steps over some pixels, their conjugate gradients over the 6 free texels (8 rows), then the whole
-    # problem at x
-    assert programs == [(True, 8), (False, None)]
+    # the steps over some pixels, their conjugate gradients over the 6 free texels (8 rows), no other program
+    assert programs == [(True, 8)]
     assert info == whole[1] and info["steps"] > 2
     np.testing.assert_allclose(x, whole[0], atol=1e-5)
     assert np.all(x[~moving] == x0[~moving])
     assert r.shape == whole[2][0].shape and jac.shape == whole[2][1].shape
     np.testing.assert_allclose(np.asarray(r), np.asarray(whole[2][0]), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(jac), np.asarray(whole[2][1]), atol=1e-4)
 
 
 def test_fit_reports_the_search():

@@ -380,6 +380,26 @@ def _multi_device_report() -> dict:
         taken_table_rows=sorted(int(s.data.shape[0]) for s in sub.ibl.table.addressable_shards),
         taken_change=[change(with_table), change(sub)],
     )
+    # a re-fit of two texels over their pixels (`Runner.refit`, made to take them): the same on the mesh
+    from pbrfit.fitting import runner as fit_runner
+
+    fit_runner.REFIT_COMPILE_PIXEL_STEPS = 0
+    moving = np.zeros(problem.num_texels, bool)
+    moving[[5, 6]] = True
+
+    def refit(p):
+        region = dataclasses.replace(p, free=jax.device_put(np.asarray(p.free) * moving[:, None], p.free.sharding))
+        compiler = fit_runner.Compiler(dict(compile=0.0, solve=0.0), background=False)
+        run = fit_runner.Runner(StructuredLM(), None, compiler)
+        start = jax.jit(linearize)(moved, p)[:2]
+        y, info = run.refit(moved, region, moving, 5, int(np.sum(np.asarray(region.free))), start)
+        return np.asarray(y), info["steps"], np.asarray(run.linearization[0])[:real]
+
+    one_refit, many_refit = refit(problem), refit(sharded)
+    out.update(refit_steps=[one_refit[1], many_refit[1]],
+               refit_diff=float(np.max(np.abs(one_refit[0] - many_refit[0]))),
+               refit_moved=float(np.max(np.abs(one_refit[0] - np.asarray(moved)))),
+               refit_residual_diff=float(np.max(np.abs(one_refit[2] - many_refit[2]))))
     # The whole `pbrfit fit --devices 4` on the peer layout (32² images of 16² maps here). With 64² it
     # hung at the solver's first step: the block-Jacobi inverses went through LAPACK
     # (``jnp.linalg.inv``), whose batched kernel waits on the CPU thread pool that the other
@@ -403,7 +423,7 @@ def _multi_device_report() -> dict:
 def test_structured_lm_sharded_over_four_cpu_devices():
     """One interpreter with four host devices: the solver, the stages' kernels and the whole fit
     sharded and not, samples and per-pixel IBL rows with their pixels (in a problem of some of
-    them too, `take_pixels`), and the whole
+    them too, `take_pixels`, and a re-fit over some, `Runner.refit`), and the whole
     `pbrfit fit --devices 4` command (it once hung), under one time limit."""
     proc = subprocess.run([sys.executable, __file__], env=_four_device_env(), capture_output=True, text=True, timeout=400)
     assert proc.returncode == 0, proc.stderr[-4000:]
@@ -441,6 +461,9 @@ def test_structured_lm_sharded_over_four_cpu_devices():
     assert rep["taken_shard_rows"] == [rows] * DEVICES and rep["taken_table_rows"] == [rows] * DEVICES, rep
     assert abs(rep["taken_change"][0]) > 1e-3, rep
     np.testing.assert_allclose(rep["taken_change"][1], rep["taken_change"][0], rtol=1e-4)
+    assert rep["refit_steps"][0] > 1 and rep["refit_steps"][0] == rep["refit_steps"][1], rep
+    assert rep["refit_moved"] > 1e-3, rep
+    assert rep["refit_diff"] <= 1e-5 and rep["refit_residual_diff"] <= 1e-5, rep
     assert rep["command_devices"] == DEVICES, rep
     assert max(rep["command_truth_rmse"].values()) < 1e-4, rep
 

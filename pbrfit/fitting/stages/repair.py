@@ -518,7 +518,7 @@ def run_repair(runner, compiler, problem: Problem, xs, linearization, shape, see
         entry.update(searched_pixels=searched.num_pixels, searched_samples=searched.samples)
         y = timed(compiler, search_key, coordinate_search, "repair", to_device(y, np.float32), searched, classes,
                   *static)
-        y, info = runner.refit(to_device(y, np.float32), region, moving, REPAIR_STEPS, num_free, linearization[0])
+        y, info = runner.refit(to_device(y, np.float32), region, moving, REPAIR_STEPS, num_free, linearization)
         # residuals and pixel Jacobians do not depend on which texels move: the full problem's
         after = runner.linearization
         better, clusters, improved = improved_clusters(moving, linearization[0], after[0], index, weight,
