@@ -315,6 +315,7 @@ def search_inputs(shape, problem: Problem, rounds: int, blend: bool) -> tuple:
 #: 2-core CPU, 3 to 6 s: 90 steps of `pbrfit demo`'s 41,234 pixels, 8 of a 256² map's 636k).
 REFIT_COMPILE_PIXEL_STEPS = 4_000_000
 
+
 @jax.jit
 def _put_rows(full, at, part):
     """``full`` with its rows ``at`` set to ``part``'s (an index past its end: that row dropped)."""
