@@ -131,7 +131,7 @@ def run_hold(runner, problem: Problem, xs, linearization, channels, seen, final,
         if refit.any():
             x_held, info = runner.refit(to_device(x_held, np.float32),
                                         dataclasses.replace(problem, free=jax.device_put(refit, problem.free.sharding)),
-                                        held, HOLD_STEPS, int(np.sum(refit)), (r, jac))
+                                        held, HOLD_STEPS, int(np.sum(refit)), linearization)
             x_held, steps = np.asarray(x_held, np.float32), steps + int(info["steps"])
             r_held, jac_held = runner.linearization
         else:  # base colour held by the caller: nothing to re-fit
