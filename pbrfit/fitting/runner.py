@@ -311,9 +311,10 @@ def search_inputs(shape, problem: Problem, rounds: int, blend: bool) -> tuple:
 
 
 #: A re-fit of a few texels over the pixels that read them (`Runner.refit`) pays for a program of
-#: its own: its compile costs about as much as the solver's steps over this many pixels (on a
-#: 2-core CPU, 3 to 6 s: 90 steps of `pbrfit demo`'s 41,234 pixels, 8 of a 256² map's 636k).
-REFIT_COMPILE_PIXEL_STEPS = 4_000_000
+#: its own: its compile costs about as much as the solver's steps over this many sample rows (on a
+#: 2-core CPU, 3 to 6 s: 90 steps of `pbrfit demo`'s 41,234 pixels, 8 of a 256² map's 636k, one
+#: row each; a step's time grows with its rows, a compile's does not).
+REFIT_COMPILE_ROW_STEPS = 4_000_000
 
 
 @jax.jit
@@ -515,13 +516,14 @@ class Runner:
         those texels (`pbrfit.fitting.sharding.moving_pixels`), padded to 1/2, 1/4, ... of them
         (`pbrfit.fitting.sharding.take_pixels`, the other pixels' term kept, so that the solve
         stops where one over every pixel would), or over every pixel, whichever costs fewer
-        pixel-steps: each size's program not compiled yet counts `REFIT_COMPILE_PIXEL_STEPS`.
+        row-steps (sample rows times steps): each size's program not compiled yet counts
+        `REFIT_COMPILE_ROW_STEPS`.
         Over some pixels, the conjugate gradients of a problem held by stencil run over the
         texels with a free channel alone (`Problem.texels`, padded to 1/2, 1/4, ... of the
         texels), and the whole problem's linearisation at the result is ``linearization`` with
         those pixels' rows replaced. Returns what a call returns; `linearization` is
         ``problem``'s."""
-        total = problem.num_pixels
+        total, samples = problem.num_pixels, problem.samples
         if not self.structured:
             return self(x0, problem, steps, num_free)
         moving = np.asarray(moving, bool)
@@ -530,13 +532,13 @@ class Runner:
         # the texels its conjugate gradients run over: those with a free channel (by stencil)
         texels = np.flatnonzero(np.any(np.asarray(problem.free) > 0, axis=1))
         count = None if problem.stencil is None else halving_sizes(problem.num_texels, len(texels), 1)[-1]
-        cost = [steps * total] + [
-            steps * size + (0 if self.compiler.has(("structured",) + problem_key(problem, size, True, count))
-                            else REFIT_COMPILE_PIXEL_STEPS) for size in sizes[1:]]
+        cost = [steps * total * samples] + [
+            steps * size * samples + (0 if self.compiler.has(("structured",) + problem_key(problem, size, True, count))
+                                      else REFIT_COMPILE_ROW_STEPS) for size in sizes[1:]]
         best = int(np.argmin(cost))
         if best == 0:
             return self(x0, problem, steps, num_free)
-        size, samples = sizes[best], problem.samples
+        size = sizes[best]
         sub = take_pixels(problem, pixels, size, linearization[0])
         if count is not None:
             padded = np.concatenate([texels, np.full(count - len(texels), problem.num_texels)]).astype(np.int32)

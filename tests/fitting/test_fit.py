@@ -38,7 +38,7 @@ from pbrfit.fitting.observations import (PIXEL_FIELDS, coverage_counts, neighbou
 from pbrfit.fitting.stencil import with_stencil
 from pbrfit.fitting.parameters import LOWER, UPPER, from_sine, to_sine
 from pbrfit.fitting.stages.repair import REPAIR_PROGRESS, SEARCH_COMPILE_COST, search_problem
-from pbrfit.fitting.sharding import moving_pixels, take_pixels
+from pbrfit.fitting.sharding import halving_sizes, moving_pixels, take_pixels
 from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view
 from pbrfit.fitting.objective import Problem, objective, texel_grid
 from pbrfit.fitting.solvers.structured import StructuredLM, solve
@@ -851,6 +851,15 @@ def test_coordinate_search_checks_the_whole_objective_only_where_classes_share_p
     np.testing.assert_allclose(unchecked, checked, atol=1e-6)
 
 
+def _two_samples(problem, truth):
+    """``problem`` with each pixel's row twice, its uv moved either way: two samples per pixel."""
+    rows = {name: np.repeat(np.asarray(getattr(problem.obs, name)), 2, axis=0) for name in PIXEL_FIELDS}
+    rows["uv"] = rows["uv"] + np.tile([[-0.004, 0.003], [0.004, -0.003]], (problem.obs.num_rows, 1)).astype(np.float32)
+    obs = dataclasses.replace(problem.obs, samples=2, **{k: jnp.asarray(v) for k, v in rows.items()})
+    layout = texel_layout(obs, truth.resolution)
+    return with_stencil(dataclasses.replace(problem, obs=obs, index=layout.index, weight=layout.weight))
+
+
 @pytest.mark.parametrize("on_grid,samples", [(False, 1), (True, 2)])
 def test_coordinate_search_over_the_pixels_of_the_moving_texels_alone(on_grid, samples):
     """The repair's search: where only some texels are free, a search over the pixels that read
@@ -858,12 +867,8 @@ def test_coordinate_search_over_the_pixels_of_the_moving_texels_alone(on_grid, s
     with the map's grid (as a fit's problem has it) and two samples per pixel."""
     truth = _checker()
     problem = _texel_problem(truth, 1e-3, on_grid)
-    if samples > 1:  # each pixel's row twice, its uv moved either way: two samples per pixel
-        rows = {name: np.repeat(np.asarray(getattr(problem.obs, name)), samples, axis=0) for name in PIXEL_FIELDS}
-        rows["uv"] = rows["uv"] + np.tile([[-0.004, 0.003], [0.004, -0.003]], (problem.obs.num_rows, 1)).astype(np.float32)
-        obs = dataclasses.replace(problem.obs, samples=samples, **{k: jnp.asarray(v) for k, v in rows.items()})
-        layout = texel_layout(obs, truth.resolution)
-        problem = with_stencil(dataclasses.replace(problem, obs=obs, index=layout.index, weight=layout.weight))
+    if samples > 1:
+        problem = _two_samples(problem, truth)
     moving = np.zeros(problem.num_texels, bool)
     moving[[9, 10, 17, 18, 45, 46, 53, 54]] = True
     region = dataclasses.replace(problem, free=problem.free * jnp.asarray(moving[:, None], jnp.float32))
@@ -932,7 +937,7 @@ def test_a_refit_runs_over_the_moving_texels_pixels_where_that_costs_less(monkey
 
     whole = run(False)
     assert run(True)[3] == [(False, None)]  # the steps of 1444 pixels cost less than a compile
-    monkeypatch.setattr(pbrfit.fitting.runner, "REFIT_COMPILE_PIXEL_STEPS", 0)
+    monkeypatch.setattr(pbrfit.fitting.runner, "REFIT_COMPILE_ROW_STEPS", 0)
     x, info, (r, jac), programs = run(True)
     # the steps over some pixels, their conjugate gradients over the 6 free texels (8 rows), no other program
     assert programs == [(True, 8)]
@@ -942,6 +947,35 @@ def test_a_refit_runs_over_the_moving_texels_pixels_where_that_costs_less(monkey
     assert r.shape == whole[2][0].shape and jac.shape == whole[2][1].shape
     np.testing.assert_allclose(np.asarray(r), np.asarray(whole[2][0]), atol=1e-5)
     np.testing.assert_allclose(np.asarray(jac), np.asarray(whole[2][1]), atol=1e-4)
+
+
+def test_a_refits_cost_counts_sample_rows(monkeypatch):
+    """`Runner.refit` weighs a program's compile against its steps' sample rows, not pixels: with
+    two samples a pixel, a compile worth 1.5 steps' of the pixels it leaves out is paid for (in
+    pixels it would not be)."""
+    truth = _checker()
+    problem = _two_samples(_texel_problem(truth, 1e-3, on_grid=True), truth)
+    moving = np.zeros(problem.num_texels, bool)
+    moving[[9, 10, 17, 18]] = True
+    region = dataclasses.replace(problem, free=problem.free * jnp.asarray(moving[:, None], jnp.float32))
+    pixels = moving_pixels(moving, np.asarray(problem.index), np.asarray(problem.weight), problem.samples)
+    smallest = halving_sizes(problem.num_pixels, len(pixels), 1)[-1]
+    assert smallest < problem.num_pixels
+    steps, taken = 10, []
+
+    class Probe(pbrfit.fitting.runner.Runner):
+        def __call__(self, x0, problem, steps, num_free):  # which problem it runs, no run
+            taken.append(problem.num_pixels)
+            raise StopIteration
+
+    runner = Probe(StructuredLM(), None, pbrfit.fitting.runner.Compiler(dict(compile=0.0, solve=0.0), False))
+    start = (jnp.zeros((problem.num_pixels, 3)), None)
+    left_out = problem.num_pixels - smallest
+    for worth in (1.5, 2.5):
+        monkeypatch.setattr(pbrfit.fitting.runner, "REFIT_COMPILE_ROW_STEPS", worth * steps * left_out)
+        with pytest.raises(StopIteration):
+            runner.refit(jnp.asarray(_stack(truth)), region, moving, steps, 1, start)
+    assert taken == [smallest, problem.num_pixels]
 
 
 def test_fit_reports_the_search():

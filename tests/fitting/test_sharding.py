@@ -383,7 +383,7 @@ def _multi_device_report() -> dict:
     # a re-fit of two texels over their pixels (`Runner.refit`, made to take them): the same on the mesh
     from pbrfit.fitting import runner as fit_runner
 
-    fit_runner.REFIT_COMPILE_PIXEL_STEPS = 0
+    fit_runner.REFIT_COMPILE_ROW_STEPS = 0
     moving = np.zeros(problem.num_texels, bool)
     moving[[5, 6]] = True
 
