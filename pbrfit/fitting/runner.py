@@ -22,6 +22,7 @@ from typing import Mapping, Optional
 import equinox as eqx
 import filelock
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .solvers.optx import for_size, optx_solve
@@ -321,6 +322,23 @@ REFIT_COMPILE_ROW_STEPS = 4_000_000
 def _put_rows(full, at, part):
     """``full`` with its rows ``at`` set to ``part``'s (an index past its end: that row dropped)."""
     return full.at[at].set(part, mode="drop")
+
+
+@jax.jit
+def _rows_where(mask, a, b):
+    """Row by row, ``a``'s where ``mask`` (a row's) is true, else ``b``'s."""
+    return jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b)
+
+
+def pixel_rows_from(source, pixels, linearization, samples: int):
+    """``linearization`` (a problem's pixel residuals (P, 3) and per-row Jacobians (P ``samples``,
+    3, K)) with the rows of ``pixels`` (indices) taken from ``source``, the same problem's at
+    other texel values: where those pixels read no texel on which the two differ, the problem's
+    linearisation at ``source``'s texels for them and at ``linearization``'s for the others."""
+    mask = np.zeros(linearization[0].shape[0], bool)
+    mask[np.asarray(pixels)] = True
+    return (_rows_where(mask, source[0], linearization[0]),
+            _rows_where(np.repeat(mask, samples), source[1], linearization[1]))
 
 
 #: Clock entries that are not time on the fit's own thread (`Compiler`'s overlapped compiles).

@@ -978,6 +978,31 @@ def test_a_refits_cost_counts_sample_rows(monkeypatch):
     assert taken == [smallest, problem.num_pixels]
 
 
+def test_put_back_clusters_take_their_pixels_rows_from_the_start():
+    """Where a repair keeps one cluster of moved texels and puts another back, the linearisation
+    at the result is the re-fit's for the pixels of the kept one and the start's for the pixels
+    of the other (`pbrfit.fitting.runner.pixel_rows_from`): the two share no pixel. Two samples a
+    pixel, so that each pixel's rows move with it."""
+    truth = _checker()
+    problem = _two_samples(_texel_problem(truth, 1e-3, on_grid=True), truth)
+    kept, back = [9, 10, 17, 18], [45, 46, 53, 54]
+    start = np.asarray(_stack(truth)).copy()
+    moved = start.copy()
+    moved[kept + back] = [0.3, 0.6, 0.2, 0.0, 0.9]
+    result = start.copy()
+    result[kept] = moved[kept]
+    lin = jax.jit(pbrfit.fitting.objective.linearize)
+    at_start, at_moved, want = (lin(jnp.asarray(x), problem)[:2] for x in (start, moved, result))
+    index, weight = np.asarray(problem.index), np.asarray(problem.weight)
+    pixels = {name: moving_pixels(np.isin(np.arange(problem.num_texels), texels), index, weight, 2)
+              for name, texels in (("kept", kept), ("back", back))}
+    assert len(pixels["back"]) and not np.intersect1d(pixels["kept"], pixels["back"]).size
+    assert np.max(np.abs(np.asarray(at_moved[0])[pixels["back"]] - np.asarray(at_start[0])[pixels["back"]])) > 1e-2
+    got = pbrfit.fitting.runner.pixel_rows_from(at_start, pixels["back"], at_moved, 2)
+    for a, b in zip(got, want):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-6)
+
+
 def test_fit_reports_the_search():
     truth = _checker()
     obs = observations_from_views(VIEWS, _images(VIEWS, truth))

@@ -105,7 +105,7 @@ from scipy.sparse import csgraph
 
 from ..initialisation import coordinate_search
 from ..parameters import CHANNELS
-from ..runner import jitted_normal_blocks, problem_energy, problem_key, search_inputs, timed
+from ..runner import jitted_normal_blocks, pixel_rows_from, problem_energy, problem_key, search_inputs, timed
 from ..sharding import halving_sizes, mesh_size, moving_pixels, take_pixels
 from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ..objective import Problem
@@ -525,10 +525,15 @@ def run_repair(runner, compiler, problem: Problem, xs, linearization, shape, see
                                                        problem.samples, margin, spread, dof)
         z = np.asarray(y, np.float32)
         if improved and not np.array_equal(better, moving):
-            # the other clusters back where they were, linearised there (step 0, still tagged "repair")
+            # the other clusters back where they were: where their pixels read no texel kept (clusters
+            # share no pixel), those pixels' rows are the start's; else linearised there (step 0)
             z = np.where(better[:, None], z, xs)
-            runner(to_device(z, np.float32), problem, 0, num_free)
-            after = runner.linearization
+            back = moving_pixels(moving & ~better, index, weight, problem.samples)
+            if np.intersect1d(back, moving_pixels(better, index, weight, problem.samples)).size:
+                runner(to_device(z, np.float32), problem, 0, num_free)
+                after = runner.linearization
+            else:
+                after = pixel_rows_from(linearization, back, after, problem.samples)
         where.pop("repair")
         e_after = problem_energy(after[0], z, problem)
         kept = improved > 0 and e_after < energy
