@@ -22,7 +22,6 @@ from typing import Mapping, Optional
 import equinox as eqx
 import filelock
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .solvers.optx import for_size, optx_solve
@@ -324,10 +323,9 @@ def _put_rows(full, at, part):
     return full.at[at].set(part, mode="drop")
 
 
-@jax.jit
-def _rows_where(mask, a, b):
-    """Row by row, ``a``'s where ``mask`` (a row's) is true, else ``b``'s."""
-    return jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b)
+def _sample_rows(pixels, samples: int):
+    """The sample rows of ``pixels`` (indices; one past the last pixel gives rows past the last)."""
+    return (np.asarray(pixels, np.int32)[:, None] * samples + np.arange(samples, dtype=np.int32)).reshape(-1)
 
 
 def pixel_rows_from(source, pixels, linearization, samples: int):
@@ -335,10 +333,10 @@ def pixel_rows_from(source, pixels, linearization, samples: int):
     3, K)) with the rows of ``pixels`` (indices) taken from ``source``, the same problem's at
     other texel values: where those pixels read no texel on which the two differ, the problem's
     linearisation at ``source``'s texels for them and at ``linearization``'s for the others."""
-    mask = np.zeros(linearization[0].shape[0], bool)
-    mask[np.asarray(pixels)] = True
-    return (_rows_where(mask, source[0], linearization[0]),
-            _rows_where(np.repeat(mask, samples), source[1], linearization[1]))
+    pixels = np.asarray(pixels, np.int32)
+    rows = _sample_rows(pixels, samples)
+    return (_put_rows(linearization[0], pixels, source[0][pixels]),
+            _put_rows(linearization[1], rows, source[1][rows]))
 
 
 #: Clock entries that are not time on the fit's own thread (`Compiler`'s overlapped compiles).
@@ -545,7 +543,7 @@ class Runner:
         if not self.structured:
             return self(x0, problem, steps, num_free)
         moving = np.asarray(moving, bool)
-        pixels = moving_pixels(moving, np.asarray(problem.index), np.asarray(problem.weight), problem.samples)
+        pixels = moving_pixels(moving, np.asarray(problem.index), np.asarray(problem.weight), samples)
         sizes = halving_sizes(total, len(pixels), mesh_size(problem))
         # the texels its conjugate gradients run over: those with a free channel (by stencil)
         texels = np.flatnonzero(np.any(np.asarray(problem.free) > 0, axis=1))
@@ -564,9 +562,9 @@ class Runner:
         x, info = self(x0, sub, steps, num_free)
         # the rows of the pixels taken (padding: past the end, dropped)
         at = np.concatenate([pixels, np.full(size - len(pixels), total)]).astype(np.int32)
-        rows = (at[:, None] * samples + np.arange(samples, dtype=np.int32)).reshape(-1)
         r, jac = self.linearization
-        self._linearization = (_put_rows(linearization[0], at, r), _put_rows(linearization[1], rows, jac))
+        self._linearization = (_put_rows(linearization[0], at, r),
+                               _put_rows(linearization[1], _sample_rows(at, samples), jac))
         return x, info
 
     def jacobian(self, x, problem, num_free):
