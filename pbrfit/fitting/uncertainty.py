@@ -41,6 +41,9 @@ below `EIGEN_FLOOR` of the block's largest. Fixed channels get 0, unobserved tex
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from .normal_matrix import NEIGHBOUR_OFFSETS
@@ -70,6 +73,32 @@ WINDOW_RIDGE = 1e-6
 _WINDOW_CHUNK_BYTES = 1 << 22
 
 
+def _threads() -> int:
+    """The threads `_in_chunks` runs on: the cores this process may use."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def _in_chunks(work, total: int, chunk: int) -> None:
+    """``work(lo, hi)`` over [0, total) in chunks of ``chunk``, on `_threads` threads: numpy's
+    gathers and batched linear algebra release the GIL, so the host's cores share the chunks.
+    Each chunk's numbers are the same whichever thread computes it (each matrix is its own
+    LAPACK call); ``work`` writes its own rows of the output. An error or an interrupt cancels
+    the chunks not begun, and is raised without waiting for those under way."""
+    chunk = max(1, chunk)
+    starts = range(0, total, chunk)
+    threads = min(_threads(), len(starts))
+    if threads <= 1:
+        for lo in starts:
+            work(lo, min(lo + chunk, total))
+        return
+    pool = ThreadPoolExecutor(threads)
+    try:
+        for done in [pool.submit(work, lo, min(lo + chunk, total)) for lo in starts]:
+            done.result()
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)
+
+
 def residual_variance(loss: float, residual_count: int, parameter_count: int) -> float:
     """σ̂² = 2 E / (n - p): the unbiased noise estimate of a least-squares fit."""
     dof = max(residual_count - parameter_count, 1)
@@ -86,7 +115,13 @@ def _fitted_eigh(blocks: np.ndarray, free: np.ndarray, seen: np.ndarray):
     eye = np.eye(blocks.shape[1])
     b = np.where(mask2, blocks, 0.0) + np.where(free, 0.0, 1.0)[:, :, None] * eye
     broken = ~np.all(np.isfinite(b), axis=(1, 2))
-    e, v = np.linalg.eigh(np.where(broken[:, None, None], eye, b))
+    b = np.where(broken[:, None, None], eye, b)
+    e, v = np.empty(b.shape[:2]), np.empty(b.shape)
+
+    def eigenpairs(lo, hi):
+        e[lo:hi], v[lo:hi] = np.linalg.eigh(b[lo:hi])
+
+    _in_chunks(eigenpairs, len(b), -(-len(b) // _threads()))
     top = np.max(np.abs(e), axis=1, keepdims=True)
     ok = e > EIGEN_FLOOR * np.maximum(top, np.finfo(np.float64).tiny)
     return e, v, ok, broken, mask2
@@ -229,20 +264,22 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
     towards = texels(slice(None), NEIGHBOUR_OFFSETS)
     blocks = np.where(part[:, :, None] & part[:, None, :], blocks, 0.0)
     flat = np.where(part[:, None, :, None] & part[towards][:, :, None, :], couplings, 0.0).reshape(t * q, k, k)
-    # every block a window matrix can hold, in float64: D, C, Cᵀ and a zero block (the last)
-    source = np.concatenate([blocks, flat, np.swapaxes(flat, 1, 2), np.zeros((1, k, k))]).astype(np.float64)
+    # every block a window matrix can hold: D, C, Cᵀ and a zero block (the last); each chunk's
+    # windows in float64
+    source = np.concatenate([blocks, flat, np.swapaxes(flat, 1, 2), np.zeros((1, k, k), blocks.dtype)])
     out = np.empty((len(wanted), k, k))
-    chunk = max(1, _WINDOW_CHUNK_BYTES // (8 * n * n * k * k))
     rest = np.arange(k, n * k)
-    for lo in range(0, len(wanted), chunk):
-        ts = wanted[lo:lo + chunk]
+
+    def windows(lo, hi):
+        ts = wanted[lo:hi]
         u = texels(ts, offsets)  # (c, n)
         # the (a, b) block of each window: its place in `source`, then one gather
         at = np.full((len(ts), n, n), len(source) - 1)
         at[:, diag_ab[:, 0], diag_ab[:, 1]] = u[:, diag_ab[:, 0]]
         at[:, ahead[:, 0], ahead[:, 1]] = t + u[:, ahead[:, 0]] * q + ahead[:, 2]
         at[:, behind[:, 0], behind[:, 1]] = t + t * q + u[:, behind[:, 1]] * q + behind[:, 2]
-        m = np.swapaxes(source[at], 2, 3).reshape(len(ts), n * k, n * k)  # (c, n, K, n, K) as (c, n K, n K)
+        # (c, n, K, n, K) as (c, n K, n K)
+        m = np.swapaxes(source[at], 2, 3).astype(np.float64, order="C").reshape(len(ts), n * k, n * k)
         on = part[u].reshape(len(ts), n * k)
         diag = np.diagonal(m, axis1=1, axis2=2)
         live = on & (diag > 0)  # a row of JᵀJ with a zero diagonal is zero (positive semi-definite)
@@ -257,7 +294,9 @@ def window_precisions(blocks: np.ndarray, couplings: np.ndarray, shape: tuple[in
         p = 0.5 * (p + np.swapaxes(p, 1, 2))
         keep = live[:, :k]
         own = np.where(keep, scale[:, :k], 1.0)
-        out[lo:lo + chunk] = np.where(keep[:, :, None] & keep[:, None, :], p / own[:, :, None] / own[:, None, :], 0.0)
+        out[lo:hi] = np.where(keep[:, :, None] & keep[:, None, :], p / own[:, :, None] / own[:, None, :], 0.0)
+
+    _in_chunks(windows, len(wanted), _WINDOW_CHUNK_BYTES // (8 * n * n * k * k))
     return out
 
 

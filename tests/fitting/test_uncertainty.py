@@ -3,6 +3,8 @@ matrices of pixels that read four neighbouring texels, built densely here."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -64,14 +66,16 @@ def test_radius_zero_is_the_per_texel_blocks():
 
 
 @pytest.mark.parametrize("radius", [1, 2])
-@pytest.mark.parametrize("chunk_bytes", [None, 29160])
-def test_window_is_the_inverse_of_its_part_of_the_matrix(radius, chunk_bytes, monkeypatch):
+@pytest.mark.parametrize("chunk_bytes, threads", [(None, 1), (29160, 1), (29160, 3)])
+def test_window_is_the_inverse_of_its_part_of_the_matrix(radius, chunk_bytes, threads, monkeypatch):
     """σ² of a texel is σ̂² times the diagonal of the inverse of JᵀJ restricted to the texel's
     window (wrapping around the map), at the texel's channels: inside the map and on its edges;
     the same where the windows are assembled a few texels at a time (29160 bytes: 5 texels a
-    chunk at radius 1, the last chunk 2; one at radius 2)."""
+    chunk at radius 1, the last chunk 2; one at radius 2), and where threads share the chunks
+    (and the blocks' eigenpairs)."""
     if chunk_bytes is not None:
         monkeypatch.setattr(uncertainty, "_WINDOW_CHUNK_BYTES", chunk_bytes)
+    monkeypatch.setattr(uncertainty, "_threads", lambda: threads)
     shape, k, sigma2 = (6, 7), 3, 0.5
     a, diag, coupling = _normal_matrix(shape, k, 400, seed=2)
     got = window_standard_errors(diag, coupling, shape, np.ones(k, bool), np.ones(42, bool), sigma2, radius)
@@ -85,6 +89,31 @@ def test_window_is_the_inverse_of_its_part_of_the_matrix(radius, chunk_bytes, mo
         c = texels.index(s)
         want = np.sqrt(sigma2 * np.diag(inverse)[c * k:(c + 1) * k])
         np.testing.assert_allclose(got[s], want, rtol=1e-6)
+
+
+def test_chunks_in_threads_cover_every_row_once_and_an_error_cancels_the_rest(monkeypatch):
+    """`_in_chunks` hands each row to one chunk, on several threads; a chunk's error is raised,
+    and the chunks not begun are not run."""
+    monkeypatch.setattr(uncertainty, "_threads", lambda: 3)
+    seen = np.zeros(103, int)
+
+    def count(lo, hi):
+        seen[lo:hi] += 1
+
+    uncertainty._in_chunks(count, 103, 10)
+    np.testing.assert_array_equal(seen, 1)
+    begun = []
+
+    def fail(lo, hi):
+        begun.append(lo)
+        if lo == 3:
+            raise ValueError("chunk 3")
+        time.sleep(0.01)
+
+    with pytest.raises(ValueError, match="chunk 3"):
+        uncertainty._in_chunks(fail, 200, 1)
+    time.sleep(0.1)  # (chunks under way when it raised end)
+    assert len(begun) < 50
 
 
 def test_errors_grow_with_the_window_towards_the_marginal():
