@@ -407,15 +407,15 @@ def ladder(results: dict) -> dict:
 
 
 def plot(results: dict, path: Path) -> None:
-    """Left: cold, warm and in-process second-call wall time per scene and rung; right: the cold
-    run's time split."""
+    """Left: cold, warm and in-process second-call wall time per scene and rung; middle: the cold
+    run's time split; right: the cold fit's RMSE against the truth per map (log scale)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     keys = [(s, r) for s in results["scenes"] for r in results["scenes"][s]["rungs"]]
-    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig, (a, b, c) = plt.subplots(1, 3, figsize=(17, 4.5))
     x = np.arange(len(keys))
     labels = dict(cold="cold command", warm="warm command", script="pbrfit.fit, 2nd call")
     for i, (name, f) in enumerate(TIMES.items()):
@@ -436,6 +436,15 @@ def plot(results: dict, path: Path) -> None:
     b.set_xticks(x, names, rotation=20, fontsize=8)
     b.set_ylabel("cold fit's time split (s)")
     b.legend(fontsize=7, ncol=2)
+    for i, name in enumerate(("base_color", "metallic", "roughness")):
+        # (an exact map's 0 drawn at the axis' floor)
+        err = [max((results["scenes"][s]["rungs"][r][0]["truth_rmse"] or {}).get(name, np.nan), 1e-5) for s, r in keys]
+        c.bar(x + (i - 1) * 0.27, err, 0.27, label=name)
+    c.set_yscale("log")
+    c.set_ylim(1e-5, 1.0)
+    c.set_xticks(x, names, rotation=20, fontsize=8)
+    c.set_ylabel("RMSE against the truth (floor 1e-5)")
+    c.legend(fontsize=8)
     fig.suptitle(f"pbrfit speed ({results['machine']['processor']}, {results['machine']['cpu_count']} CPUs)", fontsize=9)
     fig.tight_layout()
     tmp = path.with_suffix(".tmp.png")
