@@ -34,7 +34,9 @@ Build layouts from the real observations and pad them; a layout computed from pa
 observations would give the padded pixels bilinear weights at uv 0.
 
 `take_pixels` makes a problem of some of the pixels the same way: their rows, padded with inert
-pixels to a size the mesh divides, placed as the problem's arrays are.
+pixels to a size the mesh divides, placed as the problem's arrays are. `take_texels` then keeps
+only the texels those pixels read (and the prior's partners of the texels that move), so that the
+per-texel work of a search over a few texels of a large map is that of the few.
 
 Results that are per pixel (the solver's residuals and Jacobians) come back padded; their
 first ``num_real`` rows are the real pixels, in the original order. With several samples per
@@ -58,13 +60,13 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, Bool, Float, Int
 
 from .observations import PIXEL_FIELDS, Observations, TexelLayout
-from .objective import LeftOut, Problem
+from .objective import LeftOut, Problem, TexelGrid
 from .stencil import with_stencil
 from ..lighting.pixel_ibl import per_row
 
 __all__ = ["PIXEL_AXIS", "PAD_NORMAL", "PAD_VIEW", "PAD_LIGHT", "padded_size", "pad_observations", "pad_pixel_rows",
            "pad_layout", "pixel_mesh", "pixel_sharding", "shard_problem", "mesh_size", "take_pixels", "moving_pixels",
-           "halving_sizes"]
+           "halving_sizes", "take_texels"]
 
 #: Name of the mesh axis the pixels are split over.
 PIXEL_AXIS = "pixels"
@@ -251,3 +253,50 @@ def take_pixels(problem: Problem, pixels: Int[np.ndarray, " N"], size: int, resi
         changes["left_out"] = LeftOut(*(place(problem.smooth, np.float32(v + problem.left(name))) for v, name in
                                         zip(terms, ("energy", "pixels", "floor"))))
     return _restenciled(problem, dataclasses.replace(problem, **changes))
+
+
+def take_texels(problem: Problem) -> tuple[Problem, Int[np.ndarray, " N"]]:
+    """(`problem` over the texels its pixels read and the prior's partners of its texels with a
+    free channel (those that move), which texel of `problem` each of its texels is).
+
+    Its texels are those, in their order, then padding texels up to 1/2, 1/4, ... of
+    `problem`'s (`halving_sizes`, so that a few programs serve every choice; at least one
+    padding texel, the sink): every index into the texels is renumbered (the rows' taps, the
+    grid's cell tables, the prior's pairs), a table entry that leads out of the texels kept leads
+    to the sink, and the padding texels are free nowhere and read by no pixel with a weight. The
+    pairs kept are those of positive weight with both ends kept, padded the same way with pairs
+    of the sink of weight 0. Its pixels' residuals and the prior's terms of the texels that
+    move are `problem`'s at the texels taken
+    (``x[texels]``, the padding's rows any valid values; the padding's entry of ``texels`` is T),
+    so a search moves them as on `problem` (`pbrfit.fitting.stages.repair`), where per-texel
+    work costs in proportion to the texels kept, not to the map. Stencil and ``Problem.texels``
+    are dropped: a search uses neither. Where every texel is kept: `problem` itself."""
+    t = problem.num_texels
+    moving = np.any(np.asarray(problem.free) > 0, axis=1)
+    index = np.asarray(problem.index)
+    pairs, pair_weight = np.asarray(problem.pairs), np.asarray(problem.pair_weight)
+    live = pair_weight > 0
+    ends = np.concatenate([pairs[live & moving[pairs[:, 0]], 1], pairs[live & moving[pairs[:, 1]], 0]])
+    read = np.asarray(problem.weight).reshape(problem.num_pixels, -1).any(axis=1)
+    taps = index.reshape(problem.num_pixels, -1)[read]
+    kept = np.union1d(np.union1d(np.unique(taps), ends), np.flatnonzero(moving)).astype(np.int64)
+    if len(kept) == t:
+        return problem, np.arange(t)
+    size = halving_sizes(t, len(kept) + 1, 1)[-1]
+    sink = len(kept)
+    new = np.full(t + 1, sink, np.int32)  # a texel's new index (T: the padding's)
+    new[kept] = np.arange(len(kept), dtype=np.int32)
+    texels = np.concatenate([kept, np.full(size - len(kept), t)])
+    place = lambda a, host: jax.device_put(host, a.sharding)
+    pad = lambda a, fill: _append(np.asarray(a)[kept], size - len(kept), fill)
+    keep = live & (new[pairs[:, 0]] < sink) & (new[pairs[:, 1]] < sink)
+    e = halving_sizes(len(pairs), max(int(np.sum(keep)), 1), 1)[-1]
+    changes = dict(index=place(problem.index, new[index]), free=place(problem.free, pad(problem.free, 0.0)),
+                   pairs=place(problem.pairs, _append(new[pairs[keep]], e - int(np.sum(keep)), sink)),
+                   pair_weight=place(problem.pair_weight, _append(pair_weight[keep], e - int(np.sum(keep)), 0.0)),
+                   stencil=None, texels=None)
+    if problem.grid is not None:
+        corners, corner_of = (place(a, _append(new[np.asarray(a)[kept]], size - len(kept), sink))
+                              for a in (problem.grid.corners, problem.grid.corner_of))
+        changes["grid"] = TexelGrid(problem.grid.shape, corners, corner_of)
+    return dataclasses.replace(problem, **changes), texels

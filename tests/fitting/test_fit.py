@@ -38,7 +38,7 @@ from pbrfit.fitting.observations import (PIXEL_FIELDS, coverage_counts, neighbou
 from pbrfit.fitting.stencil import with_stencil
 from pbrfit.fitting.parameters import LOWER, UPPER, from_sine, to_sine
 from pbrfit.fitting.stages.repair import REPAIR_PROGRESS, SEARCH_COMPILE_COST, search_problem
-from pbrfit.fitting.sharding import halving_sizes, moving_pixels, take_pixels
+from pbrfit.fitting.sharding import halving_sizes, moving_pixels, take_pixels, take_texels
 from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view
 from pbrfit.fitting.objective import Problem, objective, texel_grid
 from pbrfit.fitting.solvers.structured import StructuredLM, solve
@@ -863,14 +863,16 @@ def _two_samples(problem, truth):
 @pytest.mark.parametrize("on_grid,samples", [(False, 1), (True, 2)])
 def test_coordinate_search_over_the_pixels_of_the_moving_texels_alone(on_grid, samples):
     """The repair's search: where only some texels are free, a search over the pixels that read
-    them (`moving_pixels`, `take_pixels`) moves them as the search over every pixel does; also
-    with the map's grid (as a fit's problem has it) and two samples per pixel."""
+    them (`moving_pixels`, `take_pixels`) moves them as the search over every pixel does, and so
+    does one over the texels those pixels read alone (`take_texels`, the prior's pairs of the
+    moving texels kept); also with the map's grid (as a fit's problem has it) and two samples per
+    pixel."""
     truth = _checker()
     problem = _texel_problem(truth, 1e-3, on_grid)
     if samples > 1:
         problem = _two_samples(problem, truth)
     moving = np.zeros(problem.num_texels, bool)
-    moving[[9, 10, 17, 18, 45, 46, 53, 54]] = True
+    moving[[9, 10, 17, 18, 45, 46]] = True
     region = dataclasses.replace(problem, free=problem.free * jnp.asarray(moving[:, None], jnp.float32))
     pixels = moving_pixels(moving, np.asarray(problem.index), np.asarray(problem.weight), problem.samples)
     assert 0 < len(pixels) < problem.num_pixels // 3
@@ -882,11 +884,32 @@ def test_coordinate_search_over_the_pixels_of_the_moving_texels_alone(on_grid, s
     alone = np.asarray(coordinate_search(jnp.asarray(x0), sub, classes))
     assert np.all(alone[~moving] == x0[~moving]) and np.all(alone[moving, 3] == 0.0)
     np.testing.assert_allclose(alone, whole, atol=1e-5)
+    part, texels = take_texels(sub)
+    real = texels < problem.num_texels
+    # two samples a pixel read more cells: 52 texels, padded to the whole map's 64
+    assert part.num_texels == (32 if samples == 1 else 64) and np.sum(real) == (28 if samples == 1 else 52)
+    assert set(np.flatnonzero(moving)) <= set(texels[real])
+    both = np.all(np.isin(np.asarray(problem.pairs), texels[real]), axis=1)
+    assert (part.grid is None) == (not on_grid) and np.sum(np.asarray(part.pair_weight) > 0) == np.sum(both)
+    padded = lambda a: np.concatenate([a, a[:1]])[texels]
+    found = np.asarray(coordinate_search(jnp.asarray(padded(x0)), part, jnp.asarray(padded(np.asarray(classes)))))
+    assert np.all(found[~real] == padded(x0)[~real])
+    np.testing.assert_allclose(found[real], whole[texels[real]], atol=1e-5)
+    # over the pixels of one cell, which leave the moving texels' partners across it and texels
+    # 45, 46 unread: the moving texels' local energies (their pixels' and prior pairs') are the same
+    cell = pixels[np.asarray(problem.index).reshape(problem.num_pixels, -1)[pixels, 0] == 9]
+    few = take_pixels(region, cell, len(cell))
+    part, texels = take_texels(few)
+    x = np.random.default_rng(0).uniform(0.1, 0.9, x0.shape).astype(np.float32)
+    local = np.asarray(pbrfit.fitting.initialisation._energies(jnp.asarray(padded(x)), part)[0])
+    at = np.flatnonzero(np.isin(texels, np.flatnonzero(moving)))
+    np.testing.assert_allclose(local[at], np.asarray(pbrfit.fitting.initialisation._energies(
+        jnp.asarray(x), few)[0])[texels[at]], rtol=1e-6)
 
 
-def test_repair_searches_the_moving_texels_pixels_alone_where_that_costs_less():
+def test_repair_searches_the_moving_texels_pixels_alone_where_that_costs_less(monkeypatch):
     """`search_problem`: a search's time in proportion to its pixels, plus `SEARCH_COMPILE_COST`
-    where its size's program is not compiled."""
+    (at most `SEARCH_COMPILE_PIXELS`) where its size's program is not compiled."""
     problem = _texel_problem(_checker(), 1e-3)
     key = ("coordinate_search", (8, 8), True) + pbrfit.fitting.runner.problem_key(problem)
     size_key = lambda n: key[:4] + ((n, 4),) + key[5:]
@@ -901,13 +924,17 @@ def test_repair_searches_the_moving_texels_pixels_alone_where_that_costs_less():
     assert SEARCH_COMPILE_COST + 1 / 8 < 1 <= SEARCH_COMPILE_COST + 1 / 4  # a tie keeps the whole problem
     few, quarter = np.arange(150), np.arange(300)  # of 1444 pixels: 1/8 is 181, 1/4 is 361
     # the whole problem's program is compiled: another pays for its compile at 1/8, not at 1/4
-    sub, sub_key = search_problem(problem, few, key, Compiled(key))
-    assert sub.num_pixels == 181 and sub_key == size_key(181)
-    assert search_problem(problem, quarter, key, Compiled(key)) == (problem, key)
+    sub, sub_key, texels = search_problem(problem, few, key, Compiled(key))
+    # every texel is free, so the prior keeps each one's pairs: all are taken
+    assert sub.num_pixels == 181 and sub_key == size_key(181) and np.array_equal(texels, np.arange(64))
+    assert search_problem(problem, quarter, key, Compiled(key)) == (problem, key, None)
     # a size already compiled needs no compile: the one for 1/4 rather than compiling 1/8's
     assert search_problem(problem, few, key, Compiled(key, size_key(361)))[1] == size_key(361)
     # nothing compiled yet (the repair's problem is not the fit's search's): the smallest size
     assert search_problem(problem, quarter, key, Compiled())[1] == size_key(361)
+    # where a compile costs less than a search of 1/4 of the pixels (a large map's), 1/4 pays
+    monkeypatch.setattr(pbrfit.fitting.stages.repair, "SEARCH_COMPILE_PIXELS", 200)
+    assert search_problem(problem, quarter, key, Compiled(key))[1] == size_key(361)
 
 
 def test_a_refit_runs_over_the_moving_texels_pixels_where_that_costs_less(monkeypatch):

@@ -65,7 +65,9 @@ The repair finds the cluster by its misfit and starts it again from outside:
    its steps (report.json's ``times.repair``, mostly its searches) was 2.7 s in `pbrfit demo`'s
    fit and 6.5 s on the flash scene with 1% noise (2 × 2 samples per pixel), each search over
    the moved texels' pixels alone where that costs less (`search_problem`): 7.3 and 13.4 s over
-   every pixel. It runs only where some cluster could clear its threshold: where its pixels'
+   every pixel. On a 512² map of the peer layout (16 views of 512²) its three searches, over a
+   quarter and a sixteenth of the pixels and the texels those read, take 34 s against 143 s
+   over every pixel (experiments/speed.md). It runs only where some cluster could clear its threshold: where its pixels'
    Σ ||r||² lies that far above the least a re-fit reaches under the fit's residual variance
    (`NOISE_DEVIATIONS`); on the noiseless flash scene, whose 16-bit images are fitted to their
    rounding, none can, and the pass is skipped.
@@ -106,7 +108,7 @@ from scipy.sparse import csgraph
 from ..initialisation import coordinate_search
 from ..parameters import CHANNELS
 from ..runner import jitted_normal_blocks, pixel_rows_from, problem_energy, problem_key, search_inputs, timed
-from ..sharding import halving_sizes, mesh_size, moving_pixels, take_pixels
+from ..sharding import halving_sizes, mesh_size, moving_pixels, take_pixels, take_texels
 from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ..objective import Problem
 from ...transfer import to_device
@@ -114,7 +116,7 @@ from ..uncertainty import block_standard_errors, residual_variance
 
 __all__ = ["REPAIR_ROUNDS", "REPAIR_STEPS", "REPAIR_PASSES", "REPAIR_PROGRESS", "OUTLIER_EVIDENCE", "OUTLIER_SPREAD", "NOISE_DEVIATIONS",
            "repair_region", "fill_from_nearest", "improved_clusters", "evidence_variance", "repair_skipped",
-           "run_repair", "search_problem", "SEARCH_COMPILE_COST",
+           "run_repair", "search_problem", "SEARCH_COMPILE_COST", "SEARCH_COMPILE_PIXELS",
            "MISFIT_FACTOR", "MISFIT_FLOOR", "WELL_SEEN_FRACTION", "OUTLIER_DEVIATION", "OUTLIER_REFERENCES",
            "OUTLIER_PEELS", "OUTLIER_PEEL_SHARE", "texel_misfit", "misfit_texels", "identifiable_texels",
            "well_seen_texels", "outlier_texels"]
@@ -298,6 +300,10 @@ REPAIR_ROUNDS = 2
 #: its compile, over 1/4 not. `pbrfit demo`'s fit, whose three misfit passes search 1/16 of the
 #: pixels, took 28.2 s with empty caches and 16.3 s warm, against 30.3 and 20.0 s searching all.
 SEARCH_COMPILE_COST = 0.75
+#: ... but no more than a search over this many pixels: a compile takes about as long whatever
+#: the pixels, a search in proportion to them (on a 2-core CPU, 2 to 3 s against 20 to 27 µs a
+#: pixel for the repair's two sweeps on the peer layout at 256² and 512²).
+SEARCH_COMPILE_PIXELS = 150_000
 #: Solver steps after a repair's search.
 REPAIR_STEPS = 20
 #: Most misfit passes per fit (the outlier pass comes after them).
@@ -418,19 +424,29 @@ def evidence_variance(energy: float, residual_count: int, parameter_count: int, 
 
 
 def search_problem(region: Problem, pixels: Int[np.ndarray, " N"], key, compiler) -> tuple:
-    """(problem, key) of a repair's search over ``region`` (``key`` its `search_inputs` key):
-    ``region`` itself, or ``region`` over ``pixels`` alone (the pixels of the texels it moves,
-    `moving_pixels`) padded to 1/2, 1/4, ... of its pixels (`take_pixels`), whichever costs
-    least: a search's time in proportion to its pixels, plus `SEARCH_COMPILE_COST` where its
-    size's program is not compiled yet. The pixels left out read no texel that moves, so both
-    search alike; their programs do not."""
+    """(problem, key, texels) of a repair's search over ``region`` (``key`` its `search_inputs`
+    key): ``region`` itself (texels None), or ``region`` over ``pixels`` alone (the pixels of the
+    texels it moves, `moving_pixels`) padded to 1/2, 1/4, ... of its pixels (`take_pixels`) and
+    over the texels those read (`take_texels`, ``texels`` which of ``region``'s each is),
+    whichever costs least: a search's time in proportion to its pixels, plus
+    `SEARCH_COMPILE_COST` (at most `SEARCH_COMPILE_PIXELS`) where its size's program is not
+    compiled yet. The pixels left out read
+    no texel that moves, so both search alike; their programs do not."""
     total = region.num_pixels
     sizes = halving_sizes(total, len(pixels), mesh_size(region))
+    if len(sizes) == 1:
+        return region, key, None
+    # the texels taken do not depend on the size: the smallest's problem gives every size's key
+    smallest = take_texels(take_pixels(region, pixels, sizes[-1]))
     # a size's key: the search's (its name, the map's shape, whether classes share no pixel), the problem's
-    keys = [key] + [key[:3] + problem_key(region, size) for size in sizes[1:]]
-    cost = [size / total + (0.0 if compiler.has(k) else SEARCH_COMPILE_COST) for size, k in zip(sizes, keys)]
+    keys = [key] + [key[:3] + problem_key(smallest[0], size) for size in sizes[1:]]
+    compile_cost = min(SEARCH_COMPILE_COST, SEARCH_COMPILE_PIXELS / total)
+    cost = [size / total + (0.0 if compiler.has(k) else compile_cost) for size, k in zip(sizes, keys)]
     best = int(np.argmin(cost))
-    return (region if best == 0 else take_pixels(region, pixels, sizes[best])), keys[best]
+    if best == 0:
+        return region, key, None
+    sub, texels = smallest if best == len(sizes) - 1 else take_texels(take_pixels(region, pixels, sizes[best]))
+    return sub, keys[best], texels
 
 
 def repair_skipped(solver, final, channels) -> Optional[str]:
@@ -513,11 +529,19 @@ def run_repair(runner, compiler, problem: Problem, xs, linearization, shape, see
         where["repair"] = len(passes)
         searched = region if searching is problem else dataclasses.replace(searching, free=jax.device_put(
             s_free * region_free, searching.free.sharding))  # free where both are
-        searched, search_key = search_problem(searched, moving_pixels(moving, s_index, s_weight, searching.samples),
-                                              key, compiler)
-        entry.update(searched_pixels=searched.num_pixels, searched_samples=searched.samples)
-        y = timed(compiler, search_key, coordinate_search, "repair", to_device(y, np.float32), searched, classes,
-                  *static)
+        searched, search_key, texels = search_problem(
+            searched, moving_pixels(moving, s_index, s_weight, searching.samples), key, compiler)
+        entry.update(searched_pixels=searched.num_pixels, searched_samples=searched.samples,
+                     searched_texels=searched.num_texels)
+        if texels is None:
+            y = timed(compiler, search_key, coordinate_search, "repair", to_device(y, np.float32), searched,
+                      classes, *static)
+        else:  # the texels taken, then padding (index T: any valid row)
+            part = lambda a: np.concatenate([a, a[:1]])[texels]
+            found = timed(compiler, search_key, coordinate_search, "repair", to_device(part(y), np.float32), searched,
+                          to_device(part(np.asarray(classes))), *static)
+            y, real = np.array(y, np.float32), texels < len(y)
+            y[texels[real]] = np.asarray(found)[real]
         y, info = runner.refit(to_device(y, np.float32), region, moving, REPAIR_STEPS, num_free, linearization)
         # residuals and pixel Jacobians do not depend on which texels move: the full problem's
         after = runner.linearization
