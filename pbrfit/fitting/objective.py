@@ -94,7 +94,8 @@ def texel_grid(shape: tuple[int, int], num_texels: int) -> TexelGrid:
 class LeftOut(eqx.Module):
     """The pixels a problem over some of another's pixels leaves out
     (`pbrfit.fitting.sharding.take_pixels`), where none of them reads a texel that moves: their
-    data term ``energy`` (½ Σ ||r_p||², constant while those texels are held), their number
+    data term ``energy`` (½ Σ ||r_p||², constant while those texels are held; with the prior's
+    terms of the pairs a problem over some of the texels leaves out, `take_texels`), their number
     ``pixels`` and their share ``floor`` of `rounding_floor`. With them the objective, the
     residual variance and the rounding floor are the whole problem's, so a solve over the pixels
     that move stops where one over every pixel would."""

@@ -26,7 +26,7 @@ import numpy as np
 
 from .solvers.optx import for_size, optx_solve
 from .objective import Problem, objective
-from .sharding import halving_sizes, mesh_size, moving_pixels, take_pixels
+from .sharding import halving_sizes, mesh_size, moving_pixels, set_texel_rows, take_pixels, take_texels, texel_rows
 from .stencil import data_blocks, data_neighbour_blocks, stencil_covers
 from .solvers import structured
 from .checkpoint import call_id
@@ -531,13 +531,14 @@ class Runner:
         Jacobians) where the other texels stand (they stay there): over the pixels that read
         those texels (`pbrfit.fitting.sharding.moving_pixels`), padded to 1/2, 1/4, ... of them
         (`pbrfit.fitting.sharding.take_pixels`, the other pixels' term kept, so that the solve
-        stops where one over every pixel would), or over every pixel, whichever costs fewer
+        stops where one over every pixel would) and over the texels those read
+        (`pbrfit.fitting.sharding.take_texels`), or over every pixel, whichever costs fewer
         row-steps (sample rows times steps): each size's program not compiled yet counts
         `REFIT_COMPILE_ROW_STEPS`.
         Over some pixels, the conjugate gradients of a problem held by stencil run over the
         texels with a free channel alone (`Problem.texels`, padded to 1/2, 1/4, ... of the
-        texels), and the whole problem's linearisation at the result is ``linearization`` with
-        those pixels' rows replaced. Returns what a call returns; `linearization` is
+        texels taken), and the whole problem's linearisation at the result is ``linearization``
+        with those pixels' rows replaced. Returns what a call returns; `linearization` is
         ``problem``'s."""
         total, samples = problem.num_pixels, problem.samples
         if not self.structured:
@@ -545,27 +546,36 @@ class Runner:
         moving = np.asarray(moving, bool)
         pixels = moving_pixels(moving, np.asarray(problem.index), np.asarray(problem.weight), samples)
         sizes = halving_sizes(total, len(pixels), mesh_size(problem))
-        # the texels its conjugate gradients run over: those with a free channel (by stencil)
-        texels = np.flatnonzero(np.any(np.asarray(problem.free) > 0, axis=1))
-        count = None if problem.stencil is None else halving_sizes(problem.num_texels, len(texels), 1)[-1]
+        if len(sizes) == 1:
+            return self(x0, problem, steps, num_free)
+
+        def taken(size):
+            """(problem over ``size`` pixels and their texels, which texel each is)."""
+            sub, texels = take_texels(take_pixels(problem, pixels, size, linearization[0]), np.asarray(x0))
+            if sub.stencil is not None:  # conjugate gradients over the free texels alone
+                free = np.flatnonzero(np.any(np.asarray(sub.free) > 0, axis=1))
+                count = halving_sizes(sub.num_texels, len(free), 1)[-1]
+                padded = np.concatenate([free, np.full(count - len(free), sub.num_texels)]).astype(np.int32)
+                sub = dataclasses.replace(sub, texels=jax.device_put(padded, sub.free.sharding))
+            return sub, texels
+
+        # the texels taken do not depend on the size: the smallest's problem gives every size's key
+        smallest = taken(sizes[-1])
         cost = [steps * total * samples] + [
-            steps * size * samples + (0 if self.compiler.has(("structured",) + problem_key(problem, size, True, count))
+            steps * size * samples + (0 if self.compiler.has(("structured",) + problem_key(smallest[0], size))
                                       else REFIT_COMPILE_ROW_STEPS) for size in sizes[1:]]
         best = int(np.argmin(cost))
         if best == 0:
             return self(x0, problem, steps, num_free)
         size = sizes[best]
-        sub = take_pixels(problem, pixels, size, linearization[0])
-        if count is not None:
-            padded = np.concatenate([texels, np.full(count - len(texels), problem.num_texels)]).astype(np.int32)
-            sub = dataclasses.replace(sub, texels=jax.device_put(padded, problem.free.sharding))
-        x, info = self(x0, sub, steps, num_free)
+        sub, texels = smallest if best == len(sizes) - 1 else taken(size)
+        x, info = self(to_device(texel_rows(x0, texels), np.float32), sub, steps, num_free)
         # the rows of the pixels taken (padding: past the end, dropped)
         at = np.concatenate([pixels, np.full(size - len(pixels), total)]).astype(np.int32)
         r, jac = self.linearization
         self._linearization = (_put_rows(linearization[0], at, r),
                                _put_rows(linearization[1], _sample_rows(at, samples), jac))
-        return x, info
+        return set_texel_rows(np.asarray(x0, np.float32), texels, x), info
 
     def jacobian(self, x, problem, num_free):
         """Per-pixel Jacobians (P, 3, K) at x: the structured solver's step 0, which only

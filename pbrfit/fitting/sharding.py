@@ -60,13 +60,14 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, Bool, Float, Int
 
 from .observations import PIXEL_FIELDS, Observations, TexelLayout
-from .objective import LeftOut, Problem, TexelGrid
+from .objective import LeftOut, Problem, TexelGrid, smooth_residuals
 from .stencil import with_stencil
 from ..lighting.pixel_ibl import per_row
+from ..transfer import to_device
 
 __all__ = ["PIXEL_AXIS", "PAD_NORMAL", "PAD_VIEW", "PAD_LIGHT", "padded_size", "pad_observations", "pad_pixel_rows",
            "pad_layout", "pixel_mesh", "pixel_sharding", "shard_problem", "mesh_size", "take_pixels", "moving_pixels",
-           "halving_sizes", "take_texels"]
+           "halving_sizes", "take_texels", "texel_rows", "set_texel_rows"]
 
 #: Name of the mesh axis the pixels are split over.
 PIXEL_AXIS = "pixels"
@@ -255,22 +256,26 @@ def take_pixels(problem: Problem, pixels: Int[np.ndarray, " N"], size: int, resi
     return _restenciled(problem, dataclasses.replace(problem, **changes))
 
 
-def take_texels(problem: Problem) -> tuple[Problem, Int[np.ndarray, " N"]]:
+def take_texels(problem: Problem,
+                x: Optional[Float[np.ndarray, "T K"]] = None) -> tuple[Problem, Int[np.ndarray, " N"]]:
     """(`problem` over the texels its pixels read and the prior's partners of its texels with a
     free channel (those that move), which texel of `problem` each of its texels is).
 
     Its texels are those, in their order, then padding texels up to 1/2, 1/4, ... of
     `problem`'s (`halving_sizes`, so that a few programs serve every choice; at least one
     padding texel, the sink): every index into the texels is renumbered (the rows' taps, the
-    grid's cell tables, the prior's pairs), a table entry that leads out of the texels kept leads
-    to the sink, and the padding texels are free nowhere and read by no pixel with a weight. The
-    pairs kept are those of positive weight with both ends kept, padded the same way with pairs
-    of the sink of weight 0. Its pixels' residuals and the prior's terms of the texels that
-    move are `problem`'s at the texels taken
-    (``x[texels]``, the padding's rows any valid values; the padding's entry of ``texels`` is T),
-    so a search moves them as on `problem` (`pbrfit.fitting.stages.repair`), where per-texel
-    work costs in proportion to the texels kept, not to the map. Stencil and ``Problem.texels``
-    are dropped: a search uses neither. Where every texel is kept: `problem` itself."""
+    grid's cell tables, the prior's pairs, the stencil's neighbours and cells), a table entry
+    that leads out of the texels kept leads to the sink, and the padding texels are free nowhere
+    and read by no pixel with a weight. The pairs kept are those of positive weight with both
+    ends kept, padded the same way with pairs of the sink of weight 0. Its pixels' residuals,
+    the prior's terms of the texels that move and the Gauss-Newton blocks among the texels kept
+    are `problem`'s at the texels taken (``texel_rows(x, texels)``; the padding's entry of
+    ``texels`` is T), so a search or a solve moves them as on `problem`
+    (`pbrfit.fitting.stages.repair`, `pbrfit.fitting.runner.Runner.refit`), where per-texel work
+    costs in proportion to the texels kept, not to the map. With ``x`` (`problem`'s texels) and a
+    `LeftOut` term, the prior's energy at ``x`` of the pairs dropped is added to it, so that the
+    objective is `problem`'s too. ``Problem.texels`` is dropped. Where every texel is kept:
+    `problem` itself."""
     t = problem.num_texels
     moving = np.any(np.asarray(problem.free) > 0, axis=1)
     index = np.asarray(problem.index)
@@ -278,25 +283,49 @@ def take_texels(problem: Problem) -> tuple[Problem, Int[np.ndarray, " N"]]:
     live = pair_weight > 0
     ends = np.concatenate([pairs[live & moving[pairs[:, 0]], 1], pairs[live & moving[pairs[:, 1]], 0]])
     read = np.asarray(problem.weight).reshape(problem.num_pixels, -1).any(axis=1)
-    taps = index.reshape(problem.num_pixels, -1)[read]
-    kept = np.union1d(np.union1d(np.unique(taps), ends), np.flatnonzero(moving)).astype(np.int64)
+    kept = [index.reshape(problem.num_pixels, -1)[read].reshape(-1), ends, np.flatnonzero(moving)]
+    if problem.stencil is not None:  # a pixel's stencil cell need not be one of its taps
+        kept.append(np.asarray(problem.stencil.cell)[read])
+    kept = np.unique(np.concatenate(kept)).astype(np.int64)
     if len(kept) == t:
         return problem, np.arange(t)
     size = halving_sizes(t, len(kept) + 1, 1)[-1]
     sink = len(kept)
     new = np.full(t + 1, sink, np.int32)  # a texel's new index (T: the padding's)
     new[kept] = np.arange(len(kept), dtype=np.int32)
-    texels = np.concatenate([kept, np.full(size - len(kept), t)])
     place = lambda a, host: jax.device_put(host, a.sharding)
-    pad = lambda a, fill: _append(np.asarray(a)[kept], size - len(kept), fill)
+    table = lambda a: place(a, _append(new[np.asarray(a)[kept]], size - len(kept), sink))  # (T, N) of texels
     keep = live & (new[pairs[:, 0]] < sink) & (new[pairs[:, 1]] < sink)
-    e = halving_sizes(len(pairs), max(int(np.sum(keep)), 1), 1)[-1]
-    changes = dict(index=place(problem.index, new[index]), free=place(problem.free, pad(problem.free, 0.0)),
-                   pairs=place(problem.pairs, _append(new[pairs[keep]], e - int(np.sum(keep)), sink)),
-                   pair_weight=place(problem.pair_weight, _append(pair_weight[keep], e - int(np.sum(keep)), 0.0)),
-                   stencil=None, texels=None)
+    kept_pairs = int(np.sum(keep))
+    e = halving_sizes(len(pairs), max(kept_pairs, 1), 1)[-1]
+    pad_pairs = lambda a, fill: place(a, _append(np.asarray(a)[keep], e - kept_pairs, fill))
+    changes = dict(index=place(problem.index, new[index]), texels=None,
+                   free=place(problem.free, _append(np.asarray(problem.free)[kept], size - len(kept), 0.0)),
+                   pairs=place(problem.pairs, _append(new[pairs[keep]], e - kept_pairs, sink)),
+                   pair_weight=pad_pairs(problem.pair_weight, 0.0))
     if problem.grid is not None:
-        corners, corner_of = (place(a, _append(new[np.asarray(a)[kept]], size - len(kept), sink))
-                              for a in (problem.grid.corners, problem.grid.corner_of))
-        changes["grid"] = TexelGrid(problem.grid.shape, corners, corner_of)
-    return dataclasses.replace(problem, **changes), texels
+        changes["grid"] = TexelGrid(problem.grid.shape, table(problem.grid.corners), table(problem.grid.corner_of))
+    if problem.stencil is not None:
+        st = problem.stencil
+        changes["stencil"] = dataclasses.replace(st, neighbours=table(st.neighbours), cell=place(
+            st.cell, new[np.asarray(st.cell)]), pair_offsets=pad_pairs(st.pair_offsets, st.centre))
+    if x is not None and problem.left_out is not None:
+        gone = dataclasses.replace(problem, pairs=problem.pairs[~keep], pair_weight=problem.pair_weight[~keep])
+        prior = 0.5 * float(np.sum(np.square(np.asarray(smooth_residuals(to_device(x, np.float32), gone), np.float64))))
+        changes["left_out"] = dataclasses.replace(problem.left_out, energy=place(
+            problem.left_out.energy, np.float32(float(problem.left_out.energy) + prior)))
+    return dataclasses.replace(problem, **changes), np.concatenate([kept, np.full(size - len(kept), t)])
+
+
+def texel_rows(a: Float[np.ndarray, "T K"], texels: Int[np.ndarray, " N"]) -> Float[np.ndarray, "N K"]:
+    """The rows of ``a`` at ``texels`` (`take_texels`'s), a padding texel's (index T) row 0's."""
+    a = np.asarray(a)
+    return np.concatenate([a, a[:1]])[texels]
+
+
+def set_texel_rows(a: Float[np.ndarray, "T K"], texels: Int[np.ndarray, " N"], part) -> Float[np.ndarray, "T K"]:
+    """A copy of ``a`` with its rows at ``texels`` (`take_texels`'s) from ``part``'s (padding left out)."""
+    a = np.array(a)
+    real = texels < len(a)
+    a[texels[real]] = np.asarray(part)[real]
+    return a

@@ -38,7 +38,7 @@ from pbrfit.fitting.observations import (PIXEL_FIELDS, coverage_counts, neighbou
 from pbrfit.fitting.stencil import with_stencil
 from pbrfit.fitting.parameters import LOWER, UPPER, from_sine, to_sine
 from pbrfit.fitting.stages.repair import REPAIR_PROGRESS, SEARCH_COMPILE_COST, search_problem
-from pbrfit.fitting.sharding import halving_sizes, moving_pixels, take_pixels, take_texels
+from pbrfit.fitting.sharding import halving_sizes, moving_pixels, take_pixels, take_texels, texel_rows
 from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view
 from pbrfit.fitting.objective import Problem, objective, texel_grid
 from pbrfit.fitting.solvers.structured import StructuredLM, solve
@@ -959,21 +959,37 @@ def test_a_refit_runs_over_the_moving_texels_pixels_where_that_costs_less(monkey
             dict(compile=0.0, solve=0.0), background=False))
         x, info = (runner.refit(jnp.asarray(x0), region, moving, 10, num_free, start) if refit
                    else runner(jnp.asarray(x0), region, 10, num_free))
-        programs = [key[-2:] for key in runner.compiler.done]  # (whether it leaves pixels out, its CG's texels)
+        # (its texels, whether it leaves pixels out, its CG's texels)
+        programs = [(key[3][0],) + key[-2:] for key in runner.compiler.done]
         return np.asarray(x), info, runner.linearization, programs
 
     whole = run(False)
-    assert run(True)[3] == [(False, None)]  # the steps of 1444 pixels cost less than a compile
+    assert run(True)[3] == [(64, False, None)]  # the steps of 1444 pixels cost less than a compile
     monkeypatch.setattr(pbrfit.fitting.runner, "REFIT_COMPILE_ROW_STEPS", 0)
     x, info, (r, jac), programs = run(True)
-    # the steps over some pixels, their conjugate gradients over the 6 free texels (8 rows), no other program
-    assert programs == [(True, 8)]
+    # the steps over some pixels and the 32 texels they read, conjugate gradients over the 6 free
+    # texels (8 rows), no other program
+    assert programs == [(32, True, 8)]
     assert info == whole[1] and info["steps"] > 2
     np.testing.assert_allclose(x, whole[0], atol=1e-5)
     assert np.all(x[~moving] == x0[~moving])
     assert r.shape == whole[2][0].shape and jac.shape == whole[2][1].shape
     np.testing.assert_allclose(np.asarray(r), np.asarray(whole[2][0]), atol=1e-5)
     np.testing.assert_allclose(np.asarray(jac), np.asarray(whole[2][1]), atol=1e-4)
+    # its problem's objective is the whole problem's wherever the moving texels go: the pixels left
+    # out and the prior's pairs dropped (both ends held) kept as a term
+    pixels = moving_pixels(moving, np.asarray(problem.index), np.asarray(problem.weight), 1)
+    sub, texels = take_texels(take_pixels(region, pixels, len(pixels), start[0]), x0)
+    live_pairs = lambda p: np.sum(np.asarray(p.pair_weight) > 0)
+    assert sub.stencil is not None and live_pairs(sub) < live_pairs(problem)
+    moved = x0.copy()
+    moved[moving] = np.random.default_rng(1).uniform(0.1, 0.9, (int(np.sum(moving)), 5))
+    far = np.random.default_rng(2).uniform(0.1, 0.9, x0.shape).astype(np.float32)  # the prior's terms large
+    for x_start, x in ((x0, moved), (far, np.where(moving[:, None], moved, far))):
+        sub, texels = take_texels(take_pixels(region, pixels, len(pixels), jax.jit(pbrfit.fitting.objective.linearize)(
+            jnp.asarray(x_start), problem)[0]), x_start)
+        np.testing.assert_allclose(float(objective(jnp.asarray(texel_rows(x, texels)), sub)),
+                                   float(objective(jnp.asarray(x, jnp.float32), region)), rtol=1e-5)
 
 
 def test_a_refits_cost_counts_sample_rows(monkeypatch):

@@ -65,9 +65,11 @@ The repair finds the cluster by its misfit and starts it again from outside:
    its steps (report.json's ``times.repair``, mostly its searches) was 2.7 s in `pbrfit demo`'s
    fit and 6.5 s on the flash scene with 1% noise (2 × 2 samples per pixel), each search over
    the moved texels' pixels alone where that costs less (`search_problem`): 7.3 and 13.4 s over
-   every pixel. On a 512² map of the peer layout (16 views of 512²) its three searches, over a
-   quarter and a sixteenth of the pixels and the texels those read, take 34 s against 143 s
-   over every pixel (experiments/speed.md). It runs only where some cluster could clear its threshold: where its pixels'
+   every pixel. Each search also runs over the texels its pixels read alone (`take_texels`),
+   so its time follows the region's size, not the map's: on the noiseless peer layout at 512²
+   (16 views) the three searches took 34 s over a quarter, a quarter and a sixteenth of the
+   pixels, against 149 s with every texel (two of them then searched every pixel); at 1024² the
+   repair's time besides its steps fell from 685 to 187 s (experiments/speed.md). It runs only where some cluster could clear its threshold: where its pixels'
    Σ ||r||² lies that far above the least a re-fit reaches under the fit's residual variance
    (`NOISE_DEVIATIONS`); on the noiseless flash scene, whose 16-bit images are fitted to their
    rounding, none can, and the pass is skipped.
@@ -108,7 +110,7 @@ from scipy.sparse import csgraph
 from ..initialisation import coordinate_search
 from ..parameters import CHANNELS
 from ..runner import jitted_normal_blocks, pixel_rows_from, problem_energy, problem_key, search_inputs, timed
-from ..sharding import halving_sizes, mesh_size, moving_pixels, take_pixels, take_texels
+from ..sharding import halving_sizes, mesh_size, moving_pixels, set_texel_rows, take_pixels, take_texels, texel_rows
 from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ..objective import Problem
 from ...transfer import to_device
@@ -536,12 +538,11 @@ def run_repair(runner, compiler, problem: Problem, xs, linearization, shape, see
         if texels is None:
             y = timed(compiler, search_key, coordinate_search, "repair", to_device(y, np.float32), searched,
                       classes, *static)
-        else:  # the texels taken, then padding (index T: any valid row)
-            part = lambda a: np.concatenate([a, a[:1]])[texels]
-            found = timed(compiler, search_key, coordinate_search, "repair", to_device(part(y), np.float32), searched,
-                          to_device(part(np.asarray(classes))), *static)
-            y, real = np.array(y, np.float32), texels < len(y)
-            y[texels[real]] = np.asarray(found)[real]
+        else:
+            found = timed(compiler, search_key, coordinate_search, "repair",
+                          to_device(texel_rows(y, texels), np.float32), searched,
+                          to_device(texel_rows(classes, texels)), *static)
+            y = set_texel_rows(np.asarray(y, np.float32), texels, found)
         y, info = runner.refit(to_device(y, np.float32), region, moving, REPAIR_STEPS, num_free, linearization)
         # residuals and pixel Jacobians do not depend on which texels move: the full problem's
         after = runner.linearization
