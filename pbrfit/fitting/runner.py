@@ -26,7 +26,8 @@ import numpy as np
 
 from .solvers.optx import for_size, optx_solve
 from .objective import Problem, objective
-from .sharding import halving_sizes, mesh_size, moving_pixels, set_texel_rows, take_pixels, take_texels, texel_rows
+from .sharding import (halving_sizes, mesh_size, moving_pixels, set_texel_rows, take_pixels, take_texels, texel_rows,
+                       texel_size, texel_stand_in)
 from .stencil import data_blocks, data_neighbour_blocks, stencil_covers
 from .solvers import structured
 from .checkpoint import call_id
@@ -549,9 +550,10 @@ class Runner:
         if len(sizes) == 1:
             return self(x0, problem, steps, num_free)
 
-        def taken(size):
-            """(problem over ``size`` pixels and their texels, which texel each is)."""
-            sub, texels = take_texels(take_pixels(problem, pixels, size, linearization[0]), np.asarray(x0))
+        def taken(size, count=None):
+            """(problem over ``size`` pixels and ``count`` texels (default: the least) holding
+            theirs, which texel each is)."""
+            sub, texels = take_texels(take_pixels(problem, pixels, size, linearization[0]), np.asarray(x0), count)
             if sub.stencil is not None:  # conjugate gradients over the free texels alone
                 free = np.flatnonzero(np.any(np.asarray(sub.free) > 0, axis=1))
                 count = halving_sizes(sub.num_texels, len(free), 1)[-1]
@@ -559,16 +561,20 @@ class Runner:
                 sub = dataclasses.replace(sub, texels=jax.device_put(padded, sub.free.sharding))
             return sub, texels
 
-        # the texels taken do not depend on the size: the smallest's problem gives every size's key
-        smallest = taken(sizes[-1])
+        # the texels taken do not depend on the size: the smallest's problem gives every size's key,
+        # its texels padded to a count whose program is compiled where there is one (`texel_size`)
+        least = taken(sizes[-1])[0]
+        key_of = lambda p, size: ("structured",) + problem_key(p, size)  # noqa: E731
+        counts = [None] + [texel_size(problem, least, lambda p, n=size: self.compiler.has(key_of(p, n)))
+                           for size in sizes[1:]]
         cost = [steps * total * samples] + [
-            steps * size * samples + (0 if self.compiler.has(("structured",) + problem_key(smallest[0], size))
-                                      else REFIT_COMPILE_ROW_STEPS) for size in sizes[1:]]
+            steps * size * samples + (0 if self.compiler.has(key_of(texel_stand_in(problem, least, n), size))
+                                      else REFIT_COMPILE_ROW_STEPS) for size, n in zip(sizes[1:], counts[1:])]
         best = int(np.argmin(cost))
         if best == 0:
             return self(x0, problem, steps, num_free)
         size = sizes[best]
-        sub, texels = smallest if best == len(sizes) - 1 else taken(size)
+        sub, texels = taken(size, counts[best])
         x, info = self(to_device(texel_rows(x0, texels), np.float32), sub, steps, num_free)
         # the rows of the pixels taken (padding: past the end, dropped)
         at = np.concatenate([pixels, np.full(size - len(pixels), total)]).astype(np.int32)

@@ -66,7 +66,8 @@ from ..lighting.pixel_ibl import per_row
 
 __all__ = ["PIXEL_AXIS", "PAD_NORMAL", "PAD_VIEW", "PAD_LIGHT", "padded_size", "pad_observations", "pad_pixel_rows",
            "pad_layout", "pixel_mesh", "pixel_sharding", "shard_problem", "mesh_size", "take_pixels", "moving_pixels",
-           "halving_sizes", "take_texels", "texel_rows", "set_texel_rows"]
+           "halving_sizes", "take_texels", "texel_rows", "set_texel_rows", "texel_size",
+           "texel_stand_in"]
 
 #: Name of the mesh axis the pixels are split over.
 PIXEL_AXIS = "pixels"
@@ -255,18 +256,20 @@ def take_pixels(problem: Problem, pixels: Int[np.ndarray, " N"], size: int, resi
     return _restenciled(problem, dataclasses.replace(problem, **changes))
 
 
-def take_texels(problem: Problem,
-                x: Optional[Float[np.ndarray, "T K"]] = None) -> tuple[Problem, Int[np.ndarray, " N"]]:
+def take_texels(problem: Problem, x: Optional[Float[np.ndarray, "T K"]] = None,
+                size: Optional[int] = None) -> tuple[Problem, Int[np.ndarray, " N"]]:
     """(`problem` over the texels its pixels read and the prior's partners of its texels with a
     free channel (those that move), which texel of `problem` each of its texels is).
 
-    Its texels are those, in their order, then padding texels up to 1/2, 1/4, ... of
-    `problem`'s (`halving_sizes`, so that a few programs serve every choice; at least one
-    padding texel, the sink): every index into the texels is renumbered (the rows' taps, the
-    grid's cell tables, the prior's pairs, the stencil's neighbours and cells), a table entry
+    Its texels are those, in their order, then padding texels up to ``size``, one of T, 1/2,
+    1/4, ... of `problem`'s T (`halving_sizes`, so that a few programs serve every choice;
+    default: the least that holds them and one padding texel, the sink): every index into the
+    texels is renumbered (the rows' taps, the grid's cell tables, the prior's pairs, the stencil's neighbours and cells), a table entry
     that leads out of the texels kept leads to the sink, and the padding texels are free nowhere
     and read by no pixel with a weight. The pairs kept are those of positive weight with both
-    ends kept, padded the same way with pairs of the sink of weight 0. Its pixels' residuals,
+    ends kept, padded with pairs of the sink of weight 0 to twice the texels (a grid's pairs
+    number under that; `problem`'s own number at T), so that the program's shapes follow
+    ``size`` alone. Its pixels' residuals,
     the prior's terms of the texels that move and the Gauss-Newton blocks among the texels kept
     are `problem`'s at the texels taken (``texel_rows(x, texels)``; the padding's entry of
     ``texels`` is T), so a search or a solve moves them as on `problem`
@@ -288,7 +291,10 @@ def take_texels(problem: Problem,
     kept = np.unique(np.concatenate(kept)).astype(np.int64)
     if len(kept) == t:
         return problem, np.arange(t)
-    size = halving_sizes(t, len(kept) + 1, 1)[-1]
+    least = halving_sizes(t, len(kept) + 1, 1)[-1]
+    size = least if size is None else int(size)
+    if size < least or size not in halving_sizes(t, least, 1):
+        raise ValueError(f"take_texels: {size} texels cannot hold {len(kept)} and a sink as a halving size of {t}")
     sink = len(kept)
     new = np.full(t + 1, sink, np.int32)  # a texel's new index (T: the padding's)
     new[kept] = np.arange(len(kept), dtype=np.int32)
@@ -296,7 +302,7 @@ def take_texels(problem: Problem,
     table = lambda a: place(a, _append(new[np.asarray(a)[kept]], size - len(kept), sink))  # (T, N) of texels
     keep = live & (new[pairs[:, 0]] < sink) & (new[pairs[:, 1]] < sink)
     kept_pairs = int(np.sum(keep))
-    e = halving_sizes(len(pairs), max(kept_pairs, 1), 1)[-1]
+    e = len(pairs) if size == t else max(2 * size, kept_pairs)
     pad_pairs = lambda a, fill: place(a, _append(np.asarray(a)[keep], e - kept_pairs, fill))
     changes = dict(index=place(problem.index, new[index]), texels=None,
                    free=place(problem.free, _append(np.asarray(problem.free)[kept], size - len(kept), 0.0)),
@@ -331,3 +337,25 @@ def set_texel_rows(a: Float[np.ndarray, "T K"], texels: Int[np.ndarray, " N"], p
     real = texels < len(a)
     a[texels[real]] = np.asarray(part)[real]
     return a
+
+
+
+def texel_stand_in(problem: Problem, taken: Problem, size: int) -> Problem:
+    """``taken`` (`problem` over some pixels and its least texels, `take_texels`) with the texel
+    and pair shapes `take_texels` gives it at ``size`` texels: what a program's key reads, built
+    without taking them (its free and pair arrays are broadcast zeros, not for running)."""
+    pairs = problem.pairs.shape[0] if size == problem.num_texels else 2 * size
+    return dataclasses.replace(taken, free=np.broadcast_to(np.float32(0), (size, problem.free.shape[1])),
+                               pairs=np.broadcast_to(np.int32(0), (pairs, 2)))
+
+
+def texel_size(problem: Problem, taken: Problem, compiled) -> int:
+    """The texels to take (`take_texels`) where ``taken`` is `problem` over its least: of T, 1/2,
+    1/4, ... of `problem`'s T that hold ``taken``'s, the least whose program is compiled already
+    (``compiled(texel_stand_in(...))``), else ``taken``'s own. A larger program costs a little
+    more per evaluation, a compile seconds (`pbrfit demo`'s fit compiled 4 s more when each
+    repair pass took its own size)."""
+    for size in reversed(halving_sizes(problem.num_texels, taken.num_texels, 1)):
+        if compiled(texel_stand_in(problem, taken, size)):
+            return size
+    return taken.num_texels

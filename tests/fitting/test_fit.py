@@ -38,7 +38,7 @@ from pbrfit.fitting.observations import (PIXEL_FIELDS, coverage_counts, neighbou
 from pbrfit.fitting.stencil import with_stencil
 from pbrfit.fitting.parameters import LOWER, UPPER, from_sine, to_sine
 from pbrfit.fitting.stages.repair import REPAIR_PROGRESS, SEARCH_COMPILE_COST, search_problem
-from pbrfit.fitting.sharding import halving_sizes, moving_pixels, take_pixels, take_texels, texel_rows
+from pbrfit.fitting.sharding import halving_sizes, moving_pixels, take_pixels, take_texels, texel_rows, texel_size
 from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view
 from pbrfit.fitting.objective import Problem, objective, texel_grid
 from pbrfit.fitting.solvers.structured import StructuredLM, solve
@@ -895,6 +895,15 @@ def test_coordinate_search_over_the_pixels_of_the_moving_texels_alone(on_grid, s
     found = np.asarray(coordinate_search(jnp.asarray(padded(x0)), part, jnp.asarray(padded(np.asarray(classes)))))
     assert np.all(found[~real] == padded(x0)[~real])
     np.testing.assert_allclose(found[real], whole[texels[real]], atol=1e-5)
+    # a larger count whose program is compiled is taken instead (`texel_size`), with its shapes
+    wider = lambda p: p.free.shape[0] == 64 and p.pairs.shape[0] == problem.pairs.shape[0]
+    assert texel_size(region, part, wider) == 64 and texel_size(region, part, lambda p: False) == part.num_texels
+    if samples == 1:
+        wide, wide_texels = take_texels(sub, size=64)
+        assert wide.free.shape == (64, 5) and wide.pairs.shape == problem.pairs.shape
+        np.testing.assert_array_equal(wide_texels[:28], texels[:28])
+        with pytest.raises(ValueError):
+            take_texels(sub, size=16)
     # over the pixels of one cell, which leave the moving texels' partners across it and texels
     # 45, 46 unread: the moving texels' local energies (their pixels' and prior pairs') are the same
     cell = pixels[np.asarray(problem.index).reshape(problem.num_pixels, -1)[pixels, 0] == 9]

@@ -110,7 +110,8 @@ from scipy.sparse import csgraph
 from ..initialisation import coordinate_search
 from ..parameters import CHANNELS
 from ..runner import jitted_normal_blocks, pixel_rows_from, problem_energy, problem_key, search_inputs, timed
-from ..sharding import halving_sizes, mesh_size, moving_pixels, set_texel_rows, take_pixels, take_texels, texel_rows
+from ..sharding import (halving_sizes, mesh_size, moving_pixels, set_texel_rows, take_pixels, take_texels, texel_rows,
+                        texel_size, texel_stand_in)
 from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ..objective import Problem
 from ...transfer import to_device
@@ -438,16 +439,19 @@ def search_problem(region: Problem, pixels: Int[np.ndarray, " N"], key, compiler
     sizes = halving_sizes(total, len(pixels), mesh_size(region))
     if len(sizes) == 1:
         return region, key, None
-    # the texels taken do not depend on the size: the smallest's problem gives every size's key
-    smallest = take_texels(take_pixels(region, pixels, sizes[-1]))
+    # the texels taken do not depend on the size: the smallest's problem gives every size's key,
+    # its texels padded to a count whose program is compiled where there is one (`texel_size`)
+    least = take_texels(take_pixels(region, pixels, sizes[-1]))[0]
     # a size's key: the search's (its name, the map's shape, whether classes share no pixel), the problem's
-    keys = [key] + [key[:3] + problem_key(smallest[0], size) for size in sizes[1:]]
+    key_of = lambda problem, size: key[:3] + problem_key(problem, size)
+    counts = [None] + [texel_size(region, least, lambda p, n=size: compiler.has(key_of(p, n))) for size in sizes[1:]]
+    keys = [key] + [key_of(texel_stand_in(region, least, n), size) for size, n in zip(sizes[1:], counts[1:])]
     compile_cost = min(SEARCH_COMPILE_COST, SEARCH_COMPILE_PIXELS / total)
     cost = [size / total + (0.0 if compiler.has(k) else compile_cost) for size, k in zip(sizes, keys)]
     best = int(np.argmin(cost))
     if best == 0:
         return region, key, None
-    sub, texels = smallest if best == len(sizes) - 1 else take_texels(take_pixels(region, pixels, sizes[best]))
+    sub, texels = take_texels(take_pixels(region, pixels, sizes[best]), size=counts[best])
     return sub, keys[best], texels
 
 
