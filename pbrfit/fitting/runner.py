@@ -26,8 +26,8 @@ import numpy as np
 
 from .solvers.optx import for_size, optx_solve
 from .objective import Problem, objective
-from .sharding import (halving_sizes, mesh_size, moving_pixels, set_texel_rows, take_pixels, take_texels, texel_rows,
-                       texel_size, texel_stand_in)
+from .sharding import (halving_sizes, mesh_size, moving_pixels, set_texel_rows, take_pixels, take_texels,
+                       texel_program, texel_rows)
 from .stencil import data_blocks, data_neighbour_blocks, stencil_covers
 from .solvers import structured
 from .checkpoint import call_id
@@ -562,19 +562,18 @@ class Runner:
             return sub, texels
 
         # the texels taken do not depend on the size: the smallest's problem gives every size's key,
-        # its texels padded to a count whose program is compiled where there is one (`texel_size`)
-        least = taken(sizes[-1])[0]
-        key_of = lambda p, size: ("structured",) + problem_key(p, size)  # noqa: E731
-        counts = [None] + [texel_size(problem, least, lambda p, n=size: self.compiler.has(key_of(p, n)))
-                           for size in sizes[1:]]
+        # its texels padded to a count whose program is compiled where there is one (`texel_program`)
+        least = taken(sizes[-1])
+        programs = [texel_program(problem, least[0], lambda p, n=size: ("structured",) + problem_key(p, n),
+                                  self.compiler.has) for size in sizes[1:]]
         cost = [steps * total * samples] + [
-            steps * size * samples + (0 if self.compiler.has(key_of(texel_stand_in(problem, least, n), size))
-                                      else REFIT_COMPILE_ROW_STEPS) for size, n in zip(sizes[1:], counts[1:])]
+            steps * size * samples + (0 if self.compiler.has(k) else REFIT_COMPILE_ROW_STEPS)
+            for size, (_, k) in zip(sizes[1:], programs)]
         best = int(np.argmin(cost))
         if best == 0:
             return self(x0, problem, steps, num_free)
-        size = sizes[best]
-        sub, texels = taken(size, counts[best])
+        size, count = sizes[best], programs[best - 1][0]
+        sub, texels = least if best == len(sizes) - 1 and count == least[0].num_texels else taken(size, count)
         x, info = self(to_device(texel_rows(x0, texels), np.float32), sub, steps, num_free)
         # the rows of the pixels taken (padding: past the end, dropped)
         at = np.concatenate([pixels, np.full(size - len(pixels), total)]).astype(np.int32)

@@ -66,8 +66,7 @@ from ..lighting.pixel_ibl import per_row
 
 __all__ = ["PIXEL_AXIS", "PAD_NORMAL", "PAD_VIEW", "PAD_LIGHT", "padded_size", "pad_observations", "pad_pixel_rows",
            "pad_layout", "pixel_mesh", "pixel_sharding", "shard_problem", "mesh_size", "take_pixels", "moving_pixels",
-           "halving_sizes", "take_texels", "texel_rows", "set_texel_rows", "texel_size",
-           "texel_stand_in"]
+           "halving_sizes", "take_texels", "texel_rows", "set_texel_rows", "texel_program"]
 
 #: Name of the mesh axis the pixels are split over.
 PIXEL_AXIS = "pixels"
@@ -264,17 +263,17 @@ def take_texels(problem: Problem, x: Optional[Float[np.ndarray, "T K"]] = None,
     Its texels are those, in their order, then padding texels up to ``size``, one of T, 1/2,
     1/4, ... of `problem`'s T (`halving_sizes`, so that a few programs serve every choice;
     default: the least that holds them and one padding texel, the sink): every index into the
-    texels is renumbered (the rows' taps, the grid's cell tables, the prior's pairs, the stencil's neighbours and cells), a table entry
-    that leads out of the texels kept leads to the sink, and the padding texels are free nowhere
-    and read by no pixel with a weight. The pairs kept are those of positive weight with both
-    ends kept, padded with pairs of the sink of weight 0 to twice the texels (a grid's pairs
-    number under that; `problem`'s own number at T), so that the program's shapes follow
-    ``size`` alone. Its pixels' residuals,
-    the prior's terms of the texels that move and the Gauss-Newton blocks among the texels kept
-    are `problem`'s at the texels taken (``texel_rows(x, texels)``; the padding's entry of
-    ``texels`` is T), so a search or a solve moves them as on `problem`
-    (`pbrfit.fitting.stages.repair`, `pbrfit.fitting.runner.Runner.refit`), where per-texel work
-    costs in proportion to the texels kept, not to the map. With ``x`` (`problem`'s texels) and a
+    texels is renumbered (the rows' taps, the grid's cell tables, the prior's pairs, the
+    stencil's neighbours and cells), a table entry that leads out of the texels kept leads to the
+    sink, and the padding texels are free nowhere and read by no pixel with a weight. The pairs
+    kept are those of positive weight with both ends kept, padded with pairs of the sink of
+    weight 0 to twice the texels (a grid's pairs number under that; `problem`'s own number at
+    T), so that the program's shapes follow ``size`` alone. Its pixels' residuals, the prior's
+    terms of the texels that move and the Gauss-Newton blocks among the texels kept are
+    `problem`'s at the texels taken (``texel_rows(x, texels)``; the padding's entry of ``texels``
+    is T), so a search or a solve moves them as on `problem` (`pbrfit.fitting.stages.repair`,
+    `pbrfit.fitting.runner.Runner.refit`), where per-texel work costs in proportion to the
+    texels kept, not to the map. With ``x`` (`problem`'s texels) and a
     `LeftOut` term, the prior's energy at ``x`` of the pairs dropped is added to it, so that the
     objective is `problem`'s too. ``Problem.texels`` is dropped. Where every texel is kept:
     `problem` itself."""
@@ -302,7 +301,7 @@ def take_texels(problem: Problem, x: Optional[Float[np.ndarray, "T K"]] = None,
     table = lambda a: place(a, _append(new[np.asarray(a)[kept]], size - len(kept), sink))  # (T, N) of texels
     keep = live & (new[pairs[:, 0]] < sink) & (new[pairs[:, 1]] < sink)
     kept_pairs = int(np.sum(keep))
-    e = len(pairs) if size == t else max(2 * size, kept_pairs)
+    e = max(_pair_count(problem, size), kept_pairs)
     pad_pairs = lambda a, fill: place(a, _append(np.asarray(a)[keep], e - kept_pairs, fill))
     changes = dict(index=place(problem.index, new[index]), texels=None,
                    free=place(problem.free, _append(np.asarray(problem.free)[kept], size - len(kept), 0.0)),
@@ -340,22 +339,24 @@ def set_texel_rows(a: Float[np.ndarray, "T K"], texels: Int[np.ndarray, " N"], p
 
 
 
-def texel_stand_in(problem: Problem, taken: Problem, size: int) -> Problem:
-    """``taken`` (`problem` over some pixels and its least texels, `take_texels`) with the texel
-    and pair shapes `take_texels` gives it at ``size`` texels: what a program's key reads, built
-    without taking them (its free and pair arrays are broadcast zeros, not for running)."""
-    pairs = problem.pairs.shape[0] if size == problem.num_texels else 2 * size
-    return dataclasses.replace(taken, free=np.broadcast_to(np.float32(0), (size, problem.free.shape[1])),
-                               pairs=np.broadcast_to(np.int32(0), (pairs, 2)))
+def _pair_count(problem: Problem, size: int) -> int:
+    """The pairs `take_texels` pads to at ``size`` texels (more where more are kept): twice the
+    texels (a grid's pairs number under that), `problem`'s own number at its T."""
+    return problem.pairs.shape[0] if size == problem.num_texels else 2 * size
 
 
-def texel_size(problem: Problem, taken: Problem, compiled) -> int:
-    """The texels to take (`take_texels`) where ``taken`` is `problem` over its least: of T, 1/2,
-    1/4, ... of `problem`'s T that hold ``taken``'s, the least whose program is compiled already
-    (``compiled(texel_stand_in(...))``), else ``taken``'s own. A larger program costs a little
-    more per evaluation, a compile seconds (`pbrfit demo`'s fit compiled 4 s more when each
-    repair pass took its own size)."""
-    for size in reversed(halving_sizes(problem.num_texels, taken.num_texels, 1)):
-        if compiled(texel_stand_in(problem, taken, size)):
-            return size
-    return taken.num_texels
+def texel_program(problem: Problem, taken: Problem, key_of, has) -> tuple[int, tuple]:
+    """(texels to take, the key ``key_of`` gives that problem) where ``taken`` is `problem` over
+    its least texels (`take_texels`): of T, 1/2, 1/4, ... of `problem`'s T that hold ``taken``'s,
+    the least whose program is compiled already (``has(key)``), else ``taken``'s own. The keys of
+    the larger counts are read from stand-ins with their texel and pair shapes (broadcast zeros,
+    not for running), built without taking them. A larger program costs a little more per
+    evaluation, a compile seconds (`pbrfit demo`'s fit compiled 4 s more when each repair pass
+    took its own count)."""
+    k = problem.free.shape[1]
+    for size in reversed(halving_sizes(problem.num_texels, taken.num_texels, 1)[:-1]):
+        key = key_of(dataclasses.replace(taken, free=np.broadcast_to(np.float32(0), (size, k)),
+                                         pairs=np.broadcast_to(np.int32(0), (_pair_count(problem, size), 2))))
+        if has(key):
+            return size, key
+    return taken.num_texels, key_of(taken)

@@ -38,7 +38,7 @@ from pbrfit.fitting.observations import (PIXEL_FIELDS, coverage_counts, neighbou
 from pbrfit.fitting.stencil import with_stencil
 from pbrfit.fitting.parameters import LOWER, UPPER, from_sine, to_sine
 from pbrfit.fitting.stages.repair import REPAIR_PROGRESS, SEARCH_COMPILE_COST, search_problem
-from pbrfit.fitting.sharding import halving_sizes, moving_pixels, take_pixels, take_texels, texel_rows, texel_size
+from pbrfit.fitting.sharding import halving_sizes, moving_pixels, take_pixels, take_texels, texel_program, texel_rows
 from pbrfit.render.shade import ViewInputs, light_arrays, radiance_view
 from pbrfit.fitting.objective import Problem, objective, texel_grid
 from pbrfit.fitting.solvers.structured import StructuredLM, solve
@@ -895,9 +895,11 @@ def test_coordinate_search_over_the_pixels_of_the_moving_texels_alone(on_grid, s
     found = np.asarray(coordinate_search(jnp.asarray(padded(x0)), part, jnp.asarray(padded(np.asarray(classes)))))
     assert np.all(found[~real] == padded(x0)[~real])
     np.testing.assert_allclose(found[real], whole[texels[real]], atol=1e-5)
-    # a larger count whose program is compiled is taken instead (`texel_size`), with its shapes
-    wider = lambda p: p.free.shape[0] == 64 and p.pairs.shape[0] == problem.pairs.shape[0]
-    assert texel_size(region, part, wider) == 64 and texel_size(region, part, lambda p: False) == part.num_texels
+    # a larger count whose program is compiled is taken instead (`texel_program`), with its shapes
+    shapes = lambda p: (p.free.shape[0], p.pairs.shape[0])
+    wider = (64, problem.pairs.shape[0])
+    assert texel_program(region, part, shapes, lambda k: k == wider) == (64, wider)
+    assert texel_program(region, part, shapes, lambda k: False) == (part.num_texels, shapes(part))
     if samples == 1:
         wide, wide_texels = take_texels(sub, size=64)
         assert wide.free.shape == (64, 5) and wide.pairs.shape == problem.pairs.shape

@@ -69,10 +69,11 @@ The repair finds the cluster by its misfit and starts it again from outside:
    so its time follows the region's size, not the map's: on the noiseless peer layout at 512²
    (16 views) the three searches took 34 s over a quarter, a quarter and a sixteenth of the
    pixels, against 149 s with every texel (two of them then searched every pixel); at 1024² the
-   repair's time besides its steps fell from 685 to 187 s (experiments/speed.md). It runs only where some cluster could clear its threshold: where its pixels'
-   Σ ||r||² lies that far above the least a re-fit reaches under the fit's residual variance
-   (`NOISE_DEVIATIONS`); on the noiseless flash scene, whose 16-bit images are fitted to their
-   rounding, none can, and the pass is skipped.
+   repair's time besides its steps fell from 685 to 187 s (experiments/speed.md). It runs only
+   where some cluster could clear its threshold: where its pixels' Σ ||r||² lies that far above
+   the least a re-fit reaches under the fit's residual variance (`NOISE_DEVIATIONS`); on the
+   noiseless flash scene, whose 16-bit images are fitted to their rounding, none can, and the
+   pass is skipped.
 
 Which texels are out of line after a solve, by their pixels' misfit or by their values against
 their neighbours':
@@ -110,8 +111,8 @@ from scipy.sparse import csgraph
 from ..initialisation import coordinate_search
 from ..parameters import CHANNELS
 from ..runner import jitted_normal_blocks, pixel_rows_from, problem_energy, problem_key, search_inputs, timed
-from ..sharding import (halving_sizes, mesh_size, moving_pixels, set_texel_rows, take_pixels, take_texels, texel_rows,
-                        texel_size, texel_stand_in)
+from ..sharding import (halving_sizes, mesh_size, moving_pixels, set_texel_rows, take_pixels, take_texels,
+                        texel_program, texel_rows)
 from ..solvers.names import DEFAULT_SOLVER, is_structured
 from ..objective import Problem
 from ...transfer import to_device
@@ -433,26 +434,28 @@ def search_problem(region: Problem, pixels: Int[np.ndarray, " N"], key, compiler
     over the texels those read (`take_texels`, ``texels`` which of ``region``'s each is),
     whichever costs least: a search's time in proportion to its pixels, plus
     `SEARCH_COMPILE_COST` (at most `SEARCH_COMPILE_PIXELS`) where its size's program is not
-    compiled yet. The pixels left out read
-    no texel that moves, so both search alike; their programs do not."""
+    compiled yet. The pixels left out read no texel that moves, so both search alike; their
+    programs do not."""
     total = region.num_pixels
     sizes = halving_sizes(total, len(pixels), mesh_size(region))
     if len(sizes) == 1:
         return region, key, None
     # the texels taken do not depend on the size: the smallest's problem gives every size's key,
-    # its texels padded to a count whose program is compiled where there is one (`texel_size`)
-    least = take_texels(take_pixels(region, pixels, sizes[-1]))[0]
+    # its texels padded to a count whose program is compiled where there is one (`texel_program`)
+    least, least_texels = take_texels(take_pixels(region, pixels, sizes[-1]))
     # a size's key: the search's (its name, the map's shape, whether classes share no pixel), the problem's
-    key_of = lambda problem, size: key[:3] + problem_key(problem, size)
-    counts = [None] + [texel_size(region, least, lambda p, n=size: compiler.has(key_of(p, n))) for size in sizes[1:]]
-    keys = [key] + [key_of(texel_stand_in(region, least, n), size) for size, n in zip(sizes[1:], counts[1:])]
+    programs = [(None, key)] + [texel_program(region, least, lambda p, n=size: key[:3] + problem_key(p, n),
+                                              compiler.has) for size in sizes[1:]]
     compile_cost = min(SEARCH_COMPILE_COST, SEARCH_COMPILE_PIXELS / total)
-    cost = [size / total + (0.0 if compiler.has(k) else compile_cost) for size, k in zip(sizes, keys)]
+    cost = [size / total + (0.0 if compiler.has(k) else compile_cost) for size, (_, k) in zip(sizes, programs)]
     best = int(np.argmin(cost))
     if best == 0:
         return region, key, None
-    sub, texels = take_texels(take_pixels(region, pixels, sizes[best]), size=counts[best])
-    return sub, keys[best], texels
+    count, program = programs[best]
+    if best == len(sizes) - 1 and count == least.num_texels:
+        return least, program, least_texels
+    sub, texels = take_texels(take_pixels(region, pixels, sizes[best]), size=count)
+    return sub, program, texels
 
 
 def repair_skipped(solver, final, channels) -> Optional[str]:
